@@ -1,0 +1,440 @@
+"""Benchmark: the differentiable batched functional-map solve and a CPU training step (torch).
+
+Run by hand from the repository root (prints markdown tables to stdout, progress to stderr)::
+
+    python bench/solver.py                         # both parts, float32 and float64
+    python bench/solver.py --ks 100 --no-train --no-memory
+    python bench/solver.py --no-solver --train-ks 30 --train-batches 1
+
+Inputs (random, seeded, built in float64 and cast, so both dtypes see the same numbers): a
+``BasisBatch`` per side with ``values = sqrt(V) Q`` (``Q`` from the QR of a Gaussian ``(V, K)``,
+so ``valuesᵀ diag(mass) values = I`` with the uniform ``mass = 1/V``), ``lam`` sorted uniform
+in ``[0, 100]``, ``U`` orthogonal (QR of a Gaussian ``(K, K)``), ``valid`` all ones.
+
+(1) Solver. ``fmap_solve(feat_x, feat_y, bx, by, w_desc=1, w_lap=1e-3, both=True)`` (one
+batched ``torch.linalg.solve`` over ``(B, K, K, K)`` per direction) against a per-row loop
+written here: the same math (project, rotate by ``U``, Laplacian mask normalised to mean 1,
+then one ``torch.linalg.solve`` of a ``(K, K)`` system per row of every batch item in a Python
+loop, un-rotate), both directions, both with autograd. Features ``(B, V, D)`` Gaussian with
+``requires_grad``; the scalar is ``Σ R_xy ∘ C_xy + Σ R_yx ∘ C_yx`` with fixed Gaussian ``R``.
+One warm-up of each, then ``--repeats`` rounds alternating batched and loop (so a load from
+another process hits both alike); each cell is a median over rounds. ``loop/batched`` is the
+ratio of the fwd+bwd medians (target >= 3). Agreement: max ``|ΔC|`` over ``C_xy`` and
+``C_yx`` and max ``|Δ∇feat_x|``, ``|Δ∇feat_y|`` (absolute and relative to the largest entry).
+``cond`` is the 2-norm condition number of the ``K`` row systems of the first batch item
+(``x -> y``, float64): with ``D < K`` the Gram matrix ``A_x A_xᵀ`` is singular and only the
+``w_lap`` mask term regularises it. Memory: ``system`` is the size of one ``(B, K, K, K)``
+system tensor (two per call, one per direction); ``RSS peak`` is the resident high-water mark
+(``VmHWM``, reset through ``/proc/self/clear_refs``) above the resident size just before the
+first fwd+bwd call in a fresh subprocess (inputs built, nothing run yet; includes first-call
+library set-up), falling back to ``ru_maxrss`` where ``clear_refs`` is not writable.
+
+(2) Training step. ``FeatureNet(32, 64, width=64, n_blocks=3)`` on a pair of ``--train-v``
+vertex shapes (random bases as above, Gaussian ``(B, V, 32)`` inputs): features of x and y,
+``fmap_solve`` (both directions, default weights), ``UnsupervisedFMLoss()`` (default weights,
+so the soft point maps ``(B, V, V)`` of the coupling term are included), backward, ``Adam``
+step (lr 1e-3). One warm-up step, then the median of ``--repeats`` steps of each phase. The
+forward phases are timed with ``time.perf_counter`` around each call; the backward is split by
+gradient hooks: ``loss bwd`` ends when the gradients of ``C_xy`` and ``C_yx`` are complete,
+``solver bwd`` when those of both feature tensors are, ``net bwd`` is the rest (the autograd
+engine runs later-created nodes first, so this follows the forward order; approximate).
+``torch.set_num_threads`` is left at its default unless ``--threads N`` is given (also in the
+memory subprocesses); the 1-minute load average is recorded with every row, since another job
+may share the CPUs. On a loaded machine with the default thread count every parallel torch op can
+wait for a descheduled worker thread (milliseconds each), which swamps small ops: compare with
+``--threads 1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from _common import load1, log  # noqa: E402
+
+from torchfmap.nn import FeatureNet, UnsupervisedFMLoss
+from torchfmap.nn.functional import BasisBatch, fmap_solve
+
+MiB = 2**20
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+W_DESC, W_LAP = 1.0, 1e-3
+
+
+def fmt(x: Any) -> str:
+    if isinstance(x, float):
+        if x == 0.0:
+            return "0"
+        if x != x:
+            return "nan"
+        return f"{x:.2e}" if abs(x) < 1e-3 or abs(x) >= 1e6 else f"{x:.3f}" if abs(x) < 100 else f"{x:.0f}"
+    if isinstance(x, int):
+        return f"{x:,}"
+    return str(x)
+
+
+def markdown(rows: list[dict], columns: list[str]) -> str:
+    def cell(x: Any) -> str:
+        return fmt(x).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(cell(r.get(c, "")) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+# -- inputs ----------------------------------------------------------------------------------------
+def random_basis(b: int, v: int, k: int, dtype: torch.dtype, gen: torch.Generator) -> BasisBatch:
+    """B-orthonormal random basis (uniform mass ``1/V``) with a random spectral frame."""
+    f64 = torch.float64
+    q, _ = torch.linalg.qr(torch.randn(b, v, k, generator=gen, dtype=f64))
+    u, _ = torch.linalg.qr(torch.randn(b, k, k, generator=gen, dtype=f64))
+    lam = torch.sort(100.0 * torch.rand(b, k, generator=gen, dtype=f64), dim=-1).values
+    mass = torch.full((b, v), 1.0 / v, dtype=f64)
+    parts = (q * v**0.5, mass, lam, u, torch.ones(b, k, dtype=f64))
+    return BasisBatch(*(t.to(dtype).contiguous() for t in parts))
+
+
+def solver_inputs(b: int, v: int, k: int, d: int, dtype: torch.dtype, seed: int) -> dict[str, Any]:
+    gen = torch.Generator().manual_seed(seed)
+    bx, by = random_basis(b, v, k, dtype, gen), random_basis(b, v, k, dtype, gen)
+    fx = torch.randn(b, v, d, generator=gen, dtype=torch.float64).to(dtype).requires_grad_(True)
+    fy = torch.randn(b, v, d, generator=gen, dtype=torch.float64).to(dtype).requires_grad_(True)
+    r_xy = torch.randn(b, k, k, generator=gen, dtype=torch.float64).to(dtype)
+    r_yx = torch.randn(b, k, k, generator=gen, dtype=torch.float64).to(dtype)
+    return {"fx": fx, "fy": fy, "bx": bx, "by": by, "r_xy": r_xy, "r_yx": r_yx}
+
+
+# -- the per-row loop baseline ---------------------------------------------------------------------
+def loop_mask(lam_x: torch.Tensor, lam_y: torch.Tensor) -> torch.Tensor:
+    """``(B, K_y, K_x)`` mask ``(λ_x,j - λ_y,i)²`` normalised to mean 1 per batch item."""
+    m = (lam_x.clip(min=0)[:, None, :] - lam_y.clip(min=0)[:, :, None]) ** 2
+    return m / m.mean(dim=(-2, -1), keepdim=True)
+
+
+def loop_systems(A_x, A_y, lam_x, U_x, lam_y, U_y):
+    """Rotated Gram matrix, right-hand sides and mask: ``G (B, Kx, Kx)``, ``rhs (B, Ky, Kx)``."""
+    A_xr = U_x.transpose(-1, -2) @ A_x
+    A_yr = U_y.transpose(-1, -2) @ A_y
+    G = W_DESC * (A_xr @ A_xr.transpose(-1, -2))
+    rhs = W_DESC * (A_yr @ A_xr.transpose(-1, -2))
+    return G, rhs, loop_mask(lam_x, lam_y)
+
+
+def loop_rotate_and_solve(A_x, A_y, lam_x, U_x, lam_y, U_y) -> torch.Tensor:
+    """Same math as ``rotate_and_solve``, one ``(K_x, K_x)`` solve per row in a Python loop."""
+    G, rhs, mask = loop_systems(A_x, A_y, lam_x, U_x, lam_y, U_y)
+    batch = []
+    for b in range(G.shape[0]):
+        rows = [
+            torch.linalg.solve(G[b] + W_LAP * torch.diag(mask[b, i]), rhs[b, i]) for i in range(rhs.shape[1])
+        ]
+        batch.append(torch.stack(rows))
+    return U_y @ torch.stack(batch) @ U_x.transpose(-1, -2)
+
+
+def loop_fmap_solve(fx, fy, bx: BasisBatch, by: BasisBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    A_x = bx.values.transpose(-1, -2) @ (bx.mass[..., None] * fx)
+    A_y = by.values.transpose(-1, -2) @ (by.mass[..., None] * fy)
+    C_xy = loop_rotate_and_solve(A_x, A_y, bx.lam, bx.U, by.lam, by.U)
+    C_yx = loop_rotate_and_solve(A_y, A_x, by.lam, by.U, bx.lam, bx.U)
+    return C_xy, C_yx
+
+
+def batched_fmap_solve(fx, fy, bx: BasisBatch, by: BasisBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    return fmap_solve(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True)
+
+
+METHODS: dict[str, Callable] = {"batched": batched_fmap_solve, "loop": loop_fmap_solve}
+
+
+def fwd_bwd(method: str, inp: dict[str, Any]) -> tuple[float, float, dict[str, torch.Tensor]]:
+    """One forward (with the scalar) and backward; returns (fwd s, bwd s, C's and gradients)."""
+    fx, fy = inp["fx"], inp["fy"]
+    fx.grad = fy.grad = None
+    t0 = time.perf_counter()
+    C_xy, C_yx = METHODS[method](fx, fy, inp["bx"], inp["by"])
+    total = (inp["r_xy"] * C_xy).sum() + (inp["r_yx"] * C_yx).sum()
+    t1 = time.perf_counter()
+    total.backward()
+    t2 = time.perf_counter()
+    out = {"C_xy": C_xy.detach(), "C_yx": C_yx.detach(), "gx": fx.grad.clone(), "gy": fy.grad.clone()}
+    return t1 - t0, t2 - t1, out
+
+
+def max_diff(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
+    """(max |a - b|, that over max |b|)."""
+    diff = (a - b).abs().max().item()
+    return diff, diff / max(b.abs().max().item(), 1e-300)
+
+
+def system_cond(inp: dict[str, Any]) -> tuple[float, float]:
+    """Median and max 2-norm condition number of the row systems of batch item 0, x -> y (float64)."""
+    with torch.no_grad():
+        bx, by = (BasisBatch(*(t[:1].double() for t in b)) for b in (inp["bx"], inp["by"]))
+        A_x = bx.values.transpose(-1, -2) @ (bx.mass[..., None] * inp["fx"][:1].double())
+        A_y = by.values.transpose(-1, -2) @ (by.mass[..., None] * inp["fy"][:1].double())
+        G, _, mask = loop_systems(A_x, A_y, bx.lam, bx.U, by.lam, by.U)
+        systems = G[0][None] + W_LAP * torch.diag_embed(mask[0])
+        cond = torch.linalg.cond(systems)
+    return cond.median().item(), cond.max().item()
+
+
+def bench_solver_config(dtype_name: str, b: int, v: int, k: int, d: int, args) -> dict[str, Any]:
+    dtype = DTYPES[dtype_name]
+    inp = solver_inputs(b, v, k, d, dtype, args.seed)
+    row: dict[str, Any] = {"dtype": dtype_name, "B": b, "K": k, "V": v, "D": d, "load1 start": load1()}
+    times: dict[str, list[tuple[float, float]]] = {m: [] for m in METHODS}
+    outs: dict[str, dict[str, torch.Tensor]] = {}
+    for m in METHODS:  # warm-up
+        fwd_bwd(m, inp)
+    for r in range(args.repeats):
+        for m in METHODS:
+            gc.collect()
+            f, bw, outs[m] = fwd_bwd(m, inp)
+            times[m].append((f, bw))
+        done = ", ".join(f"{m} {sum(times[m][-1]):.3f} s" for m in METHODS)
+        log(f"    round {r + 1}/{args.repeats}: {done}")
+    for m in METHODS:
+        row[f"{m} fwd [s]"] = statistics.median(t[0] for t in times[m])
+        row[f"{m} bwd [s]"] = statistics.median(t[1] for t in times[m])
+        row[f"{m} fwd+bwd [s]"] = statistics.median(t[0] + t[1] for t in times[m])
+    row["loop/batched"] = row["loop fwd+bwd [s]"] / row["batched fwd+bwd [s]"]
+    ob, ol = outs["batched"], outs["loop"]
+    dc = [max_diff(ob[c], ol[c]) for c in ("C_xy", "C_yx")]
+    row["max|ΔC|"] = max(x[0] for x in dc)
+    row["max|ΔC| rel"] = max(x[1] for x in dc)
+    row["max|Δ∇fx|"], row["max|Δ∇fx| rel"] = max_diff(ob["gx"], ol["gx"])
+    row["max|Δ∇fy|"], row["max|Δ∇fy| rel"] = max_diff(ob["gy"], ol["gy"])
+    row["max|C|"] = ol["C_xy"].abs().max().item()
+    row["max|∇fx|"] = ol["gx"].abs().max().item()
+    finite = all(bool(torch.isfinite(t).all()) for o in outs.values() for t in o.values())
+    row["finite"] = "yes" if finite else "NO"
+    row["cond median"], row["cond max"] = system_cond(inp)
+    row["system MiB"] = b * k**3 * dtype.itemsize / MiB
+    row["load1 end"] = load1()
+    return row
+
+
+# -- memory (fresh subprocess per configuration) --------------------------------------------------
+def _status_mib(key: str) -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def child_memory(spec: str) -> None:
+    """``--child method,dtype,B,V,K,D,seed``: one fwd+bwd call; prints JSON peaks (MiB) to stdout."""
+    method, dtype_name, *nums = spec.split(",")
+    b, v, k, d, seed = (int(x) for x in nums)
+    inp = solver_inputs(b, v, k, d, DTYPES[dtype_name], seed)
+    gc.collect()
+    ru_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        source = "VmHWM"
+    except OSError:
+        source = "ru_maxrss"
+    rss_before = _status_mib("VmRSS")
+    fwd_bwd(method, inp)
+    ru_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if source == "VmHWM":
+        peak = _status_mib("VmHWM") - rss_before
+    else:
+        peak = ru_after - max(ru_before, rss_before)
+    print(json.dumps({"peak": peak, "source": source, "rss_before": rss_before, "ru_maxrss": ru_after}))
+
+
+def measure_memory(method: str, dtype_name: str, b: int, v: int, k: int, d: int, args) -> dict:
+    spec = ",".join(str(x) for x in (method, dtype_name, b, v, k, d, args.seed))
+    cmd = [sys.executable, os.path.abspath(__file__), "--threads", str(args.threads), "--child", spec]
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if res.returncode != 0:
+        log(f"    memory child {spec} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
+        return {"peak": float("nan"), "source": "failed"}
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+# -- (2) training step -----------------------------------------------------------------------------
+class Hooks:
+    """Time at which the gradients of all given tensors are complete, per label."""
+
+    def __init__(self) -> None:
+        self.at: dict[str, float] = {}
+
+    def watch(self, label: str, *tensors: torch.Tensor) -> None:
+        left = [len(tensors)]
+
+        def hook(grad: torch.Tensor) -> None:
+            left[0] -= 1
+            if left[0] == 0:
+                self.at[label] = time.perf_counter()
+
+        for t in tensors:
+            t.register_hook(hook)
+
+
+def train_step(net, loss_fn, opt, xin, yin, bx, by) -> tuple[dict[str, float], float]:
+    opt.zero_grad(set_to_none=True)
+    hooks = Hooks()
+    t: dict[str, float] = {}
+    t0 = time.perf_counter()
+    fx, fy = net(xin, bx), net(yin, by)
+    t1 = time.perf_counter()
+    C_xy, C_yx = fmap_solve(fx, fy, bx, by)
+    t2 = time.perf_counter()
+    total = loss_fn(C_xy, C_yx, fx, fy, bx, by)["total"]
+    t3 = time.perf_counter()
+    hooks.watch("loss", C_xy, C_yx)
+    hooks.watch("solver", fx, fy)
+    total.backward()
+    t4 = time.perf_counter()
+    opt.step()
+    t5 = time.perf_counter()
+    t["net fwd"], t["solver fwd"], t["loss fwd"] = t1 - t0, t2 - t1, t3 - t2
+    t["loss bwd"] = hooks.at["loss"] - t3
+    t["solver bwd"] = hooks.at["solver"] - hooks.at["loss"]
+    t["net bwd"] = t4 - hooks.at["solver"]
+    t["backward"], t["adam"], t["step"] = t4 - t3, t5 - t4, t5 - t0
+    return t, total.item()
+
+
+def bench_train_config(dtype_name: str, b: int, k: int, args) -> dict[str, Any]:
+    dtype = DTYPES[dtype_name]
+    v = args.train_v
+    gen = torch.Generator().manual_seed(args.seed)
+    bx, by = random_basis(b, v, k, dtype, gen), random_basis(b, v, k, dtype, gen)
+    xin = torch.randn(b, v, 32, generator=gen, dtype=torch.float64).to(dtype)
+    yin = torch.randn(b, v, 32, generator=gen, dtype=torch.float64).to(dtype)
+    torch.manual_seed(args.seed)
+    net = FeatureNet(32, 64, width=64, n_blocks=3).to(dtype)
+    loss_fn = UnsupervisedFMLoss()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    row: dict[str, Any] = {"dtype": dtype_name, "B": b, "K": k, "V": v, "load1 start": load1()}
+    train_step(net, loss_fn, opt, xin, yin, bx, by)  # warm-up
+    steps, losses = [], []
+    for r in range(args.repeats):
+        gc.collect()
+        t, loss = train_step(net, loss_fn, opt, xin, yin, bx, by)
+        steps.append(t)
+        losses.append(loss)
+        log(f"    step {r + 1}/{args.repeats}: {t['step']:.3f} s, loss {loss:.4g}")
+    for key in steps[0]:
+        row[f"{key} [s]"] = statistics.median(s[key] for s in steps)
+    for part in ("net", "solver", "loss"):
+        share = statistics.median((s[f"{part} fwd"] + s[f"{part} bwd"]) / s["step"] for s in steps)
+        row[f"{part} %"] = 100 * share
+    row["adam %"] = 100 * statistics.median(s["adam"] / s["step"] for s in steps)
+    row["loss first→last"] = f"{losses[0]:.4g}→{losses[-1]:.4g}"
+    row["finite"] = "yes" if all(torch.isfinite(torch.tensor(losses))) else "NO"
+    row["load1 end"] = load1()
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--batch", type=int, default=8, help="B of the solver benchmark")
+    parser.add_argument("--ks", default="100,50", help="K of the solver benchmark, comma-separated")
+    parser.add_argument("--v", type=int, default=5000, help="vertices of the solver benchmark")
+    parser.add_argument("--d", type=int, default=64, help="feature channels of the solver benchmark")
+    parser.add_argument("--dtypes", default="float32,float64")
+    parser.add_argument("--repeats", type=int, default=5, help="timed rounds/steps (median), after 1 warm-up")
+    parser.add_argument("--train-ks", default="30,100")
+    parser.add_argument("--train-batches", default="1,4")
+    parser.add_argument("--train-v", type=int, default=5000)
+    parser.add_argument("--no-solver", action="store_true")
+    parser.add_argument("--no-memory", action="store_true", help="skip the subprocess RSS measurements")
+    parser.add_argument("--no-train", action="store_true")
+    parser.add_argument("--threads", type=int, default=0, help="torch.set_num_threads (0: leave default)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    if args.child:
+        child_memory(args.child)
+        return
+    ks = [int(s) for s in args.ks.split(",") if s.strip()]
+    dtypes = [s.strip() for s in args.dtypes.split(",") if s.strip()]
+    train_ks = [int(s) for s in args.train_ks.split(",") if s.strip()]
+    train_batches = [int(s) for s in args.train_batches.split(",") if s.strip()]
+    t_start, load_start = time.perf_counter(), os.getloadavg()
+    print(
+        f"# Differentiable solver and training step (torch {torch.__version__}, "
+        f"{torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs; load average 1/5/15 min at "
+        f"start {'/'.join(f'{x:.1f}' for x in load_start)})\n"
+    )
+
+    if not args.no_solver:
+        rows = []
+        for dtype_name in dtypes:
+            for k in ks:
+                log(f"solver: {dtype_name}, B={args.batch}, K={k}, V={args.v}, D={args.d}")
+                row = bench_solver_config(dtype_name, args.batch, args.v, k, args.d, args)
+                if not args.no_memory:
+                    for m in METHODS:
+                        log(f"    memory: {m} (fresh subprocess)")
+                        mem = measure_memory(m, dtype_name, args.batch, args.v, k, args.d, args)
+                        row[f"RSS peak {m} MiB"] = mem["peak"]
+                        row["RSS source"] = mem["source"]
+                rows.append(row)
+        print(
+            f"## (1) fmap_solve (batched) vs per-row loop: forward + backward, both directions; "
+            f"median of {args.repeats} alternating rounds after 1 warm-up\n"
+        )
+        cols = ["dtype", "B", "K", "V", "D"]
+        cols += [f"{m} {p} [s]" for m in METHODS for p in ("fwd", "bwd", "fwd+bwd")]
+        cols += ["loop/batched", "load1 start", "load1 end"]
+        print(markdown(rows, cols))
+        print("\n### Agreement (batched vs loop, last round), conditioning and memory\n")
+        cols = ["dtype", "K", "max|ΔC|", "max|ΔC| rel", "max|Δ∇fx|", "max|Δ∇fx| rel", "max|Δ∇fy|"]
+        cols += ["max|Δ∇fy| rel", "max|C|", "max|∇fx|", "finite", "cond median", "cond max", "system MiB"]
+        if not args.no_memory:
+            cols += [f"RSS peak {m} MiB" for m in METHODS] + ["RSS source"]
+        print(markdown(rows, cols))
+        print(
+            "\nrel = max|Δ| / max|loop value|. cond: row systems of batch item 0, x -> y, in float64. "
+            "system MiB: one (B, K, K, K) tensor (fmap_solve builds one per direction). RSS peak: "
+            "resident high-water mark above the start of one fwd+bwd call in a fresh process.\n"
+        )
+
+    if not args.no_train:
+        rows = []
+        for dtype_name in dtypes:
+            for b in train_batches:
+                for k in train_ks:
+                    log(f"train: {dtype_name}, B={b}, K={k}, V={args.train_v}")
+                    rows.append(bench_train_config(dtype_name, b, k, args))
+        print(
+            f"## (2) Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + fmap_solve + "
+            f"UnsupervisedFMLoss + Adam; median of {args.repeats} steps after 1 warm-up "
+            f"({torch.get_num_threads()} torch threads)\n"
+        )
+        cols = ["dtype", "B", "K", "V", "step [s]", "net fwd [s]", "solver fwd [s]", "loss fwd [s]"]
+        cols += ["backward [s]", "loss bwd [s]", "solver bwd [s]", "net bwd [s]", "adam [s]"]
+        print(markdown(rows, cols))
+        print("\n### Split of the step (fwd + bwd per part; median of the per-step shares)\n")
+        cols = ["dtype", "B", "K", "net %", "solver %", "loss %", "adam %", "loss first→last", "finite"]
+        cols += ["load1 start", "load1 end"]
+        print(markdown(rows, cols))
+        print()
+
+    print(
+        f"Load average at end {'/'.join(f'{x:.1f}' for x in os.getloadavg())}; total "
+        f"{time.perf_counter() - t_start:.0f} s."
+    )
+
+
+if __name__ == "__main__":
+    main()

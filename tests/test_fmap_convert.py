@@ -1,0 +1,81 @@
+"""p2p <-> functional map conversions, nearest neighbours, refinement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, laplacian_eigenbasis
+from torchfmap.fmap import (
+    fmap_to_p2p,
+    fmap_to_p2p_bijective,
+    icp_refine,
+    nearest_neighbor,
+    p2p_to_fmap,
+    zoomout,
+)
+
+
+@pytest.fixture(scope="module")
+def bases(request):
+    from torchfmap.data.synthetic import _bumpy_blob
+
+    x = _bumpy_blob(3)
+    perm = np.random.default_rng(5).permutation(x.n_vertices)
+    y = x.permuted(perm)  # y vertex i is x vertex perm[i]: p2p_yx = perm
+    return x, y, perm, laplacian_eigenbasis(x, 40), laplacian_eigenbasis(y, 40)
+
+
+@pytest.mark.parametrize("method", ["brute", "kdtree"])
+def test_nearest_neighbor_equals_brute_force(rng, method):
+    q, r = rng.normal(size=(300, 5)), rng.normal(size=(200, 5))
+    expected = np.argmin(((q[:, None] - r[None]) ** 2).sum(axis=2), axis=1)
+    got, dist = nearest_neighbor(q, r, method=method, block_bytes=8 * 200 * 7, return_distance=True)
+    assert np.array_equal(got, expected)
+    assert np.allclose(dist, np.linalg.norm(q - r[expected], axis=1))
+
+
+def test_nearest_neighbor_errors(rng):
+    with pytest.raises(ParameterError, match="must be"):
+        nearest_neighbor(rng.normal(size=(3, 4)), rng.normal(size=(3, 5)))
+    bad = rng.normal(size=(3, 4))
+    bad[0, 0] = np.nan
+    with pytest.raises(ParameterError, match="NaN"):
+        nearest_neighbor(bad, rng.normal(size=(3, 4)))
+
+
+def test_p2p_fmap_round_trip(bases):
+    x, y, perm, bx, by = bases
+    C = p2p_to_fmap(perm, bx, by)
+    # a vertex permutation is an exact isometry: C is orthogonal (diagonal +-1 up to degenerate blocks)
+    assert np.abs(C.T @ C - np.eye(40)).max() < 1e-8
+    for mode in ("pullback", "orthogonal"):
+        assert np.array_equal(fmap_to_p2p(C, bx, by, mode=mode), perm)
+    assert np.array_equal(fmap_to_p2p_bijective(C, C.T, bx, by), perm)
+    # truncation to a smaller map still recovers the permutation
+    assert np.array_equal(fmap_to_p2p(p2p_to_fmap(perm, bx, by, 20, 20), bx, by), perm)
+
+
+def test_refinement_recovers_from_noise(bases):
+    x, y, perm, bx, by = bases
+    C = p2p_to_fmap(perm, bx, by, 15, 15)
+    noisy = C + 0.15 * np.random.default_rng(0).normal(size=C.shape)
+    before = np.mean(fmap_to_p2p(noisy, bx, by) == perm)
+    C_icp, p_icp = icp_refine(noisy, bx, by)
+    C_zo, p_zo = zoomout(noisy, bx, by, 40, step=5)
+    assert C_zo.shape == (40, 40)
+    assert np.mean(p_icp == perm) >= before and np.mean(p_zo == perm) > max(before, 0.9)
+
+
+def test_conversion_errors(bases):
+    x, y, perm, bx, by = bases
+    with pytest.raises(ParameterError, match=r"C_xy has shape \(50, 50\)"):
+        fmap_to_p2p(np.eye(50), bx, by)
+    with pytest.raises(ParameterError, match="one entry per vertex"):
+        p2p_to_fmap(perm[:10], bx, by)
+    with pytest.raises(ParameterError, match="outside"):
+        p2p_to_fmap(perm + 1, bx, by)
+    with pytest.raises(ParameterError, match="square"):
+        icp_refine(np.ones((4, 5)), bx, by)
+    with pytest.raises(ParameterError, match="k_final"):
+        zoomout(np.eye(10), bx, by, 100)

@@ -1,0 +1,153 @@
+"""Functional-map solver: closed forms, rotation exactness, real isometric pair, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, farthest_point_sampling, laplacian, laplacian_eigenbasis, load_mesh
+from torchfmap.bases import basis_stack
+from torchfmap.descriptors import hks, landmark_descriptors, normalize_descriptors, wks
+from torchfmap.eval import evaluate_map, gt_identity
+from torchfmap.fmap import build_problem, fmap_to_p2p, laplacian_mask, solve_fmap, solve_rowwise
+
+from .conftest import data_path
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """The demo blob and a deformed copy with the same connectivity (identity ground truth)."""
+    from torchfmap.data.synthetic import _bend, _bumpy_blob
+
+    x = _bumpy_blob(3)
+    y = x.copy(_bend(x.vertices, 0.25))
+    return x, y
+
+
+def descriptors(mesh, k=30):
+    basis = laplacian_eigenbasis(mesh, k)
+    return normalize_descriptors(
+        np.hstack([wks(basis.eigenvalues, basis.values, 20), hks(basis.eigenvalues, basis.values, 8)])
+    )
+
+
+def vec_solve(A_x, A_y, W_x, W_y, w_desc, w_lap):
+    """Brute-force k^2 x k^2 least squares of w_desc |C A_x - A_y|^2 + w_lap |C W_x - W_y C|^2."""
+    ky, kx = A_y.shape[0], A_x.shape[0]
+    # vec(C A_x) = (A_x^T kron I) vec(C) with column-major vec
+    M1 = np.kron(A_x.T, np.eye(ky))
+    M2 = np.kron(W_x.T, np.eye(ky)) - np.kron(np.eye(kx), W_y)
+    M = np.vstack([np.sqrt(w_desc) * M1, np.sqrt(w_lap) * M2])
+    rhs = np.concatenate([np.sqrt(w_desc) * A_y.ravel(order="F"), np.zeros(kx * ky)])
+    return np.linalg.lstsq(M, rhs, rcond=None)[0].reshape((ky, kx), order="F")
+
+
+def test_eigenbasis_matches_direct_least_squares(pair):
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 12), laplacian_eigenbasis(y, 10)
+    dx, dy = descriptors(x), descriptors(y)
+    C = solve_fmap(bx, by, dx, dy, w_lap=1e-2)
+    prob = build_problem(bx, by, dx, dy, w_lap=1e-2)
+    # the mask is normalised to mean one: compare with the same scaled Laplacian term
+    scale = np.mean((bx.eigenvalues[None, :] - by.eigenvalues[:, None]) ** 2)
+    ref = vec_solve(
+        bx.project(dx), by.project(dy), np.diag(bx.eigenvalues), np.diag(by.eigenvalues), 1.0, 1e-2 / scale
+    )
+    assert C.shape == (10, 12)
+    assert np.abs(C - ref).max() < 1e-8 * np.abs(ref).max()
+    assert prob.energy(prob.solve()) <= prob.energy(prob.solve() + 1e-4) + 1e-12
+
+
+def test_general_basis_rotation_equals_full_solve(pair):
+    x, y = pair
+    seeds = farthest_point_sampling(x, 6, metric="euclidean")
+    bx = basis_stack(x, seeds, times=[1e-2], n_eigen=4)
+    by = basis_stack(y, seeds, times=[1e-2], n_eigen=4)
+    W_x, W_y = bx.projected_laplacian(), by.projected_laplacian()
+    assert np.abs(W_x - np.diag(np.diag(W_x))).max() > 1e-3  # genuinely non-diagonal
+    dx, dy = descriptors(x), descriptors(y)
+    C = solve_fmap(bx, by, dx, dy, w_lap=1e-2)
+    lam_x, lam_y = np.linalg.eigvalsh(W_x), np.linalg.eigvalsh(W_y)
+    scale = np.mean((lam_x[None, :] - lam_y[:, None]) ** 2)
+    ref = vec_solve(bx.project(dx), by.project(dy), W_x, W_y, 1.0, 1e-2 / scale)
+    assert np.abs(C - ref).max() < 1e-7 * np.abs(ref).max()
+
+
+def test_extra_terms_solved_by_cg_match_dense(pair):
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 8), laplacian_eigenbasis(y, 8)
+    dx, dy = descriptors(x)[:, :6], descriptors(y)[:, :6]
+    lm = np.array([[10, 10], [200, 200], [400, 400]])
+    prob = build_problem(bx, by, dx, dy, w_lap=1e-2, w_dcomm=1e-1, landmarks=lm, w_lmk=1.0)
+    Cr = prob.solve()
+    # dense normal equations of the same quadratic energy
+    n = Cr.size
+    H = np.column_stack([prob.normal_matvec(e.reshape(Cr.shape)).ravel() for e in np.eye(n)])
+    ref = np.linalg.solve(H, prob.normal_rhs().ravel()).reshape(Cr.shape)
+    assert np.abs(Cr - ref).max() < 1e-6 * np.abs(ref).max()
+    # the energy is at its minimum: any perturbation increases it
+    e0 = prob.energy(Cr)
+    for d in np.random.default_rng(0).normal(size=(5,) + Cr.shape):
+        assert prob.energy(Cr + 1e-3 * d) > e0
+
+
+def test_orientation_term_runs_and_is_finite(pair):
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 10), laplacian_eigenbasis(y, 10)
+    dx, dy = descriptors(x)[:, :4], descriptors(y)[:, :4]
+    C = solve_fmap(bx, by, dx, dy, w_orient=1e-1, meshes=(x, y))
+    assert np.isfinite(C).all()
+    with pytest.raises(ParameterError, match="meshes"):
+        solve_fmap(bx, by, dx, dy, w_orient=1e-1)
+
+
+def test_masks():
+    lam = np.array([0.0, 1.0, 4.0])
+    m = laplacian_mask(lam, lam)
+    assert np.allclose(np.diag(m), 0) and m.mean() == pytest.approx(1.0)
+    r = laplacian_mask(lam, lam, "resolvent")
+    assert np.allclose(np.diag(r), 0) and (r >= 0).all()
+    assert np.allclose(solve_rowwise(np.eye(3), 2 * np.eye(3), np.zeros((3, 3)), 1.0, 0.0), 2 * np.eye(3))
+
+
+def test_isometric_wolf_pair_near_diagonal_and_low_error():
+    folder = data_path("tosca_hires_wolf")
+    x, y = load_mesh(folder / "wolf0.off"), load_mesh(folder / "wolf1.off")
+    k = 30
+    bx, by = laplacian_eigenbasis(x, k), laplacian_eigenbasis(y, k)
+    dx = normalize_descriptors(wks(bx.eigenvalues, bx.values, 50), laplacian(x)[1])
+    dy = normalize_descriptors(wks(by.eigenvalues, by.values, 50), laplacian(y)[1])
+    lm = np.array([[i, i] for i in (0, 1000, 2000, 3000, 4000)])
+    lx = landmark_descriptors(lm[:, 0], operators=laplacian(x))
+    ly = landmark_descriptors(lm[:, 1], operators=laplacian(y))
+    C = solve_fmap(
+        bx, by, np.hstack([dx, normalize_descriptors(lx)]), np.hstack([dy, normalize_descriptors(ly)])
+    )
+    # energy concentrates near the diagonal (blocks of near-equal eigenvalues)
+    band = np.abs(np.subtract.outer(np.arange(k), np.arange(k))) <= 2
+    assert np.sum(C[band] ** 2) / np.sum(C**2) > 0.8
+    report, _ = evaluate_map(x, y, fmap_to_p2p(C, bx, by), gt_identity(x.n_vertices), max_points=400)
+    assert report.mean_error < 0.05
+
+
+def test_bad_inputs(pair):
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 8), laplacian_eigenbasis(y, 8)
+    dx, dy = descriptors(x), descriptors(y)
+    with pytest.raises(ParameterError, match="descriptor counts differ"):
+        solve_fmap(bx, by, dx, dy[:, :5])
+    with pytest.raises(ParameterError, match=r"desc_x must be \(V, D\) with V=642"):
+        solve_fmap(bx, by, dx[:100], dy)
+    bad = dx.copy()
+    bad[3, 2] = np.nan
+    with pytest.raises(ParameterError, match=r"non-finite values in columns \[2\]"):
+        solve_fmap(bx, by, bad, dy)
+    with pytest.raises(SeedErrorOrParam, match="out of range"):
+        solve_fmap(bx, by, dx, dy, landmarks=[[0, 5000]], w_lmk=1.0)
+    from torchfmap import harmonic_basis
+
+    with pytest.raises(ParameterError, match="not B-orthonormal"):
+        solve_fmap(harmonic_basis(x, [0, 10, 20]), by, dx, dy)
+
+
+SeedErrorOrParam = ValueError

@@ -1,0 +1,140 @@
+"""Loading keeps the file's vertex order for every format (round trip against the raw file)."""
+
+from __future__ import annotations
+
+import gzip
+
+import numpy as np
+import pytest
+
+from torchfmap import MeshError, load_mesh, save_mesh
+from torchfmap.data import icosphere
+from torchfmap.io import merge_soup
+
+from .conftest import data_path
+
+
+@pytest.fixture(scope="module")
+def shuffled():
+    """A sphere whose vertex order is random, so any reordering by a loader shows."""
+    m = icosphere(2)
+    return m.permuted(np.random.default_rng(7).permutation(m.n_vertices))
+
+
+def raw_off(path):
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    nv, nf = map(int, lines[1].split()[:2])
+    v = np.array([list(map(float, ln.split()[:3])) for ln in lines[2 : 2 + nv]])
+    f = np.array([list(map(int, ln.split()[1:4])) for ln in lines[2 + nv : 2 + nv + nf]])
+    return v, f
+
+
+def raw_obj(path):
+    v, f = [], []
+    for ln in path.read_text().splitlines():
+        parts = ln.split()
+        if parts and parts[0] == "v":
+            v.append(list(map(float, parts[1:4])))
+        elif parts and parts[0] == "f":
+            idx = [int(p.split("/")[0]) - 1 for p in parts[1:]]
+            f.extend([idx[0], idx[i], idx[i + 1]] for i in range(1, len(idx) - 1))
+    return np.array(v), np.array(f)
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply", ".off.gz", ".obj.gz", ".ply.gz"])
+def test_round_trip_keeps_order(tmp_path, shuffled, ext):
+    path = save_mesh(shuffled, tmp_path / f"mesh{ext}")
+    loaded = load_mesh(path)
+    assert np.allclose(loaded.vertices, shuffled.vertices, atol=1e-7)
+    assert np.array_equal(loaded.faces, shuffled.faces)
+
+
+@pytest.mark.parametrize("ext", [".off", ".obj"])
+def test_against_raw_text(tmp_path, shuffled, ext):
+    path = save_mesh(shuffled, tmp_path / f"mesh{ext}")
+    v, f = (raw_off if ext == ".off" else raw_obj)(path)
+    loaded = load_mesh(path)
+    assert np.allclose(loaded.vertices, v, atol=1e-12)
+    assert np.array_equal(loaded.faces, f)
+
+
+def test_obj_with_texture_indices_and_quads(tmp_path):
+    """vt/vn indices that differ from v indices must not split or reorder vertices."""
+    text = """# hand written
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 0.5 0.5 1
+vt 0.1 0.1
+vt 0.9 0.9
+vn 0 0 1
+f 4/1/1 3/2/1 2/1/1 1/2/1
+f 1/2/1 2/1/1 5/1/1
+f 2/1/1 3/2/1 5/2/1
+f 3/1/1 4/1/1 5/2/1
+f 4/2/1 1/1/1 5/1/1
+"""
+    path = tmp_path / "pyramid.obj"
+    path.write_text(text)
+    v, f = raw_obj(path)
+    mesh = load_mesh(path)
+    assert np.allclose(mesh.vertices, v)
+    assert mesh.n_vertices == 5 and mesh.n_faces == 6
+    # same triangles up to the split diagonal of the quad
+    assert set(map(tuple, np.sort(mesh.faces[2:], axis=1))) == set(map(tuple, np.sort(f[2:], axis=1)))
+
+
+def test_ply_binary_and_ascii(tmp_path, shuffled):
+    for encoding in ("binary", "ascii"):
+        data = shuffled.to_trimesh().export(file_type="ply", encoding=encoding)
+        path = tmp_path / f"m_{encoding}.ply"
+        path.write_bytes(data if isinstance(data, bytes) else data.encode())
+        mesh = load_mesh(path)
+        assert np.allclose(mesh.vertices, shuffled.vertices) and np.array_equal(mesh.faces, shuffled.faces)
+
+
+def test_stl_merges_in_first_appearance_order(tmp_path, shuffled):
+    path = tmp_path / "m.stl"
+    path.write_bytes(shuffled.to_trimesh().export(file_type="stl"))
+    mesh = load_mesh(path)
+    corners = shuffled.vertices[shuffled.faces].reshape(-1, 3).astype(np.float32).astype(np.float64)
+    _, first = np.unique(corners, axis=0, return_index=True)
+    expected = corners[np.sort(first)]
+    assert mesh.n_vertices == shuffled.n_vertices
+    assert np.array_equal(mesh.vertices, expected)
+    assert np.allclose(mesh.vertices[mesh.faces], shuffled.vertices[shuffled.faces], atol=1e-6)
+
+
+def test_merge_soup_order():
+    soup = np.array([[2.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 0, 0]])
+    v, f = merge_soup(soup, np.array([[0, 1, 3], [2, 1, 3]]))
+    assert v.tolist() == [[2, 0, 0], [1, 0, 0], [0, 0, 0]]
+    assert f.tolist() == [[0, 1, 2], [0, 1, 2]]
+
+
+def test_gzip_off_matches_plain(tmp_path):
+    plain = data_path("tosca5k_dev", "cat0.off")
+    gz = tmp_path / "cat0.off.gz"
+    gz.write_bytes(gzip.compress(plain.read_bytes()))
+    a, b = load_mesh(plain), load_mesh(gz)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    v, f = raw_off(plain)
+    assert np.allclose(a.vertices, v, rtol=0, atol=1e-9) and np.array_equal(a.faces, f)
+
+
+def test_bad_paths(tmp_path):
+    with pytest.raises(MeshError, match="does not exist"):
+        load_mesh(tmp_path / "nope.off")
+    (tmp_path / "x.xyz").write_text("1 2 3")
+    with pytest.raises(MeshError, match="unsupported extension '.xyz'"):
+        load_mesh(tmp_path / "x.xyz")
+    (tmp_path / "broken.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n")
+    with pytest.raises(MeshError):
+        load_mesh(tmp_path / "broken.off")
+
+
+def test_save_is_atomic(tmp_path, shuffled):
+    path = tmp_path / "m.off"
+    save_mesh(shuffled, path)
+    assert [p.name for p in tmp_path.iterdir()] == ["m.off"]  # no temp file left behind

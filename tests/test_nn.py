@@ -1,0 +1,196 @@
+"""torch layers: gradcheck, equality with the classical solver, batching, padding, losses, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchfmap import ParameterError, basis_stack, farthest_point_sampling, laplacian_eigenbasis
+from torchfmap.fmap import solve_fmap
+from torchfmap.nn import BasisModule, FeatureNet, RegularizedFMSolver, UnsupervisedFMLoss, collate_shapes
+from torchfmap.nn import functional as F
+from torchfmap.nn.functional import BasisBatch
+
+
+@pytest.fixture(scope="module")
+def setting():
+    from torchfmap.data.synthetic import _bend, _bumpy_blob
+
+    x = _bumpy_blob(2)
+    y = x.copy(_bend(x.vertices, 0.3))
+    rng = np.random.default_rng(0)
+    dx = rng.normal(size=(x.n_vertices, 5))
+    dy = dx + 0.05 * rng.normal(size=dx.shape)
+    seeds = farthest_point_sampling(x, 4, metric="euclidean")
+    eig = (laplacian_eigenbasis(x, 7), laplacian_eigenbasis(y, 6))
+    stack = (basis_stack(x, seeds, times=[1e-2], n_eigen=2), basis_stack(y, seeds, times=[1e-2], n_eigen=2))
+    return x, y, dx, dy, eig, stack
+
+
+def as_batch(*bases):
+    return [BasisModule(b).batch() for b in bases]
+
+
+@pytest.mark.parametrize("which", ["eig", "stack"])
+def test_module_equals_classical_solver(setting, which):
+    x, y, dx, dy, eig, stack = setting
+    bx, by = eig if which == "eig" else stack
+    C = solve_fmap(bx, by, dx, dy, w_lap=1e-2)
+    tx, ty = as_batch(bx, by)
+    C_xy, C_yx = RegularizedFMSolver(w_lap=1e-2)(torch.tensor(dx)[None], torch.tensor(dy)[None], tx, ty)
+    assert np.abs(C_xy[0].numpy() - C).max() < 1e-10 * np.abs(C).max()
+    assert np.abs(C_yx[0].numpy() - solve_fmap(by, bx, dy, dx, w_lap=1e-2)).max() < 1e-10 * np.abs(C).max()
+
+
+@pytest.mark.parametrize("which", ["eig", "stack"])
+def test_gradcheck_solver(setting, which):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*(eig if which == "eig" else stack))
+    fx = torch.tensor(dx[:, :3], requires_grad=True)
+    fy = torch.tensor(dy[:, :3], requires_grad=True)
+
+    def fn(a, b):
+        C_xy, C_yx = F.fmap_solve(a[None], b[None], tx, ty, w_lap=1e-2)
+        return C_xy, C_yx
+
+    assert torch.autograd.gradcheck(fn, (fx, fy), eps=1e-6, atol=1e-6)
+
+
+def test_gradcheck_losses(setting):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    C_xy = torch.randn(1, 6, 7, dtype=torch.float64, requires_grad=True)
+    C_yx = torch.randn(1, 7, 6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: F.bijectivity_loss(a, b), (C_xy, C_yx))
+    assert torch.autograd.gradcheck(lambda a: F.orthogonality_loss(a), (C_xy,))
+    assert torch.autograd.gradcheck(lambda a: F.laplacian_commutativity_loss(a, tx, ty), (C_xy,))
+    # soft-map losses on a 20-vertex slice (gradcheck perturbs every input entry)
+    n = 20
+    sx = BasisBatch(tx.values[:, :n], tx.mass[:, :n], tx.lam, tx.U, tx.valid)
+    sy = BasisBatch(ty.values[:, :n], ty.mass[:, :n], ty.lam, ty.U, ty.valid)
+    fx = torch.tensor(dx[None, :n, :3], requires_grad=True)
+    fy = torch.tensor(dy[None, :n, :3], requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda c, a, b: F.coupling_loss(c, F.soft_map(a, b, tau=0.5), sx, sy), (C_xy, fx, fy), atol=1e-6
+    )
+    dist = torch.rand(1, 4, n, dtype=torch.float64)
+    idx = torch.tensor([[0, 5, 9, 11]])
+    assert torch.autograd.gradcheck(
+        lambda a, b: F.geodesic_loss(F.soft_map(a, b, tau=0.5), idx, dist), (fx, fy)
+    )
+
+
+def test_losses_vanish_on_perfect_maps():
+    Q = torch.linalg.qr(torch.randn(5, 5, dtype=torch.float64))[0][None]
+    assert F.orthogonality_loss(Q) < 1e-24 and F.bijectivity_loss(Q, Q.transpose(-1, -2)) < 1e-24
+
+
+def test_batched_equals_per_pair(setting):
+    x, y, dx, dy, eig, stack = setting
+    items = []
+    for bx, by in (eig, eig):
+        items.append(as_batch(bx, by))
+    feats_x = torch.stack([torch.tensor(dx), torch.tensor(dx[:, ::-1].copy())])
+    feats_y = torch.stack([torch.tensor(dy), torch.tensor(dy[:, ::-1].copy())])
+    bx = BasisBatch(*(torch.cat(t) for t in zip(items[0][0], items[1][0], strict=True)))
+    by = BasisBatch(*(torch.cat(t) for t in zip(items[0][1], items[1][1], strict=True)))
+    C_batch, _ = F.fmap_solve(feats_x, feats_y, bx, by)
+    for b in range(2):
+        C_one, _ = F.fmap_solve(feats_x[b : b + 1], feats_y[b : b + 1], items[b][0], items[b][1])
+        assert torch.allclose(C_batch[b], C_one[0], atol=1e-12)
+
+
+def test_padded_variable_size_batch_equals_unpadded(setting):
+    from torchfmap.data.synthetic import _bumpy_blob
+
+    x, y, dx, dy, eig, stack = setting
+    small = _bumpy_blob(1)  # 42 vertices vs 162
+    bs = laplacian_eigenbasis(small, 5)
+    ds = np.random.default_rng(1).normal(size=(small.n_vertices, 5))
+
+    def item(basis, feats):
+        arrays = {k: v.clone() for k, v in BasisModule(basis).state_dict().items()}
+        return {**arrays, "wks": torch.tensor(feats)}
+
+    bx, fx, lengths = collate_shapes([item(eig[0], dx), item(bs, ds)])
+    by, fy, _ = collate_shapes([item(eig[1], dy), item(bs, ds)])
+    assert lengths.tolist() == [162, 42] and bx.values.shape == (2, 162, 7)
+    C_pad, C_pad_yx = F.fmap_solve(fx, fy, bx, by)
+    ref, _ = F.fmap_solve(torch.tensor(ds)[None], torch.tensor(ds)[None], *as_batch(bs, bs))
+    assert torch.allclose(C_pad[1, :5, :5], ref[0], atol=1e-10)
+    assert C_pad[1, 5:].abs().max() == 0 and C_pad[1, :, 5:].abs().max() == 0
+    ref0, _ = F.fmap_solve(torch.tensor(dx)[None], torch.tensor(dy)[None], *as_batch(*eig))
+    assert torch.allclose(C_pad[0, :6, :7], ref0[0], atol=1e-10)
+
+
+def test_no_nan_gradients_for_rank_deficient_descriptors(setting):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    const = torch.ones(1, x.n_vertices, 4, dtype=torch.float64, requires_grad=True)  # rank 1
+    C_xy, C_yx = F.fmap_solve(const, const.detach().clone().requires_grad_(True), tx, ty)
+    loss = F.bijectivity_loss(C_xy, C_yx) + F.orthogonality_loss(C_xy)
+    loss.backward()
+    assert torch.isfinite(C_xy).all() and torch.isfinite(const.grad).all()
+
+
+def test_bad_inputs(setting):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
+    with pytest.raises(ParameterError, match="batch sizes differ"):
+        F.fmap_solve(fx, fy, tx, BasisBatch(*(torch.cat([t, t]) for t in ty)))
+    with pytest.raises(ParameterError, match=r"features must be \(B, V, D\)"):
+        F.fmap_solve(fx[:, :10], fy, tx, ty)
+    bad = fx.clone()
+    bad[0, 3, 1] = float("nan")
+    with pytest.raises(ParameterError, match="NaN"):
+        F.fmap_solve(bad, fy, tx, ty)
+    with pytest.raises(ParameterError, match="feature dimensions differ"):
+        F.fmap_solve(fx, fy[..., :3], tx, ty)
+    with pytest.raises(ParameterError, match=r"k=9 is outside \[1, 7\]"):
+        BasisModule(eig[0]).truncated(9)
+    with pytest.raises(ParameterError, match="NaN or inf"):
+        FeatureNet(5, 4).double()(bad, tx)
+    from torchfmap import harmonic_basis
+
+    with pytest.raises(ParameterError, match="B-orthonormal"):
+        BasisModule(harmonic_basis(x, [0, 5]))
+
+
+def test_basis_module_buffers_move_and_project(setting):
+    x, y, dx, dy, eig, stack = setting
+    module = BasisModule(eig[0]).float()
+    assert module.values.dtype == torch.float32 and {n for n, _ in module.named_buffers()} == {
+        "values",
+        "mass",
+        "lam",
+        "U",
+    }
+    f = torch.tensor(eig[0].values[:, :3], dtype=torch.float32)
+    assert torch.allclose(module.project(f), torch.eye(7)[:, :3], atol=1e-5)
+    assert torch.allclose(module.reconstruct(module.project(f)), f, atol=1e-5)
+    assert module.truncated(4).k == 4
+
+
+def test_feature_net_and_unsupervised_loss_backward(setting):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    net = FeatureNet(5, 8, width=16, n_blocks=2).double()
+    fx, fy = net(torch.tensor(dx)[None], tx), net(torch.tensor(dy)[None], ty)
+    C_xy, C_yx = RegularizedFMSolver()(fx, fy, tx, ty)
+    terms = UnsupervisedFMLoss(w_lap=1.0)(C_xy, C_yx, fx, fy, tx, ty)
+    terms["total"].backward()
+    grads = [p.grad for p in net.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert set(terms) == {"bij", "orth", "lap", "couple", "total"}
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu(setting):
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
+    cpu, _ = F.fmap_solve(fx, fy, tx, ty)
+    gpu, _ = F.fmap_solve(fx.cuda(), fy.cuda(), tx.to("cuda"), ty.to("cuda"))
+    assert torch.allclose(cpu, gpu.cpu(), atol=1e-10)

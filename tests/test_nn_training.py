@@ -1,0 +1,100 @@
+"""Datasets and cache, a short training run on dev data, and 2-process DDP on the CPU."""
+
+from __future__ import annotations
+
+import socket
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+import torch
+
+from torchfmap import save_mesh
+from torchfmap.eval import gt_from_vts, read_vts
+from torchfmap.nn.data import PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
+from torchfmap.nn.train import TrainConfig, build_model, ddp_worker, evaluate, load_checkpoint, train
+
+from .conftest import data_path
+
+
+@pytest.fixture(scope="module")
+def blob_files(tmp_path_factory):
+    from torchfmap.data.synthetic import _bend, _bumpy_blob
+
+    folder = tmp_path_factory.mktemp("blobs")
+    base = _bumpy_blob(2)
+    return [
+        save_mesh(base.copy(_bend(base.vertices, s)), folder / f"blob{i}.off")
+        for i, s in enumerate((0.1, 0.3, 0.5))
+    ]
+
+
+def test_cache_detects_corruption_and_rebuilds(tmp_path, blob_files):
+    shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
+    entries = sorted(tmp_path.glob("*.npz"))
+    assert len(entries) == 3 and not list(tmp_path.glob("*.tmp"))
+    reference = shapes[0]["values"].clone()
+    path = tmp_path / f"{mesh_key(__import__('torchfmap').load_mesh(blob_files[0]), shapes.params)}.npz"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])  # truncated
+    assert PrecomputeCache(tmp_path).load(path.stem) is None
+    assert torch.equal(shapes[0]["values"], reference)  # rebuilt transparently
+    with np.load(path) as z:  # altered content in a valid container
+        arrays = {k: z[k] for k in z.files}
+    arrays["mass"] = arrays["mass"] * 2
+    np.savez(path, **arrays)
+    assert PrecomputeCache(tmp_path).load(path.stem) is None
+    assert torch.equal(
+        shapes[0]["mass"], ShapeDataset(blob_files[:1], tmp_path, k=8, n_wks=8, progress=False)[0]["mass"]
+    )
+    path.write_bytes(b"not a zip file")
+    assert torch.equal(shapes[0]["values"], reference)
+
+
+def test_collate_pairs(tmp_path, blob_files):
+    shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
+    batch = collate_pairs([(shapes[0], shapes[1]), (shapes[2], shapes[0])])
+    basis, feats, lengths = batch["x"]
+    assert basis.values.shape == (2, 162, 8) and feats.shape == (2, 162, 8)
+    assert batch["names"] == [("blob0", "blob1"), ("blob2", "blob0")]
+
+
+def test_short_training_improves_dev_pair(tmp_path):
+    folder = data_path("tosca5k_dev")
+    files = [folder / "cat0.off", folder / "cat1.off"]
+    shapes = ShapeDataset(files, tmp_path, k=20, n_wks=16, progress=False)
+    gt = gt_from_vts(read_vts(folder / "corres" / "cat0.vts"), read_vts(folder / "corres" / "cat1.vts"))
+    config = TrainConfig(k=20, n_wks=16, epochs=8, lr=3e-3, width=32, c_out=32, n_blocks=2)
+    before = evaluate(build_model(config)[0], shapes, [(0, 1)], [gt], config, max_points=200)
+    ckpt = tmp_path / "net.ckpt"
+    net, history = train(shapes, config, checkpoint=ckpt, progress=False)
+    after = evaluate(net, shapes, [(0, 1)], [gt], config, max_points=200)
+    assert history[-1] < history[0]
+    assert after < before
+    loaded, cfg, meta = load_checkpoint(ckpt)
+    assert cfg == config and meta["epoch"] == 8
+    for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_processes_identical_weights(tmp_path, blob_files):
+    config = TrainConfig(k=8, n_wks=8, epochs=1, width=16, c_out=16, n_blocks=1)
+    torch.multiprocessing.spawn(
+        ddp_worker,
+        args=(2, _free_port(), blob_files, tmp_path / "cache", asdict(config), tmp_path),
+        nprocs=2,
+    )
+    w0 = torch.load(tmp_path / "rank0.pt")
+    w1 = torch.load(tmp_path / "rank1.pt")
+    assert w0.keys() == w1.keys()
+    for key in w0:
+        assert torch.equal(w0[key], w1[key]), key
+    untrained = build_model(config)[0].state_dict()
+    assert any(not torch.equal(w0[k], untrained[k]) for k in w0)  # it did train
+    assert (tmp_path / "ddp.ckpt").exists()

@@ -1,0 +1,123 @@
+"""End-to-end matching: every basis, refinements, the CLI commands, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, SeedError
+from torchfmap.cli import main
+from torchfmap.eval import evaluate_map, gt_identity, landmarks_from_gt
+from torchfmap.pipeline import match
+
+from .conftest import data_path
+
+
+@pytest.fixture(scope="module")
+def pair():
+    from torchfmap.data.synthetic import _bend, _bumpy_blob
+
+    x = _bumpy_blob(3)
+    perm = np.random.default_rng(2).permutation(x.n_vertices)
+    y = x.copy(_bend(x.vertices, 0.3)).permuted(perm)
+    gt = (np.arange(y.n_vertices), perm)
+    return x, y, gt
+
+
+@pytest.mark.parametrize(
+    ("basis", "refine"),
+    [
+        ("laplacian", None),
+        ("laplacian", "zoomout"),
+        ("laplacian", "icp"),
+        ("harmonic", "icp"),
+        ("diffusion", None),
+        ("stack", "zoomout"),
+        ("stack", "icp"),
+    ],
+)
+def test_every_basis_gives_a_good_map(pair, basis, refine):
+    x, y, gt = pair
+    landmarks = landmarks_from_gt(x, gt, 10)
+    result = match(
+        x, y, landmarks=landmarks if basis != "laplacian" else None, basis=basis, k=30, refine=refine
+    )
+    assert result.p2p_yx.shape == (y.n_vertices,)
+    assert result.C_xy.shape[0] == result.C_xy.shape[1] or refine == "zoomout"
+    report, _ = evaluate_map(x, y, result.p2p_yx, gt, max_points=300)
+    assert report.mean_error < 0.12, report
+    if refine is not None:
+        initial, _ = evaluate_map(x, y, result.p2p_yx_initial, gt, max_points=300)
+        assert report.mean_error <= initial.mean_error * 1.1
+
+
+def test_match_bad_input(pair):
+    x, y, gt = pair
+    with pytest.raises(ParameterError, match="corresponding landmarks"):
+        match(x, y, basis="harmonic")
+    with pytest.raises(SeedError, match="out of range"):
+        match(x, y, landmarks=[[0, 10**6]], basis="stack")
+    with pytest.raises(ParameterError, match=r"\(L, 2\) pairs"):
+        match(x, y, landmarks=[1, 2, 3], basis="stack")
+    with pytest.raises(ParameterError, match="ZoomOut needs nested bases"):
+        match(x, y, landmarks=landmarks_from_gt(x, gt, 6), basis="harmonic", refine="zoomout")
+
+
+def test_cli_match_writes_target_to_source_map(tmp_path, pair, capsys):
+    from torchfmap import save_mesh
+
+    x, y, gt = pair
+    px, py = save_mesh(x, tmp_path / "x.off"), save_mesh(y, tmp_path / "y.off")
+    lm = tmp_path / "lm.txt"
+    np.savetxt(lm, landmarks_from_gt(x, gt, 10), fmt="%d")
+    out = tmp_path / "map.txt"
+    png = tmp_path / "transfer.png"
+    assert (
+        main(
+            [
+                "match",
+                str(px),
+                str(py),
+                "--landmarks",
+                str(lm),
+                "--k",
+                "30",
+                "--refine",
+                "icp",
+                "--out",
+                str(out),
+                "--png",
+                str(png),
+            ]
+        )
+        == 0
+    )
+    p2p = np.loadtxt(out, dtype=int)
+    assert p2p.shape == (y.n_vertices,) and p2p.max() < x.n_vertices
+    report, _ = evaluate_map(x, y, p2p, gt, max_points=200)
+    assert report.mean_error < 0.12
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1\n")
+    assert main(["match", str(px), str(py), "--landmarks", str(bad), "--out", str(out)]) == 2
+    assert "two 0-based vertex indices" in capsys.readouterr().err
+
+
+def test_cli_eval_on_identity_folder(tmp_path, capsys):
+    folder = data_path("tosca_hires_wolf")
+    png = tmp_path / "pck.png"
+    args = ["eval", str(folder), "--k", "30", "--max-pairs", "1", "--max-points", "200", "--png", str(png)]
+    assert main([*args, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "| wolf0 | wolf1 |" in out and png.exists()
+    mean = float(out.split("| **all** | | ")[1].split(" ")[0])
+    assert mean < 0.1
+
+
+def test_identity_gt_on_self_match():
+    from torchfmap.data.synthetic import _bumpy_blob
+
+    x = _bumpy_blob(2)
+    result = match(x, x, k=20)
+    report, _ = evaluate_map(x, x, result.p2p_yx, gt_identity(x.n_vertices))
+    assert report.mean_error < 0.02

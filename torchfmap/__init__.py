@@ -1,0 +1,88 @@
+"""torchfmap: functional maps with feature-aware (harmonic and diffusion) bases.
+
+Data flow: mesh -> operators -> seeds -> bases -> descriptors -> functional map -> point map
+-> evaluation. Classical functions live in numpy/scipy (float64); ``torchfmap.nn`` wraps them
+as differentiable ``torch.nn.Module`` layers.
+"""
+
+from .bases import (
+    Basis,
+    Column,
+    basis_stack,
+    diffusion_basis,
+    harmonic_basis,
+    heat_kernels,
+    laplacian_eigenbasis,
+    orthonormalize,
+    support_fraction,
+)
+from .errors import MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
+from .io import load_mesh, save_mesh
+from .mesh import Mesh, MeshReport, validate_mesh
+from .operators import (
+    Factorization,
+    GeodesicSolver,
+    Operators,
+    available_backends,
+    factorize,
+    geodesic_distances,
+    laplacian,
+    mass_matrix,
+    normalize_area,
+    point_cloud_laplacian,
+    scipy_to_torch,
+    torch_to_scipy,
+    total_area,
+)
+from .seeds import (
+    coverage_seeds,
+    curvature,
+    curvature_features,
+    farthest_point_sampling,
+    gaussian_curvature,
+    mean_curvature,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Basis",
+    "Column",
+    "basis_stack",
+    "coverage_seeds",
+    "curvature",
+    "curvature_features",
+    "diffusion_basis",
+    "farthest_point_sampling",
+    "gaussian_curvature",
+    "harmonic_basis",
+    "heat_kernels",
+    "laplacian_eigenbasis",
+    "mean_curvature",
+    "orthonormalize",
+    "support_fraction",
+    "Factorization",
+    "GeodesicSolver",
+    "Mesh",
+    "MeshError",
+    "MeshReport",
+    "MeshWarning",
+    "Operators",
+    "ParameterError",
+    "SeedError",
+    "TorchFmapError",
+    "__version__",
+    "available_backends",
+    "factorize",
+    "geodesic_distances",
+    "laplacian",
+    "load_mesh",
+    "mass_matrix",
+    "normalize_area",
+    "point_cloud_laplacian",
+    "save_mesh",
+    "scipy_to_torch",
+    "torch_to_scipy",
+    "total_area",
+    "validate_mesh",
+]

@@ -1,0 +1,286 @@
+"""The :class:`Basis` result type: basis values, mass, provenance of every column, save/load.
+
+``values`` is ``(V, K)``; ``mass`` the ``(V, V)`` sparse mass matrix ``B`` of the mesh, so that
+``project(f) = values.T @ B @ f`` (exact coefficients when the basis is B-orthonormal) and
+``reconstruct(c) = values @ c``. ``provenance`` records every *input* column (kind, seed,
+relative time, eigen-index) and whether orthonormalisation kept it; ``columns`` lists the kept
+ones, in the order of ``values``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import ParameterError, TorchFmapError
+
+_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Column:
+    """Where a basis column comes from.
+
+    ``kind``: ``'diffusion'``, ``'harmonic'``, ``'laplacian'`` or ``'custom'``; ``seed``: the
+    seed vertex (``-1`` if none); ``time``: relative diffusion time ``t`` (absolute time is
+    ``t * |M|``; None if none); ``index``: eigenfunction index (``-1`` if none); ``kept``:
+    survived orthonormalisation.
+    """
+
+    kind: str
+    seed: int = -1
+    time: float | None = None
+    index: int = -1
+    kept: bool = True
+
+    def label(self) -> str:
+        if self.kind == "diffusion":
+            return f"diffusion(seed={self.seed}, t={self.time:g})"
+        if self.kind == "harmonic":
+            return f"harmonic(seed={self.seed})"
+        if self.kind == "laplacian":
+            return f"laplacian({self.index})"
+        return self.kind
+
+
+class Basis:
+    """A set of functions on a mesh, with the mass matrix and per-column provenance.
+
+    Args:
+        values: ``(V, K)`` basis functions (columns).
+        mass: ``(V, V)`` sparse mass matrix (or ``(V,)`` lumped diagonal).
+        provenance: one :class:`Column` per *input* column; exactly ``K`` of them have
+            ``kept=True``, in the order of ``values``' columns.
+        orthonormal: whether ``values.T @ mass @ values == I`` (set by orthonormalisation).
+        stiffness: optional ``(V, V)`` stiffness ``L``, for :meth:`projected_laplacian`.
+        eigenvalues: optional ``(K,)`` eigenvalues, for a Laplacian eigenbasis.
+    """
+
+    def __init__(
+        self,
+        values: np.ndarray,
+        mass,
+        provenance: list[Column] | None = None,
+        orthonormal: bool = False,
+        stiffness=None,
+        eigenvalues: np.ndarray | None = None,
+    ) -> None:
+        values = np.asarray(values, dtype=np.float64)
+        if values.ndim != 2:
+            raise ParameterError(f"basis values must be (V, K), got shape {values.shape}.")
+        mass = sp.diags(np.asarray(mass, dtype=np.float64)) if np.ndim(mass) == 1 else mass
+        mass = sp.csr_matrix(mass, dtype=np.float64)
+        if mass.shape != (values.shape[0],) * 2:
+            raise ParameterError(
+                f"mass is {mass.shape} but the basis has {values.shape[0]} vertices. Fix: use the "
+                "mass matrix of the same mesh."
+            )
+        if provenance is None:
+            provenance = [Column("custom") for _ in range(values.shape[1])]
+        if sum(c.kept for c in provenance) != values.shape[1]:
+            raise ParameterError(
+                f"provenance lists {sum(c.kept for c in provenance)} kept columns, values has "
+                f"{values.shape[1]}."
+            )
+        self.values = values
+        self.mass = mass
+        self.provenance = list(provenance)
+        self.orthonormal = orthonormal
+        self.stiffness = None if stiffness is None else sp.csr_matrix(stiffness, dtype=np.float64)
+        self.eigenvalues = None if eigenvalues is None else np.asarray(eigenvalues, dtype=np.float64)
+
+    # -- sizes and provenance -----------------------------------------------------------------
+    @property
+    def n_vertices(self) -> int:
+        return self.values.shape[0]
+
+    @property
+    def k(self) -> int:
+        """Number of (kept) basis functions ``K``."""
+        return self.values.shape[1]
+
+    @property
+    def columns(self) -> list[Column]:
+        """Provenance of the kept columns, in the order of :attr:`values`."""
+        return [c for c in self.provenance if c.kept]
+
+    @property
+    def dropped(self) -> list[Column]:
+        """Provenance of the input columns removed as numerically dependent."""
+        return [c for c in self.provenance if not c.kept]
+
+    def kinds(self) -> np.ndarray:
+        """``(K,)`` kind of each kept column."""
+        return np.array([c.kind for c in self.columns])
+
+    def __repr__(self) -> str:
+        counts = {}
+        for c in self.columns:
+            counts[c.kind] = counts.get(c.kind, 0) + 1
+        parts = ", ".join(f"{n} {kind}" for kind, n in counts.items())
+        return (
+            f"Basis(V={self.n_vertices}, K={self.k}: {parts}; dropped {len(self.dropped)}; "
+            f"orthonormal={self.orthonormal})"
+        )
+
+    # -- linear algebra -----------------------------------------------------------------------
+    def gram(self) -> np.ndarray:
+        """``(K, K)`` Gram matrix ``Φᵀ B Φ`` (the identity for an orthonormal basis)."""
+        return self.values.T @ (self.mass @ self.values)
+
+    def project(self, f: np.ndarray) -> np.ndarray:
+        """Coefficients ``Φᵀ B f``: ``(V,)`` -> ``(K,)`` or ``(V, D)`` -> ``(K, D)``.
+
+        These are the best approximation's coefficients only when the basis is B-orthonormal;
+        otherwise use :meth:`least_squares`.
+        """
+        f = np.asarray(f, dtype=np.float64)
+        if f.shape[0] != self.n_vertices:
+            raise ParameterError(f"f has {f.shape[0]} rows, the basis has {self.n_vertices} vertices.")
+        return self.values.T @ (self.mass @ f)
+
+    def least_squares(self, f: np.ndarray) -> np.ndarray:
+        """B-weighted least-squares coefficients for any (not necessarily orthonormal) basis."""
+        return np.linalg.lstsq(self.gram(), self.project(f), rcond=None)[0]
+
+    def reconstruct(self, coeffs: np.ndarray) -> np.ndarray:
+        """``Φ c``: ``(K,)`` -> ``(V,)`` or ``(K, D)`` -> ``(V, D)``."""
+        coeffs = np.asarray(coeffs, dtype=np.float64)
+        if coeffs.shape[0] != self.k:
+            raise ParameterError(f"coeffs has {coeffs.shape[0]} rows, the basis has K={self.k}.")
+        return self.values @ coeffs
+
+    def projected_laplacian(self) -> np.ndarray:
+        """``(K, K)`` ``W = Φᵀ L Φ`` (diagonal eigenvalues for an eigenbasis, full otherwise)."""
+        if self.stiffness is None:
+            raise ParameterError("this basis has no stiffness matrix. Fix: build it with `stiffness=L`.")
+        return self.values.T @ (self.stiffness @ self.values)
+
+    def orthonormalized(self, method: str = "mgs", tol: float | None = None) -> Basis:
+        """A B-orthonormal basis of the same span (dependent columns dropped, recorded)."""
+        from .orthonormalize import orthonormalize
+
+        return orthonormalize(self, method=method, tol=tol)
+
+    def support(self, eps: float = 1e-3, weighted: bool = False) -> np.ndarray:
+        """``(K,)`` support fraction of each column; see :func:`support_fraction`."""
+        return support_fraction(self.values, eps=eps, mass=self.mass if weighted else None)
+
+    # -- persistence --------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write to ``.npz`` atomically (temp file + rename) with a checksum verified on load."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        mass = self.mass.tocoo()
+        arrays = {
+            "values": self.values,
+            "mass_row": mass.row.astype(np.int64),
+            "mass_col": mass.col.astype(np.int64),
+            "mass_data": mass.data,
+            "prov_kind": np.array([c.kind for c in self.provenance], dtype="U16"),
+            "prov_seed": np.array([c.seed for c in self.provenance], dtype=np.int64),
+            "prov_time": np.array(
+                [np.nan if c.time is None else c.time for c in self.provenance], dtype=np.float64
+            ),
+            "prov_index": np.array([c.index for c in self.provenance], dtype=np.int64),
+            "prov_kept": np.array([c.kept for c in self.provenance], dtype=bool),
+            "orthonormal": np.array(self.orthonormal),
+            "version": np.array(_FORMAT_VERSION),
+        }
+        if self.stiffness is not None:
+            stiff = self.stiffness.tocoo()
+            arrays.update(
+                stiff_row=stiff.row.astype(np.int64),
+                stiff_col=stiff.col.astype(np.int64),
+                stiff_data=stiff.data,
+            )
+        if self.eigenvalues is not None:
+            arrays["eigenvalues"] = self.eigenvalues
+        arrays["checksum"] = np.array(_checksum(arrays))
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Basis:
+        """Read a basis written by :meth:`save`; raises if the file is truncated or altered."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except FileNotFoundError:
+            raise
+        except Exception as err:
+            raise CorruptFileError(f"{path} is not a readable basis file ({err}). Fix: rebuild it.") from err
+        stored = str(arrays.pop("checksum", ""))
+        if stored != _checksum(arrays):
+            raise CorruptFileError(f"{path} fails its checksum (altered or truncated). Fix: rebuild it.")
+        n = arrays["values"].shape[0]
+        mass = sp.csr_matrix((arrays["mass_data"], (arrays["mass_row"], arrays["mass_col"])), shape=(n, n))
+        stiffness = None
+        if "stiff_data" in arrays:
+            stiffness = sp.csr_matrix(
+                (arrays["stiff_data"], (arrays["stiff_row"], arrays["stiff_col"])), shape=(n, n)
+            )
+        prov = [
+            Column(str(k), int(s), None if np.isnan(t) else float(t), int(i), bool(kept))
+            for k, s, t, i, kept in zip(
+                arrays["prov_kind"],
+                arrays["prov_seed"],
+                arrays["prov_time"],
+                arrays["prov_index"],
+                arrays["prov_kept"],
+                strict=True,
+            )
+        ]
+        return cls(
+            arrays["values"], mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues")
+        )
+
+
+class CorruptFileError(TorchFmapError):
+    """A saved file is truncated, altered or unreadable."""
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        h.update(key.encode())
+        h.update(str(a.dtype).encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def support_fraction(values: np.ndarray, eps: float = 1e-3, mass=None) -> np.ndarray:
+    """Fraction of the surface where ``|f| > eps * max|f|``, per column.
+
+    Args:
+        values: ``(V,)`` or ``(V, K)`` functions.
+        eps: relative threshold.
+        mass: optional ``(V, V)`` mass matrix: area-weighted fraction instead of vertex count.
+
+    Returns:
+        ``(K,)`` fractions in ``[0, 1]`` (a scalar for a single function).
+    """
+    f = np.abs(np.asarray(values, dtype=np.float64))
+    single = f.ndim == 1
+    f = f[:, None] if single else f
+    inside = f > eps * f.max(axis=0, keepdims=True)
+    if mass is None:
+        frac = inside.mean(axis=0)
+    else:
+        areas = np.asarray(sp.csr_matrix(mass).sum(axis=1)).ravel()
+        frac = (areas @ inside) / areas.sum()
+    return frac[0] if single else frac

@@ -1,0 +1,466 @@
+"""Heat kernels without an eigendecomposition, and the diffusion basis.
+
+The heat equation ``B du/dt = -L u`` has the solution ``u(t) = exp(-t A) u(0)`` with
+``A = B⁻¹ L`` (self-adjoint in the B inner product, spectrum in ``[0, ∞)``). The **heat kernel**
+returned by default (``kernel='delta'``) is that of a unit point source,
+
+    ``K_t(p, ·) = exp(-t A) B⁻¹ e_p = Σ_k exp(-λ_k t) φ_k φ_k(p)``,
+
+symmetric in its two arguments and integrating to 1 (Eq. 1 of the paper, truncated there).
+``kernel='indicator'`` returns ``exp(-t A) e_p`` instead (value 1 at ``p`` at ``t = 0``, total
+heat ``B_pp``). Times passed to :func:`heat_kernels` are absolute; :func:`diffusion_basis` takes
+relative times and multiplies them by the area ``|M|``, which makes the basis scale invariant.
+
+Methods (all but ``spectral`` are spectrum-free):
+
+``krylov`` (default)
+    Shift-and-invert Lanczos in the B inner product: Krylov spaces of ``(B + γL)⁻¹ B`` built in
+    lock-step for a block of seeds, one sparse Cholesky of ``B + γL`` per decade of times,
+    reused by every seed and every time in it. Stops when every requested time has converged
+    to ``tol`` (relative, in the B-norm). Cost grows with the number of seeds, not with
+    ``k`` eigenpairs.
+``rational``
+    Carathéodory-Fejér best rational approximation of ``exp`` on ``(-∞, 0]`` (Trefethen,
+    Weideman & Schmelzer 2006) in partial fractions: ``n/2`` complex shifted solves
+    ``(tL + z_j B) x = B u`` per time, uniform error ``≈ 4 σ_n`` (``n = 12``: 3e-12). The
+    reference method: accurate at every time, costlier (complex LU per pole and time).
+``backward_euler``
+    ``n_steps`` implicit Euler steps ``(B + hL) u_{k+1} = B u_k``; cheap, first-order accurate.
+``spectral``
+    Truncated Eq. 1 with ``n_eigen`` eigenpairs, for comparison.
+
+For small times the kernel is local: ``local=True`` (or ``'auto'``) solves on the geodesic
+neighbourhood of each seed where a Gaussian estimate says the kernel exceeds ``tol`` of its
+peak (Dirichlet zero outside), so the cost follows the support, not the mesh.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Literal
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from ..errors import ParameterError
+from ..mesh import Mesh
+from ..operators.geodesic import check_vertex_indices
+from ..operators.laplacian import Operators, laplacian
+from ..operators.solvers import factorize
+from .basis import Basis, Column
+
+Method = Literal["krylov", "rational", "backward_euler", "spectral"]
+METHODS = ("krylov", "rational", "backward_euler", "spectral")
+#: Default relative times ``t`` (absolute ``t * |M|``), small to large.
+DEFAULT_TIMES = (1e-3, 3e-3, 1e-2, 3e-2)
+#: Patches larger than this fraction of the mesh are solved globally under ``local='auto'``.
+LOCAL_MAX_FRACTION = 0.25
+#: ``local='auto'`` tries patches only for times whose Gaussian support is below this fraction
+#: of the area: beyond it, one global Krylov solve shared by all seeds is cheaper.
+LOCAL_AUTO_FRACTION = 0.05
+#: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
+KRYLOV_BLOCK_BYTES = 192 * 2**20
+#: Shift of the Krylov factorisation ``B + γL``, as a fraction of the smallest time it serves.
+KRYLOV_SHIFT = 0.3
+#: Times up to this factor above the smallest of a group share its Krylov space.
+KRYLOV_SPAN = 50.0
+
+
+# -- Carathéodory-Fejér rational approximation of exp ------------------------------------------
+#: Highest CF order computed reliably in double precision (its error is ~1e-13).
+CF_MAX_ORDER = 14
+
+
+@lru_cache(maxsize=16)
+def cf_poles(n: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Poles ``z (n,)``, residues ``c (n,)`` and measured error of the CF approximation of exp.
+
+    ``r(x) = Σ_j c_j / (x - z_j)`` approximates ``exp(x)`` on ``(-∞, 0]``. The returned error
+    is measured on a dense grid of ``(-∞, 0]``, not predicted. Port of the algorithm in
+    Trefethen, Weideman & Schmelzer, BIT 46 (2006), Fig. 4.1: Chebyshev coefficients of the
+    transplanted exp, SVD of their Hankel matrix, poles from the singular vector. Orders above
+    :data:`CF_MAX_ORDER` lose the poles to round-off, so they are refused.
+    """
+    if n < 2 or n % 2 or n > CF_MAX_ORDER:
+        raise ParameterError(f"CF order must be even and in [2, {CF_MAX_ORDER}], got {n}.")
+    n_cheb, n_fft, scale = 75, 1024, 9.0
+    w = np.exp(2j * np.pi * np.arange(n_fft) / n_fft)
+    t = w.real
+    transplanted = np.exp(scale * (t - 1) / (t + 1 + 1e-16))
+    c = np.real(np.fft.fft(transplanted)) / n_fft
+    analytic = np.polyval(c[n_cheb::-1], w)
+    u_mat, sing, vh = np.linalg.svd(sla.hankel(c[1 : n_cheb + 1]))
+    sigma = float(sing[n])
+    u = u_mat[::-1, n]
+    v = vh[n, :]
+    pad = np.zeros(n_fft - n_cheb)
+    blaschke = np.fft.fft(np.concatenate([u, pad])) / np.fft.fft(np.concatenate([v, pad]))
+    extended = analytic - sigma * w**n_cheb * blaschke
+    roots = np.roots(v)
+    q = roots[np.abs(roots) > 1]
+    numerator = np.real(np.fft.fft(extended * np.polyval(np.poly(q), w)) / n_fft)[n::-1]
+    res = np.array(
+        [np.polyval(numerator, qj) / np.polyval(np.poly(np.delete(q, j)), qj) for j, qj in enumerate(q)]
+    )
+    z = scale * (q - 1) ** 2 / (q + 1) ** 2
+    c_res = 4 * res * z / (q**2 - 1)
+    if len(z) != n:
+        raise ParameterError(f"CF order {n}: found {len(z)} poles (round-off). Fix: use a lower order.")
+    x = -np.concatenate([np.linspace(0.0, 60.0, 6001), np.logspace(-8, 8, 3201)])
+    approx = (c_res[None, :] / (x[:, None] - z[None, :])).sum(axis=1)
+    return z, c_res, float(np.abs(approx - np.exp(x)).max())
+
+
+def cf_order_for(tol: float) -> int:
+    """Smallest even CF order whose measured uniform error is below ``tol / 10`` (capped)."""
+    for n in range(4, CF_MAX_ORDER + 1, 2):
+        if cf_poles(n)[2] < tol / 10:
+            return n
+    return CF_MAX_ORDER
+
+
+# -- the operator applications ---------------------------------------------------------------
+def _lumped(B: sp.spmatrix) -> np.ndarray | None:
+    """The diagonal of ``B`` if ``B`` is diagonal, else None."""
+    B = sp.csr_matrix(B)
+    if B.nnz == np.count_nonzero(B.diagonal()) and (np.diff(B.indptr) <= 1).all():
+        return B.diagonal()
+    return None
+
+
+def _mass_solve(B: sp.spmatrix, X: np.ndarray) -> np.ndarray:
+    d = _lumped(B)
+    if d is not None:
+        return X / d[:, None] if X.ndim == 2 else X / d
+    return factorize(B, spd=True).solve(X)
+
+
+def _rational(L, B, X, times, tol) -> np.ndarray:
+    # the error is uniform relative to the initial data; a point source spreads out to a level
+    # |1ᵀBx| / |M| far below max|x|, so ask for that much more accuracy
+    total = np.abs(np.ones(X.shape[0]) @ (B @ X))
+    spread = np.max(np.abs(X), axis=0) * B.sum() / np.maximum(total, 1e-300)
+    z, c, _ = cf_poles(cf_order_for(tol / max(1.0, float(spread.max()))))
+    upper = z.imag > 0  # poles come in conjugate pairs: sum one half, take 2 Re
+    BX = B @ X
+    out = np.empty((len(times),) + X.shape)
+    for ti, t in enumerate(times):
+        acc = np.zeros(X.shape, dtype=complex)
+        for zj, cj in zip(z[upper], c[upper], strict=True):
+            # r(-tA) x = sum_j c_j (-tA - z_j)^{-1} x = -sum_j c_j (tL + z_j B)^{-1} B x
+            acc -= cj * factorize(t * L + zj * B).solve(BX.astype(complex))
+        real_poles = np.abs(z.imag) < 1e-14
+        for zj, cj in zip(z[real_poles], c[real_poles], strict=True):
+            acc -= 0.5 * cj * factorize(t * L + zj.real * B).solve(BX)
+        out[ti] = 2 * acc.real
+    return out
+
+
+def _backward_euler(L, B, X, times, n_steps: int) -> np.ndarray:
+    out = np.empty((len(times),) + X.shape)
+    for ti, t in enumerate(times):
+        fac = factorize(B + (t / n_steps) * L, spd=True)
+        u = X.copy()
+        for _ in range(n_steps):
+            u = fac.solve(B @ u)
+        out[ti] = u
+    return out
+
+
+def _spectral(L, B, X, times, n_eigen: int) -> np.ndarray:
+    from .laplacian import eigenpairs
+
+    lam, phi = eigenpairs(L, B, n_eigen)
+    coeffs = phi.T @ (B @ X)  # (k, S)
+    return np.stack([phi @ (np.exp(-lam * t)[:, None] * coeffs) for t in times])
+
+
+def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[np.ndarray, int]:
+    """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``.
+
+    ``S = (B + γL)⁻¹ B`` is self-adjoint in the B inner product, so the three-term recurrence
+    (re-orthogonalised once against the current vector) builds the Krylov basis at O(n) per
+    step; plain Lanczos' slow loss of global orthogonality only delays, not spoils,
+    convergence for matrix functions (Druskin & Knizhnerman), and the stopping test compares
+    successive approximations. ``store`` is an optional ``(cap, n, >= s)`` work buffer,
+    reused across blocks (first-touch page faults of fresh memory cost as much as the
+    arithmetic here). Returns ``((T, n, s) approximations, iterations)``.
+    """
+    n, s = X.shape
+    BX = B @ X
+    beta0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", X, BX), 0.0))
+    beta0[beta0 == 0] = 1.0
+    if store is None or store.shape[1] != n or store.shape[2] < s:
+        store = np.empty((min(max_iter, 48) + 1, n, s))  # store[m]: the m-th Lanczos vectors
+    store = store[:, :, :s]
+    q = X / beta0  # current vectors, (n, s) for the sparse solver
+    q_prev = np.zeros_like(q)
+    Bq = BX / beta0
+    store[0] = q
+    alpha = np.zeros((s, max_iter))
+    beta = np.zeros((s, max_iter))
+    prev = None
+    times = np.asarray(times, dtype=np.float64)
+    for m in range(max_iter):
+        if m + 2 > store.shape[0]:
+            grow = min(store.shape[0], max_iter + 1 - store.shape[0])
+            store = np.concatenate([store, np.empty((grow, n, s))], axis=0)
+        w = fac.solve(Bq)  # (n, s)
+        if m > 0:
+            w -= q_prev * beta[:, m - 1]
+        a = np.einsum("ij,ij->j", w, Bq)
+        w -= q * a
+        a2 = np.einsum("ij,ij->j", w, Bq)  # one cheap re-orthogonalisation against q_m
+        w -= q * a2
+        alpha[:, m] = a + a2
+        Bw = B @ w
+        nb = np.sqrt(np.maximum(np.einsum("ij,ij->j", w, Bw), 0.0))
+        beta[:, m] = nb
+        safe = np.where(nb > 0, nb, 1.0)
+        q_prev, q = q, w / safe
+        Bq = Bw / safe
+        store[m + 1] = q
+        k = m + 1
+        T = np.zeros((s, k, k))
+        idx = np.arange(k)
+        T[:, idx, idx] = alpha[:, :k]
+        T[:, idx[1:], idx[:-1]] = beta[:, : k - 1]
+        T[:, idx[:-1], idx[1:]] = beta[:, : k - 1]
+        theta, U = np.linalg.eigh(T)  # eigenvalues of (I + gamma A)^{-1}: in (0, 1]
+        theta = np.clip(theta, 1e-300, 1.0)
+        lam = (1.0 / theta - 1.0) / gamma  # (s, k) Ritz values of A
+        f = np.exp(-times[:, None, None] * lam[None])  # (T, s, k)
+        y = np.einsum("sij,tsj,sj->tsi", U, f, U[:, 0, :])  # (T, s, k) small-space coefficients
+        if prev is not None:
+            diff = y.copy()
+            diff[:, :, :m] -= prev
+            err = np.linalg.norm(diff, axis=2) / np.maximum(np.linalg.norm(y, axis=2), 1e-300)
+            if err.max() < 0.2 * tol or (nb < 1e-14).all():  # successive change, with margin
+                break
+        prev = y
+    k = y.shape[2]
+    coef = (y * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
+    out = np.empty((len(times), n, s))
+    for r0 in range(0, n, 4096):  # row chunks: cache-friendly transposes, then batched GEMM
+        chunk = np.ascontiguousarray(store[:k, r0 : r0 + 4096].transpose(2, 1, 0))  # (s, r, k)
+        out[:, r0 : r0 + 4096] = np.matmul(chunk, coef).transpose(2, 1, 0)
+    return out, k
+
+
+def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None) -> np.ndarray:
+    """Times within a factor :data:`KRYLOV_SPAN` share one Krylov space per column and one
+    factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group)."""
+    times = np.asarray(times, dtype=np.float64)
+    n, s_total = X.shape
+    order = np.argsort(times)
+    groups: list[list[int]] = []
+    for i in order:
+        if groups and times[i] <= KRYLOV_SPAN * times[groups[-1][0]]:
+            groups[-1].append(int(i))
+        else:
+            groups.append([int(i)])
+    # ~48 Lanczos vectors per column of a block must fit in the budget; one buffer serves all
+    block = max(1, min(s_total, int(KRYLOV_BLOCK_BYTES // (8 * n * 49))))
+    store = np.empty((min(max_iter, 48) + 1, n, block))
+    out = np.empty((len(times),) + X.shape)
+    for group in groups:
+        gamma = float(shift) if shift is not None else KRYLOV_SHIFT * float(times[group[0]])
+        fac = factorize(B + gamma * L, spd=True)
+        for start in range(0, s_total, block):
+            cols = slice(start, min(start + block, s_total))
+            out[group, :, cols], _ = _krylov_block(
+                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store
+            )
+    return out
+
+
+def heat_apply(
+    operators: Operators,
+    X: np.ndarray,
+    times,
+    method: Method = "krylov",
+    *,
+    tol: float = 1e-8,
+    n_steps: int = 1,
+    n_eigen: int = 200,
+) -> np.ndarray:
+    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``."""
+    L, B = operators
+    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
+        raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}.")
+    if method not in METHODS:
+        raise ParameterError(f"unknown heat method {method!r}. Fix: use one of {METHODS}.")
+    X = np.asarray(X, dtype=np.float64)
+    single = X.ndim == 1
+    X = X[:, None] if single else X
+    if method == "krylov":
+        out = _krylov(L, B, X, times, tol)
+    elif method == "rational":
+        out = _rational(L, B, X, times, tol)
+    elif method == "backward_euler":
+        if n_steps < 1:
+            raise ParameterError(f"n_steps must be >= 1, got {n_steps}.")
+        out = _backward_euler(L, B, X, times, n_steps)
+    else:
+        out = _spectral(L, B, X, times, n_eigen)
+    return out[:, :, 0] if single else out
+
+
+def _initial(B, seeds: np.ndarray, n: int, kernel: str) -> np.ndarray:
+    E = np.zeros((n, len(seeds)))
+    E[seeds, np.arange(len(seeds))] = 1.0
+    if kernel == "indicator":
+        return E
+    if kernel == "delta":
+        return _mass_solve(B, E)
+    raise ParameterError(f"kernel must be 'delta' or 'indicator', got {kernel!r}.")
+
+
+def _edge_graph(L: sp.spmatrix, vertices: np.ndarray) -> sp.csr_matrix:
+    coo = sp.coo_matrix(L)
+    off = coo.row != coo.col
+    r, c = coo.row[off], coo.col[off]
+    lengths = np.linalg.norm(vertices[r] - vertices[c], axis=1)
+    return sp.csr_matrix((lengths, (r, c)), shape=L.shape)
+
+
+def _local_kernel(L, B, graph, seed, t, mean_edge, method, kernel, tol, n_steps, local):
+    """Kernel of one seed on a growing geodesic patch (Dirichlet zero outside).
+
+    Starts at the radius where a Gaussian ``exp(-d²/4t)`` falls below ``tol`` (at least 3 edge
+    lengths) and grows it by 1.5x until the kernel on the outer 20 % of the patch is below
+    ``tol`` times its peak: coarse meshes have heavier discrete tails than the Gaussian.
+    Returns ``(patch, values)``, or None when the patch outgrows ``LOCAL_MAX_FRACTION``.
+    """
+    n = L.shape[0]
+    radius = max(np.sqrt(4.0 * t * np.log(1.0 / tol)), 3.0 * mean_edge)
+    while True:
+        dist = dijkstra(graph, indices=seed, limit=radius)
+        patch = np.flatnonzero(np.isfinite(dist))
+        if local == "auto" and len(patch) > LOCAL_MAX_FRACTION * n:
+            return None
+        Lp = L[patch][:, patch]
+        Bp = B[patch][:, patch]
+        X0 = _initial(Bp, np.array([int(np.searchsorted(patch, seed))]), len(patch), kernel)
+        vals = heat_apply((Lp, Bp), X0, [t], method, tol=tol, n_steps=n_steps)[0, :, 0]
+        band = dist[patch] > 0.8 * radius
+        if len(patch) == n or np.abs(vals[band]).max(initial=0.0) <= tol * np.abs(vals).max():
+            return patch, vals
+        radius *= 1.5
+
+
+def heat_kernels(
+    operators: Operators,
+    seeds,
+    times,
+    method: Method = "krylov",
+    *,
+    kernel: Literal["delta", "indicator"] = "delta",
+    tol: float = 1e-8,
+    local: bool | Literal["auto"] = False,
+    vertices: np.ndarray | None = None,
+    n_steps: int = 1,
+    n_eigen: int = 200,
+) -> np.ndarray:
+    """Heat kernels ``K_t(p_i, ·)`` for every absolute time and seed: ``(T, V, S)``.
+
+    Args:
+        operators: ``(L, B)`` of the mesh (``L`` symmetric).
+        seeds: ``(S,)`` vertex indices.
+        times: ``(T,)`` absolute times (> 0).
+        method: see the module docstring.
+        kernel: ``'delta'`` (``exp(-tA) B⁻¹ e_p``, default) or ``'indicator'`` (``exp(-tA) e_p``).
+        tol: relative accuracy target (Krylov convergence, CF order, local patch radius).
+        local: solve on a geodesic neighbourhood of each seed (``'auto'``: when it is small);
+            needs ``vertices (V, 3)`` for edge lengths.
+    """
+    L, B = operators
+    n = L.shape[0]
+    seeds = check_vertex_indices(seeds, n, "seeds")
+    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):
+        raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}. Fix: t > 0.")
+    if abs(L - L.T).max() > 1e-10 * abs(L).max():
+        raise ParameterError(
+            "heat kernels need a symmetric Laplacian (cotan or robust); mean-value weights are not "
+            "self-adjoint. Fix: laplacian(mesh, kind='cotan')."
+        )
+    if not local or method == "spectral":
+        X0 = _initial(B, seeds, n, kernel)
+        return heat_apply((L, B), X0, times, method, tol=tol, n_steps=n_steps, n_eigen=n_eigen)
+    if vertices is None:
+        raise ParameterError("local heat kernels need the mesh vertices. Fix: pass vertices=mesh.vertices.")
+    graph = _edge_graph(L, np.asarray(vertices))
+    mean_edge = float(graph.data.mean())
+    area = float(B.sum())
+    out = np.zeros((len(times), n, len(seeds)))
+    reach = np.pi * 4.0 * times * np.log(1.0 / tol)  # area inside the Gaussian support radius
+    far = np.flatnonzero(reach > LOCAL_AUTO_FRACTION * area) if local == "auto" else np.zeros(0, int)
+    if len(far):  # kernels reaching too far: all seeds, these times, one global solve
+        X0 = _initial(B, seeds, n, kernel)
+        out[far] = heat_apply((L, B), X0, times[far], method, tol=tol, n_steps=n_steps)
+    for ti in np.setdiff1d(np.arange(len(times)), far):
+        fallback = []
+        for si, s in enumerate(seeds):
+            values = _local_kernel(
+                L, B, graph, int(s), times[ti], mean_edge, method, kernel, tol, n_steps, local
+            )
+            if values is None:
+                fallback.append(si)
+            else:
+                out[ti, values[0], si] = values[1]
+        if fallback:
+            X0 = _initial(B, seeds[fallback], n, kernel)
+            out[ti][:, fallback] = heat_apply(
+                (L, B), X0, times[ti : ti + 1], method, tol=tol, n_steps=n_steps
+            )[0]
+    return out
+
+
+def diffusion_basis(
+    mesh: Mesh,
+    seeds,
+    times=DEFAULT_TIMES,
+    method: Method = "krylov",
+    *,
+    operators: Operators | None = None,
+    kernel: Literal["delta", "indicator"] = "delta",
+    tol: float = 1e-8,
+    local: bool | Literal["auto"] = "auto",
+    **kwargs,
+) -> Basis:
+    """Diffusion basis: heat kernels at every seed and relative time ``t`` (absolute ``t·|M|``).
+
+    Columns are ordered by time (small to large), then by seed. Not orthonormal: see
+    :func:`~torchfmap.bases.orthonormalize` or :func:`~torchfmap.basis_stack`.
+
+    Returns:
+        a :class:`Basis` with ``V x (T·S)`` values and provenance ``('diffusion', seed, t)``.
+    """
+    ops = operators if operators is not None else laplacian(mesh)
+    rel = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    if rel.size == 0 or np.any(~np.isfinite(rel)) or np.any(rel <= 0):
+        raise ParameterError(f"diffusion times must be finite and > 0, got {rel.tolist()}. Fix: t > 0.")
+    order = np.argsort(rel, kind="stable")
+    rel = rel[order]
+    seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
+    from ..seeds import check_seeds_cover_components
+
+    check_seeds_cover_components(mesh, seeds)
+    K = heat_kernels(
+        ops,
+        seeds,
+        rel * mesh.area,
+        method,
+        kernel=kernel,
+        tol=tol,
+        local=local,
+        vertices=mesh.vertices,
+        **kwargs,
+    )
+    values = K.transpose(1, 0, 2).reshape(mesh.n_vertices, -1)  # (V, T*S), time-major
+    prov = [Column("diffusion", int(s), float(t)) for t in rel for s in seeds]
+    return Basis(values, ops[1], prov, stiffness=ops[0])

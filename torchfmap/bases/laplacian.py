@@ -1,0 +1,72 @@
+"""The Laplace-Beltrami eigenbasis (the usual functional-map basis), with a fixed sign convention.
+
+``L φ = λ B φ``, ``φᵀ B φ = I``, ``λ`` ascending. Eigenvectors are defined up to sign; we fix it
+so that the B-weighted third moment ``Σ_i B_ii φ_i³`` is positive (ties: the entry of largest
+magnitude is positive). Both rules are invariant under rigid motion and vertex permutation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as ssla
+
+from ..errors import ParameterError
+from ..mesh import Mesh
+from ..operators.laplacian import Operators, laplacian
+from .basis import Basis, Column
+
+#: Below this many vertices the dense generalised eigensolver is used (exact and robust).
+DENSE_LIMIT = 1500
+
+
+def fix_signs(phi: np.ndarray, mass) -> np.ndarray:
+    """Flip columns so the B-weighted third moment is positive (else the largest entry)."""
+    m = np.asarray(sp.csr_matrix(mass).sum(axis=1)).ravel()
+    skew = m @ phi**3
+    scale = np.abs(phi).max(axis=0)
+    idx = np.argmax(np.abs(phi), axis=0)
+    fallback = np.sign(phi[idx, np.arange(phi.shape[1])])
+    sign = np.where(np.abs(skew) > 1e-8 * scale**3 * m.sum(), np.sign(skew), fallback)
+    return phi * np.where(sign == 0, 1.0, sign)
+
+
+def start_vector(n: int) -> np.ndarray:
+    """A fixed ARPACK start vector, so that repeated runs give the same basis.
+
+    ARPACK otherwise starts from a random vector: inside a degenerate eigenspace (symmetric
+    shapes) the returned eigenvectors, and even which copies of a cluster converge, would differ
+    from run to run.
+    """
+    return np.random.default_rng(0).standard_normal(n)
+
+
+def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarray]:
+    """First ``k`` generalised eigenpairs: ``(λ (k,), φ (V, k))``, B-orthonormal, signs fixed."""
+    n = L.shape[0]
+    if not 1 <= k <= n:
+        raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
+    if abs(L - L.T).max() > 1e-10 * abs(L).max():
+        raise ParameterError("the eigenbasis needs a symmetric Laplacian. Fix: kind='cotan' or 'robust'.")
+    if n <= DENSE_LIMIT or k >= n - 1:
+        lam, phi = sla.eigh(L.toarray(), B.toarray(), subset_by_index=(0, k - 1))
+    else:
+        lam, phi = ssla.eigsh(
+            sp.csc_matrix(L), k=k, M=sp.csc_matrix(B), sigma=sigma, which="LM", v0=start_vector(n)
+        )
+        order = np.argsort(lam)
+        lam, phi = lam[order], phi[:, order]
+    lam = np.where(lam > -1e-10, np.maximum(lam, 0.0), lam)  # round-off below zero -> 0
+    return lam, fix_signs(phi, B)
+
+
+def laplacian_eigenbasis(mesh: Mesh, k: int, *, operators: Operators | None = None) -> Basis:
+    """The first ``k`` Laplace-Beltrami eigenfunctions as a B-orthonormal :class:`Basis`.
+
+    The eigenvalues are kept in ``basis.eigenvalues`` (``(k,)``, ascending).
+    """
+    L, B = operators if operators is not None else laplacian(mesh)
+    lam, phi = eigenpairs(L, B, k)
+    prov = [Column("laplacian", index=i) for i in range(k)]
+    return Basis(phi, B, prov, orthonormal=True, stiffness=L, eigenvalues=lam)

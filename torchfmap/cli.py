@@ -1,0 +1,270 @@
+"""Command line: ``torchfmap demo | info | basis | match | eval``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import TorchFmapError
+
+
+def _operator_summary(mesh, out) -> None:
+    import scipy.sparse.linalg as sla
+
+    from .operators import GeodesicSolver, available_backends, laplacian
+
+    rep = mesh.report
+    out(
+        f"{mesh.name or 'mesh'}: {rep.summary()}; area {mesh.area:.4g}, mean edge {mesh.mean_edge_length:.3g}"
+    )
+    for kind in ("cotan", "robust", "mean_value"):
+        t0 = time.perf_counter()
+        L, B = laplacian(mesh, kind=kind)
+        dt = time.perf_counter() - t0
+        sym = abs(L - L.T).max() < 1e-10
+        neg = int((L.data[L.indices != np.repeat(np.arange(L.shape[0]), np.diff(L.indptr))] > 0).sum())
+        out(
+            f"  L[{kind:<10}] nnz {L.nnz:>7}  symmetric {str(sym):<5}  positive off-diagonals "
+            f"(negative weights) {neg:>5}  mass sum {B.sum():.4g}  ({dt * 1e3:.1f} ms)"
+        )
+    L, B = laplacian(mesh)
+    vals = sla.eigsh(L, k=6, M=B, sigma=-1e-8, which="LM", return_eigenvectors=False)
+    out(
+        "  first eigenvalues of L phi = lambda B phi (x area): "
+        + ", ".join(f"{x:.3f}" for x in np.sort(vals) * mesh.area)
+    )
+    d = GeodesicSolver(mesh).distance(0)
+    out(
+        f"  largest geodesic distance from vertex 0: {d.max():.4g} "
+        f"({d.max() / np.sqrt(mesh.area):.3f} sqrt(area)); solver backends: {available_backends()}"
+    )
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .data import demo_pair
+    from .eval import evaluate_map, gt_from_map, landmarks_from_gt
+    from .pipeline import match
+
+    a, b, gt_ba = demo_pair()
+    print(f"torchfmap demo: match {b.name} to {a.name} (shipped pair, ground truth {len(gt_ba)} vertices)")
+    for mesh in (a, b):
+        _operator_summary(mesh, print)
+    gt = gt_from_map(gt_ba)
+    landmarks = landmarks_from_gt(a, gt, 8)
+    print(f"\n{'basis':<10} {'refine':<8} {'K':>4} {'mean err':>9} {'median':>8} {'AUC':>6} {'time [s]':>9}")
+    for basis, refine in (("laplacian", None), ("laplacian", "zoomout"), ("stack", None), ("stack", "icp")):
+        t0 = time.perf_counter()
+        lm = landmarks if basis != "laplacian" else None
+        result = match(a, b, landmarks=lm, basis=basis, k=40, refine=refine)
+        dt = time.perf_counter() - t0
+        report, _ = evaluate_map(a, b, result.p2p_yx, gt)
+        print(
+            f"{basis:<10} {refine or '-':<8} {result.basis_x.k:>4} {report.mean_error:>9.4f} "
+            f"{report.median_error:>8.4f} {report.auc:>6.3f} {dt:>9.2f}"
+        )
+    print("errors: geodesic distance to the true match / sqrt(area); 'stack' uses 8 landmarks")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .io import load_mesh
+
+    mesh = load_mesh(args.mesh, allow_components=True)
+    _operator_summary(mesh, print)
+    return 0
+
+
+def read_landmarks(path: str) -> np.ndarray:
+    """0-based vertex indices, one per line (the first column if a line has several)."""
+    rows = [ln.split() for ln in open(path).read().splitlines() if ln.strip() and not ln.startswith("#")]
+    try:
+        return np.array([int(r[0]) for r in rows], dtype=np.int64)
+    except ValueError as err:
+        raise TorchFmapError(f"{path}: landmarks must be integer vertex indices ({err}).") from err
+
+
+def cmd_basis(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .bases import concatenate, diffusion_basis, harmonic_basis, laplacian_eigenbasis, orthonormalize
+    from .io import load_mesh
+    from .operators import laplacian
+    from .seeds import farthest_point_sampling
+
+    mesh = load_mesh(args.mesh, allow_components=True)
+    times = [float(t) for t in args.times.split(",")] if args.times else []
+    kinds = {"stack": ["diffusion", "harmonic", "laplacian"]}.get(args.kind, [args.kind])
+    steps = 2 + len(kinds) + (args.kind == "stack" or args.orthonormalize)
+    with tqdm(total=steps, desc="basis", unit="step", disable=args.quiet) as bar:
+        bar.set_postfix_str("operators")
+        ops = laplacian(mesh, kind=args.laplacian)
+        bar.update()
+        landmarks = read_landmarks(args.landmarks) if args.landmarks else None
+        n_seeds = args.seeds if args.seeds else (len(landmarks) if landmarks is not None else 0)
+        seeds = np.zeros(0, dtype=np.int64)
+        if "diffusion" in kinds or "harmonic" in kinds:
+            if n_seeds < 1:
+                raise TorchFmapError("this kind needs seeds. Fix: pass --seeds N and/or --landmarks FILE.")
+            bar.set_postfix_str("seeds")
+            seeds = farthest_point_sampling(mesh, n_seeds, landmarks=landmarks, metric=args.metric)
+        bar.update()
+        parts = []
+        if "diffusion" in kinds:
+            bar.set_postfix_str(f"diffusion ({len(seeds)} seeds x {len(times)} times)")
+            parts.append(diffusion_basis(mesh, seeds, times, args.method, operators=ops, tol=args.tol))
+            bar.update()
+        if "harmonic" in kinds:
+            bar.set_postfix_str("harmonic")
+            parts.append(harmonic_basis(mesh, seeds, operators=ops))
+            bar.update()
+        if "laplacian" in kinds:
+            bar.set_postfix_str("eigenbasis")
+            parts.append(laplacian_eigenbasis(mesh, args.k, operators=ops))
+            bar.update()
+        basis = concatenate(parts)
+        basis.stiffness = ops[0] if abs(ops[0] - ops[0].T).max() == 0 else None
+        if args.kind == "stack" or args.orthonormalize:
+            bar.set_postfix_str("orthonormalise")
+            basis = orthonormalize(basis, method=args.ortho)
+            bar.update()
+        path = basis.save(args.out)
+    print(f"{basis} -> {path}")
+    return 0
+
+
+def read_landmark_pairs(path: str) -> np.ndarray:
+    """``(L, 2)`` 0-based pairs ``source_vertex target_vertex``, one per line."""
+    rows = [ln.split() for ln in open(path).read().splitlines() if ln.strip() and not ln.startswith("#")]
+    try:
+        pairs = np.array([[int(r[0]), int(r[1])] for r in rows], dtype=np.int64)
+    except (ValueError, IndexError) as err:
+        raise TorchFmapError(f"{path}: each line must hold two 0-based vertex indices ({err}).") from err
+    return pairs.reshape(-1, 2)
+
+
+def cmd_match(args: argparse.Namespace) -> int:
+    from .io import load_mesh
+    from .pipeline import match
+
+    src, tgt = load_mesh(args.source), load_mesh(args.target)
+    landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
+    result = match(src, tgt, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
+    np.savetxt(args.out, result.p2p_yx, fmt="%d")
+    total = sum(result.timings.values())
+    print(
+        f"matched {tgt.n_vertices} target vertices to {src.name} (K={result.basis_x.k}, "
+        f"{total:.2f} s) -> {args.out}"
+    )
+    if args.png:
+        from .viz import plot_color_transfer
+
+        print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png)}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .eval import discover_pairs, evaluate_map, landmarks_from_gt, pck_curve
+    from .io import load_mesh
+    from .pipeline import match
+
+    pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
+    rows, curves, all_errors = [], {}, []
+    for a, b, pa, pb, gt in tqdm(pairs, desc="pairs", disable=args.quiet):
+        x, y = load_mesh(pa), load_mesh(pb)
+        landmarks = landmarks_from_gt(x, gt, args.landmarks) if args.landmarks else None
+        t0 = time.perf_counter()
+        result = match(x, y, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
+        dt = time.perf_counter() - t0
+        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=args.max_points)
+        rows.append((a, b, report, dt))
+        curves[f"{a}-{b}"] = pck_curve(errors)
+        all_errors.append(errors)
+    print(
+        "| source | target | mean err | median | AUC | coverage | time [s] |\n|---|---|---|---|---|---|---|"
+    )
+    for a, b, rep, dt in rows:
+        print(
+            f"| {a} | {b} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
+            f"{rep.coverage:.3f} | {dt:.2f} |"
+        )
+    errors = np.concatenate(all_errors)
+    print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
+    if args.png:
+        from .viz import plot_pck
+
+        curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}
+        title = f"{args.basis or 'auto'} basis, k={args.k}"
+        print(f"PCK plot -> {plot_pck(curves, args.png, title=title)}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchfmap", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("demo", help="run on the demo pair shipped in the package")
+    p.set_defaults(func=cmd_demo)
+    p = sub.add_parser("info", help="validate a mesh and summarise its operators")
+    p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
+    p.set_defaults(func=cmd_info)
+    p = sub.add_parser("basis", help="compute a basis and save it as .npz")
+    p.add_argument("mesh", help="mesh file")
+    p.add_argument("--seeds", type=int, default=0, help="number of seeds (landmarks included)")
+    p.add_argument("--landmarks", help="file of 0-based vertex indices, one per line; used first")
+    p.add_argument("--kind", choices=["harmonic", "diffusion", "laplacian", "stack"], default="stack")
+    p.add_argument(
+        "--times", default="0.001,0.003,0.01,0.03", help="relative diffusion times, comma separated"
+    )
+    p.add_argument("--k", type=int, default=50, help="number of Laplacian eigenfunctions")
+    p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan")
+    p.add_argument("--method", choices=["krylov", "rational", "backward_euler", "spectral"], default="krylov")
+    p.add_argument("--tol", type=float, default=1e-8, help="heat kernel accuracy")
+    p.add_argument("--metric", choices=["geodesic", "euclidean"], default="geodesic", help="FPS distance")
+    p.add_argument("--ortho", choices=["mgs", "cholqr"], default="mgs")
+    p.add_argument("--orthonormalize", action="store_true", help="orthonormalise single kinds too")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_basis)
+    bases = ["laplacian", "harmonic", "diffusion", "stack"]
+    p = sub.add_parser("match", help="map a target mesh to a source mesh; write target->source vertex map")
+    p.add_argument("source")
+    p.add_argument("target")
+    p.add_argument("--landmarks", help="file of 0-based pairs 'source_vertex target_vertex', one per line")
+    p.add_argument(
+        "--basis", choices=bases, default=None, help="default: stack with landmarks, else laplacian"
+    )
+    p.add_argument("--k", type=int, default=50)
+    p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
+    p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
+    p.add_argument("--png", help="also save a colour-transfer picture")
+    p.set_defaults(func=cmd_match)
+    p = sub.add_parser("eval", help="match every pair of a folder with ground truth; table + PCK plot")
+    p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
+    p.add_argument("--basis", choices=bases, default=None)
+    p.add_argument("--k", type=int, default=50)
+    p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
+    p.add_argument("--landmarks", type=int, default=0, help="use N ground-truth pairs as landmarks")
+    p.add_argument("--max-pairs", type=int, default=0)
+    p.add_argument("--max-points", type=int, default=None, help="evaluate at most this many points per pair")
+    p.add_argument("--png", help="save the PCK curves here")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_eval)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except TorchFmapError as err:
+        print(f"torchfmap: error: {type(err).__name__}: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,140 @@
+"""Pointwise descriptors: HKS, WKS, landmark descriptors, normalisation, projection.
+
+HKS and WKS are spectral (they take eigenpairs ``evals (k,)``, ``evecs (V, k)`` of
+``L φ = λ B φ``); landmark descriptors can also be computed spectrum-free as heat kernels
+centred at the landmarks. Every descriptor array is ``(V, D)``: one column per descriptor.
+Descriptors are projected onto *any* B-orthonormal basis by ``A = Φᵀ B F`` (``(K, D)``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from .bases.basis import Basis
+from .errors import ParameterError
+from .operators.geodesic import check_vertex_indices
+
+
+def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    evals = np.asarray(evals, dtype=np.float64)
+    evecs = np.asarray(evecs, dtype=np.float64)
+    if evecs.ndim != 2 or evals.shape != (evecs.shape[1],):
+        raise ParameterError(f"evals {evals.shape} and evecs {evecs.shape} disagree: need (k,) and (V, k).")
+    if evals.size < 2:
+        raise ParameterError("spectral descriptors need at least 2 eigenpairs.")
+    return evals, evecs
+
+
+def hks(evals, evecs, n_times: int = 16, times=None) -> np.ndarray:
+    """Heat kernel signature ``Σ_k exp(-λ_k t) φ_k(x)²``: ``(V, n_times)``.
+
+    Default times are log-spaced in ``[4 ln 10 / λ_max, 4 ln 10 / λ_1]`` (Sun et al. 2009), so
+    they follow the shape's scale.
+    """
+    evals, evecs = _check_spectrum(evals, evecs)
+    if times is None:
+        lam1 = evals[evals > 1e-10 * evals.max()].min()
+        times = np.geomspace(4 * np.log(10) / evals.max(), 4 * np.log(10) / lam1, n_times)
+    times = np.asarray(times, dtype=np.float64)
+    if np.any(times <= 0):
+        raise ParameterError(f"HKS times must be > 0, got {times.tolist()}.")
+    return (evecs**2) @ np.exp(-np.outer(np.maximum(evals, 0), times))
+
+
+def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.ndarray:
+    """``(k, E)`` normalised Gaussian weights of each eigenvalue at each log-energy."""
+    keep = evals > 1e-10 * evals.max()  # the constant eigenfunction carries no information
+    loge = np.log(np.where(keep, evals, 1.0))
+    e_min, e_max = loge[keep].min(), loge[keep].max()
+    energies = np.linspace(e_min, e_max, n_energies)
+    sigma = sigma_factor * (e_max - e_min) / n_energies
+    w = np.exp(-((energies[None, :] - loge[:, None]) ** 2) / (2 * sigma**2)) * keep[:, None]
+    return w / np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
+
+
+def wks(evals, evecs, n_energies: int = 100, sigma_factor: float = 7.0) -> np.ndarray:
+    """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``."""
+    evals, evecs = _check_spectrum(evals, evecs)
+    return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
+
+
+def landmark_descriptors(
+    landmarks,
+    *,
+    kind: Literal["heat", "wks"] = "heat",
+    operators=None,
+    area: float | None = None,
+    times=(1e-3, 1e-2),
+    evals=None,
+    evecs=None,
+    n_energies: int = 20,
+    tol: float = 1e-6,
+) -> np.ndarray:
+    """Functions centred at landmarks: ``(V, L * n)`` (``n`` times or energies per landmark).
+
+    ``kind='heat'``: heat kernels ``K_t(l, ·)`` at relative times ``t`` (absolute ``t·|M|``),
+    spectrum-free (needs ``operators=(L, B)``). ``kind='wks'``: landmark-centred wave kernels
+    ``Σ_k w_e(λ_k) φ_k(l) φ_k(·)`` (needs ``evals``, ``evecs``), as in pyFM.
+    """
+    if kind == "heat":
+        if operators is None:
+            raise ParameterError("heat landmark descriptors need operators=(L, B).")
+        from .bases.diffusion import heat_kernels
+
+        L, B = operators
+        n = L.shape[0]
+        lm = check_vertex_indices(landmarks, n, "landmarks")
+        total = float(B.sum()) if area is None else float(area)
+        K = heat_kernels((L, B), lm, np.asarray(times, dtype=np.float64) * total, tol=tol)  # (T, V, L)
+        return K.transpose(1, 2, 0).reshape(n, -1)
+    if kind == "wks":
+        evals, evecs = _check_spectrum(evals, evecs)
+        lm = check_vertex_indices(landmarks, evecs.shape[0], "landmarks")
+        w = _wks_weights(evals, n_energies, 7.0)  # (k, E)
+        # column (l, e): sum_k w[k, e] phi_k(l) phi_k(x)
+        coeffs = evecs[lm][:, :, None] * w[None]  # (L, k, E)
+        return np.einsum("vk,lke->vle", evecs, coeffs).reshape(evecs.shape[0], -1)
+    raise ParameterError(f"unknown landmark descriptor kind {kind!r}. Fix: 'heat' or 'wks'.")
+
+
+def normalize_descriptors(F: np.ndarray, mass=None) -> np.ndarray:
+    """Scale each column to unit norm (B-norm when ``mass`` is given); zero columns stay zero."""
+    F = np.asarray(F, dtype=np.float64)
+    if mass is None:
+        norms = np.linalg.norm(F, axis=0)
+    else:
+        norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", F, sp.csr_matrix(mass) @ F), 0.0))
+    return F / np.where(norms > 0, norms, 1.0)
+
+
+def subsample_descriptors(F: np.ndarray, step: int) -> np.ndarray:
+    """Every ``step``-th column."""
+    if step < 1:
+        raise ParameterError(f"step must be >= 1, got {step}.")
+    return np.asarray(F)[:, ::step]
+
+
+def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors") -> np.ndarray:
+    """``(V, D)`` finite float64 descriptors, or a clear error."""
+    F = np.asarray(F, dtype=np.float64)
+    F = F[:, None] if F.ndim == 1 else F
+    if F.ndim != 2 or F.shape[0] != n_vertices:
+        raise ParameterError(
+            f"{name} must be (V, D) with V={n_vertices}, got shape {F.shape}. Fix: one row per vertex."
+        )
+    bad = np.flatnonzero(~np.isfinite(F).all(axis=0))
+    if len(bad):
+        raise ParameterError(
+            f"{name} has non-finite values in columns {bad[:8].tolist()}. Fix: drop or repair them "
+            "(e.g. a WKS of a mesh with zero-area vertices)."
+        )
+    return F
+
+
+def project_descriptors(basis: Basis, F: np.ndarray) -> np.ndarray:
+    """Coefficients ``A = Φᵀ B F`` of descriptors ``F (V, D)`` in a B-orthonormal basis: ``(K, D)``."""
+    F = check_descriptors(F, basis.n_vertices)
+    return basis.project(F)

@@ -1,0 +1,251 @@
+"""Evaluation: geodesic error, PCK curves, coverage, bijectivity, smoothness, shape distances.
+
+Ground truth comes in the field's formats: the identity (same mesh connectivity, vertex ``i``
+matches ``i``), a 0-based map file (line ``v``: the source vertex of target vertex ``v``), or
+pairs of 1-based ``.vts`` files whose rows correspond. Every form is turned into two index
+arrays ``(idx_y, idx_x)`` of corresponding vertices.
+
+Errors are geodesic distances on the source ``x`` between the predicted and the true match,
+divided by ``sqrt(area_x)`` (the convention of the field). Distances come from the heat method
+on the rows needed only (one solve per distinct true vertex), never an all-pairs matrix.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ParameterError
+from .mesh import Mesh
+from .operators.geodesic import GeodesicSolver
+
+
+# -- ground truth ------------------------------------------------------------------------------
+def read_map(path: str | os.PathLike) -> np.ndarray:
+    """A 0-based vertex map, one integer per line."""
+    return np.atleast_1d(np.loadtxt(path, dtype=np.int64, ndmin=1))
+
+
+def read_vts(path: str | os.PathLike) -> np.ndarray:
+    """A ``.vts`` file (1-based vertex ids, first column) as 0-based indices."""
+    data = np.loadtxt(path, dtype=np.int64, ndmin=2)
+    return data[:, 0] - 1
+
+
+def gt_identity(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(idx_y, idx_x)`` for the identity correspondence on ``n`` vertices."""
+    idx = np.arange(n, dtype=np.int64)
+    return idx, idx.copy()
+
+
+def gt_from_map(gt_yx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(idx_y, idx_x)`` from a full 0-based map ``gt_yx`` (target -> source)."""
+    gt_yx = np.asarray(gt_yx, dtype=np.int64)
+    return np.arange(len(gt_yx), dtype=np.int64), gt_yx
+
+
+def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(idx_y, idx_x)`` from two 0-based ``.vts`` index arrays whose rows correspond."""
+    if len(vts_x) != len(vts_y):
+        raise ParameterError(f".vts files have {len(vts_x)} and {len(vts_y)} rows; rows must correspond.")
+    return np.asarray(vts_y, dtype=np.int64), np.asarray(vts_x, dtype=np.int64)
+
+
+# -- pointwise errors --------------------------------------------------------------------------
+def geodesic_errors(
+    mesh_x: Mesh,
+    p2p_yx: np.ndarray,
+    gt: tuple[np.ndarray, np.ndarray],
+    *,
+    solver: GeodesicSolver | None = None,
+    normalize: bool = True,
+    max_points: int | None = None,
+    seed: int = 0,
+) -> np.ndarray:
+    """Geodesic error of ``p2p_yx`` at every ground-truth pair: ``(P,)``.
+
+    Args:
+        mesh_x: the source mesh (errors are measured on it).
+        p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
+        gt: ``(idx_y, idx_x)`` corresponding vertices.
+        normalize: divide by ``sqrt(area_x)``.
+        max_points: evaluate a random subset of at most this many pairs (None: all).
+    """
+    idx_y, idx_x = (np.asarray(a, dtype=np.int64) for a in gt)
+    p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
+    if len(idx_y) != len(idx_x):
+        raise ParameterError("ground-truth index arrays differ in length.")
+    if idx_y.size and (idx_y.max() >= len(p2p_yx) or idx_y.min() < 0):
+        raise ParameterError("ground truth refers to target vertices outside the map. Fix: check the files.")
+    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
+        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    if max_points is not None and len(idx_y) > max_points:
+        pick = np.sort(np.random.default_rng(seed).choice(len(idx_y), max_points, replace=False))
+        idx_y, idx_x = idx_y[pick], idx_x[pick]
+    pred = p2p_yx[idx_y]
+    solver = solver or GeodesicSolver(mesh_x)
+    errors = np.empty(len(idx_x))
+    uniq, inverse = np.unique(idx_x, return_inverse=True)
+    for start in range(0, len(uniq), 256):  # bounded memory: 256 distance rows at a time
+        rows = solver.distances(uniq[start : start + 256])
+        sel = np.flatnonzero((inverse >= start) & (inverse < start + 256))
+        errors[sel] = rows[inverse[sel] - start, pred[sel]]
+    errors = np.maximum(errors, 0.0)
+    errors[pred == idx_x] = 0.0
+    return errors / np.sqrt(mesh_x.area) if normalize else errors
+
+
+def pck_curve(errors: np.ndarray, thresholds=None) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative accuracy: fraction of errors ``<= thr`` for each threshold ``(T,)``."""
+    errors = np.asarray(errors, dtype=np.float64)
+    thresholds = np.linspace(0, 0.25, 101) if thresholds is None else np.asarray(thresholds, dtype=np.float64)
+    return thresholds, (errors[None, :] <= thresholds[:, None]).mean(axis=1)
+
+
+def auc(errors: np.ndarray, max_threshold: float = 0.25) -> float:
+    """Area under the PCK curve on ``[0, max_threshold]``, normalised to ``[0, 1]``."""
+    thr, acc = pck_curve(errors, np.linspace(0, max_threshold, 201))
+    return float(np.trapezoid(acc, thr) / max_threshold)
+
+
+def coverage(p2p_yx: np.ndarray, n_x: int) -> float:
+    """Fraction of source vertices hit by the map (1 for a surjective map)."""
+    return float(len(np.unique(p2p_yx)) / n_x)
+
+
+def bijectivity_error(
+    mesh_y: Mesh, p2p_yx: np.ndarray, p2p_xy: np.ndarray, *, max_points: int | None = 2000, seed: int = 0
+) -> float:
+    """Mean normalised geodesic distance on ``y`` between ``v`` and ``p2p_xy[p2p_yx[v]]``."""
+    back = np.asarray(p2p_xy)[np.asarray(p2p_yx)]
+    gt = (back, np.arange(mesh_y.n_vertices))  # treat v as the truth for the round trip
+    errs = geodesic_errors(mesh_y, np.arange(mesh_y.n_vertices), gt, max_points=max_points, seed=seed)
+    return float(errs.mean())
+
+
+def smoothness(mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray) -> float:
+    """Mean edge stretch ``|x(p(i)) - x(p(j))| / |y_i - y_j|`` over the edges of ``y``,
+    with lengths normalised by ``sqrt(area)`` (1 for an isometry; large for a noisy map)."""
+    e = mesh_y.edges
+    p = np.asarray(p2p_yx)
+    src = np.linalg.norm(mesh_x.vertices[p[e[:, 0]]] - mesh_x.vertices[p[e[:, 1]]], axis=1)
+    dst = mesh_y.edge_lengths
+    return float(np.mean((src / np.sqrt(mesh_x.area)) / (dst / np.sqrt(mesh_y.area))))
+
+
+@dataclass
+class MapReport:
+    """Summary numbers of one map."""
+
+    mean_error: float
+    median_error: float
+    auc: float
+    coverage: float
+    smoothness: float
+
+    def row(self) -> str:
+        return (
+            f"{self.mean_error:.4f}  {self.median_error:.4f}  {self.auc:.3f}  {self.coverage:.3f}  "
+            f"{self.smoothness:.2f}"
+        )
+
+
+def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapReport, np.ndarray]:
+    """``(MapReport, errors)`` of ``p2p_yx`` against ground truth ``gt``."""
+    errors = geodesic_errors(mesh_x, p2p_yx, gt, **kwargs)
+    report = MapReport(
+        float(errors.mean()),
+        float(np.median(errors)),
+        auc(errors),
+        coverage(p2p_yx, mesh_x.n_vertices),
+        smoothness(mesh_x, mesh_y, p2p_yx),
+    )
+    return report, errors
+
+
+# -- shape comparison --------------------------------------------------------------------------
+def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, kind: str = "area") -> np.ndarray:
+    """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``.
+
+    ``area``: ``C_xyᵀ C_xy`` (identity for area-preserving maps between B-orthonormal bases);
+    ``conformal``: ``W_x⁺ C_xyᵀ W_y C_xy`` (identity for conformal maps).
+    """
+    C = np.asarray(C_xy, dtype=np.float64)
+    if kind == "area":
+        return C.T @ C
+    if kind == "conformal":
+        if W_x is None or W_y is None:
+            raise ParameterError("the conformal shape difference needs W_x and W_y (projected Laplacians).")
+        return np.linalg.pinv(W_x, rcond=1e-10, hermitian=True) @ C.T @ W_y @ C
+    raise ParameterError(f"unknown shape difference {kind!r}. Fix: 'area' or 'conformal'.")
+
+
+def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, kind: str = "area") -> float:
+    """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D``: 0 for isometric shapes."""
+    D = shape_difference(C_xy, W_x, W_y, kind)
+    return float(np.linalg.norm(D - np.eye(len(D))) / np.sqrt(len(D)))
+
+
+def retrieval_accuracy(distances: np.ndarray, labels) -> float:
+    """Leave-one-out nearest-neighbour class accuracy of a ``(N, N)`` distance matrix."""
+    D = np.array(distances, dtype=np.float64)
+    labels = np.asarray(labels)
+    if D.shape != (len(labels), len(labels)):
+        raise ParameterError(f"distances must be (N, N) with N={len(labels)}, got {D.shape}.")
+    np.fill_diagonal(D, np.inf)
+    return float(np.mean(labels[np.argmin(D, axis=1)] == labels))
+
+
+def landmarks_from_gt(mesh_x: Mesh, gt: tuple[np.ndarray, np.ndarray], n: int) -> np.ndarray:
+    """``(n, 2)`` landmark pairs ``(x vertex, y vertex)``: ground-truth rows spread over ``x``
+    by Euclidean farthest-point sampling (deterministic; for experiments with known landmarks)."""
+    idx_y, idx_x = (np.asarray(a, dtype=np.int64) for a in gt)
+    if not 1 <= n <= len(idx_x):
+        raise ParameterError(f"n must be in [1, {len(idx_x)}], got {n}.")
+    pts = mesh_x.vertices[idx_x]
+    chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    while len(chosen) < n:
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
+    rows = np.asarray(chosen)
+    return np.stack([idx_x[rows], idx_y[rows]], axis=1)
+
+
+def discover_pairs(folder: str | os.PathLike):
+    """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
+
+    ``corres/<name>.vts`` files give ``.vts`` ground truth (pairs from ``test_pairs.txt``, or
+    consecutive meshes); otherwise meshes with equal vertex counts get the identity.
+    """
+    from pathlib import Path
+
+    from .io import SUPPORTED_FORMATS, read_arrays
+
+    folder = Path(folder)
+    meshes = {
+        p.name.split(".")[0]: p for p in sorted(folder.iterdir()) if p.suffix.lower() in SUPPORTED_FORMATS
+    }
+    if len(meshes) < 2:
+        raise ParameterError(f"{folder} holds fewer than two meshes. Fix: point to a folder of meshes.")
+    pairs_file = folder / "test_pairs.txt"
+    if pairs_file.exists():
+        pairs = [tuple(ln.split()[:2]) for ln in pairs_file.read_text().splitlines() if ln.strip()]
+    else:
+        names = list(meshes)
+        pairs = list(zip(names[:-1], names[1:], strict=True))
+    corres = folder / "corres"
+    for a, b in pairs:
+        if corres.exists():
+            gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+        else:
+            n_a, n_b = len(read_arrays(meshes[a])[0]), len(read_arrays(meshes[b])[0])
+            if n_a != n_b:
+                raise ParameterError(
+                    f"no ground truth for {a}/{b}: no corres/ folder and vertex counts differ."
+                )
+            gt = gt_identity(n_a)
+        yield a, b, meshes[a], meshes[b], gt

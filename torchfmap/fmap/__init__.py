@@ -1,0 +1,39 @@
+"""Functional maps: the regularised solver (any basis), conversions and refinement."""
+
+from .convert import (
+    check_p2p,
+    fmap_to_p2p,
+    fmap_to_p2p_bijective,
+    nearest_neighbor,
+    p2p_to_fmap,
+)
+from .refine import icp_refine, zoomout, zoomout_sequence
+from .solver import (
+    FmapProblem,
+    build_problem,
+    check_landmark_pairs,
+    laplacian_mask,
+    multiplication_operator,
+    orientation_operator,
+    solve_fmap,
+    solve_rowwise,
+)
+
+__all__ = [
+    "FmapProblem",
+    "build_problem",
+    "check_landmark_pairs",
+    "check_p2p",
+    "fmap_to_p2p",
+    "fmap_to_p2p_bijective",
+    "icp_refine",
+    "laplacian_mask",
+    "multiplication_operator",
+    "nearest_neighbor",
+    "orientation_operator",
+    "p2p_to_fmap",
+    "solve_fmap",
+    "solve_rowwise",
+    "zoomout",
+    "zoomout_sequence",
+]

@@ -1,0 +1,144 @@
+"""Point-to-point maps <-> functional maps, with memory-bounded nearest-neighbour search.
+
+Direction is in every name: ``p2p_yx[v]`` is the vertex of ``x`` matched to vertex ``v`` of
+``y`` (so functions pull back as ``f_y = f_x[p2p_yx]``), and ``C_xy`` ``(K_y, K_x)`` maps
+coefficients on ``x`` to coefficients on ``y``. For B-orthonormal bases,
+``C_xy = Φ_yᵀ B_y Φ_x[p2p_yx]`` and, conversely, ``Φ_y C_xy ≈ Φ_x[p2p_yx]``: each row of
+``Φ_y C_xy`` is matched to its nearest row of ``Φ_x`` (``mode='pullback'``, valid in any
+basis). ``mode='orthogonal'`` matches rows of ``Φ_y`` to rows of ``Φ_x C_xyᵀ`` instead, the
+classical choice for (near-)orthogonal ``C`` in eigenbases.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..bases.basis import Basis
+from ..errors import ParameterError
+
+#: Memory budget (bytes) of one block of the brute-force distance matrix.
+NN_BLOCK_BYTES = 128 * 2**20
+#: At or below this dimension a KD-tree beats brute force.
+KDTREE_MAX_DIM = 12
+
+
+def nearest_neighbor(
+    query: np.ndarray,
+    reference: np.ndarray,
+    *,
+    method: Literal["auto", "brute", "kdtree"] = "auto",
+    block_bytes: int = NN_BLOCK_BYTES,
+    return_distance: bool = False,
+):
+    """Index of the nearest row of ``reference (N, D)`` for every row of ``query (M, D)``.
+
+    Brute force works in blocks of queries so that the ``(block, N)`` distance matrix stays
+    under ``block_bytes`` (memory is bounded whatever ``M`` and ``N``); a KD-tree is used for
+    low dimensions under ``method='auto'``. Ties go to the lowest index.
+    """
+    query = np.ascontiguousarray(query, dtype=np.float64)
+    reference = np.ascontiguousarray(reference, dtype=np.float64)
+    if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
+        raise ParameterError(
+            f"query {query.shape} and reference {reference.shape} must be (M, D) and (N, D)."
+        )
+    if not (np.isfinite(query).all() and np.isfinite(reference).all()):
+        raise ParameterError("nearest-neighbour inputs contain NaN or inf. Fix: check the map and bases.")
+    if method == "auto":
+        method = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
+    if method == "kdtree":
+        dist, idx = cKDTree(reference).query(query, k=1)
+        return (idx.astype(np.int64), dist) if return_distance else idx.astype(np.int64)
+    if method != "brute":
+        raise ParameterError(f"unknown method {method!r}. Fix: 'auto', 'brute' or 'kdtree'.")
+    ref_sq = np.einsum("ij,ij->i", reference, reference)
+    block = max(1, int(block_bytes // (8 * max(1, len(reference)))))
+    idx = np.empty(len(query), dtype=np.int64)
+    dist = np.empty(len(query)) if return_distance else None
+    for start in range(0, len(query), block):
+        q = query[start : start + block]
+        d = ref_sq[None, :] - 2.0 * (q @ reference.T)  # |q|^2 is constant per row
+        best = np.argmin(d, axis=1)
+        idx[start : start + block] = best
+        if dist is not None:
+            sq = d[np.arange(len(q)), best] + np.einsum("ij,ij->i", q, q)
+            dist[start : start + block] = np.sqrt(np.maximum(sq, 0.0))
+    return (idx, dist) if return_distance else idx
+
+
+def _check_fmap(C_xy: np.ndarray, k_x: int, k_y: int) -> np.ndarray:
+    C_xy = np.asarray(C_xy, dtype=np.float64)
+    if C_xy.ndim != 2 or C_xy.shape[0] > k_y or C_xy.shape[1] > k_x:
+        raise ParameterError(
+            f"C_xy has shape {C_xy.shape}, but the bases have K_y={k_y}, K_x={k_x}. Fix: C_xy is (K_y, K_x)."
+        )
+    if not np.isfinite(C_xy).all():
+        raise ParameterError("C_xy contains NaN or inf.")
+    return C_xy
+
+
+def fmap_to_p2p(
+    C_xy: np.ndarray,
+    basis_x: Basis,
+    basis_y: Basis,
+    *,
+    mode: Literal["pullback", "orthogonal"] = "pullback",
+    method: Literal["auto", "brute", "kdtree"] = "auto",
+) -> np.ndarray:
+    """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis)."""
+    C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
+    ky, kx = C_xy.shape
+    phi_x, phi_y = basis_x.values[:, :kx], basis_y.values[:, :ky]
+    if mode == "pullback":
+        return nearest_neighbor(phi_y @ C_xy, phi_x, method=method)
+    if mode == "orthogonal":
+        return nearest_neighbor(phi_y, phi_x @ C_xy.T, method=method)
+    raise ParameterError(f"unknown mode {mode!r}. Fix: 'pullback' or 'orthogonal'.")
+
+
+def fmap_to_p2p_bijective(
+    C_xy: np.ndarray, C_yx: np.ndarray, basis_x: Basis, basis_y: Basis, *, method="auto"
+) -> np.ndarray:
+    """``p2p_yx`` that is consistent with both directions (Ren et al. 2021's bijective term).
+
+    Each vertex ``v`` of ``y`` is embedded as ``[Φ_y C_xy, Φ_y](v)`` and each vertex ``u`` of
+    ``x`` as ``[Φ_x, Φ_x C_yx](u)``; nearest neighbours in this joint space favour matches that
+    both maps agree on.
+    """
+    C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
+    C_yx = _check_fmap(C_yx, basis_y.k, basis_x.k)
+    ky, kx = C_xy.shape
+    if C_yx.shape != (kx, ky):
+        raise ParameterError(f"C_yx must be {(kx, ky)} to pair with C_xy {C_xy.shape}, got {C_yx.shape}.")
+    phi_x, phi_y = basis_x.values[:, :kx], basis_y.values[:, :ky]
+    emb_y = np.hstack([phi_y @ C_xy, phi_y])
+    emb_x = np.hstack([phi_x, phi_x @ C_yx])
+    return nearest_neighbor(emb_y, emb_x, method=method)
+
+
+def check_p2p(p2p: np.ndarray, n_target: int, n_source: int, name: str = "p2p") -> np.ndarray:
+    """A ``(n_target,)`` int map into ``[0, n_source)``, or a clear error."""
+    p2p = np.asarray(p2p)
+    if p2p.shape != (n_target,):
+        raise ParameterError(f"{name} must have one entry per vertex ({n_target}), got shape {p2p.shape}.")
+    if not np.issubdtype(p2p.dtype, np.integer):
+        raise ParameterError(f"{name} must hold integer vertex indices, got {p2p.dtype}.")
+    if p2p.size and (p2p.min() < 0 or p2p.max() >= n_source):
+        raise ParameterError(f"{name} has indices outside [0, {n_source}). Fix: maps are 0-based.")
+    return p2p.astype(np.int64)
+
+
+def p2p_to_fmap(
+    p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, k_x: int | None = None, k_y: int | None = None
+):
+    """``C_xy = Φ_yᵀ B_y Φ_x[p2p_yx]`` (``(k_y, k_x)``): the B-projection of pulled-back functions."""
+    p2p_yx = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
+    kx = basis_x.k if k_x is None else k_x
+    ky = basis_y.k if k_y is None else k_y
+    if kx > basis_x.k or ky > basis_y.k:
+        raise ParameterError(f"k_x={kx}, k_y={ky} exceed the bases' sizes {basis_x.k}, {basis_y.k}.")
+    phi_y = basis_y.values[:, :ky]
+    return phi_y.T @ (basis_y.mass @ basis_x.values[p2p_yx, :kx])

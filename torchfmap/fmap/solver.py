@@ -1,0 +1,284 @@
+"""Regularised functional-map solver that works in any B-orthonormal basis.
+
+Notation: ``C_xy`` has shape ``(K_y, K_x)`` and maps coefficients of a function on ``x`` to
+coefficients on ``y``. Descriptor coefficients are ``A_x = Φ_xᵀ B_x F_x`` (``(K_x, D)``), the
+projected Laplacians ``W_x = Φ_xᵀ L_x Φ_x`` (full ``(K_x, K_x)`` for feature-aware bases,
+diagonal for an eigenbasis). The energy is
+
+    w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C'_ij² + w_dcomm Σ_f ‖C D_x^f - D_y^f C‖²
+    + w_orient Σ_f ‖C O_x^f ∓ O_y^f C‖² + w_lmk ‖P_y C - P_x‖²
+
+with ``C' = U_yᵀ C U_x`` in the eigenvectors of ``W_x = U_x Λ_x U_xᵀ`` and ``W_y``. For the
+plain Laplacian mask ``M_ij = (λ_x,j - λ_y,i)²`` the second term *equals*
+``‖C W_x - W_y C‖²`` (the rotations are orthogonal), so with only the first two terms the
+problem splits into ``K_y`` independent ``K_x x K_x`` systems, solved in one batched call:
+exact and cheap in any basis. The resolvent mask (Ren et al. 2019) is used the same way.
+The other terms couple rows; then conjugate gradients on the normal equations (warm-started
+from the row-wise solution) solve the full problem.
+
+``D^f = Φᵀ B diag(f) Φ`` are multiplication operators (descriptor commutativity, Nogneng &
+Ovsjanikov 2017); ``O^f = Φᵀ A (n × ∇f)·∇ Φ`` are orientation operators (Ren et al. 2018);
+``P = Φ[landmarks]`` evaluates the basis at landmarks (pointwise landmark preservation).
+Each pair of operators ``(D_x^f, D_y^f)`` is scaled to mean unit Frobenius norm, so the
+weights do not depend on the meshes' scale or the descriptors' units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as ssla
+
+from ..bases.basis import Basis
+from ..descriptors import check_descriptors
+from ..errors import ParameterError
+from ..mesh import Mesh
+from ..operators.geodesic import check_vertex_indices
+from .core import laplacian_mask, solve_rowwise
+
+MaskKind = Literal["laplacian", "resolvent"]
+#: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
+MAX_OPERATOR_DESCRIPTORS = 16
+
+
+@dataclass
+class SpectralFrame:
+    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of a projected Laplacian (for rotations)."""
+
+    lam: np.ndarray
+    U: np.ndarray
+
+    @classmethod
+    def of(cls, W: np.ndarray) -> SpectralFrame:
+        W = np.asarray(W, dtype=np.float64)
+        lam, U = np.linalg.eigh(0.5 * (W + W.T))
+        return cls(lam, U)
+
+
+def multiplication_operator(basis: Basis, f: np.ndarray) -> np.ndarray:
+    """``(K, K)`` ``Φᵀ B diag(f) Φ``: multiplication by ``f`` in the basis."""
+    return basis.values.T @ (basis.mass @ (f[:, None] * basis.values))
+
+
+def _gradient_operator(mesh: Mesh) -> sp.csr_matrix:
+    """``(3F, V)`` per-face gradient of piecewise-linear functions (rows x, y, z per face)."""
+    v, f = mesh.vertices, mesh.faces
+    n = mesh.face_normals
+    area2 = 2 * mesh.face_areas
+    rows, cols, vals = [], [], []
+    for c in range(3):
+        e = v[f[:, (c + 2) % 3]] - v[f[:, (c + 1) % 3]]  # edge opposite corner c
+        g = np.cross(n, e) / area2[:, None]  # gradient of the hat function of corner c
+        for d in range(3):
+            rows.append(3 * np.arange(len(f)) + d)
+            cols.append(f[:, c])
+            vals.append(g[:, d])
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * len(f), len(v))
+    )
+
+
+def orientation_operators(mesh: Mesh, basis: Basis, F: np.ndarray) -> list[np.ndarray]:
+    """``(K, K)`` operators of the vector fields ``n × ∇f`` (one per column ``f`` of ``F``)
+    acting by ``g -> (n × ∇f)·∇g``, area-weighted to vertices. The gradient operator and the
+    basis gradients are computed once for all columns."""
+    G = _gradient_operator(mesh)
+    n_f = len(mesh.faces)
+    grad_phi = (G @ basis.values).reshape(n_f, 3, -1)  # (F, 3, K)
+    grad_f = (G @ np.asarray(F, dtype=np.float64).reshape(mesh.n_vertices, -1)).reshape(n_f, 3, -1)
+    to_vertex = sp.csr_matrix(
+        (np.repeat(mesh.face_areas / 3.0, 3), (mesh.faces.ravel(), np.repeat(np.arange(n_f), 3))),
+        shape=(mesh.n_vertices, n_f),
+    )
+    out = []
+    for j in range(grad_f.shape[2]):
+        field = np.cross(mesh.face_normals, grad_f[:, :, j])  # (F, 3)
+        per_face = np.einsum("fd,fdk->fk", field, grad_phi)
+        out.append(basis.values.T @ (to_vertex @ per_face))
+    return out
+
+
+def orientation_operator(mesh: Mesh, basis: Basis, f: np.ndarray) -> np.ndarray:
+    """``(K, K)`` operator of the vector field ``n × ∇f`` acting by ``g -> (n × ∇f)·∇g``."""
+    return orientation_operators(mesh, basis, np.asarray(f)[:, None])[0]
+
+
+@dataclass
+class FmapProblem:
+    """Everything the solver needs, already rotated into the spectral frames of ``W_x, W_y``."""
+
+    A_x: np.ndarray
+    A_y: np.ndarray
+    mask: np.ndarray
+    frame_x: SpectralFrame
+    frame_y: SpectralFrame
+    commute: list[tuple[np.ndarray, np.ndarray, float, float]]  # (Dx', Dy', weight, sign)
+    landmarks: tuple[np.ndarray, np.ndarray, float] | None  # (P_y', P_x', weight)
+    w_desc: float
+    w_lap: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.A_y.shape[0], self.A_x.shape[0]
+
+    def energy(self, Cr: np.ndarray) -> float:
+        """Energy of a rotated map ``C'``."""
+        e = self.w_desc * np.sum((Cr @ self.A_x - self.A_y) ** 2) + self.w_lap * np.sum(self.mask * Cr**2)
+        for Dx, Dy, w, sign in self.commute:
+            e += w * np.sum((Cr @ Dx - sign * Dy @ Cr) ** 2)
+        if self.landmarks is not None:
+            Py, Px, w = self.landmarks
+            e += w * np.sum((Py @ Cr - Px) ** 2)
+        return float(e)
+
+    def normal_matvec(self, Cr: np.ndarray) -> np.ndarray:
+        """Half the gradient's linear part: ``H C'`` of the quadratic energy."""
+        out = self.w_desc * (Cr @ self.A_x) @ self.A_x.T + self.w_lap * self.mask * Cr
+        for Dx, Dy, w, sign in self.commute:
+            R = Cr @ Dx - sign * Dy @ Cr
+            out += w * (R @ Dx.T - sign * Dy.T @ R)
+        if self.landmarks is not None:
+            Py, _, w = self.landmarks
+            out += w * Py.T @ (Py @ Cr)
+        return out
+
+    def normal_rhs(self) -> np.ndarray:
+        rhs = self.w_desc * self.A_y @ self.A_x.T
+        if self.landmarks is not None:
+            Py, Px, w = self.landmarks
+            rhs = rhs + w * Py.T @ Px
+        return rhs
+
+    def solve(self, tol: float = 1e-10, maxiter: int = 500) -> np.ndarray:
+        """The minimiser ``C'`` (rotated frame).
+
+        Descriptor + Laplacian terms only: the exact row-wise solve. With coupling terms:
+        conjugate gradients on the normal equations, preconditioned by the inverse of the
+        row-wise (block-diagonal) part and warm-started from its solution.
+        """
+        Cr = solve_rowwise(self.A_x, self.A_y, self.mask, self.w_desc, self.w_lap)
+        if not self.commute and self.landmarks is None:
+            return Cr
+        ky, kx = self.shape
+        G = self.w_desc * (self.A_x @ self.A_x.T)
+        blocks = G[None] + self.w_lap * self.mask[:, :, None] * np.eye(kx)  # (ky, kx, kx)
+        inv_blocks = np.linalg.inv(blocks)
+        op = ssla.LinearOperator(
+            (ky * kx, ky * kx),
+            matvec=lambda c: self.normal_matvec(c.reshape(ky, kx)).ravel(),
+            dtype=np.float64,
+        )
+        precond = ssla.LinearOperator(
+            (ky * kx, ky * kx),
+            matvec=lambda r: np.einsum("ijk,ik->ij", inv_blocks, r.reshape(ky, kx)).ravel(),
+            dtype=np.float64,
+        )
+        sol, _ = ssla.cg(op, self.normal_rhs().ravel(), x0=Cr.ravel(), rtol=tol, maxiter=maxiter, M=precond)
+        return sol.reshape(ky, kx)
+
+    def unrotate(self, Cr: np.ndarray) -> np.ndarray:
+        return self.frame_y.U @ Cr @ self.frame_x.U.T
+
+
+def build_problem(
+    basis_x: Basis,
+    basis_y: Basis,
+    desc_x: np.ndarray,
+    desc_y: np.ndarray,
+    *,
+    w_desc: float = 1.0,
+    w_lap: float = 1e-3,
+    mask: MaskKind = "laplacian",
+    w_dcomm: float = 0.0,
+    w_orient: float = 0.0,
+    orient_reversing: bool = False,
+    meshes: tuple[Mesh, Mesh] | None = None,
+    landmarks=None,
+    w_lmk: float = 0.0,
+) -> FmapProblem:
+    """Assemble a :class:`FmapProblem`; see :func:`solve_fmap` for the arguments."""
+    for name, basis in (("basis_x", basis_x), ("basis_y", basis_y)):
+        if not basis.orthonormal:
+            raise ParameterError(
+                f"{name} is not B-orthonormal. Fix: orthonormalize(basis) (or basis_stack) first."
+            )
+        if basis.stiffness is None:
+            raise ParameterError(f"{name} has no stiffness matrix: build it from a mesh with (L, B).")
+    desc_x = check_descriptors(desc_x, basis_x.n_vertices, "desc_x")
+    desc_y = check_descriptors(desc_y, basis_y.n_vertices, "desc_y")
+    if desc_x.shape[1] != desc_y.shape[1]:
+        raise ParameterError(
+            f"descriptor counts differ: desc_x has {desc_x.shape[1]}, desc_y has {desc_y.shape[1]}. Fix: "
+            "compute the same descriptors (same parameters) on both shapes."
+        )
+    if min(w_desc, w_lap, w_dcomm, w_orient, w_lmk) < 0:
+        raise ParameterError("energy weights must be >= 0.")
+    fx = SpectralFrame.of(basis_x.projected_laplacian())
+    fy = SpectralFrame.of(basis_y.projected_laplacian())
+    A_x = fx.U.T @ basis_x.project(desc_x)
+    A_y = fy.U.T @ basis_y.project(desc_y)
+    commute = []
+    # commutativity operators cost K^3 per descriptor and CG step: use at most
+    # MAX_OPERATOR_DESCRIPTORS descriptors, evenly spaced
+    op_cols = np.unique(
+        np.linspace(0, desc_x.shape[1] - 1, min(MAX_OPERATOR_DESCRIPTORS, desc_x.shape[1])).astype(int)
+    )
+    if w_dcomm > 0:
+        for j in op_cols:
+            Dx = fx.U.T @ multiplication_operator(basis_x, desc_x[:, j]) @ fx.U
+            Dy = fy.U.T @ multiplication_operator(basis_y, desc_y[:, j]) @ fy.U
+            commute.append((*_unit_pair(Dx, Dy), w_dcomm, 1.0))
+    if w_orient > 0:
+        if meshes is None:
+            raise ParameterError("the orientation term needs meshes=(mesh_x, mesh_y).")
+        sign = -1.0 if orient_reversing else 1.0
+        ops_x = orientation_operators(meshes[0], basis_x, desc_x[:, op_cols])
+        ops_y = orientation_operators(meshes[1], basis_y, desc_y[:, op_cols])
+        for Ox, Oy in zip(ops_x, ops_y, strict=True):
+            commute.append((*_unit_pair(fx.U.T @ Ox @ fx.U, fy.U.T @ Oy @ fy.U), w_orient, sign))
+    lmk = None
+    if landmarks is not None and w_lmk > 0:
+        pairs = check_landmark_pairs(landmarks, basis_x.n_vertices, basis_y.n_vertices)
+        lmk = (basis_y.values[pairs[:, 1]] @ fy.U, basis_x.values[pairs[:, 0]] @ fx.U, w_lmk)
+    return FmapProblem(A_x, A_y, laplacian_mask(fx.lam, fy.lam, mask), fx, fy, commute, lmk, w_desc, w_lap)
+
+
+def _unit_pair(Ox: np.ndarray, Oy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scale an operator pair to mean unit Frobenius norm, so term weights are scale-free."""
+    scale = 0.5 * (np.linalg.norm(Ox) + np.linalg.norm(Oy))
+    return (Ox / scale, Oy / scale) if scale > 0 else (Ox, Oy)
+
+
+def check_landmark_pairs(landmarks, n_x: int, n_y: int) -> np.ndarray:
+    """``(L, 2)`` int pairs ``(vertex on x, vertex on y)``, validated."""
+    pairs = np.asarray(landmarks)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
+        raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
+    check_vertex_indices(pairs[:, 0], n_x, "source landmarks")
+    check_vertex_indices(pairs[:, 1], n_y, "target landmarks")
+    return pairs.astype(np.int64)
+
+
+def solve_fmap(
+    basis_x: Basis, basis_y: Basis, desc_x: np.ndarray, desc_y: np.ndarray, **kwargs
+) -> np.ndarray:
+    """Regularised functional map ``C_xy`` (``(K_y, K_x)``) in any B-orthonormal bases.
+
+    Args:
+        basis_x, basis_y: B-orthonormal bases with stiffness (``W = Φᵀ L Φ``).
+        desc_x, desc_y: ``(V_x, D)``, ``(V_y, D)`` corresponding descriptors.
+        w_desc: descriptor preservation weight.
+        w_lap: Laplacian commutativity weight; ``mask='laplacian'`` or ``'resolvent'``.
+        w_dcomm: descriptor commutativity weight (multiplication operators).
+        w_orient: orientation term weight (needs ``meshes=(mesh_x, mesh_y)``);
+            ``orient_reversing=True`` for mirror maps.
+        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk``.
+
+    Returns:
+        ``C_xy``.
+    """
+    problem = build_problem(basis_x, basis_y, desc_x, desc_y, **kwargs)
+    return problem.unrotate(problem.solve())

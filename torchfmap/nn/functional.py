@@ -1,0 +1,201 @@
+"""Differentiable functional-map operations on batches (torch).
+
+Shapes: ``B`` pairs, ``V`` vertices (padded), ``K`` basis functions (padded), ``D`` feature
+channels. A :class:`BasisBatch` holds ``values (B, V, K)``, ``mass (B, V)`` (lumped; 0 on
+padded vertices), the spectral frame of the projected Laplacian ``lam (B, K)``, ``U (B, K, K)``
+(identity on padded columns) and ``valid (B, K)`` (1 for real columns). The solve itself is
+:func:`torchfmap.fmap.core.rotate_and_solve`, the same code the classical path runs.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from ..errors import ParameterError
+from ..fmap.core import rotate_and_solve
+
+
+class BasisBatch(NamedTuple):
+    """A padded batch of bases; see the module docstring for shapes."""
+
+    values: torch.Tensor
+    mass: torch.Tensor
+    lam: torch.Tensor
+    U: torch.Tensor
+    valid: torch.Tensor
+
+    @property
+    def W(self) -> torch.Tensor:
+        """``(B, K, K)`` projected Laplacian ``U diag(lam) Uᵀ``."""
+        return self.U @ (self.lam[..., None] * self.U.transpose(-1, -2))
+
+    def to(self, *args, **kwargs) -> BasisBatch:
+        return BasisBatch(*(t.to(*args, **kwargs) for t in self))
+
+
+def project(basis: BasisBatch, f: torch.Tensor) -> torch.Tensor:
+    """``Φᵀ M f``: ``(B, V, D) -> (B, K, D)``."""
+    _check_batch(basis, f, "features")
+    return basis.values.transpose(-1, -2) @ (basis.mass[..., None] * f)
+
+
+def reconstruct(basis: BasisBatch, coeffs: torch.Tensor) -> torch.Tensor:
+    """``Φ c``: ``(B, K, D) -> (B, V, D)``."""
+    if coeffs.shape[-2] != basis.values.shape[-1]:
+        raise ParameterError(
+            f"coefficients have K={coeffs.shape[-2]}, the basis has K={basis.values.shape[-1]}."
+        )
+    return basis.values @ coeffs
+
+
+def _check_batch(basis: BasisBatch, f: torch.Tensor, name: str, finite: bool = False) -> None:
+    if f.dim() != 3 or f.shape[0] != basis.values.shape[0] or f.shape[1] != basis.values.shape[1]:
+        raise ParameterError(
+            f"{name} must be (B, V, D) = ({basis.values.shape[0]}, {basis.values.shape[1]}, D), got "
+            f"{tuple(f.shape)}. Fix: one row per (padded) vertex, the same batch size as the basis."
+        )
+    if finite and not torch.isfinite(f).all():
+        raise ParameterError(f"{name} contain NaN or inf. Fix: check the network's inputs and outputs.")
+
+
+def fmap_solve(
+    feat_x: torch.Tensor,
+    feat_y: torch.Tensor,
+    basis_x: BasisBatch,
+    basis_y: BasisBatch,
+    *,
+    w_desc: float = 1.0,
+    w_lap: float = 1e-3,
+    mask: str = "laplacian",
+    both: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Regularised functional maps from features, differentiable and batched.
+
+    Returns ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)``. Equal to
+    :func:`torchfmap.fmap.solve_fmap` with the same weights (descriptor + Laplacian terms).
+    """
+    if basis_x.values.shape[0] != basis_y.values.shape[0]:
+        raise ParameterError(
+            f"batch sizes differ: {basis_x.values.shape[0]} x-shapes and {basis_y.values.shape[0]} y-shapes. "
+            "Fix: collate x and y of the same pairs together."
+        )
+    if feat_x.shape[-1] != feat_y.shape[-1]:
+        raise ParameterError(f"feature dimensions differ: {feat_x.shape[-1]} vs {feat_y.shape[-1]}.")
+    _check_batch(basis_x, feat_x, "features", finite=True)
+    _check_batch(basis_y, feat_y, "features", finite=True)
+    A_x, A_y = project(basis_x, feat_x), project(basis_y, feat_y)
+    valid_xy = basis_y.valid[..., :, None] * basis_x.valid[..., None, :]
+    if bool((valid_xy == 1).all()):
+        valid_xy = None  # no padding: skip the masking work
+    C_xy = rotate_and_solve(
+        A_x,
+        A_y,
+        basis_x.lam,
+        basis_x.U,
+        basis_y.lam,
+        basis_y.U,
+        w_desc=w_desc,
+        w_lap=w_lap,
+        mask=mask,
+        valid=valid_xy,
+    )
+    C_yx = None
+    if both:
+        C_yx = rotate_and_solve(
+            A_y,
+            A_x,
+            basis_y.lam,
+            basis_y.U,
+            basis_x.lam,
+            basis_x.U,
+            w_desc=w_desc,
+            w_lap=w_lap,
+            mask=mask,
+            valid=None if valid_xy is None else valid_xy.transpose(-1, -2),
+        )
+    return C_xy, C_yx
+
+
+def soft_map(
+    feat_x: torch.Tensor,
+    feat_y: torch.Tensor,
+    *,
+    tau: float = 0.07,
+    mass_x: torch.Tensor | None = None,
+    sinkhorn_iters: int = 0,
+) -> torch.Tensor:
+    """Soft point map ``Π_yx (B, V_y, V_x)``: row ``v`` is a distribution over vertices of ``x``.
+
+    Softmax of cosine similarity / ``tau``; padded vertices of ``x`` (``mass_x == 0``) get no
+    weight. ``sinkhorn_iters > 0`` alternates row and column normalisation (log domain).
+    """
+    fx = torch.nn.functional.normalize(feat_x, dim=-1)
+    fy = torch.nn.functional.normalize(feat_y, dim=-1)
+    logits = fy @ fx.transpose(-1, -2) / tau
+    if mass_x is not None:
+        logits = logits.masked_fill((mass_x <= 0)[..., None, :], float("-inf"))
+    log_p = torch.log_softmax(logits, dim=-1)
+    for _ in range(sinkhorn_iters):
+        log_p = log_p - torch.logsumexp(log_p, dim=-2, keepdim=True).nan_to_num(neginf=0.0)
+        log_p = torch.log_softmax(log_p, dim=-1)
+    return log_p.exp()
+
+
+def soft_map_to_fmap(pi_yx: torch.Tensor, basis_x: BasisBatch, basis_y: BasisBatch) -> torch.Tensor:
+    """``C_xy = Φ_yᵀ M_y Π_yx Φ_x``: ``(B, K_y, K_x)``."""
+    return basis_y.values.transpose(-1, -2) @ (basis_y.mass[..., None] * (pi_yx @ basis_x.values))
+
+
+# -- losses ------------------------------------------------------------------------------------
+def _valid_eye(valid: torch.Tensor) -> torch.Tensor:
+    return torch.diag_embed(valid)
+
+
+def orthogonality_loss(C_xy: torch.Tensor, valid_x: torch.Tensor | None = None) -> torch.Tensor:
+    """``mean_b ‖C_xyᵀ C_xy - I‖²_F`` (area preservation)."""
+    eye = (
+        _valid_eye(valid_x)
+        if valid_x is not None
+        else torch.eye(C_xy.shape[-1], dtype=C_xy.dtype, device=C_xy.device)
+    )
+    return ((C_xy.transpose(-1, -2) @ C_xy - eye) ** 2).sum(dim=(-2, -1)).mean()
+
+
+def bijectivity_loss(C_xy: torch.Tensor, C_yx: torch.Tensor, valid_x=None, valid_y=None) -> torch.Tensor:
+    """``mean_b ‖C_yx C_xy - I‖² + ‖C_xy C_yx - I‖²``."""
+    kx, ky = C_xy.shape[-1], C_xy.shape[-2]
+    ex = _valid_eye(valid_x) if valid_x is not None else torch.eye(kx, dtype=C_xy.dtype, device=C_xy.device)
+    ey = _valid_eye(valid_y) if valid_y is not None else torch.eye(ky, dtype=C_xy.dtype, device=C_xy.device)
+    a = ((C_yx @ C_xy - ex) ** 2).sum(dim=(-2, -1))
+    b = ((C_xy @ C_yx - ey) ** 2).sum(dim=(-2, -1))
+    return (a + b).mean()
+
+
+def laplacian_commutativity_loss(
+    C_xy: torch.Tensor, basis_x: BasisBatch, basis_y: BasisBatch
+) -> torch.Tensor:
+    """``mean_b ‖C W_x - W_y C‖² / ‖W‖²`` (scale-free)."""
+    Wx, Wy = basis_x.W, basis_y.W
+    scale = 0.5 * ((Wx**2).sum(dim=(-2, -1)) + (Wy**2).sum(dim=(-2, -1))) / C_xy.shape[-1]
+    return (((C_xy @ Wx - Wy @ C_xy) ** 2).sum(dim=(-2, -1)) / scale.clip(min=1e-300)).mean()
+
+
+def coupling_loss(
+    C_xy: torch.Tensor, pi_yx: torch.Tensor, basis_x: BasisBatch, basis_y: BasisBatch
+) -> torch.Tensor:
+    """``mean_b ‖C_xy - Φ_yᵀ M_y Π_yx Φ_x‖²``: the functional map agrees with the soft point map."""
+    return ((C_xy - soft_map_to_fmap(pi_yx, basis_x, basis_y)) ** 2).sum(dim=(-2, -1)).mean()
+
+
+def geodesic_loss(pi_yx: torch.Tensor, idx_y: torch.Tensor, dist_rows: torch.Tensor) -> torch.Tensor:
+    """Supervised: expected geodesic error ``mean Σ_x Π[idx_y, x] d_x(x, gt)``.
+
+    Args:
+        pi_yx: ``(B, V_y, V_x)`` soft map.
+        idx_y: ``(B, P)`` target vertices with known ground truth.
+        dist_rows: ``(B, P, V_x)`` geodesic distances on ``x`` from the true match of each.
+    """
+    rows = torch.gather(pi_yx, 1, idx_y[..., None].expand(-1, -1, pi_yx.shape[-1]))
+    return (rows * dist_rows).sum(dim=-1).mean()

@@ -1,0 +1,208 @@
+"""``torch.nn.Module`` layers: thin wrappers that hold settings / buffers and call
+:mod:`torchfmap.nn.functional` (which calls the same solver code as the classical path)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from torch import nn
+
+from ..bases.basis import Basis
+from ..errors import ParameterError
+from ..mesh import Mesh
+from . import functional as F
+from .functional import BasisBatch
+
+
+def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
+    """Numpy arrays of a B-orthonormal basis for the torch side: values, lumped mass, frame."""
+    if not basis.orthonormal:
+        raise ParameterError("the basis must be B-orthonormal. Fix: orthonormalize(basis) first.")
+    mass = sp.csr_matrix(basis.mass)
+    if abs(mass - sp.diags(mass.diagonal())).max() > 0:
+        raise ParameterError(
+            "torch layers need a lumped (diagonal) mass. Fix: mass='voronoi' or 'barycentric'."
+        )
+    if basis.stiffness is None:
+        raise ParameterError("the basis needs its stiffness matrix (for W = Φᵀ L Φ).")
+    W = basis.projected_laplacian()
+    lam, U = np.linalg.eigh(0.5 * (W + W.T))
+    return {"values": basis.values, "mass": mass.diagonal().copy(), "lam": lam, "U": U}
+
+
+class BasisModule(nn.Module):
+    """A precomputed basis as buffers (moves with ``.to()``): ``values (V, K)``, ``mass (V,)``,
+    ``lam (K,)``, ``U (K, K)`` with ``W = U diag(lam) Uᵀ = Φᵀ L Φ``."""
+
+    def __init__(self, basis: Basis, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        for name, array in basis_arrays(basis).items():
+            self.register_buffer(name, torch.as_tensor(array, dtype=dtype))
+
+    @classmethod
+    def from_mesh(cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, **kwargs) -> BasisModule:
+        """Build with the classical bases: ``'laplacian'`` (k eigenfunctions) or ``'stack'``
+        (``seeds`` required; ``kwargs`` go to :func:`~torchfmap.basis_stack`)."""
+        from ..bases import basis_stack, laplacian_eigenbasis
+
+        if kind == "laplacian":
+            return cls(laplacian_eigenbasis(mesh, k))
+        if kind == "stack":
+            if seeds is None:
+                raise ParameterError("a stack basis needs seeds.")
+            return cls(basis_stack(mesh, seeds, n_eigen=k, **kwargs))
+        raise ParameterError(f"unknown basis kind {kind!r}. Fix: 'laplacian' or 'stack'.")
+
+    @property
+    def k(self) -> int:
+        return self.values.shape[1]
+
+    def truncated(self, k: int) -> BasisModule:
+        """The first ``k`` functions (frame recomputed)."""
+        if not 1 <= k <= self.k:
+            raise ParameterError(f"k={k} is outside [1, {self.k}] for this basis. Fix: build a larger basis.")
+        out = BasisModule.__new__(BasisModule)
+        nn.Module.__init__(out)
+        W = self.U @ torch.diag(self.lam) @ self.U.T
+        lam, U = torch.linalg.eigh(W[:k, :k])
+        for name, t in (("values", self.values[:, :k]), ("mass", self.mass), ("lam", lam), ("U", U)):
+            out.register_buffer(name, t.clone())
+        return out
+
+    def batch(self) -> BasisBatch:
+        """This basis as a batch of one."""
+        valid = torch.ones(self.k, dtype=self.values.dtype, device=self.values.device)
+        return BasisBatch(self.values[None], self.mass[None], self.lam[None], self.U[None], valid[None])
+
+    def project(self, f: torch.Tensor) -> torch.Tensor:
+        """``(V, D) -> (K, D)`` or ``(1, V, D) -> (1, K, D)``."""
+        single = f.dim() == 2
+        out = F.project(self.batch(), f[None] if single else f)
+        return out[0] if single else out
+
+    def reconstruct(self, c: torch.Tensor) -> torch.Tensor:
+        single = c.dim() == 2
+        out = F.reconstruct(self.batch(), c[None] if single else c)
+        return out[0] if single else out
+
+
+class RegularizedFMSolver(nn.Module):
+    """Differentiable batched functional-map solver for any B-orthonormal bases.
+
+    ``forward(feat_x (B, V_x, D), feat_y (B, V_y, D), basis_x, basis_y) ->
+    (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))``.
+    """
+
+    def __init__(self, w_desc: float = 1.0, w_lap: float = 1e-3, mask: str = "laplacian", both: bool = True):
+        super().__init__()
+        if w_desc <= 0 or w_lap < 0:
+            raise ParameterError(f"weights must be w_desc > 0, w_lap >= 0; got {w_desc}, {w_lap}.")
+        self.w_desc, self.w_lap, self.mask, self.both = w_desc, w_lap, mask, both
+
+    def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch):
+        return F.fmap_solve(
+            feat_x,
+            feat_y,
+            basis_x,
+            basis_y,
+            w_desc=self.w_desc,
+            w_lap=self.w_lap,
+            mask=self.mask,
+            both=self.both,
+        )
+
+
+class SoftPointMap(nn.Module):
+    """Soft map ``Π_yx (B, V_y, V_x)`` from features (softmax or Sinkhorn)."""
+
+    def __init__(self, tau: float = 0.07, sinkhorn_iters: int = 0) -> None:
+        super().__init__()
+        self.tau, self.sinkhorn_iters = tau, sinkhorn_iters
+
+    def forward(self, feat_x, feat_y, mass_x=None):
+        return F.soft_map(feat_x, feat_y, tau=self.tau, mass_x=mass_x, sinkhorn_iters=self.sinkhorn_iters)
+
+
+class UnsupervisedFMLoss(nn.Module):
+    """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``."""
+
+    def __init__(
+        self, w_bij=1.0, w_orth=1.0, w_lap=0.0, w_couple=1.0, tau: float = 0.07, n_samples: int = 0
+    ) -> None:
+        super().__init__()
+        self.w = dict(bij=w_bij, orth=w_orth, lap=w_lap, couple=w_couple)
+        self.soft = SoftPointMap(tau)
+        self.n_samples = n_samples  # >0: coupling on a random subset of target rows (memory V_s x V)
+
+    def _rows(self, basis: BasisBatch, feats: torch.Tensor) -> tuple[BasisBatch, torch.Tensor]:
+        """A random subset of vertices, its mass rescaled to the total (an unbiased integral)."""
+        V = feats.shape[1]
+        if not self.n_samples or V <= self.n_samples:
+            return basis, feats
+        idx = torch.randperm(V, device=feats.device)[: self.n_samples]
+        mass = basis.mass[:, idx]
+        mass = mass * (basis.mass.sum(dim=1, keepdim=True) / mass.sum(dim=1, keepdim=True).clip(min=1e-30))
+        return BasisBatch(basis.values[:, idx], mass, basis.lam, basis.U, basis.valid), feats[:, idx]
+
+    def forward(
+        self, C_xy, C_yx, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch
+    ) -> dict[str, torch.Tensor]:
+        terms = {
+            "bij": F.bijectivity_loss(C_xy, C_yx, basis_x.valid, basis_y.valid),
+            "orth": F.orthogonality_loss(C_xy, basis_x.valid) + F.orthogonality_loss(C_yx, basis_y.valid),
+        }
+        if self.w["lap"]:
+            terms["lap"] = F.laplacian_commutativity_loss(C_xy, basis_x, basis_y)
+        if self.w["couple"]:
+            sub_y, rows_y = self._rows(basis_y, feat_y)
+            sub_x, rows_x = self._rows(basis_x, feat_x)
+            pi_yx = self.soft(feat_x, rows_y, basis_x.mass)
+            pi_xy = self.soft(feat_y, rows_x, basis_y.mass)
+            terms["couple"] = F.coupling_loss(C_xy, pi_yx, basis_x, sub_y) + F.coupling_loss(
+                C_yx, pi_xy, basis_y, sub_x
+            )
+        terms["total"] = sum(self.w[name] * value for name, value in terms.items())
+        return terms
+
+
+class SpectralDiffusion(nn.Module):
+    """Learned per-channel diffusion in a basis frame: ``x -> Φ U exp(-t λ) Uᵀ Φᵀ M x``.
+
+    Works in any B-orthonormal basis (for an eigenbasis ``U = I``); ``t`` is learned per channel.
+    """
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.log_t = nn.Parameter(torch.full((channels,), -4.0))
+
+    def forward(self, x: torch.Tensor, basis: BasisBatch) -> torch.Tensor:
+        coef = basis.U.transpose(-1, -2) @ F.project(basis, x)  # (B, K, C)
+        decay = torch.exp(-basis.lam.clip(min=0)[..., None] * self.log_t.exp())  # (B, K, C)
+        return F.reconstruct(basis, basis.U @ (decay * coef))
+
+
+class FeatureNet(nn.Module):
+    """Reference per-vertex feature network (DiffusionNet-like, in any basis).
+
+    ``input (B, V, C_in) -> features (B, V, C_out)``: a linear lift, ``n_blocks`` residual
+    blocks of [learned spectral diffusion, MLP on (x, diffused x)], a linear head.
+    """
+
+    def __init__(self, c_in: int, c_out: int = 64, width: int = 64, n_blocks: int = 3) -> None:
+        super().__init__()
+        self.lift = nn.Linear(c_in, width)
+        self.diffusions = nn.ModuleList(SpectralDiffusion(width) for _ in range(n_blocks))
+        self.mlps = nn.ModuleList(
+            nn.Sequential(nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, width))
+            for _ in range(n_blocks)
+        )
+        self.head = nn.Linear(width, c_out)
+
+    def forward(self, x: torch.Tensor, basis: BasisBatch) -> torch.Tensor:
+        if not torch.isfinite(x).all():
+            raise ParameterError("FeatureNet input contains NaN or inf. Fix: check the precomputed inputs.")
+        h = self.lift(x)
+        for diffuse, mlp in zip(self.diffusions, self.mlps, strict=True):
+            h = h + mlp(torch.cat([h, diffuse(h, basis)], dim=-1))
+        return self.head(h)

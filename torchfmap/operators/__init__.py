@@ -1,0 +1,30 @@
+"""Operators on meshes: Laplace-Beltrami stiffness and mass, geodesics, sparse solvers."""
+
+from .convert import scipy_to_torch, torch_to_scipy
+from .geodesic import GeodesicSolver, check_vertex_indices, geodesic_distances
+from .laplacian import (
+    Operators,
+    laplacian,
+    mass_matrix,
+    normalize_area,
+    point_cloud_laplacian,
+    total_area,
+)
+from .solvers import Factorization, available_backends, factorize
+
+__all__ = [
+    "Factorization",
+    "GeodesicSolver",
+    "Operators",
+    "available_backends",
+    "check_vertex_indices",
+    "factorize",
+    "geodesic_distances",
+    "laplacian",
+    "mass_matrix",
+    "normalize_area",
+    "point_cloud_laplacian",
+    "scipy_to_torch",
+    "torch_to_scipy",
+    "total_area",
+]

@@ -1,0 +1,197 @@
+"""Discrete Laplace-Beltrami operators: stiffness ``L`` and mass ``B``.
+
+Sign convention: ``L`` is the *weak* (integrated) operator ``-Δ``: symmetric (for ``cotan`` and
+``robust``), **positive semidefinite**, rows summing to zero, ``L_ij = -w_ij`` off the diagonal
+and ``L_ii = Σ_j w_ij``. The generalised eigenproblem ``L φ = λ B φ`` then has ``λ >= 0``,
+``λ ≈ l(l+1)`` on the unit sphere. ``-L`` is the negative semidefinite matrix that some texts
+call "the" cotangent Laplacian; pass ``-L`` where such code is expected.
+
+Weights:
+
+- ``cotan``: ``w_ij = (cot α_ij + cot β_ij) / 2`` (Pinkall-Polthier / Meyer et al.). Negative
+  for obtuse opposite angles, so discrete harmonic functions can undulate.
+- ``robust``: intrinsic Delaunay cotan weights of the tufted cover (Sharp & Crane 2020, package
+  ``robust-laplacian``): non-negative, works on non-manifold meshes and point clouds. Its mass
+  is the lumped intrinsic mass, whatever ``mass`` asks for.
+- ``mean_value``: Floater's ``w_ij = (tan(α_ij/2) + tan(β_ij/2)) / |x_i - x_j|`` with
+  ``α, β`` the angles *at x_i* beside edge ``ij``: always positive, **not symmetric**. Use it
+  for harmonic bases (maximum principle holds); it is not a self-adjoint operator, so do not
+  use it for eigenbases or heat kernels.
+
+Mass (``B``): ``voronoi`` (mixed Voronoi areas of Meyer et al., lumped, default),
+``barycentric`` (a third of each incident triangle, lumped), ``fem`` (consistent P1 mass
+matrix, not diagonal). All sum to the surface area.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import MeshError, ParameterError
+from ..mesh import Mesh
+
+LaplacianKind = Literal["cotan", "robust", "mean_value"]
+MassKind = Literal["voronoi", "barycentric", "fem"]
+LAPLACIAN_KINDS = ("cotan", "robust", "mean_value")
+MASS_KINDS = ("voronoi", "barycentric", "fem")
+
+
+class Operators(NamedTuple):
+    """Stiffness and mass matrices, both ``(V, V)`` scipy CSR float64. Unpacks as ``L, B``."""
+
+    stiffness: sp.csr_matrix
+    mass: sp.csr_matrix
+
+
+def _corner_geometry(v: np.ndarray, f: np.ndarray):
+    """Per corner ``c`` of each face: edge vectors to the two other corners.
+
+    Returns ``a, b`` of shape ``(F, 3, 3)``: ``a[:, c] = x[f[c+1]] - x[f[c]]``,
+    ``b[:, c] = x[f[c+2]] - x[f[c]]``.
+    """
+    x = v[f]  # (F, 3, 3)
+    a = np.roll(x, -1, axis=1) - x
+    b = np.roll(x, -2, axis=1) - x
+    return a, b
+
+
+def _cotangents(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """``(F, 3)``: cotangent of the angle at each corner."""
+    a, b = _corner_geometry(v, f)
+    dot = np.einsum("fci,fci->fc", a, b)
+    cross = np.linalg.norm(np.cross(a, b), axis=2)
+    return dot / cross
+
+
+def _assemble_symmetric(f: np.ndarray, w: np.ndarray, n: int) -> sp.csr_matrix:
+    """``L`` from per-corner weights ``w (F, 3)`` on the edge opposite each corner."""
+    i = np.roll(f, -1, axis=1).ravel()
+    j = np.roll(f, -2, axis=1).ravel()
+    w = w.ravel()
+    rows = np.concatenate([i, j, i, j])
+    cols = np.concatenate([j, i, i, j])
+    vals = np.concatenate([-w, -w, w, w])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def cotan_stiffness(mesh: Mesh) -> sp.csr_matrix:
+    """``(V, V)`` cotangent stiffness matrix (PSD, see the module docstring)."""
+    cot = _cotangents(mesh.vertices, mesh.faces)
+    return _assemble_symmetric(mesh.faces, 0.5 * cot, mesh.n_vertices)
+
+
+def mean_value_stiffness(mesh: Mesh) -> sp.csr_matrix:
+    """``(V, V)`` Floater mean-value weights as a (non-symmetric) stiffness matrix."""
+    v, f = mesh.vertices, mesh.faces
+    a, b = _corner_geometry(v, f)
+    la = np.linalg.norm(a, axis=2)
+    lb = np.linalg.norm(b, axis=2)
+    cross = np.linalg.norm(np.cross(a, b), axis=2)
+    dot = np.einsum("fci,fci->fc", a, b)
+    tan_half = cross / (la * lb + dot)  # tan(alpha/2), alpha the angle at the corner
+    i = f.ravel()
+    j1 = np.roll(f, -1, axis=1).ravel()
+    j2 = np.roll(f, -2, axis=1).ravel()
+    w1 = (tan_half / la).ravel()
+    w2 = (tan_half / lb).ravel()
+    rows = np.concatenate([i, i, i, i])
+    cols = np.concatenate([j1, j2, i, i])
+    vals = np.concatenate([-w1, -w2, w1, w2])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(mesh.n_vertices, mesh.n_vertices))
+
+
+def mass_matrix(mesh: Mesh, kind: MassKind = "voronoi") -> sp.csr_matrix:
+    """``(V, V)`` mass matrix; lumped (diagonal) unless ``kind='fem'``. Sums to the area."""
+    v, f, n = mesh.vertices, mesh.faces, mesh.n_vertices
+    area = mesh.face_areas
+    if kind == "barycentric":
+        m = np.bincount(f.ravel(), weights=np.repeat(area / 3.0, 3), minlength=n)
+        return sp.diags(m).tocsr()
+    if kind == "voronoi":
+        cot = _cotangents(v, f)
+        a, b = _corner_geometry(v, f)
+        la2 = np.einsum("fci,fci->fc", a, a)  # |x_{c+1} - x_c|^2
+        lb2 = np.einsum("fci,fci->fc", b, b)  # |x_{c+2} - x_c|^2
+        # Voronoi area at corner c: (|e_{c,c+1}|^2 cot(angle at c+2) + |e_{c,c+2}|^2 cot(c+1)) / 8
+        vor = (la2 * np.roll(cot, -2, axis=1) + lb2 * np.roll(cot, -1, axis=1)) / 8.0
+        obtuse = cot < 0  # angle > 90 degrees
+        any_obtuse = obtuse.any(axis=1, keepdims=True)
+        per_corner = np.where(any_obtuse, np.where(obtuse, area[:, None] / 2.0, area[:, None] / 4.0), vor)
+        m = np.bincount(f.ravel(), weights=per_corner.ravel(), minlength=n)
+        return sp.diags(m).tocsr()
+    if kind == "fem":
+        rows = np.repeat(f, 3, axis=1).ravel()
+        cols = np.tile(f, (1, 3)).ravel()
+        local = np.where(np.eye(3, dtype=bool).ravel()[None, :], 2.0, 1.0) * (area[:, None] / 12)
+        return sp.csr_matrix((local.ravel(), (rows, cols)), shape=(n, n))
+    raise ParameterError(f"unknown mass kind {kind!r}. Fix: use one of {MASS_KINDS}.")
+
+
+def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float = 1e-5) -> Operators:
+    """Tufted intrinsic-Delaunay Laplacian of a point cloud ``(V, 3)`` via ``robust-laplacian``."""
+    import robust_laplacian
+
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
+        raise MeshError(f"a point cloud must be (V>=4, 3) coordinates, got shape {p.shape}.")
+    if not np.isfinite(p).all():
+        raise MeshError("the point cloud has NaN or infinite coordinates. Fix: drop those points.")
+    L, M = robust_laplacian.point_cloud_laplacian(p, mollify_factor=mollify_factor, n_neighbors=n_neighbors)
+    return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
+
+
+def laplacian(
+    mesh: Mesh | np.ndarray,
+    kind: LaplacianKind = "cotan",
+    mass: MassKind = "voronoi",
+    *,
+    mollify_factor: float = 1e-5,
+    n_neighbors: int = 30,
+) -> Operators:
+    """Stiffness ``L`` and mass ``B`` of a mesh (or, with ``kind='robust'``, a point cloud).
+
+    Args:
+        mesh: a :class:`~torchfmap.Mesh`, or ``(V, 3)`` points for ``kind='robust'``.
+        kind: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring).
+        mass: ``'voronoi'``, ``'barycentric'`` or ``'fem'`` (ignored by ``'robust'``).
+        mollify_factor, n_neighbors: passed to ``robust-laplacian``.
+
+    Returns:
+        :class:`Operators` ``(L, B)``, both ``(V, V)`` CSR float64, ``L`` positive semidefinite.
+    """
+    if kind not in LAPLACIAN_KINDS:
+        raise ParameterError(f"unknown Laplacian kind {kind!r}. Fix: use one of {LAPLACIAN_KINDS}.")
+    if mass not in MASS_KINDS:
+        raise ParameterError(f"unknown mass kind {mass!r}. Fix: use one of {MASS_KINDS}.")
+    if not isinstance(mesh, Mesh):
+        if kind != "robust":
+            raise MeshError(
+                "point clouds (arrays) only have kind='robust' Laplacians. Fix: pass a Mesh, or "
+                "kind='robust'."
+            )
+        return point_cloud_laplacian(mesh, n_neighbors=n_neighbors, mollify_factor=mollify_factor)
+    if kind == "robust":
+        import robust_laplacian
+
+        L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
+        return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
+    stiffness = cotan_stiffness(mesh) if kind == "cotan" else mean_value_stiffness(mesh)
+    return Operators(stiffness, mass_matrix(mesh, mass))
+
+
+def total_area(mesh: Mesh) -> float:
+    """Surface area ``|M|`` (sum of triangle areas)."""
+    return mesh.area
+
+
+def normalize_area(mesh: Mesh, center: bool = True) -> Mesh:
+    """The mesh scaled to unit total area (and centred at its area-weighted centroid)."""
+    v = mesh.vertices
+    if center:
+        centroids = v[mesh.faces].mean(axis=1)
+        c = (centroids * mesh.face_areas[:, None]).sum(axis=0) / mesh.area
+        v = v - c
+    return mesh.copy(v / np.sqrt(mesh.area))

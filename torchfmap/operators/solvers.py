@@ -1,0 +1,171 @@
+"""Sparse direct solvers: factorise once, solve many right-hand sides.
+
+Backends, in the order ``backend='auto'`` tries them for symmetric positive definite systems:
+
+``cholespy``
+    A self-contained pip wheel bundling CHOLMOD; installed by the ``fast`` and ``dev`` extras.
+    Factorises as fast as scikit-sparse and solves 2-3x faster (no Python-side copies), which
+    dominates Krylov heat kernels and harmonic bases (many right-hand sides).
+``cholmod``
+    ``scikit-sparse`` (CHOLMOD, supernodal). Needs SuiteSparse headers to build (``apt-get
+    install libsuitesparse-dev; pip install scikit-sparse==0.4.16``), so it is optional.
+``splu``
+    ``scipy.sparse.linalg.splu`` (SuperLU), always available, also for non-symmetric and
+    complex systems. For SPD systems we call it in symmetric mode (minimum degree on A+A^T, no
+    pivoting), which makes it competitive with CHOLMOD on well-ordered meshes.
+
+Measured by ``bench/operators.py`` on a 200K-vertex cotan ``L + B`` (2 cores): factorisation
+cholmod 1.64 s, cholespy 1.67 s, splu (symmetric mode) 1.76 s; one solve with 50 right-hand
+sides at 50K vertices: cholespy 1.1 ms, cholmod 3.0 ms, splu 2.5 ms per right-hand side.
+
+Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the matrix not
+positive definite falls back to ``splu`` under ``auto`` and raises under an explicit backend.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from ..errors import ParameterError
+
+Backend = Literal["auto", "cholmod", "cholespy", "splu"]
+_BACKENDS = ("cholmod", "cholespy", "splu")
+
+
+def available_backends() -> list[str]:
+    """Backends importable on this machine, fastest first (``splu`` is always last)."""
+    found = []
+    if importlib.util.find_spec("cholespy") is not None:
+        found.append("cholespy")
+    if importlib.util.find_spec("sksparse") is not None:
+        try:
+            import sksparse.cholmod  # noqa: F401
+
+            found.append("cholmod")
+        except ImportError:  # built against a missing SuiteSparse
+            pass
+    found.append("splu")
+    return found
+
+
+class NotPositiveDefiniteError(ParameterError):
+    """A Cholesky backend was asked for, but the matrix is not symmetric positive definite."""
+
+
+class Factorization:
+    """A factorised sparse matrix ``A (n, n)``; :meth:`solve` takes ``(n,)`` or ``(n, k)``."""
+
+    def __init__(self, backend: str, n: int, solve_fn, dtype) -> None:
+        self.backend = backend
+        self.n = n
+        self._solve = solve_fn
+        self.dtype = dtype
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``x = A^{-1} b`` for ``b`` of shape ``(n,)`` or ``(n, k)``."""
+        b = np.asarray(b)
+        if b.shape[0] != self.n:
+            raise ParameterError(f"right-hand side has {b.shape[0]} rows, the matrix has {self.n}.")
+        if np.iscomplexobj(b) and not np.issubdtype(self.dtype, np.complexfloating):
+            return self.solve(b.real) + 1j * self.solve(b.imag)
+        return self._solve(b)
+
+    __call__ = solve
+
+    def __repr__(self) -> str:
+        return f"Factorization(backend={self.backend!r}, n={self.n})"
+
+
+def _splu(a: sp.csc_matrix, symmetric: bool) -> Factorization:
+    if symmetric:
+        lu = sla.splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    else:
+        lu = sla.splu(a)
+    return Factorization("splu", a.shape[0], lu.solve, a.dtype)
+
+
+def _cholmod(a: sp.csc_matrix) -> Factorization:
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+
+    try:
+        factor = cholesky(a)
+    except CholmodNotPositiveDefiniteError as err:
+        raise NotPositiveDefiniteError(f"CHOLMOD: matrix is not positive definite ({err}).") from err
+    return Factorization("cholmod", a.shape[0], factor, a.dtype)
+
+
+def _cholespy(a: sp.csc_matrix) -> Factorization:
+    import cholespy
+
+    coo = a.tocoo()
+    try:
+        solver = cholespy.CholeskySolverD(
+            a.shape[0],
+            coo.row.astype(np.int32),
+            coo.col.astype(np.int32),
+            coo.data.astype(np.float64),
+            cholespy.MatrixType.COO,
+        )
+    except ValueError as err:
+        raise NotPositiveDefiniteError(f"cholespy: {err}") from err
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        solver.solve(b, x)
+        return x
+
+    return Factorization("cholespy", a.shape[0], solve, np.float64)
+
+
+def factorize(
+    matrix: sp.spmatrix | sp.sparray,
+    *,
+    spd: bool = False,
+    backend: Backend = "auto",
+) -> Factorization:
+    """Factorise a square sparse matrix once for repeated solves.
+
+    Args:
+        matrix: ``(n, n)`` sparse, real or complex.
+        spd: the caller knows the matrix is symmetric positive definite (e.g. ``L + s B`` with
+            ``s > 0``, or a Dirichlet block of a cotan Laplacian); enables Cholesky backends.
+        backend: ``'auto'`` (fastest available), ``'cholmod'``, ``'cholespy'`` or ``'splu'``.
+
+    Returns:
+        a :class:`Factorization` whose ``.solve(b)`` accepts ``(n,)`` or ``(n, k)`` arrays.
+    """
+    if backend != "auto" and backend not in _BACKENDS:
+        raise ParameterError(f"unknown solver backend {backend!r}. Fix: use 'auto' or one of {_BACKENDS}.")
+    a = sp.csc_matrix(matrix)
+    if a.shape[0] != a.shape[1]:
+        raise ParameterError(f"factorize needs a square matrix, got shape {a.shape}.")
+    complex_matrix = np.iscomplexobj(a.data)
+    if not complex_matrix:
+        a = a.astype(np.float64)
+    if backend in ("cholmod", "cholespy"):
+        if complex_matrix or not spd:
+            raise ParameterError(
+                f"backend {backend!r} needs a real symmetric positive definite matrix. Fix: pass "
+                "spd=True if it is, or use backend='splu'."
+            )
+        if backend not in available_backends():
+            raise ParameterError(
+                f"backend {backend!r} is not installed. Fix: `pip install "
+                f"{'scikit-sparse' if backend == 'cholmod' else 'cholespy'}`, or use backend='auto'."
+            )
+        return _cholmod(a) if backend == "cholmod" else _cholespy(a)
+    if backend == "auto" and spd and not complex_matrix:
+        for name in available_backends():
+            if name == "splu":
+                break
+            try:
+                return _cholmod(a) if name == "cholmod" else _cholespy(a)
+            except NotPositiveDefiniteError:
+                break  # not SPD after all: LU below handles it
+    return _splu(a, symmetric=spd)

@@ -1,0 +1,270 @@
+"""Seed points: curvature, curvature features, farthest-point sampling, coverage growth.
+
+All functions are deterministic for a given mesh and arguments (ties go to the lowest index).
+Farthest-point sampling can start from a given vertex, from landmarks (kept first, in order),
+or from the vertex of largest smoothed absolute mean curvature (``start='curvature'``, which
+does not depend on vertex order or pose).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import ParameterError, SeedError
+from .mesh import Mesh
+from .operators.geodesic import GeodesicSolver, check_vertex_indices
+from .operators.laplacian import Operators, laplacian
+
+CurvatureKind = Literal["mean", "gaussian", "abs_mean"]
+
+
+def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray:
+    """``(V,)`` signed mean curvature ``H`` (``1/R`` on a sphere of radius ``R``, outward normals).
+
+    From the cotangent formula ``L x = 2 H n B``; boundary vertices get 0.
+    """
+    L, B = operators if operators is not None else laplacian(mesh, "cotan", "voronoi")
+    mass = np.asarray(B.sum(axis=1)).ravel()
+    hn = (L @ mesh.vertices) / np.maximum(mass, 1e-300)[:, None]
+    h = 0.5 * np.einsum("ij,ij->i", hn, mesh.vertex_normals)
+    h[mesh.boundary_vertices] = 0.0
+    return h
+
+
+def gaussian_curvature(mesh: Mesh) -> np.ndarray:
+    """``(V,)`` Gaussian curvature by the angle defect over the mixed Voronoi area.
+
+    ``(2π - Σθ) / A_i`` inside, ``(π - Σθ) / A_i`` on the boundary; integrates to ``2π χ``.
+    """
+    v, f = mesh.vertices, mesh.faces
+    x = v[f]
+    a = np.roll(x, -1, axis=1) - x
+    b = np.roll(x, -2, axis=1) - x
+    cos = np.einsum("fci,fci->fc", a, b) / (np.linalg.norm(a, axis=2) * np.linalg.norm(b, axis=2))
+    angles = np.arccos(np.clip(cos, -1.0, 1.0))
+    total = np.bincount(f.ravel(), weights=angles.ravel(), minlength=mesh.n_vertices)
+    defect = 2 * np.pi - total
+    defect[mesh.boundary_vertices] -= np.pi
+    from .operators.laplacian import mass_matrix
+
+    area = mass_matrix(mesh, "voronoi").diagonal()
+    return defect / np.maximum(area, 1e-300)
+
+
+def curvature(mesh: Mesh, kind: CurvatureKind = "mean") -> np.ndarray:
+    """``(V,)`` curvature of the given kind: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``."""
+    if kind == "mean":
+        return mean_curvature(mesh)
+    if kind == "abs_mean":
+        return np.abs(mean_curvature(mesh))
+    if kind == "gaussian":
+        return gaussian_curvature(mesh)
+    raise ParameterError(f"unknown curvature kind {kind!r}. Fix: use 'mean', 'abs_mean' or 'gaussian'.")
+
+
+def _adjacency(mesh: Mesh, weighted: bool = False) -> sp.csr_matrix:
+    e = mesh.edges
+    w = mesh.edge_lengths if weighted else np.ones(len(e))
+    a = sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(mesh.n_vertices,) * 2)
+    return (a + a.T).tocsr()
+
+
+def _smooth(mesh: Mesh, values: np.ndarray, steps: int) -> np.ndarray:
+    """``steps`` rounds of averaging over the closed 1-ring."""
+    adj = _adjacency(mesh) + sp.identity(mesh.n_vertices, format="csr")
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    for _ in range(steps):
+        values = (adj @ values) / deg
+    return values
+
+
+def max_curvature_vertex(mesh: Mesh, smooth_steps: int = 2) -> int:
+    """The vertex of largest (1-ring smoothed) absolute mean curvature."""
+    return int(np.argmax(_smooth(mesh, np.abs(mean_curvature(mesh)), smooth_steps)))
+
+
+def curvature_features(
+    mesh: Mesh,
+    k: int,
+    kind: CurvatureKind = "abs_mean",
+    min_separation: float | None = None,
+    smooth_steps: int = 2,
+) -> np.ndarray:
+    """Up to ``k`` feature points: local maxima of smoothed curvature, strongest first.
+
+    A vertex qualifies if its value exceeds those of all its 1-ring neighbours; candidates
+    closer (Euclidean) than ``min_separation`` to a stronger one are suppressed. Default
+    separation: ``sqrt(|M| / k) / 2``. May return fewer than ``k`` points on smooth shapes.
+    """
+    if k < 1:
+        raise ParameterError(f"k must be >= 1, got {k}.")
+    values = _smooth(mesh, curvature(mesh, kind), smooth_steps)
+    adj = _adjacency(mesh).tocoo()
+    neighbour_max = np.full(mesh.n_vertices, -np.inf)
+    np.maximum.at(neighbour_max, adj.row, values[adj.col])
+    candidates = np.flatnonzero(values > neighbour_max)
+    candidates = candidates[np.argsort(-values[candidates], kind="stable")]
+    sep = np.sqrt(mesh.area / k) / 2 if min_separation is None else float(min_separation)
+    chosen: list[int] = []
+    for c in candidates:
+        if len(chosen) == k:
+            break
+        if chosen and np.min(np.linalg.norm(mesh.vertices[chosen] - mesh.vertices[c], axis=1)) < sep:
+            continue
+        chosen.append(int(c))
+    return np.asarray(chosen, dtype=np.int64)
+
+
+class _Distances:
+    """Distances from one vertex, geodesic (heat method) or Euclidean."""
+
+    def __init__(self, mesh: Mesh, metric: str, solver: GeodesicSolver | None) -> None:
+        if metric not in ("geodesic", "euclidean"):
+            raise ParameterError(f"metric must be 'geodesic' or 'euclidean', got {metric!r}.")
+        self.mesh = mesh
+        self.metric = metric
+        self.solver = solver if solver is not None or metric == "euclidean" else GeodesicSolver(mesh)
+
+    def __call__(self, i: int) -> np.ndarray:
+        if self.metric == "euclidean":
+            return np.linalg.norm(self.mesh.vertices - self.mesh.vertices[i], axis=1)
+        return np.maximum(self.solver.distance(int(i)), 0.0)
+
+
+def farthest_point_sampling(
+    mesh: Mesh,
+    k: int,
+    *,
+    start: int | Literal["curvature"] = "curvature",
+    landmarks=None,
+    metric: Literal["geodesic", "euclidean"] = "geodesic",
+    solver: GeodesicSolver | None = None,
+    return_radius: bool = False,
+):
+    """``k`` seeds by farthest-point sampling.
+
+    Args:
+        mesh: the surface.
+        k: total number of seeds (landmarks included).
+        start: first seed when no landmarks are given: a vertex index or ``'curvature'``.
+        landmarks: optional vertex indices kept first, in the given order; FPS continues from them.
+        metric: ``'geodesic'`` (heat method, default) or ``'euclidean'``.
+        solver: a prebuilt :class:`~torchfmap.GeodesicSolver` to reuse.
+        return_radius: also return the covering radius (largest distance to the nearest seed).
+
+    Returns:
+        ``(k,)`` int64 seeds, and the covering radius if asked.
+    """
+    n = mesh.n_vertices
+    if k < 1 or k > n:
+        raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got {k}.")
+    dist = _Distances(mesh, metric, solver)
+    seeds: list[int] = []
+    mind = np.full(n, np.inf)
+    if landmarks is not None and len(np.atleast_1d(landmarks)):
+        lm = check_vertex_indices(landmarks, n, "landmarks")
+        if len(lm) > k:
+            raise ParameterError(f"{len(lm)} landmarks but k={k}. Fix: ask for k >= the number of landmarks.")
+        seeds.extend(int(i) for i in lm)
+        for i in lm:
+            mind = np.minimum(mind, dist(int(i)))
+    else:
+        if start == "curvature":
+            first = max_curvature_vertex(mesh)
+        else:
+            (first,) = check_vertex_indices([start], n, "start")
+        seeds.append(int(first))
+        mind = dist(int(first))
+    mind[seeds] = 0.0
+    while len(seeds) < k:
+        nxt = int(np.argmax(mind))
+        seeds.append(nxt)
+        mind = np.minimum(mind, dist(nxt))
+        mind[nxt] = 0.0
+    out = np.asarray(seeds, dtype=np.int64)
+    return (out, float(mind.max())) if return_radius else out
+
+
+def heat_support_radius(time_abs: float, eps: float) -> float:
+    """Radius where a Gaussian heat kernel ``exp(-d²/4t)`` falls to ``eps`` of its peak."""
+    return float(np.sqrt(4.0 * time_abs * np.log(1.0 / eps)))
+
+
+def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:
+    """Raise :class:`SeedError` if a connected component (with faces) has no seed."""
+    labels = mesh.component_labels
+    used = np.unique(labels[np.unique(mesh.faces)])
+    missing = np.setdiff1d(used, labels[seeds])
+    if len(missing):
+        example = int(np.flatnonzero(labels == missing[0])[0])
+        raise SeedError(
+            f"{len(missing)} connected component(s) have no seed (e.g. the one holding vertex "
+            f"{example}); harmonic and Dirichlet problems are undefined there. Fix: add a seed on "
+            "every component, or keep one with `mesh.largest_component()`."
+        )
+
+
+def coverage_seeds(
+    mesh: Mesh,
+    time: float,
+    *,
+    eps: float = 1e-3,
+    landmarks=None,
+    start: int | Literal["curvature"] = "curvature",
+    max_seeds: int = 2000,
+    operators: Operators | None = None,
+    method: str = "krylov",
+) -> np.ndarray:
+    """Grow farthest-point seeds until the supports of their heat kernels cover the surface.
+
+    The support of ``K_t(p, .)`` is where it exceeds ``eps`` times its maximum (paper Sect. 4.2).
+    FPS first runs until the covering radius is below the Gaussian estimate
+    :func:`heat_support_radius`; then the actual kernels are computed and, while a vertex is
+    uncovered, the uncovered vertex farthest from all seeds is added.
+
+    Args:
+        time: *relative* diffusion time ``t`` (absolute ``t * |M|``).
+        eps: relative support threshold.
+        max_seeds: give up with :class:`ParameterError` beyond this many seeds.
+
+    Returns:
+        ``(S,)`` seeds (landmarks first).
+    """
+    from .bases.diffusion import heat_kernels
+
+    if time <= 0:
+        raise ParameterError(f"diffusion time must be > 0, got t={time}.")
+    if not 0 < eps < 1:
+        raise ParameterError(f"eps must be in (0, 1), got {eps}.")
+    ops = operators if operators is not None else laplacian(mesh)
+    solver = GeodesicSolver(mesh)
+    radius = heat_support_radius(time * mesh.area, eps)
+    k = 1 if landmarks is None else len(np.atleast_1d(landmarks))
+    seeds, cover = farthest_point_sampling(
+        mesh, k, start=start, landmarks=landmarks, solver=solver, return_radius=True
+    )
+    mind = np.min(solver.distances(seeds), axis=0)
+    while cover > radius and len(seeds) < max_seeds:
+        nxt = int(np.argmax(mind))
+        seeds = np.append(seeds, nxt)
+        mind = np.minimum(mind, np.maximum(solver.distance(nxt), 0.0))
+        cover = float(mind.max())
+    covered = np.zeros(mesh.n_vertices, dtype=bool)
+    new = seeds
+    while True:
+        kernels = heat_kernels(ops, new, [time * mesh.area], method=method)[0]
+        covered |= (np.abs(kernels) > eps * np.abs(kernels).max(axis=0, keepdims=True)).any(axis=1)
+        if covered.all():
+            return seeds
+        if len(seeds) >= max_seeds:
+            raise ParameterError(
+                f"{len(seeds)} seeds do not cover the surface at t={time:g} (eps={eps:g}). Fix: "
+                "raise max_seeds, use a larger t, or a smaller eps."
+            )
+        nxt = int(np.argmax(np.where(covered, -np.inf, mind)))
+        seeds = np.append(seeds, nxt)
+        mind = np.minimum(mind, np.maximum(solver.distance(nxt), 0.0))
+        new = np.array([nxt])
