@@ -91,6 +91,68 @@ def test_extra_terms_solved_by_cg_match_dense(pair):
         assert prob.energy(Cr + 1e-3 * d) > e0
 
 
+def dense_hessian(prob):
+    shape = prob.shape
+    n = shape[0] * shape[1]
+    return np.column_stack([prob.normal_matvec(e.reshape(shape)).ravel() for e in np.eye(n)])
+
+
+def test_preconditioner_blocks_are_the_hessian_diagonal_blocks(pair):
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 7), laplacian_eigenbasis(y, 6)
+    dx, dy = descriptors(x)[:, :5], descriptors(y)[:, :5]
+    lm = np.array([[10, 10], [200, 200]])
+    prob = build_problem(
+        bx, by, dx, dy, w_lap=1e-2, w_dcomm=1e-1, w_orient=1e-1, meshes=(x, y), landmarks=lm, w_lmk=1.0
+    )
+    H = dense_hessian(prob)
+    ky, kx = prob.shape
+    blocks = prob.row_blocks()
+    for i in range(ky):  # row-major vec: row i of C' is entries i*kx ... (i+1)*kx - 1
+        ref = H[i * kx : (i + 1) * kx, i * kx : (i + 1) * kx]
+        assert np.abs(blocks[i] - ref).max() < 1e-12 * np.abs(ref).max()
+    # and the full solve with orientation (reversing sign too) is the dense minimiser
+    for reversing in (False, True):
+        prob = build_problem(
+            bx, by, dx, dy, w_orient=1e-1, orient_reversing=reversing, meshes=(x, y), landmarks=lm, w_lmk=1.0
+        )
+        ref = np.linalg.solve(dense_hessian(prob), prob.normal_rhs().ravel()).reshape(prob.shape)
+        assert np.abs(prob.solve() - ref).max() < 1e-6 * np.abs(ref).max()
+
+
+def test_unconverged_solve_raises(pair):
+    from torchfmap import ConvergenceError
+
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 10), laplacian_eigenbasis(y, 10)
+    dx, dy = descriptors(x)[:, :6], descriptors(y)[:, :6]
+    prob = build_problem(bx, by, dx, dy, w_dcomm=1.0)
+    with pytest.raises(ConvergenceError, match="did not converge"):
+        prob.solve(tol=1e-14, maxiter=1)
+
+
+def test_landmark_term_is_scale_free(pair):
+    """Scaling the meshes by alpha (basis / alpha, mass * alpha^2) must not change C_xy."""
+    from torchfmap.bases import Basis
+
+    x, y = pair
+    lm = np.array([[10, 10], [200, 200], [400, 400]])
+    bases = laplacian_eigenbasis(x, 10), laplacian_eigenbasis(y, 10)
+    raw = descriptors(x)[:, :6], descriptors(y)[:, :6]
+    maps = []
+    for alpha in (1.0, 37.0):
+        bx, by = (
+            Basis(
+                b.values / alpha, b.mass * alpha**2, b.provenance, True, b.stiffness, b.eigenvalues / alpha**2
+            )
+            for b in bases
+        )
+        dx, dy = normalize_descriptors(raw[0], bx.mass), normalize_descriptors(raw[1], by.mass)
+        maps.append(solve_fmap(bx, by, dx, dy, landmarks=lm, w_lmk=1.0))
+    # equal up to the CG tolerance (1e-8 relative residual); before scaling rows it was 25 %
+    assert np.abs(maps[0] - maps[1]).max() < 1e-5 * np.abs(maps[0]).max()
+
+
 def test_orientation_term_runs_and_is_finite(pair):
     x, y = pair
     bx, by = laplacian_eigenbasis(x, 10), laplacian_eigenbasis(y, 10)

@@ -16,7 +16,7 @@ from .bases import (
     orthonormalize,
     support_fraction,
 )
-from .errors import MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
+from .errors import ConvergenceError, MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
 from .io import load_mesh, save_mesh
 from .mesh import Mesh, MeshReport, validate_mesh
 from .operators import (
@@ -69,6 +69,7 @@ __all__ = [
     "MeshWarning",
     "Operators",
     "ParameterError",
+    "ConvergenceError",
     "SeedError",
     "TorchFmapError",
     "__version__",

@@ -25,6 +25,10 @@ class ParameterError(TorchFmapError):
     """A numerical parameter is outside its valid range (t <= 0, k too large, ...)."""
 
 
+class ConvergenceError(TorchFmapError, RuntimeError):
+    """An iterative solver stopped before reaching its tolerance (never returned silently)."""
+
+
 class MeshWarning(UserWarning):
     """A mesh property worth knowing about that does not stop the computation (e.g. holes)."""
 
