@@ -26,11 +26,18 @@ def bases(request):
     return x, y, perm, laplacian_eigenbasis(x, 40), laplacian_eigenbasis(y, 40)
 
 
-@pytest.mark.parametrize("method", ["brute", "kdtree"])
-def test_nearest_neighbor_equals_brute_force(rng, method):
+@pytest.mark.parametrize(
+    ("method", "precision"), [("brute", "double"), ("brute", "single"), ("kdtree", "double")]
+)
+def test_nearest_neighbor_equals_brute_force(rng, method, precision):
     q, r = rng.normal(size=(300, 5)), rng.normal(size=(200, 5))
-    expected = np.argmin(((q[:, None] - r[None]) ** 2).sum(axis=2), axis=1)
-    got, dist = nearest_neighbor(q, r, method=method, block_bytes=8 * 200 * 7, return_distance=True)
+    d2 = ((q[:, None] - r[None]) ** 2).sum(axis=2)
+    expected = np.argmin(d2, axis=1)
+    # (Gaussian data: every row's best and second-best distances differ far beyond float32 round-off)
+    assert np.min(np.diff(np.sort(d2, axis=1)[:, :2], axis=1)) > 1e-5
+    got, dist = nearest_neighbor(
+        q, r, method=method, precision=precision, block_bytes=8 * 200 * 7, return_distance=True
+    )
     assert np.array_equal(got, expected)
     assert np.allclose(dist, np.linalg.norm(q - r[expected], axis=1))
 
@@ -42,6 +49,8 @@ def test_nearest_neighbor_errors(rng):
     bad[0, 0] = np.nan
     with pytest.raises(ParameterError, match="NaN"):
         nearest_neighbor(bad, rng.normal(size=(3, 4)))
+    with pytest.raises(ParameterError, match="precision"):
+        nearest_neighbor(rng.normal(size=(3, 4)), rng.normal(size=(3, 4)), precision="half")
 
 
 def test_p2p_fmap_round_trip(bases):
@@ -56,15 +65,36 @@ def test_p2p_fmap_round_trip(bases):
     assert np.array_equal(fmap_to_p2p(p2p_to_fmap(perm, bx, by, 20, 20), bx, by), perm)
 
 
-def test_refinement_recovers_from_noise(bases):
+@pytest.mark.parametrize("mode", ["pullback", "orthogonal"])
+def test_refinement_recovers_from_noise(bases, mode):
     x, y, perm, bx, by = bases
     C = p2p_to_fmap(perm, bx, by, 15, 15)
     noisy = C + 0.15 * np.random.default_rng(0).normal(size=C.shape)
-    before = np.mean(fmap_to_p2p(noisy, bx, by) == perm)
-    C_icp, p_icp = icp_refine(noisy, bx, by)
-    C_zo, p_zo = zoomout(noisy, bx, by, 40, step=5)
+    before = np.mean(fmap_to_p2p(noisy, bx, by, mode=mode) == perm)
+    C_icp, p_icp = icp_refine(noisy, bx, by, mode=mode)
+    C_zo, p_zo = zoomout(noisy, bx, by, 40, step=5, mode=mode)
     assert C_zo.shape == (40, 40)
     assert np.mean(p_icp == perm) >= before and np.mean(p_zo == perm) > max(before, 0.9)
+
+
+def test_subsampled_zoomout(bases):
+    x, y, perm, bx, by = bases
+    C = p2p_to_fmap(perm, bx, by, 15, 15)
+    noisy = C + 0.15 * np.random.default_rng(0).normal(size=C.shape)
+    before = np.mean(fmap_to_p2p(noisy, bx, by, mode="orthogonal") == perm)
+    # samples of y and their true partners on x: the sampled problem keeps the answer
+    sy = np.random.default_rng(1).choice(y.n_vertices, 300, replace=False)
+    sx = np.sort(perm[sy])
+    C_zo, p_zo = zoomout(noisy, bx, by, 40, step=5, mode="orthogonal", subsample=(sx, sy))
+    assert C_zo.shape == (40, 40)
+    assert np.mean(p_zo == perm) > max(before, 0.9)
+    # with every vertex as a sample it is plain ZoomOut up to the least-squares vs projection step
+    full = (np.arange(x.n_vertices), np.arange(y.n_vertices))
+    _, p_all = zoomout(noisy, bx, by, 40, step=5, mode="orthogonal", subsample=full)
+    assert np.mean(p_all == perm) > 0.9
+    for bad in ((sx, sy + 10**6), (sx[:0], sy), "nope", (sx.astype(float), sy)):
+        with pytest.raises(ParameterError, match="subsample"):
+            zoomout(noisy, bx, by, 40, step=5, subsample=bad)
 
 
 def test_conversion_errors(bases):

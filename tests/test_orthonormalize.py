@@ -55,6 +55,30 @@ def test_orthonormalize_records_provenance(stack_input):
     assert orthonormalize(ortho).k == 10
 
 
+@pytest.mark.parametrize("method", ["mgs", "cholqr"])
+def test_pair_drops_the_same_columns_on_both_shapes(stack_input, method):
+    from torchfmap import orthonormalize_pair
+
+    mesh, (L, B), F = stack_input
+    G = F.copy()
+    G[:, 4] = np.random.default_rng(9).normal(size=mesh.n_vertices)  # independent on y only
+    G[:, 6] = G[:, 1] + G[:, 3]  # dependent on y only
+    prov = [Column("custom", seed=i) for i in range(F.shape[1])]
+    alone = orthonormalize(Basis(F, B, prov), method), orthonormalize(Basis(G, B, prov), method)
+    assert [c.seed for c in alone[0].dropped] == [4, 9] and [c.seed for c in alone[1].dropped] == [6, 9]
+    bx, by = orthonormalize_pair(Basis(F, B, prov), Basis(G, B, prov), method)
+    for b, inputs in ((bx, F), (by, G)):
+        assert [c.seed for c in b.dropped] == [4, 6, 9]
+        assert np.abs(b.values.T @ B @ b.values - np.eye(b.k)).max() < 1e-10
+        kept = [c.seed for c in b.columns]
+        # column i is built from the same inputs: Q = F_kept R with R upper triangular
+        R = b.values.T @ (B @ inputs[:, kept])
+        assert np.abs(np.tril(R, -1)).max() < 1e-8 * np.abs(R).max()
+        assert np.abs(b.values @ R - inputs[:, kept]).max() < 1e-8 * np.abs(inputs).max()
+    with pytest.raises(ParameterError, match="same columns"):
+        orthonormalize_pair(Basis(F, B, prov), Basis(G[:, :5], B, prov[:5]))
+
+
 def test_bad_orthonormalisation_arguments(stack_input):
     mesh, (L, B), F = stack_input
     basis = Basis(F, B)

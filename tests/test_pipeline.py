@@ -51,6 +51,16 @@ def test_every_basis_gives_a_good_map(pair, basis, refine):
         assert report.mean_error <= initial.mean_error * 1.1
 
 
+def test_subsampled_zoomout_and_p2p_modes(pair):
+    x, y, gt = pair
+    errors = {}
+    for mode in ("orthogonal", "pullback"):
+        result = match(x, y, k=20, refine="zoomout", zoomout_samples=300, p2p_mode=mode)
+        assert result.C_xy.shape == (40, 40)
+        errors[mode] = evaluate_map(x, y, result.p2p_yx, gt, max_points=300)[0].mean_error
+    assert max(errors.values()) < 0.12, errors
+
+
 def test_match_bad_input(pair):
     x, y, gt = pair
     with pytest.raises(ParameterError, match="corresponding landmarks"):

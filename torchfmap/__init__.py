@@ -14,6 +14,7 @@ from .bases import (
     heat_kernels,
     laplacian_eigenbasis,
     orthonormalize,
+    orthonormalize_pair,
     support_fraction,
 )
 from .errors import ConvergenceError, MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
@@ -60,6 +61,7 @@ __all__ = [
     "laplacian_eigenbasis",
     "mean_curvature",
     "orthonormalize",
+    "orthonormalize_pair",
     "support_fraction",
     "Factorization",
     "GeodesicSolver",

@@ -19,7 +19,9 @@ from .bases import (
     concatenate,
     diffusion_basis,
     harmonic_basis,
+    laplacian_eigenbasis,
     orthonormalize,
+    orthonormalize_pair,
 )
 from .bases.laplacian import eigenpairs
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
@@ -27,6 +29,7 @@ from .errors import ParameterError
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .mesh import Mesh
 from .operators.laplacian import laplacian
+from .seeds import farthest_point_sampling
 
 BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
 BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
@@ -46,24 +49,56 @@ class MatchResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _feature_basis(mesh: Mesh, ops, seeds: np.ndarray, kind: str, k: int, times) -> Basis:
-    if kind == "harmonic":
-        return orthonormalize(harmonic_basis(mesh, seeds, operators=ops))
-    if kind == "diffusion":
-        return orthonormalize(diffusion_basis(mesh, seeds, times, operators=ops, tol=1e-6, local=False))
-    n_eigen = max(0, k - (len(times) + 1) * len(seeds))
-    return basis_stack(mesh, seeds, times=times, n_eigen=n_eigen, operators=ops, heat_tol=1e-6, local=False)
-
-
-def _coarse_to_fine(mesh: Mesh, ops, seeds: np.ndarray, kind: str, times) -> list[Basis]:
-    """Nested feature-aware bases for ZoomOut: growing scales (large to small t) or seeds."""
-    parts = [diffusion_basis(mesh, seeds, [t], operators=ops, tol=1e-6, local=False) for t in times]
-    seq = [orthonormalize(concatenate(parts[: j + 1])) for j in range(len(parts))]
-    if kind == "stack":
-        seq.append(orthonormalize(concatenate([*parts, harmonic_basis(mesh, seeds, operators=ops)])))
-    for b in seq:
+def _feature_bases(sides, pairs: np.ndarray, kind: str, k: int, times) -> tuple[Basis, Basis]:
+    """Corresponding feature-aware bases on both shapes, orthonormalised together so that
+    column ``i`` is built from the same landmark and scale on both."""
+    n_eigen = max(0, k - (len(times) + 1) * len(pairs)) if kind == "stack" else 0
+    raw = []
+    for s, (mesh, ops) in enumerate(sides):
+        seeds = pairs[:, s]
+        if kind == "harmonic":
+            b = harmonic_basis(mesh, seeds, operators=ops)
+        elif kind == "diffusion":
+            b = diffusion_basis(mesh, seeds, times, operators=ops, tol=1e-6, local=False)
+        else:
+            b = basis_stack(
+                mesh, seeds, times=times, operators=ops, heat_tol=1e-6, local=False, orthonormalization=None
+            )
         b.stiffness = ops[0]
-    return seq
+        raw.append(b)
+    bx, by = orthonormalize_pair(*raw)
+    if n_eigen:  # eigenfunctions fill up to k; they do not correspond column by column
+        bx = _append_eigen(bx, *sides[0], n_eigen)
+        by = _append_eigen(by, *sides[1], n_eigen)
+    return bx, by
+
+
+def _append_eigen(basis: Basis, mesh: Mesh, ops, n_eigen: int) -> Basis:
+    stacked = concatenate([basis, laplacian_eigenbasis(mesh, n_eigen, operators=ops)])
+    stacked.stiffness = ops[0]
+    return orthonormalize(stacked)
+
+
+def _coarse_to_fine(sides, pairs: np.ndarray, kind: str, times) -> tuple[list[Basis], list[Basis]]:
+    """Nested corresponding feature-aware bases for ZoomOut: growing scales (large to small t)."""
+    parts = [
+        [diffusion_basis(mesh, pairs[:, s], [t], operators=ops, tol=1e-6, local=False) for t in times]
+        for s, (mesh, ops) in enumerate(sides)
+    ]
+    if kind == "stack":
+        for s, (mesh, ops) in enumerate(sides):
+            parts[s].append(harmonic_basis(mesh, pairs[:, s], operators=ops))
+    seq_x, seq_y = [], []
+    for j in range(len(parts[0])):
+        raw = [concatenate(p[: j + 1]) for p in parts]
+        for b, (_, ops) in zip(raw, sides, strict=True):
+            b.stiffness = ops[0]
+        bx, by = orthonormalize_pair(*raw)
+        seq_x.append(bx)
+        seq_y.append(by)
+    if kind == "diffusion":  # the last level equals the matching basis
+        seq_x, seq_y = seq_x[:-1], seq_y[:-1]
+    return seq_x, seq_y
 
 
 def match(
@@ -82,6 +117,8 @@ def match(
     w_dcomm: float = 0.0,
     w_lmk: float = 1.0,
     times=MATCH_TIMES,
+    p2p_mode: Literal["pullback", "orthogonal"] | None = None,
+    zoomout_samples: int | None = None,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
 
@@ -102,6 +139,13 @@ def match(
             commutativity and pointwise landmark preservation (see
             :func:`~torchfmap.fmap.solve_fmap`). With all three at 0 the solve is the exact
             row-wise one; the others make it an iterative (preconditioned CG) solve.
+        p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
+            default ``'orthogonal'`` for the eigenbasis and ``'pullback'`` for feature-aware
+            bases (measured on the 17K wolf pair at k=100: eigenbasis ZoomOut 0.0016 mean error
+            with ``'orthogonal'``, 0.0084 with ``'pullback'``).
+        zoomout_samples: run the eigenbasis ZoomOut iterations on this many farthest-point
+            samples per shape (the final point map uses every vertex); much faster on large
+            meshes (wolf pair, 2000 samples: 0.0027 vs 0.0016 mean error, about 10x faster).
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -150,10 +194,7 @@ def match(
         bx = Basis(phi_x[:, :k], ops_x[1], full_x.provenance[:k], True, ops_x[0], lam_x[:k])
         by = Basis(phi_y[:, :k], ops_y[1], full_y.provenance[:k], True, ops_y[0], lam_y[:k])
     else:
-        bx = _feature_basis(mesh_x, ops_x, pairs[:, 0], kind, k, times)
-        by = _feature_basis(mesh_y, ops_y, pairs[:, 1], kind, k, times)
-        kk = min(bx.k, by.k)  # dependent columns may differ by one or two: use the common size
-        bx, by = _truncate(bx, kk), _truncate(by, kk)
+        bx, by = _feature_bases(((mesh_x, ops_x), (mesh_y, ops_y)), pairs, kind, k, times)
     timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -169,16 +210,25 @@ def match(
         landmarks=pairs,
         w_lmk=w_lmk if pairs is not None else 0.0,
     )
-    p2p = fmap_to_p2p(C, bx, by)
+    mode = p2p_mode or ("orthogonal" if kind == "laplacian" else "pullback")
+    p2p = fmap_to_p2p(C, bx, by, mode=mode)
     timings["fmap+p2p"] = time.perf_counter() - t0
     initial = p2p
 
     t0 = time.perf_counter()
     if refine == "icp":
-        C, p2p = icp_refine(C, bx, by)
+        C, p2p = icp_refine(C, bx, by, mode=mode)
     elif refine == "zoomout":
         if kind == "laplacian":
-            C, p2p = zoomout(C, full_x, full_y, k_final or 2 * k, step=max(1, k // 10))
+            samples = None
+            if zoomout_samples is not None:
+                samples = tuple(
+                    farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
+                    for m in (mesh_x, mesh_y)
+                )
+            C, p2p = zoomout(
+                C, full_x, full_y, k_final or 2 * k, step=max(1, k // 10), mode=mode, subsample=samples
+            )
         else:
             if kind == "harmonic":
                 raise ParameterError(
@@ -186,27 +236,12 @@ def match(
                     "corresponding seeds, and the landmarks are all there is. Fix: refine='icp', or "
                     "basis='stack' / 'diffusion' (ZoomOut over growing scales)."
                 )
-            seq_x = _coarse_to_fine(mesh_x, ops_x, pairs[:, 0], kind, times)
-            seq_y = _coarse_to_fine(mesh_y, ops_y, pairs[:, 1], kind, times)
-            C, p2p = zoomout_sequence(p2p, seq_x + [bx], seq_y + [by])
+            seq_x, seq_y = _coarse_to_fine(((mesh_x, ops_x), (mesh_y, ops_y)), pairs, kind, times)
+            C, p2p = zoomout_sequence(p2p, seq_x + [bx], seq_y + [by], mode=mode)
     elif refine is not None:
         raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
     timings["refine"] = time.perf_counter() - t0
     return MatchResult(p2p, C, bx, by, initial, timings)
-
-
-def _truncate(basis: Basis, k: int) -> Basis:
-    if basis.k == k:
-        return basis
-    kept = 0
-    prov = []
-    for c in basis.provenance:
-        if c.kept:
-            kept += 1
-            prov.append(c if kept <= k else type(c)(c.kind, c.seed, c.time, c.index, False))
-        else:
-            prov.append(c)
-    return Basis(basis.values[:, :k], basis.mass, prov, basis.orthonormal, basis.stiffness)
 
 
 def shape_distance_matrix(

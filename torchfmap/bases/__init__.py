@@ -4,7 +4,7 @@ from .basis import Basis, Column, CorruptFileError, support_fraction
 from .diffusion import DEFAULT_TIMES, cf_poles, diffusion_basis, heat_apply, heat_kernels
 from .harmonic import harmonic_basis, harmonic_functions
 from .laplacian import eigenpairs, fix_signs, laplacian_eigenbasis
-from .orthonormalize import cholqr, mgs, orthonormalize
+from .orthonormalize import cholqr, mgs, orthonormalize, orthonormalize_pair
 from .stack import basis_stack, concatenate
 
 __all__ = [
@@ -26,5 +26,6 @@ __all__ = [
     "laplacian_eigenbasis",
     "mgs",
     "orthonormalize",
+    "orthonormalize_pair",
     "support_fraction",
 ]

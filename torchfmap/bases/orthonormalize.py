@@ -121,6 +121,12 @@ def orthonormalize(basis: Basis, method: str = "mgs", tol: float | None = None) 
         tol: relative tolerance below which a column counts as dependent on the earlier ones
             (default :data:`DEFAULT_TOL` of the method).
     """
+    tol = _check(method, tol)
+    Q, kept = (mgs if method == "mgs" else cholqr)(basis.values, basis.mass, tol)
+    return _with_kept(basis, Q, kept)
+
+
+def _check(method: str, tol: float | None) -> float:
     if method not in METHODS:
         raise ParameterError(f"unknown orthonormalisation method {method!r}. Fix: use one of {METHODS}.")
     tol = DEFAULT_TOL[method] if tol is None else float(tol)
@@ -132,8 +138,13 @@ def orthonormalize(basis: Basis, method: str = "mgs", tol: float | None = None) 
             f"squares the condition number), got tol={tol:g}. Fix: use tol >= {CHOLQR_MIN_TOL:g} or "
             "method='mgs'."
         )
-    Q, kept = (mgs if method == "mgs" else cholqr)(basis.values, basis.mass, tol)
-    kept_set = set(kept.tolist())
+    return tol
+
+
+def _with_kept(basis: Basis, Q: np.ndarray, kept: np.ndarray) -> Basis:
+    """``Q`` as a Basis whose provenance marks the input columns ``kept`` (indices into the
+    basis' kept columns) as kept and the others as dropped."""
+    kept_set = set(np.asarray(kept).tolist())
     prov: list[Column] = []
     col = 0
     for c in basis.provenance:
@@ -143,3 +154,35 @@ def orthonormalize(basis: Basis, method: str = "mgs", tol: float | None = None) 
         else:
             prov.append(c)
     return Basis(Q, basis.mass, prov, orthonormal=True, stiffness=basis.stiffness)
+
+
+def orthonormalize_pair(
+    basis_x: Basis, basis_y: Basis, method: str = "mgs", tol: float | None = None
+) -> tuple[Basis, Basis]:
+    """Orthonormalise two bases of *corresponding* columns, dropping the same columns on both.
+
+    Column ``j`` of ``basis_x`` and of ``basis_y`` are the same function on two shapes (e.g.
+    the heat kernel of landmark ``j`` at one time). Orthonormalising each alone may drop a
+    column on one shape and keep it on the other, after which the columns no longer
+    correspond. Here a column is kept only where it is independent on *both* shapes (the
+    union of the drops is removed and both are redone until they agree), so column ``i`` of
+    the results is built from the same inputs on both shapes.
+
+    Returns:
+        ``(Φ_x (V_x, R), Φ_y (V_y, R))``, B-orthonormal, with identical kept/dropped provenance.
+    """
+    tol = _check(method, tol)
+    if basis_x.k != basis_y.k:
+        raise ParameterError(
+            f"the bases have {basis_x.k} and {basis_y.k} columns; corresponding bases need the same "
+            "columns. Fix: build both from the same seeds (landmark pairs) and parameters."
+        )
+    fn = mgs if method == "mgs" else cholqr
+    active = np.arange(basis_x.k)
+    while True:
+        Qx, kx = fn(basis_x.values[:, active], basis_x.mass, tol)
+        Qy, ky = fn(basis_y.values[:, active], basis_y.mass, tol)
+        common = np.intersect1d(kx, ky)
+        if len(common) == len(active):
+            return _with_kept(basis_x, Qx, active), _with_kept(basis_y, Qy, active)
+        active = active[common]  # fewer inputs: the remaining ones can only become more independent

@@ -43,7 +43,7 @@ def basis_stack(
     n_eigen: int = 0,
     operators: Operators | None = None,
     method: Method = "krylov",
-    orthonormalization: Literal["mgs", "cholqr"] = "mgs",
+    orthonormalization: Literal["mgs", "cholqr"] | None = "mgs",
     tol: float | None = None,
     heat_tol: float = 1e-8,
     local: bool | Literal["auto"] = "auto",
@@ -56,7 +56,9 @@ def basis_stack(
         times: relative diffusion times (absolute ``t·|M|``); empty for no diffusion part.
         harmonic: include the harmonic functions of ``seeds``.
         n_eigen: number of Laplacian eigenfunctions appended last.
-        orthonormalization: ``'mgs'`` or ``'cholqr'``; ``tol`` its drop tolerance.
+        orthonormalization: ``'mgs'`` or ``'cholqr'``; ``tol`` its drop tolerance. ``None``
+            returns the raw stack (to orthonormalise two shapes' stacks together with
+            :func:`~torchfmap.bases.orthonormalize_pair`).
 
     Returns:
         a B-orthonormal :class:`Basis`; ``basis.dropped`` lists the columns removed as dependent.
@@ -73,4 +75,6 @@ def basis_stack(
         raise ParameterError("empty stack. Fix: give times, harmonic=True or n_eigen > 0.")
     stacked = concatenate(parts)
     stacked.stiffness = ops[0]
+    if orthonormalization is None:
+        return stacked
     return orthonormalize(stacked, method=orthonormalization, tol=tol)

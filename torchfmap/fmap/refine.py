@@ -15,25 +15,41 @@ Which applies where:
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .convert import fmap_to_p2p, p2p_to_fmap
+from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
+
+Mode = Literal["pullback", "orthogonal"]
 
 
-def icp_refine(C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, n_iter: int = 10, tol: float = 1e-10):
-    """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square."""
+def icp_refine(
+    C_xy: np.ndarray,
+    basis_x: Basis,
+    basis_y: Basis,
+    n_iter: int = 10,
+    tol: float = 1e-10,
+    *,
+    mode: Mode = "pullback",
+):
+    """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square.
+
+    ``mode`` is the point-map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`): ``'orthogonal'``
+    is the classical choice in eigenbases; ``'pullback'`` (default) works in any basis.
+    """
     C = np.asarray(C_xy, dtype=np.float64)
     if C.shape[0] != C.shape[1]:
         raise ParameterError(f"ICP needs a square map, got {C.shape}. Fix: use the same K on both shapes.")
     k = C.shape[0]
-    p2p = fmap_to_p2p(C, basis_x, basis_y)
+    p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
     for _ in range(n_iter):
         target = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
         u, _, vt = np.linalg.svd(target)
         new = u @ vt
-        p2p = fmap_to_p2p(new, basis_x, basis_y)
+        p2p = fmap_to_p2p(new, basis_x, basis_y, mode=mode)
         change = np.linalg.norm(new - C) / max(np.linalg.norm(C), 1e-300)
         C = new
         if change < tol:
@@ -41,27 +57,81 @@ def icp_refine(C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, n_iter: int = 1
     return C, p2p
 
 
-def zoomout(C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, k_final: int, step: int = 1):
+def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
+    if subsample is None:
+        return None
+    try:
+        sx, sy = (np.asarray(s) for s in subsample)
+    except (TypeError, ValueError) as err:
+        raise ParameterError("subsample must be a pair (vertices of x, vertices of y).") from err
+    for s, b, name in ((sx, basis_x, "x"), (sy, basis_y, "y")):
+        if s.ndim != 1 or not len(s) or not np.issubdtype(s.dtype, np.integer):
+            raise ParameterError(f"subsample of {name} must be a non-empty 1-D array of vertex indices.")
+        if s.min() < 0 or s.max() >= b.n_vertices:
+            raise ParameterError(f"subsample of {name} has vertices outside [0, {b.n_vertices}).")
+    return sx.astype(np.int64), sy.astype(np.int64)
+
+
+def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode):
+    """One ZoomOut step on samples: match samples of y to samples of x with ``C``, then the
+    least-squares map ``C (ky, kx)`` with ``Φ_y[S_y] C ≈ Φ_x[S_x[p2p]]`` (no mass on samples)."""
+    sx, sy = samples
+    cy, cx = C.shape
+    phi_x, phi_y = bx.values[sx], by.values[sy]
+    if mode == "pullback":
+        p2p = nearest_neighbor(phi_y[:, :cy] @ C, phi_x[:, :cx], precision="single")
+    else:
+        p2p = nearest_neighbor(phi_y[:, :cy], phi_x[:, :cx] @ C.T, precision="single")
+    return np.linalg.lstsq(phi_y[:, :ky], phi_x[p2p, :kx], rcond=None)[0]
+
+
+def zoomout(
+    C_xy: np.ndarray,
+    basis_x: Basis,
+    basis_y: Basis,
+    k_final: int,
+    step: int = 1,
+    *,
+    mode: Mode = "pullback",
+    subsample=None,
+):
     """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
 
     Meaningful when the first columns span nested, coarse-to-fine subspaces (eigenbases).
-    Returns ``(C_xy (k_final, k_final), p2p_yx)``.
+
+    Args:
+        mode: point-map conversion (``'orthogonal'`` is the classical choice for eigenbases).
+        subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
+            (nearest neighbours between samples, least-squares maps), as in the ZoomOut
+            paper's accelerated variant; only the final point map uses every vertex. The cost
+            of an iteration drops from ``V_x V_y k`` to ``S_x S_y k``.
+
+    Returns:
+        ``(C_xy (k_final, k_final), p2p_yx (V_y,))``.
     """
     C = np.asarray(C_xy, dtype=np.float64)
     if k_final > min(basis_x.k, basis_y.k):
         raise ParameterError(f"k_final={k_final} exceeds the bases' sizes {basis_x.k}, {basis_y.k}.")
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
+    samples = _check_samples(subsample, basis_x, basis_y)
     k = min(C.shape)
-    p2p = fmap_to_p2p(C, basis_x, basis_y)
+    if samples is None:
+        p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+        while k < k_final:
+            k = min(k + step, k_final)
+            C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
+            p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+        return C, p2p
     while k < k_final:
         k = min(k + step, k_final)
-        C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
-        p2p = fmap_to_p2p(C, basis_x, basis_y)
-    return C, p2p
+        C = _sample_step(C, basis_x, basis_y, k, k, samples, mode)
+    return C, fmap_to_p2p(C, basis_x, basis_y, mode=mode)
 
 
-def zoomout_sequence(p2p_yx: np.ndarray, bases_x: list[Basis], bases_y: list[Basis]):
+def zoomout_sequence(
+    p2p_yx: np.ndarray, bases_x: list[Basis], bases_y: list[Basis], *, mode: Mode = "pullback"
+):
     """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
 
     Starting from a point map, for each pair ``(bases_x[i], bases_y[i])``: project, then
@@ -69,9 +139,9 @@ def zoomout_sequence(p2p_yx: np.ndarray, bases_x: list[Basis], bases_y: list[Bas
     """
     if len(bases_x) != len(bases_y) or not bases_x:
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
-    p2p = np.asarray(p2p_yx)
+    p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
     C = None
     for bx, by in zip(bases_x, bases_y, strict=True):
         C = p2p_to_fmap(p2p, bx, by)
-        p2p = fmap_to_p2p(C, bx, by)
+        p2p = fmap_to_p2p(C, bx, by, mode=mode)
     return C, p2p

@@ -133,7 +133,7 @@ def predict_p2p(net: FeatureNet, solver: RegularizedFMSolver, x: dict, y: dict) 
     _, _, C_xy, _ = forward_pair(net, solver, batch)
     phi_x = x["values"].double().numpy()
     phi_y = y["values"].double().numpy()
-    return nearest_neighbor(phi_y @ C_xy[0].double().numpy(), phi_x)
+    return nearest_neighbor(phi_y @ C_xy[0].double().numpy(), phi_x, precision="single")
 
 
 def evaluate(net: FeatureNet, shapes: ShapeDataset, pairs, gts, config: TrainConfig, max_points=500) -> float:
