@@ -47,6 +47,7 @@ def run_pyfm(
     k_descr: int = 50,
     subsample_step: int = 1,
     zoomout_step: int | None = None,
+    zoomout_samples: int = 2000,
 ) -> PyfmRun:
     """pyFM's whole pipeline: ``TriMesh`` -> ``preprocess`` (WKS) -> ``fit`` -> ``get_p2p`` [-> refine].
 
@@ -59,12 +60,15 @@ def run_pyfm(
         n_descr: WKS energies per descriptor (plain WKS, and per landmark).
         k_descr: eigenpairs used by the WKS (``k_process`` is at least this).
         subsample_step: keep every n-th descriptor column (pyFM's option).
+        zoomout_samples: FPS samples per shape of the ``'zoomout-sub'`` refinement
+            (``zoomout_refine(subsample=...)``).
     """
     from pyFM.functional import FunctionalMapping
     from pyFM.mesh import TriMesh
 
     step = zoomout_step or max(1, k // 10)
-    k_process = max(k + 10 * step if "zoomout" in refine else k, k_descr)
+    zooms = any(r.startswith("zoomout") for r in refine)
+    k_process = max(k + 10 * step if zooms else k, k_descr)
     run = PyfmRun(k_process=k_process)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -94,6 +98,8 @@ def run_pyfm(
                 fm = model.icp_refine(nit=PYFM_ICP_NIT)
             elif r == "zoomout":
                 fm = model.zoomout_refine(nit=10, step=step)
+            elif r == "zoomout-sub":
+                fm = model.zoomout_refine(nit=10, step=step, subsample=zoomout_samples)
             else:
                 raise ValueError(f"unknown refinement {r!r}")
             run.p2p[r] = np.asarray(model.get_p2p(fm), dtype=np.int64)

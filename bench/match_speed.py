@@ -18,19 +18,23 @@ Run by hand from the repository root (prints markdown tables to stdout, progress
 Same settings on both sides: ``k`` (100) eigenfunctions, the same number of WKS descriptors
 (``--n-descr``) from the same number of eigenpairs (``--k-descr``; both default to ``match``'s
 own defaults), no landmarks (``--landmarks L`` adds L farthest-point pairs ``(i, i)``), no
-refinement, and then a second, separate full run with ZoomOut from ``k`` to ``2k`` in steps of
-``k // 10``:
+refinement; then a second, separate full run with ZoomOut from ``k`` to ``2k`` in steps of
+``k // 10``; then a third with the same ZoomOut iterated on ``--zoomout-samples`` (2000)
+farthest-point samples per shape (``zoomout-sub``; the final point map uses every vertex):
 
 - ours: ``match(Mesh(V_x, F), Mesh(V_y, F), basis='laplacian', k=k, refine=None | 'zoomout',
-  n_descriptors=n_descr, k_descriptors=k_descr)``, other weights at their defaults (printed),
-  fresh ``Mesh`` objects in every run (construction and validation are timed).
+  n_descriptors=n_descr, k_descriptors=k_descr, zoomout_samples=None | N)``, other weights at
+  their defaults (printed), fresh ``Mesh`` objects in every run (construction and validation
+  are timed).
 - pyFM (``bench/_pyfm.py``): ``TriMesh`` from the same arrays, ``preprocess(n_descr, k_descr,
   descr_type='WKS', k_process=max(k or 2k, k_descr))``, ``fit(K=(k, k))`` with the weights of
   pyFM's README example (descriptor commutativity w_dcomm=0.1, no orientation term),
-  ``get_p2p()`` and, in the second run, ``zoomout_refine(nit=10, step=k // 10)``.
+  ``get_p2p()`` and, in the second run, ``zoomout_refine(nit=10, step=k // 10)``, in the
+  third ``zoomout_refine(nit=10, step=k // 10, subsample=N)``.
 
 One warm-up of both pipelines runs on a small ``bench_mesh`` pair first (imports, first calls);
-then ``--repeats`` rounds, each in the order ours, pyFM, ours+ZoomOut, pyFM+ZoomOut, and every
+then ``--repeats`` rounds, each in the order ours, pyFM, ours+ZoomOut, pyFM+ZoomOut (then the
+subsampled pair), and every
 cell is the median over rounds. ``pyFM / ours`` is the ratio of those medians (target: >= 3).
 Errors: mean normalised geodesic error (heat method on x) and AUC on the same ``--eval-points``
 random vertices of y for all maps (distance rows computed once). The 1-minute load average is
@@ -71,7 +75,7 @@ from _pyfm import PYFM_FIT, run_pyfm  # noqa: E402
 import torchfmap  # noqa: E402
 from torchfmap.eval import auc  # noqa: E402
 from torchfmap.fmap import nearest_neighbor  # noqa: E402
-from torchfmap.pipeline import match  # noqa: E402
+from torchfmap.pipeline import W_LAP, match  # noqa: E402
 
 MiB = 2**20
 WOLVES = ("tosca_hires_wolf/wolf0.off", "tosca_hires_wolf/wolf1.off")
@@ -136,6 +140,8 @@ def match_defaults() -> dict[str, Any]:
 
 
 def run_ours(vx, vy, f, args, refine: str | None, landmarks) -> tuple[np.ndarray, float, dict]:
+    samples = args.zoomout_samples if refine == "zoomout-sub" else None
+    refine = "zoomout" if refine == "zoomout-sub" else refine
     t0 = time.perf_counter()
     x, y = torchfmap.Mesh(vx.copy(), f.copy()), torchfmap.Mesh(vy.copy(), f.copy())
     res = match(
@@ -147,6 +153,7 @@ def run_ours(vx, vy, f, args, refine: str | None, landmarks) -> tuple[np.ndarray
         refine=refine,
         n_descriptors=args.n_descr,
         k_descriptors=args.k_descr,
+        zoomout_samples=samples,
     )
     return res.p2p_yx, time.perf_counter() - t0, res.timings
 
@@ -194,7 +201,7 @@ def bench_match(args) -> None:
     warm_up()
     runs: dict[tuple[str, str], list[dict]] = {}
     for rep in range(args.repeats):
-        for refine in (None, "zoomout"):
+        for refine in (None, "zoomout", "zoomout-sub"):
             tag = refine or "none"
             log(f"round {rep + 1}/{args.repeats}: ours, refine={tag} (load {load1():.1f})")
             p2p, sec, phases = run_ours(vx, vy, f, args, refine, landmarks)
@@ -204,7 +211,7 @@ def bench_match(args) -> None:
             )
             log(f"  {sec:.1f} s: {short_phases(phases)}")
             log(f"round {rep + 1}/{args.repeats}: pyFM, refine={tag} (load {load1():.1f})")
-            extra = ("zoomout",) if refine else ()
+            extra = (refine,) if refine else ()
             pf = run_pyfm(
                 torchfmap.Mesh(vx, f),
                 torchfmap.Mesh(vy, f),
@@ -213,6 +220,7 @@ def bench_match(args) -> None:
                 refine=extra,
                 n_descr=args.n_descr,
                 k_descr=args.k_descr,
+                zoomout_samples=args.zoomout_samples,
             )
             run = {"p2p": pf.p2p[refine], "time": pf.times[refine], "phases": pf.phases, "load": load1()}
             runs.setdefault(("pyFM", tag), []).append(run | {"n_descr": pf.n_descr, "eig": pf.k_process})
@@ -248,7 +256,7 @@ def bench_match(args) -> None:
     print(markdown(rows, cols))
     med = {(r["method"], r["refine"]): r["time [s] (median)"] for r in rows}
     ratio_rows = []
-    for tag in ("none", "zoomout"):
+    for tag in ("none", "zoomout", "zoomout-sub"):
         ratio = med[("pyFM", tag)] / med[("ours", tag)]
         ratio_rows.append(
             {
@@ -261,6 +269,7 @@ def bench_match(args) -> None:
         )
     print("\n" + markdown(ratio_rows, list(ratio_rows[0])))
     ours = {key: val for key, val in match_defaults().items() if key.startswith("w_")}
+    ours["w_lap"] = ours["w_lap"] if ours["w_lap"] is not None else W_LAP["laplacian"]
     print(
         f"\nours: match weights {ours}, {args.n_descr} WKS from {args.k_descr} eigenpairs"
         f"{' + 2 heat descriptors per landmark' if args.landmarks else ''}. pyFM: fit weights {PYFM_FIT}, "
@@ -382,6 +391,9 @@ def main(argv: list[str] | None = None) -> None:
     defaults = match_defaults()
     parser.add_argument("--n-descr", type=int, default=defaults["n_descriptors"], help="WKS descriptors")
     parser.add_argument("--k-descr", type=int, default=defaults["k_descriptors"], help="eigenpairs of WKS")
+    parser.add_argument(
+        "--zoomout-samples", type=int, default=2000, help="FPS samples per shape of 'zoomout-sub'"
+    )
     parser.add_argument("--repeats", type=int, default=1, help="rounds of the four runs (median)")
     parser.add_argument("--eval-points", type=int, default=2000, help="vertices of y scored")
     parser.add_argument("--nn-n", type=int, default=50000)

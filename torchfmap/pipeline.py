@@ -33,6 +33,14 @@ from .seeds import farthest_point_sampling
 
 BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
 BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
+#: Default Laplacian-commutativity weight per basis (the mask is normalised to mean 1). Mean
+#: error over cat0-cat1, cat2-cat8, wolf0-wolf1 and cat-lion (k=50, 10 or 20 landmarks,
+#: ``python bench/weight_sweep.py``) for w_lap = 1e-3 / 0.1 / 1 / 10: laplacian
+#: 0.026 / 0.022 / 0.025 / 0.029, harmonic 0.041 / 0.039 / 0.040 / 0.047, diffusion
+#: 0.089 / 0.065 / 0.029 / 0.032, stack 0.122 / 0.075 / 0.028 / 0.029. Projected Laplacians of
+#: small-t heat kernels have very large top eigenvalues, which dominate the mask's mean, so
+#: diffusion bases need a larger weight (at 1e-3, cat-lion failed: 0.27 and 0.40).
+W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
 #: Relative diffusion times of feature-aware bases, large (coarse) to small (fine).
 MATCH_TIMES = (1e-1, 3e-2, 1e-2, 3e-3)
 
@@ -112,7 +120,7 @@ def match(
     k_final: int | None = None,
     n_descriptors: int = 20,
     k_descriptors: int = 100,
-    w_lap: float = 1e-3,
+    w_lap: float | None = None,
     w_orient: float = 1e-2,
     w_dcomm: float = 0.0,
     w_lmk: float = 1.0,
@@ -133,7 +141,8 @@ def match(
             feature-aware: over growing scales / seeds).
         n_descriptors: WKS descriptors kept (100 energies from ``k_descriptors`` eigenpairs,
             subsampled evenly).
-        w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity, orientation
+        w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
+            :data:`W_LAP` of the basis), orientation
             preservation (resolves the left-right flips that WKS alone cannot see; measured on
             cat0/cat1 with 10 landmarks: 0.040 mean error with it, 0.216 without), descriptor
             commutativity and pointwise landmark preservation (see
@@ -203,7 +212,7 @@ def match(
         by,
         desc_x,
         desc_y,
-        w_lap=w_lap,
+        w_lap=W_LAP[kind] if w_lap is None else w_lap,
         w_orient=w_orient,
         w_dcomm=w_dcomm,
         meshes=(mesh_x, mesh_y),

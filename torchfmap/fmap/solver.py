@@ -177,7 +177,7 @@ class FmapProblem:
             blocks += w * np.einsum("li,li->i", Py, Py)[:, None, None] * eye
         return blocks
 
-    def solve(self, tol: float = 1e-8, maxiter: int = 500) -> np.ndarray:
+    def solve(self, tol: float = 1e-8, maxiter: int = 2000) -> np.ndarray:
         """The minimiser ``C'`` (rotated frame).
 
         Descriptor + Laplacian terms only: the exact row-wise solve. With coupling terms:
