@@ -361,7 +361,12 @@ def plot_sweep(rows: list[dict], pairs: list[str], sizes: list[int], path: Path)
 def ours_settings() -> str:
     """``match``'s descriptor and weight defaults, as used here."""
     d = {n: p.default for n, p in inspect.signature(match).parameters.items()}
-    weights = ", ".join(f"{n}={d[n]:g}" for n in d if n.startswith("w_"))
+    from torchfmap.pipeline import W_LAP
+
+    d["w_lap"] = "/".join(f"{W_LAP[b]:g} ({b})" for b in W_LAP) if d["w_lap"] is None else d["w_lap"]
+    weights = ", ".join(
+        f"{n}={d[n]:g}" if not isinstance(d[n], str) else f"{n}={d[n]}" for n in d if n.startswith("w_")
+    )
     return (
         f"{d['n_descriptors']} WKS from {d['k_descriptors']} eigenpairs + 2 heat descriptors per "
         f"landmark, {weights} (match defaults)"

@@ -213,3 +213,62 @@ def test_bad_inputs(pair):
 
 
 SeedErrorOrParam = ValueError
+
+
+def _orientation_by_gradients(mesh, basis, F):
+    """Reference: per-face gradients of hat functions, n × ∇f, dotted with ∇φ, lumped by A/3."""
+    v, f = mesh.vertices, mesh.faces
+    n, area = mesh.face_normals, mesh.face_areas
+    grads = []  # grads[c]: (F, 3) gradient of the hat function of corner c
+    for c in range(3):
+        e = v[f[:, (c + 2) % 3]] - v[f[:, (c + 1) % 3]]
+        grads.append(np.cross(n, e) / (2 * area)[:, None])
+    phi = basis.values
+    grad_phi = sum(grads[c][:, :, None] * phi[f[:, c]][:, None, :] for c in range(3))  # (F, 3, K)
+    corner_sum = phi[f[:, 0]] + phi[f[:, 1]] + phi[f[:, 2]]  # (F, K)
+    out = []
+    for j in range(F.shape[1]):
+        grad_f = sum(grads[c] * F[f[:, c], j][:, None] for c in range(3))
+        field = np.cross(n, grad_f)
+        along = np.einsum("fd,fdk->fk", field, grad_phi)  # (n × ∇f)·∇φ_l per face
+        out.append((corner_sum * (area / 3)[:, None]).T @ along)
+    return out
+
+
+def test_orientation_operators_match_gradient_definition(pair):
+    from torchfmap.fmap import orientation_operators
+
+    mesh = pair[1]
+    basis = laplacian_eigenbasis(mesh, 25)
+    F = descriptors(mesh)[:, :5]
+    fast = orientation_operators(mesh, basis, F)
+    ref = _orientation_by_gradients(mesh, basis, F)
+    for a, b in zip(fast, ref, strict=True):
+        assert a.shape == (25, 25)
+        np.testing.assert_allclose(a, b, atol=1e-12 * np.abs(b).max())
+    single = orientation_operators(mesh, basis, F, np.float32)  # what build_problem uses
+    for a, b in zip(single, ref, strict=True):
+        assert a.dtype == np.float64
+        np.testing.assert_allclose(a, b, atol=1e-5 * np.abs(b).max())
+
+
+def test_orientation_operator_planar_closed_form():
+    """On the plane z = 0 (normal +z), n × ∇x = ŷ, so (n × ∇x)·∇g = ∂g/∂y: in the raw
+    'basis' (1, x, y), O[k, l] = ∫ φ_k ∂φ_l/∂y, i.e. O[:, 2] = (area, ∫x, ∫y) and O[:, :2] = 0."""
+    from torchfmap.bases import Basis
+    from torchfmap.fmap import orientation_operator
+
+    from .conftest import planar_grid
+
+    mesh = planar_grid(7, jitter=0.25)
+    x, y = mesh.vertices[:, 0], mesh.vertices[:, 1]
+    _, B = laplacian(mesh)
+    basis = Basis(np.stack([np.ones_like(x), x, y], axis=1), B)
+    op_x = orientation_operator(mesh, basis, x)
+    # lumped face quadrature (A/3 per corner) is exact for linear integrands
+    integral = lambda g: float(sum(mesh.face_areas * g[mesh.faces].mean(axis=1)))  # noqa: E731
+    np.testing.assert_allclose(op_x[:, 2], [integral(np.ones_like(x)), integral(x), integral(y)], rtol=1e-12)
+    np.testing.assert_allclose(op_x[:, :2], 0.0, atol=1e-12)
+    # rotating f by 90 degrees in the plane: f = y gives n × ∇y = -x̂, so O[:, 1] = -(area, ∫x, ∫y)
+    O_y = orientation_operator(mesh, basis, y)
+    np.testing.assert_allclose(O_y[:, 1], -op_x[:, 2], rtol=1e-12)

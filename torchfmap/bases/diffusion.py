@@ -61,11 +61,18 @@ LOCAL_MAX_FRACTION = 0.25
 #: of the area: beyond it, one global Krylov solve shared by all seeds is cheaper.
 LOCAL_AUTO_FRACTION = 0.05
 #: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
-KRYLOV_BLOCK_BYTES = 192 * 2**20
+KRYLOV_BLOCK_BYTES = 512 * 2**20
+#: Seeds per Krylov block: multi-column sparse solves cost less per column, but a block's work
+#: buffer is touched page by page (measured best at 5K-200K vertices, ``bench/bases.py``).
+KRYLOV_BLOCK_COLUMNS = 8
+#: Lanczos vectors per column the work buffer starts with (it grows when more are needed).
+KRYLOV_STORE = 40
 #: Shift of the Krylov factorisation ``B + γL``, as a fraction of the smallest time it serves.
 KRYLOV_SHIFT = 0.3
 #: Times up to this factor above the smallest of a group share its Krylov space.
 KRYLOV_SPAN = 50.0
+#: The shift grows with the spread of a group's times: ``γ = KRYLOV_SHIFT · t_min · (t_max / t_min)^e``.
+KRYLOV_SHIFT_SPAN_EXP = 0.15
 
 
 # -- Carathéodory-Fejér rational approximation of exp ------------------------------------------
@@ -189,16 +196,25 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
     arithmetic here). Returns ``((T, n, s) approximations, iterations)``.
     """
     n, s = X.shape
-    BX = B @ X
-    beta0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", X, BX), 0.0))
-    beta0[beta0 == 0] = 1.0
+    d = _lumped(B)
+
+    def bmul(v: np.ndarray, out: np.ndarray) -> None:  # out = B v, in place when B is lumped
+        if d is not None:
+            np.multiply(v, d[:, None], out=out)
+        else:
+            out[...] = B @ v
+
     if store is None or store.shape[1] != n or store.shape[2] < s:
-        store = np.empty((min(max_iter, 48) + 1, n, s))  # store[m]: the m-th Lanczos vectors
+        store = np.empty((min(max_iter, KRYLOV_STORE) + 1, n, s))  # store[m]: the m-th Lanczos vectors
     store = store[:, :, :s]
-    q = X / beta0  # current vectors, (n, s) for the sparse solver
-    q_prev = np.zeros_like(q)
-    Bq = BX / beta0
-    store[0] = q
+    Bq = np.empty((n, s))  # B times the current vectors
+    tmp = np.empty((n, s))  # preallocated: fresh large temporaries cost page faults
+    bmul(X, Bq)
+    beta0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", X, Bq), 0.0))
+    beta0[beta0 == 0] = 1.0
+    q = store[0]
+    np.divide(X, beta0, out=q)
+    Bq /= beta0
     alpha = np.zeros((s, max_iter))
     beta = np.zeros((s, max_iter))
     prev = None
@@ -207,21 +223,22 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
         if m + 2 > store.shape[0]:
             grow = min(store.shape[0], max_iter + 1 - store.shape[0])
             store = np.concatenate([store, np.empty((grow, n, s))], axis=0)
+            q = store[m]
         w = fac.solve(Bq)  # (n, s)
         if m > 0:
-            w -= q_prev * beta[:, m - 1]
+            w -= np.multiply(store[m - 1], beta[:, m - 1], out=tmp)
         a = np.einsum("ij,ij->j", w, Bq)
-        w -= q * a
+        w -= np.multiply(q, a, out=tmp)
         a2 = np.einsum("ij,ij->j", w, Bq)  # one cheap re-orthogonalisation against q_m
-        w -= q * a2
+        w -= np.multiply(q, a2, out=tmp)
         alpha[:, m] = a + a2
-        Bw = B @ w
-        nb = np.sqrt(np.maximum(np.einsum("ij,ij->j", w, Bw), 0.0))
+        bmul(w, Bq)
+        nb = np.sqrt(np.maximum(np.einsum("ij,ij->j", w, Bq), 0.0))
         beta[:, m] = nb
         safe = np.where(nb > 0, nb, 1.0)
-        q_prev, q = q, w / safe
-        Bq = Bw / safe
-        store[m + 1] = q
+        q = store[m + 1]
+        np.divide(w, safe, out=q)
+        Bq /= safe
         k = m + 1
         T = np.zeros((s, k, k))
         idx = np.arange(k)
@@ -261,12 +278,16 @@ def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None
             groups[-1].append(int(i))
         else:
             groups.append([int(i)])
-    # ~48 Lanczos vectors per column of a block must fit in the budget; one buffer serves all
-    block = max(1, min(s_total, int(KRYLOV_BLOCK_BYTES // (8 * n * 49))))
-    store = np.empty((min(max_iter, 48) + 1, n, block))
+    # KRYLOV_STORE Lanczos vectors per column of a block fit in the budget (seeds are solved in
+    # blocks: multi-column sparse solves cost less per column); one buffer serves all blocks
+    cap = min(max_iter, KRYLOV_STORE) + 1
+    block = max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
+    store = np.empty((cap, n, block))
     out = np.empty((len(times),) + X.shape)
     for group in groups:
-        gamma = float(shift) if shift is not None else KRYLOV_SHIFT * float(times[group[0]])
+        t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
+        gamma = KRYLOV_SHIFT * t_lo * (t_hi / t_lo) ** KRYLOV_SHIFT_SPAN_EXP
+        gamma = float(shift) if shift is not None else gamma
         fac = factorize(B + gamma * L, spd=True)
         for start in range(0, s_total, block):
             cols = slice(start, min(start + block, s_total))

@@ -20,15 +20,18 @@ from .basis import Basis, Column
 
 #: Below this many vertices the dense generalised eigensolver is used (exact and robust).
 DENSE_LIMIT = 1500
+#: ARPACK's relative accuracy of the Ritz values (``eigsh(tol=...)``; 0 means machine precision).
+ARPACK_TOL = 1e-10
 
 
 def fix_signs(phi: np.ndarray, mass) -> np.ndarray:
     """Flip columns so the B-weighted third moment is positive (else the largest entry)."""
     m = np.asarray(sp.csr_matrix(mass).sum(axis=1)).ravel()
-    skew = m @ phi**3
-    scale = np.abs(phi).max(axis=0)
+    cols = np.arange(phi.shape[1])
+    skew = m @ (phi * phi * phi)
     idx = np.argmax(np.abs(phi), axis=0)
-    fallback = np.sign(phi[idx, np.arange(phi.shape[1])])
+    fallback = np.sign(phi[idx, cols])
+    scale = np.abs(phi[idx, cols])
     sign = np.where(np.abs(skew) > 1e-8 * scale**3 * m.sum(), np.sign(skew), fallback)
     return phi * np.where(sign == 0, 1.0, sign)
 
@@ -62,11 +65,34 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarr
     else:
         L, B = sp.csc_matrix(L), sp.csc_matrix(B)
         fac = factorize(L - sigma * B, spd=True)  # CHOLMOD / cholespy where installed
-        op_inv = ssla.LinearOperator((n, n), matvec=fac.solve, dtype=np.float64)
         # ARPACK's restarts cost ~ V ncv^2: a Lanczos basis of 1.5k (scipy's default is 2k + 1)
         # needs as many solves and is 20-25 % faster at k = 100-200 on 17K vertices
         ncv = min(n, max(k + k // 2 + 1, k + 20))
-        lam, phi = ssla.eigsh(L, k=k, M=B, sigma=sigma, which="LM", OPinv=op_inv, v0=start_vector(n), ncv=ncv)
+        d = B.diagonal()
+        if B.nnz == np.count_nonzero(d) and (np.diff(B.indptr) <= 1).all():
+            # lumped mass: the standard problem D^-1/2 L D^-1/2 ψ = λ ψ, φ = D^-1/2 ψ, spares
+            # ARPACK the B inner products (with tol 1e-10: ~20 % faster at 17K vertices, k = 100;
+            # eigenvalues to ~1e-15 relative, residuals ~1e-10)
+            s = np.sqrt(d)
+            A = sp.csc_matrix(sp.diags(1.0 / s) @ L @ sp.diags(1.0 / s))
+            op_inv = ssla.LinearOperator((n, n), matvec=lambda x: s * fac.solve(s * x), dtype=np.float64)
+            lam, psi = ssla.eigsh(
+                A, k=k, sigma=sigma, which="LM", OPinv=op_inv, v0=start_vector(n), ncv=ncv, tol=ARPACK_TOL
+            )
+            phi = psi / s[:, None]
+        else:
+            op_inv = ssla.LinearOperator((n, n), matvec=fac.solve, dtype=np.float64)
+            lam, phi = ssla.eigsh(
+                L,
+                k=k,
+                M=B,
+                sigma=sigma,
+                which="LM",
+                OPinv=op_inv,
+                v0=start_vector(n),
+                ncv=ncv,
+                tol=ARPACK_TOL,
+            )
         order = np.argsort(lam)
         lam, phi = lam[order], phi[:, order]
     lam = np.where(lam > -1e-10, np.maximum(lam, 0.0), lam)  # round-off below zero -> 0

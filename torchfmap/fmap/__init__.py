@@ -15,6 +15,7 @@ from .solver import (
     laplacian_mask,
     multiplication_operator,
     orientation_operator,
+    orientation_operators,
     solve_fmap,
     solve_rowwise,
 )
@@ -31,6 +32,7 @@ __all__ = [
     "multiplication_operator",
     "nearest_neighbor",
     "orientation_operator",
+    "orientation_operators",
     "p2p_to_fmap",
     "solve_fmap",
     "solve_rowwise",

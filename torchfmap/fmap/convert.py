@@ -63,18 +63,22 @@ def nearest_neighbor(
     if method != "brute":
         raise ParameterError(f"unknown method {method!r}. Fix: 'auto', 'brute' or 'kdtree'.")
     dtype = np.float32 if precision == "single" else np.float64
-    ref = reference.astype(dtype, copy=False)
-    ref_sq = np.einsum("ij,ij->i", ref, ref)
-    block = max(1, min(len(query), int(block_bytes // (np.dtype(dtype).itemsize * max(1, len(ref))))))
-    buffer = np.empty((block, len(ref)), dtype=dtype)
+    # |r|² - 2 q·r as ONE product [q, 1] · [-2r, |r|²]ᵀ (|q|² is constant per row: not needed
+    # for the argmin), so each block costs a GEMM and an argmin, no elementwise passes
+    n_dim = reference.shape[1]
+    ref_aug = np.empty((len(reference), n_dim + 1), dtype=dtype)
+    ref_aug[:, :n_dim] = -2.0 * reference
+    ref_aug[:, n_dim] = np.einsum("ij,ij->i", reference, reference)
+    block = max(1, min(len(query), int(block_bytes // (np.dtype(dtype).itemsize * max(1, len(reference))))))
+    buffer = np.empty((block, len(reference)), dtype=dtype)
+    q_aug = np.ones((block, n_dim + 1), dtype=dtype)
     idx = np.empty(len(query), dtype=np.int64)
     for start in range(0, len(query), block):
-        q = query[start : start + block].astype(dtype, copy=False)
-        d = buffer[: len(q)]
-        np.matmul(q, ref.T, out=d)
-        d *= -2.0
-        d += ref_sq  # |q|^2 is constant per row: not needed for the argmin
-        idx[start : start + block] = np.argmin(d, axis=1)
+        m = min(block, len(query) - start)
+        q_aug[:m, :n_dim] = query[start : start + m]
+        d = buffer[:m]
+        np.matmul(q_aug[:m], ref_aug.T, out=d)
+        idx[start : start + m] = np.argmin(d, axis=1)
     if not return_distance:
         return idx
     diff = query - reference[idx]
