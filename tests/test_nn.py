@@ -82,12 +82,12 @@ def test_rowwise_solve_gradients_match_dense_autograd():
     for a, b in zip(grads, grads_ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
     # the autograd Function itself is exact for unsymmetric G too (it never assumes symmetry)
-    from torchfmap.fmap.core import _RowwiseSolve
+    from torchfmap.fmap.core import _rowwise_solve_function
 
     G = torch.randn(2, 6, 6, dtype=torch.float64, generator=g, requires_grad=True)
     d = (torch.rand(2, 4, 6, dtype=torch.float64, generator=g) + 3).requires_grad_()
     r = torch.randn(2, 4, 6, dtype=torch.float64, generator=g, requires_grad=True)
-    c = _RowwiseSolve.apply(G, d, r)
+    c = _rowwise_solve_function().apply(G, d, r)
     c_ref = torch.linalg.solve(G.unsqueeze(-3) + torch.diag_embed(d), r[..., None])[..., 0]
     R2 = torch.randn(2, 4, 6, dtype=torch.float64, generator=g)
     grads = torch.autograd.grad((c * R2).sum(), (G, d, r))

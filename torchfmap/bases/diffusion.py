@@ -47,7 +47,7 @@ from scipy.sparse.csgraph import dijkstra
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import check_vertex_indices
-from ..operators.laplacian import Operators, laplacian
+from ..operators.laplacian import Operators, laplacian, lumped_diagonal
 from ..operators.solvers import factorize
 from .basis import Basis, Column
 
@@ -129,16 +129,8 @@ def cf_order_for(tol: float) -> int:
 
 
 # -- the operator applications ---------------------------------------------------------------
-def _lumped(B: sp.spmatrix) -> np.ndarray | None:
-    """The diagonal of ``B`` if ``B`` is diagonal, else None."""
-    B = sp.csr_matrix(B)
-    if B.nnz == np.count_nonzero(B.diagonal()) and (np.diff(B.indptr) <= 1).all():
-        return B.diagonal()
-    return None
-
-
 def _mass_solve(B: sp.spmatrix, X: np.ndarray) -> np.ndarray:
-    d = _lumped(B)
+    d = lumped_diagonal(B)
     if d is not None:
         return X / d[:, None] if X.ndim == 2 else X / d
     return factorize(B, spd=True).solve(X)
@@ -196,7 +188,7 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
     arithmetic here). Returns ``((T, n, s) approximations, iterations)``.
     """
     n, s = X.shape
-    d = _lumped(B)
+    d = lumped_diagonal(B)
 
     def bmul(v: np.ndarray, out: np.ndarray) -> None:  # out = B v, in place when B is lumped
         if d is not None:

@@ -7,6 +7,7 @@ dimensions; torch tensors keep their autograd graph, dtype and device.
 
 from __future__ import annotations
 
+import functools
 import threading
 from typing import Any
 
@@ -86,7 +87,7 @@ def solve_rowwise(A_x, A_y, mask, w_desc: float, w_lap: float, valid=None):
         diag = diag + (1 - valid)
         rhs = rhs * valid
     if _is_torch(G):
-        return _RowwiseSolve.apply(G, diag, rhs)
+        return _rowwise_solve_function().apply(G, diag, rhs)
     eye = _eye(A_x.shape[-2], A_x)
     systems = G[..., None, :, :] + diag[..., :, :, None] * eye  # (..., Ky, Kx, Kx)
     return np.linalg.solve(systems, rhs[..., None])[..., 0]
@@ -121,6 +122,7 @@ def _scratch(shape: tuple[int, ...], like):
     return buf[:n].view(shape)
 
 
+@functools.cache
 def _rowwise_solve_function():
     """The torch autograd Function of the row-wise solve (built lazily: torch is optional here)."""
     import torch
@@ -163,18 +165,6 @@ def _rowwise_solve_function():
             return -(u.transpose(-1, -2) @ c), -(u * c), u
 
     return RowwiseSolve
-
-
-class _LazyFunction:
-    _fn = None
-
-    def apply(self, *args):
-        if _LazyFunction._fn is None:
-            _LazyFunction._fn = _rowwise_solve_function()
-        return _LazyFunction._fn.apply(*args)
-
-
-_RowwiseSolve = _LazyFunction()
 
 
 def rotate_and_solve(

@@ -130,6 +130,15 @@ def mass_matrix(mesh: Mesh, kind: MassKind = "voronoi") -> sp.csr_matrix:
     raise ParameterError(f"unknown mass kind {kind!r}. Fix: use one of {MASS_KINDS}.")
 
 
+def lumped_diagonal(B: sp.spmatrix) -> np.ndarray | None:
+    """The diagonal ``(V,)`` of a mass matrix ``B`` if ``B`` is diagonal (lumped), else None."""
+    B = sp.csr_matrix(B)
+    d = B.diagonal()
+    if B.nnz == np.count_nonzero(d) and (np.diff(B.indptr) <= 1).all():
+        return d
+    return None
+
+
 def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float = 1e-5) -> Operators:
     """Tufted intrinsic-Delaunay Laplacian of a point cloud ``(V, 3)`` via ``robust-laplacian``."""
     import robust_laplacian
