@@ -18,6 +18,8 @@ from .bases import (
     support_fraction,
 )
 from .errors import ConvergenceError, MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
+from .eval import evaluate_map
+from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .io import load_mesh, save_mesh
 from .mesh import Mesh, MeshReport, validate_mesh
 from .operators import (
@@ -35,6 +37,7 @@ from .operators import (
     torch_to_scipy,
     total_area,
 )
+from .pipeline import MatchResult, match
 from .seeds import (
     coverage_seeds,
     curvature,
@@ -88,4 +91,10 @@ __all__ = [
     "torch_to_scipy",
     "total_area",
     "validate_mesh",
+    "evaluate_map",
+    "fmap_to_p2p",
+    "p2p_to_fmap",
+    "solve_fmap",
+    "MatchResult",
+    "match",
 ]

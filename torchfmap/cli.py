@@ -90,47 +90,39 @@ def read_landmarks(path: str) -> np.ndarray:
 def cmd_basis(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .bases import concatenate, diffusion_basis, harmonic_basis, laplacian_eigenbasis, orthonormalize
+    from .bases import basis_stack
     from .io import load_mesh
     from .operators import laplacian
     from .seeds import farthest_point_sampling
 
     mesh = load_mesh(args.mesh, allow_components=True)
     times = [float(t) for t in args.times.split(",")] if args.times else []
-    kinds = {"stack": ["diffusion", "harmonic", "laplacian"]}.get(args.kind, [args.kind])
-    steps = 2 + len(kinds) + (args.kind == "stack" or args.orthonormalize)
-    with tqdm(total=steps, desc="basis", unit="step", disable=args.quiet) as bar:
+    with tqdm(total=3, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
         ops = laplacian(mesh, kind=args.laplacian)
         bar.update()
         landmarks = read_landmarks(args.landmarks) if args.landmarks else None
         n_seeds = args.seeds if args.seeds else (len(landmarks) if landmarks is not None else 0)
         seeds = np.zeros(0, dtype=np.int64)
-        if "diffusion" in kinds or "harmonic" in kinds:
+        if args.kind != "laplacian":
             if n_seeds < 1:
                 raise TorchFmapError("this kind needs seeds. Fix: pass --seeds N and/or --landmarks FILE.")
             bar.set_postfix_str("seeds")
             seeds = farthest_point_sampling(mesh, n_seeds, landmarks=landmarks, metric=args.metric)
         bar.update()
-        parts = []
-        if "diffusion" in kinds:
-            bar.set_postfix_str(f"diffusion ({len(seeds)} seeds x {len(times)} times)")
-            parts.append(diffusion_basis(mesh, seeds, times, args.method, operators=ops, tol=args.tol))
-            bar.update()
-        if "harmonic" in kinds:
-            bar.set_postfix_str("harmonic")
-            parts.append(harmonic_basis(mesh, seeds, operators=ops))
-            bar.update()
-        if "laplacian" in kinds:
-            bar.set_postfix_str("eigenbasis")
-            parts.append(laplacian_eigenbasis(mesh, args.k, operators=ops))
-            bar.update()
-        basis = concatenate(parts)
-        basis.stiffness = ops[0] if abs(ops[0] - ops[0].T).max() == 0 else None
-        if args.kind == "stack" or args.orthonormalize:
-            bar.set_postfix_str("orthonormalise")
-            basis = orthonormalize(basis, method=args.ortho)
-            bar.update()
+        bar.set_postfix_str(f"{args.kind} ({len(seeds)} seeds)")
+        basis = basis_stack(
+            mesh,
+            seeds,
+            times=times if args.kind in ("stack", "diffusion") else (),
+            harmonic=args.kind in ("stack", "harmonic"),
+            n_eigen=args.k if args.kind in ("stack", "laplacian") else 0,
+            operators=ops,
+            method=args.method,
+            heat_tol=args.tol,
+            orthonormalization=args.ortho if (args.kind == "stack" or args.orthonormalize) else None,
+        )
+        bar.update()
         path = basis.save(args.out)
     print(f"{basis} -> {path}")
     return 0

@@ -23,23 +23,21 @@ from .bases import (
     orthonormalize,
     orthonormalize_pair,
 )
-from .bases.laplacian import eigenpairs
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .mesh import Mesh
-from .operators.laplacian import laplacian
+from .operators.laplacian import Operators, laplacian
 from .seeds import farthest_point_sampling
 
 BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
+RefineKind = Literal["icp", "zoomout"]
+P2PMode = Literal["pullback", "orthogonal"]
 BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
-#: Default Laplacian-commutativity weight per basis (the mask is normalised to mean 1). Mean
-#: error over cat0-cat1, cat2-cat8, wolf0-wolf1 and cat-lion (k=50, 10 or 20 landmarks,
-#: ``python bench/weight_sweep.py``) for w_lap = 1e-3 / 0.1 / 1 / 10: laplacian
-#: 0.026 / 0.022 / 0.025 / 0.029, harmonic 0.041 / 0.039 / 0.040 / 0.047, diffusion
-#: 0.089 / 0.065 / 0.029 / 0.032, stack 0.122 / 0.075 / 0.028 / 0.029. Projected Laplacians of
-#: small-t heat kernels have very large top eigenvalues, which dominate the mask's mean, so
-#: diffusion bases need a larger weight (at 1e-3, cat-lion failed: 0.27 and 0.40).
+#: Default Laplacian-commutativity weight per basis (the mask is normalised to mean 1), chosen
+#: by ``python bench/weight_sweep.py`` (table in ``bench/results/weight_sweep.md``). Projected
+#: Laplacians of small-t heat kernels have very large top eigenvalues, which dominate the
+#: mask's mean, so diffusion bases need a larger weight than eigenbases.
 W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
 #: Relative diffusion times of feature-aware bases, large (coarse) to small (fine).
 MATCH_TIMES = (1e-1, 3e-2, 1e-2, 3e-3)
@@ -57,56 +55,169 @@ class MatchResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _feature_bases(sides, pairs: np.ndarray, kind: str, k: int, times) -> tuple[Basis, Basis]:
-    """Corresponding feature-aware bases on both shapes, orthonormalised together so that
-    column ``i`` is built from the same landmark and scale on both."""
-    n_eigen = max(0, k - (len(times) + 1) * len(pairs)) if kind == "stack" else 0
+@dataclass
+class PreparedShape:
+    """Per-shape precomputation shared by every pair a shape takes part in.
+
+    ``mesh``; ``operators`` ``(L, B)`` (``(V, V)`` sparse stiffness and lumped mass);
+    ``eigenbasis``: the first ``n_eigen`` Laplacian eigenfunctions as a B-orthonormal
+    :class:`~torchfmap.Basis` (``(V, n_eigen)`` values, eigenvalues ascending).
+    """
+
+    mesh: Mesh
+    operators: Operators
+    eigenbasis: Basis
+
+
+def prepare_shape(mesh: Mesh, n_eigen: int) -> PreparedShape:
+    """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`match` does per shape)."""
+    ops = laplacian(mesh)
+    return PreparedShape(mesh, ops, laplacian_eigenbasis(mesh, n_eigen, operators=ops))
+
+
+def match_descriptors(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    landmarks: np.ndarray | None = None,
+    *,
+    n_descriptors: int = 20,
+    k_descriptors: int = 100,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(V_x, D)``, ``(V_y, D)`` descriptors of :func:`match`, normalised (unit B-norm columns).
+
+    ``n_descriptors`` WKS columns (evenly subsampled from 100 energies computed on the first
+    ``k_descriptors`` eigenpairs of each prepared shape), then, with ``landmarks`` ``(L, 2)``,
+    two heat kernels per landmark (:func:`~torchfmap.descriptors.landmark_descriptors`).
+    """
+    if n_descriptors < 1:
+        raise ParameterError(f"n_descriptors must be >= 1, got {n_descriptors}.")
+    out = []
+    for s, shape in enumerate((shape_x, shape_y)):
+        eig = shape.eigenbasis.truncated(min(k_descriptors, shape.eigenbasis.k))
+        step = max(1, 100 // n_descriptors)
+        parts = [wks(eig.eigenvalues, eig.values, 100)[:, ::step][:, :n_descriptors]]
+        if landmarks is not None:
+            parts.append(landmark_descriptors(landmarks[:, s], operators=shape.operators, times=(1e-2, 3e-2)))
+        out.append(normalize_descriptors(np.hstack(parts), shape.operators[1]))
+    return out[0], out[1]
+
+
+def match_bases(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    kind: BasisKind,
+    k: int,
+    landmarks: np.ndarray | None = None,
+    times=MATCH_TIMES,
+) -> tuple[Basis, Basis]:
+    """The pair of B-orthonormal bases :func:`match` solves in.
+
+    ``'laplacian'``: the first ``k`` eigenfunctions of each prepared shape. Feature-aware kinds
+    (``'harmonic'``, ``'diffusion'``, ``'stack'``) are built on both shapes from the same
+    ``landmarks`` ``(L, 2)`` and orthonormalised together, so that column ``i`` is built from
+    the same landmark and scale on both (raises :class:`ParameterError` without landmarks).
+    """
+    if kind == "laplacian":
+        return shape_x.eigenbasis.truncated(k), shape_y.eigenbasis.truncated(k)
+    if landmarks is None:
+        raise ParameterError(
+            f"the {kind} basis is built from corresponding landmarks on both shapes. Fix: pass "
+            "landmarks (pairs of vertices), or use basis='laplacian'."
+        )
+    n_eigen = max(0, k - (len(times) + 1) * len(landmarks)) if kind == "stack" else 0
     raw = []
-    for s, (mesh, ops) in enumerate(sides):
-        seeds = pairs[:, s]
+    for s, shape in enumerate((shape_x, shape_y)):
+        mesh, ops, seeds = shape.mesh, shape.operators, landmarks[:, s]
         if kind == "harmonic":
-            b = harmonic_basis(mesh, seeds, operators=ops)
+            raw.append(harmonic_basis(mesh, seeds, operators=ops))
         elif kind == "diffusion":
-            b = diffusion_basis(mesh, seeds, times, operators=ops, tol=1e-6, local=False)
+            raw.append(diffusion_basis(mesh, seeds, times, operators=ops, tol=1e-6, local=False))
         else:
-            b = basis_stack(
-                mesh, seeds, times=times, operators=ops, heat_tol=1e-6, local=False, orthonormalization=None
+            raw.append(
+                basis_stack(
+                    mesh,
+                    seeds,
+                    times=times,
+                    operators=ops,
+                    heat_tol=1e-6,
+                    local=False,
+                    orthonormalization=None,
+                )
             )
-        b.stiffness = ops[0]
-        raw.append(b)
     bx, by = orthonormalize_pair(*raw)
     if n_eigen:  # eigenfunctions fill up to k; they do not correspond column by column
-        bx = _append_eigen(bx, *sides[0], n_eigen)
-        by = _append_eigen(by, *sides[1], n_eigen)
+        bx = orthonormalize(concatenate([bx, shape_x.eigenbasis.truncated(n_eigen)]))
+        by = orthonormalize(concatenate([by, shape_y.eigenbasis.truncated(n_eigen)]))
     return bx, by
 
 
-def _append_eigen(basis: Basis, mesh: Mesh, ops, n_eigen: int) -> Basis:
-    stacked = concatenate([basis, laplacian_eigenbasis(mesh, n_eigen, operators=ops)])
-    stacked.stiffness = ops[0]
-    return orthonormalize(stacked)
-
-
-def _coarse_to_fine(sides, pairs: np.ndarray, kind: str, times) -> tuple[list[Basis], list[Basis]]:
+def _coarse_to_fine(shape_x, shape_y, pairs: np.ndarray, kind: str, times) -> tuple[list[Basis], list[Basis]]:
     """Nested corresponding feature-aware bases for ZoomOut: growing scales (large to small t)."""
+    shapes = (shape_x, shape_y)
     parts = [
-        [diffusion_basis(mesh, pairs[:, s], [t], operators=ops, tol=1e-6, local=False) for t in times]
-        for s, (mesh, ops) in enumerate(sides)
+        [
+            diffusion_basis(sh.mesh, pairs[:, s], [t], operators=sh.operators, tol=1e-6, local=False)
+            for t in times
+        ]
+        for s, sh in enumerate(shapes)
     ]
     if kind == "stack":
-        for s, (mesh, ops) in enumerate(sides):
-            parts[s].append(harmonic_basis(mesh, pairs[:, s], operators=ops))
+        for s, sh in enumerate(shapes):
+            parts[s].append(harmonic_basis(sh.mesh, pairs[:, s], operators=sh.operators))
     seq_x, seq_y = [], []
     for j in range(len(parts[0])):
-        raw = [concatenate(p[: j + 1]) for p in parts]
-        for b, (_, ops) in zip(raw, sides, strict=True):
-            b.stiffness = ops[0]
-        bx, by = orthonormalize_pair(*raw)
+        bx, by = orthonormalize_pair(*(concatenate(p[: j + 1]) for p in parts))
         seq_x.append(bx)
         seq_y.append(by)
     if kind == "diffusion":  # the last level equals the matching basis
         seq_x, seq_y = seq_x[:-1], seq_y[:-1]
     return seq_x, seq_y
+
+
+def refine_map(
+    C_xy: np.ndarray,
+    p2p_yx: np.ndarray,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    basis_x: Basis,
+    basis_y: Basis,
+    method: RefineKind,
+    *,
+    kind: BasisKind,
+    k_final: int,
+    mode: P2PMode,
+    landmarks: np.ndarray | None = None,
+    times=MATCH_TIMES,
+    zoomout_samples: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(C_xy, p2p_yx)`` refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`match`).
+
+    ICP works in ``basis_x, basis_y``. ZoomOut in the eigenbasis grows the prepared
+    eigenbases up to ``k_final`` (on ``zoomout_samples`` farthest-point samples per shape if
+    given); for feature-aware bases it runs over growing scales of corresponding kernels.
+    """
+    if method == "icp":
+        return icp_refine(C_xy, basis_x, basis_y, mode=mode)
+    if method != "zoomout":
+        raise ParameterError(f"unknown refinement {method!r}. Fix: 'icp', 'zoomout' or None.")
+    if kind == "laplacian":
+        full_x, full_y = shape_x.eigenbasis, shape_y.eigenbasis
+        samples = None
+        if zoomout_samples is not None:
+            samples = tuple(
+                farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
+                for m in (shape_x.mesh, shape_y.mesh)
+            )
+        k = min(C_xy.shape)
+        return zoomout(C_xy, full_x, full_y, k_final, step=max(1, k // 10), mode=mode, subsample=samples)
+    if kind == "harmonic":
+        raise ParameterError(
+            "ZoomOut needs nested bases that grow; a harmonic basis only grows with more "
+            "corresponding seeds, and the landmarks are all there is. Fix: refine='icp', or "
+            "basis='stack' / 'diffusion' (ZoomOut over growing scales)."
+        )
+    seq_x, seq_y = _coarse_to_fine(shape_x, shape_y, landmarks, kind, times)
+    return zoomout_sequence(p2p_yx, seq_x + [basis_x], seq_y + [basis_y], mode=mode)
 
 
 def match(
@@ -116,7 +227,7 @@ def match(
     landmarks=None,
     basis: BasisKind | None = None,
     k: int = 50,
-    refine: Literal["icp", "zoomout"] | None = None,
+    refine: RefineKind | None = None,
     k_final: int | None = None,
     n_descriptors: int = 20,
     k_descriptors: int = 100,
@@ -125,10 +236,15 @@ def match(
     w_dcomm: float = 0.0,
     w_lmk: float = 1.0,
     times=MATCH_TIMES,
-    p2p_mode: Literal["pullback", "orthogonal"] | None = None,
+    p2p_mode: P2PMode | None = None,
     zoomout_samples: int | None = None,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
+
+    The steps, each public for callers with their own bases or descriptors:
+    :func:`prepare_shape` -> :func:`match_bases` -> :func:`match_descriptors` ->
+    :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` ->
+    :func:`refine_map`.
 
     Args:
         mesh_x, mesh_y: source and target.
@@ -138,23 +254,21 @@ def match(
             ``'stack'`` with landmarks, ``'laplacian'`` without).
         k: basis size (eigenfunctions; for stacks, the eigenfunctions fill up to ``k``).
         refine: ``'icp'`` or ``'zoomout'`` (eigenbasis: up to ``k_final``, default ``2k``;
-            feature-aware: over growing scales / seeds).
-        n_descriptors: WKS descriptors kept (100 energies from ``k_descriptors`` eigenpairs,
-            subsampled evenly).
+            feature-aware: over growing scales), or None.
+        n_descriptors, k_descriptors: see :func:`match_descriptors`.
         w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
-            :data:`W_LAP` of the basis), orientation
-            preservation (resolves the left-right flips that WKS alone cannot see; measured on
-            cat0/cat1 with 10 landmarks: 0.040 mean error with it, 0.216 without), descriptor
-            commutativity and pointwise landmark preservation (see
-            :func:`~torchfmap.fmap.solve_fmap`). With all three at 0 the solve is the exact
-            row-wise one; the others make it an iterative (preconditioned CG) solve.
+            :data:`W_LAP` of the basis), orientation preservation (tells left from right,
+            which WKS alone cannot), descriptor commutativity and pointwise landmark
+            preservation (see :func:`~torchfmap.fmap.solve_fmap`). With the last three at 0
+            the solve is the exact row-wise one; otherwise preconditioned CG.
         p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
-            default ``'orthogonal'`` for the eigenbasis and ``'pullback'`` for feature-aware
-            bases (measured on the 17K wolf pair at k=100: eigenbasis ZoomOut 0.0016 mean error
-            with ``'orthogonal'``, 0.0084 with ``'pullback'``).
-        zoomout_samples: run the eigenbasis ZoomOut iterations on this many farthest-point
-            samples per shape (the final point map uses every vertex); much faster on large
-            meshes (wolf pair, 2000 samples: 0.0027 vs 0.0016 mean error, about 10x faster).
+            default ``'orthogonal'`` for the eigenbasis, ``'pullback'`` for feature-aware bases.
+        zoomout_samples: run eigenbasis ZoomOut on this many farthest-point samples per shape
+            (the final point map uses every vertex).
+
+    Raises:
+        ParameterError: unknown basis or refinement, a feature-aware basis without landmarks,
+            or an invalid ``k``; :class:`~torchfmap.SeedError` for invalid landmarks.
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -164,47 +278,21 @@ def match(
     kind = basis or ("stack" if pairs is not None else "laplacian")
     if kind not in BASIS_KINDS:
         raise ParameterError(f"unknown basis {kind!r}. Fix: one of {BASIS_KINDS}.")
-    if kind != "laplacian" and pairs is None:
-        raise ParameterError(
-            f"the {kind} basis is built from corresponding landmarks on both shapes. Fix: pass "
-            "landmarks (pairs of vertices), or use basis='laplacian'."
-        )
-    ops_x, ops_y = laplacian(mesh_x), laplacian(mesh_y)
-    k_eig = max(
-        k, k_final or 0, 2 * k if (refine == "zoomout" and kind == "laplacian" and k_final is None) else 0
-    )
-    k_eig = max(k_eig, k_descriptors) if kind == "laplacian" else k_descriptors
-    lam_x, phi_x = eigenpairs(*ops_x, k_eig)
-    lam_y, phi_y = eigenpairs(*ops_y, k_eig)
+    grow = refine == "zoomout" and kind == "laplacian"
+    k_final = k_final if k_final is not None else (2 * k if grow else k)
+    n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else k_descriptors
+    shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    n_d = min(k_descriptors, k_eig)
-    step = max(1, 100 // max(1, n_descriptors))
-    desc_x = [wks(lam_x[:n_d], phi_x[:, :n_d], 100)[:, ::step][:, :n_descriptors]]
-    desc_y = [wks(lam_y[:n_d], phi_y[:, :n_d], 100)[:, ::step][:, :n_descriptors]]
-    if pairs is not None:
-        desc_x.append(landmark_descriptors(pairs[:, 0], operators=ops_x, times=(1e-2, 3e-2)))
-        desc_y.append(landmark_descriptors(pairs[:, 1], operators=ops_y, times=(1e-2, 3e-2)))
-    desc_x = normalize_descriptors(np.hstack(desc_x), ops_x[1])
-    desc_y = normalize_descriptors(np.hstack(desc_y), ops_y[1])
-    timings["descriptors"] = time.perf_counter() - t0
+    bx, by = match_bases(shape_x, shape_y, kind, k, pairs, times)
+    timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    if kind == "laplacian":
-        from .bases import Column
-
-        full_x = Basis(
-            phi_x, ops_x[1], [Column("laplacian", index=i) for i in range(k_eig)], True, ops_x[0], lam_x
-        )
-        full_y = Basis(
-            phi_y, ops_y[1], [Column("laplacian", index=i) for i in range(k_eig)], True, ops_y[0], lam_y
-        )
-        bx = Basis(phi_x[:, :k], ops_x[1], full_x.provenance[:k], True, ops_x[0], lam_x[:k])
-        by = Basis(phi_y[:, :k], ops_y[1], full_y.provenance[:k], True, ops_y[0], lam_y[:k])
-    else:
-        bx, by = _feature_bases(((mesh_x, ops_x), (mesh_y, ops_y)), pairs, kind, k, times)
-    timings["basis"] = time.perf_counter() - t0
+    desc_x, desc_y = match_descriptors(
+        shape_x, shape_y, pairs, n_descriptors=n_descriptors, k_descriptors=k_descriptors
+    )
+    timings["descriptors"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     C = solve_fmap(
@@ -225,30 +313,22 @@ def match(
     initial = p2p
 
     t0 = time.perf_counter()
-    if refine == "icp":
-        C, p2p = icp_refine(C, bx, by, mode=mode)
-    elif refine == "zoomout":
-        if kind == "laplacian":
-            samples = None
-            if zoomout_samples is not None:
-                samples = tuple(
-                    farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
-                    for m in (mesh_x, mesh_y)
-                )
-            C, p2p = zoomout(
-                C, full_x, full_y, k_final or 2 * k, step=max(1, k // 10), mode=mode, subsample=samples
-            )
-        else:
-            if kind == "harmonic":
-                raise ParameterError(
-                    "ZoomOut needs nested bases that grow; a harmonic basis only grows with more "
-                    "corresponding seeds, and the landmarks are all there is. Fix: refine='icp', or "
-                    "basis='stack' / 'diffusion' (ZoomOut over growing scales)."
-                )
-            seq_x, seq_y = _coarse_to_fine(((mesh_x, ops_x), (mesh_y, ops_y)), pairs, kind, times)
-            C, p2p = zoomout_sequence(p2p, seq_x + [bx], seq_y + [by], mode=mode)
-    elif refine is not None:
-        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
+    if refine is not None:
+        C, p2p = refine_map(
+            C,
+            p2p,
+            shape_x,
+            shape_y,
+            bx,
+            by,
+            refine,
+            kind=kind,
+            k_final=k_final,
+            mode=mode,
+            landmarks=pairs,
+            times=times,
+            zoomout_samples=zoomout_samples,
+        )
     timings["refine"] = time.perf_counter() - t0
     return MatchResult(p2p, C, bx, by, initial, timings)
 

@@ -161,6 +161,24 @@ class Basis:
             raise ParameterError("this basis has no stiffness matrix. Fix: build it with `stiffness=L`.")
         return self.values.T @ (self.stiffness @ self.values)
 
+    def truncated(self, k: int) -> Basis:
+        """The first ``k`` columns as a new :class:`Basis` (mass, stiffness and flags kept).
+
+        Provenance keeps the first ``k`` kept columns and the dropped columns recorded before
+        them. Raises :class:`ParameterError` unless ``1 <= k <= K``.
+        """
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= self.k:
+            raise ParameterError(f"k must be an integer in [1, {self.k}] for this basis, got {k!r}.")
+        k = int(k)
+        prov, kept = [], 0
+        for c in self.provenance:
+            if kept == k:
+                break
+            prov.append(c)
+            kept += c.kept
+        eig = None if self.eigenvalues is None else self.eigenvalues[:k]
+        return Basis(self.values[:, :k], self.mass, prov, self.orthonormal, self.stiffness, eig)
+
     def orthonormalized(self, method: str = "mgs", tol: float | None = None) -> Basis:
         """A B-orthonormal basis of the same span (dependent columns dropped, recorded)."""
         from .orthonormalize import orthonormalize

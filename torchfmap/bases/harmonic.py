@@ -83,5 +83,4 @@ def harmonic_basis(
     check_seeds_cover_components(mesh, seeds)
     L, B = operators if operators is not None else laplacian(mesh, kind=kind)
     psi = harmonic_functions(L, seeds)
-    symmetric_L = L if abs(L - L.T).max() <= 1e-12 * abs(L).max() else None
-    return Basis(psi, B, [Column("harmonic", int(s)) for s in seeds], stiffness=symmetric_L)
+    return Basis(psi, B, [Column("harmonic", int(s)) for s in seeds], stiffness=L)

@@ -7,17 +7,16 @@ from .convert import (
     nearest_neighbor,
     p2p_to_fmap,
 )
+from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
 from .refine import icp_refine, zoomout, zoomout_sequence
 from .solver import (
     FmapProblem,
     build_problem,
     check_landmark_pairs,
-    laplacian_mask,
     multiplication_operator,
     orientation_operator,
     orientation_operators,
     solve_fmap,
-    solve_rowwise,
 )
 
 __all__ = [
@@ -34,8 +33,10 @@ __all__ = [
     "orientation_operator",
     "orientation_operators",
     "p2p_to_fmap",
+    "rotate_and_solve",
     "solve_fmap",
     "solve_rowwise",
+    "spectral_frame",
     "zoomout",
     "zoomout_sequence",
 ]

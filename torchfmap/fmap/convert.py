@@ -41,8 +41,8 @@ def nearest_neighbor(
     ``N``); a KD-tree is used for low dimensions under ``method='auto'``. Ties go to the
     lowest index.
 
-    ``precision='single'`` runs the brute-force products in float32 (about 2.5x faster on
-    x86 CPUs); rows whose nearest and second-nearest distances differ by less than float32
+    ``precision='single'`` runs the brute-force products in float32 (faster: see
+    ``bench/nn_speed.py``); rows whose nearest and second-nearest distances differ by less than float32
     round-off may then resolve differently from float64. Distances are returned in float64.
     """
     query = np.ascontiguousarray(query, dtype=np.float64)

@@ -37,7 +37,7 @@ from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import check_vertex_indices
-from .core import laplacian_mask, solve_rowwise
+from . import core
 
 MaskKind = Literal["laplacian", "resolvent"]
 #: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
@@ -46,16 +46,16 @@ MAX_OPERATOR_DESCRIPTORS = 16
 
 @dataclass
 class SpectralFrame:
-    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of a projected Laplacian (for rotations)."""
+    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of a projected Laplacian (for rotations):
+    ``lam (K,)``, ``U (K, K)``, computed by :func:`torchfmap.fmap.core.spectral_frame`."""
 
     lam: np.ndarray
     U: np.ndarray
 
     @classmethod
     def of(cls, W: np.ndarray) -> SpectralFrame:
-        W = np.asarray(W, dtype=np.float64)
-        lam, U = np.linalg.eigh(0.5 * (W + W.T))
-        return cls(lam, U)
+        lam, U = core.spectral_frame(core.as_tensor(W))
+        return cls(lam.numpy(), U.numpy())
 
 
 def multiplication_operator(basis: Basis, f: np.ndarray) -> np.ndarray:
@@ -80,7 +80,7 @@ def orientation_operators(
     cancels and ``O = (1/6) Σ_faces Σ_c f(v_c) S ⊗ (φ(v_{c+1}) - φ(v_{c-1}))`` with ``S`` the
     sum of ``φ`` over the corners. No gradients, normals or areas are needed; all ``J`` fields
     share one GEMM per chunk of faces. ``dtype=np.float32`` runs the per-face products and the
-    GEMMs in single precision (accumulated in float64; entries to ~1e-6 relative, ~1.6x faster:
+    GEMMs in single precision (accumulated in float64; entries to float32 round-off relative:
     :func:`build_problem` uses it, the operators only enter a weighted penalty).
     """
     phi = np.asarray(basis.values, dtype=dtype)
@@ -182,13 +182,12 @@ class FmapProblem:
         Descriptor + Laplacian terms only: the exact row-wise solve. With coupling terms:
         conjugate gradients on the normal equations, preconditioned by the inverse of the
         Hessian's row blocks (:meth:`row_blocks`, which include the within-row part of the
-        coupling terms) and started from their solution. On the 17K-vertex wolf pair at
-        ``K = 100`` with the orientation term, this reaches a relative residual of 1e-8 in
-        about 50 iterations, where a preconditioner without the coupling terms needs thousands.
-        Raises if CG has not converged to ``tol`` after ``maxiter`` iterations.
+        coupling terms) and started from their solution (without the coupling terms in the
+        blocks, CG needs far more iterations). Raises :class:`ConvergenceError` if CG has not converged to ``tol`` after ``maxiter`` iterations.
         """
         if not self.commute and self.landmarks is None:
-            return solve_rowwise(self.A_x, self.A_y, self.mask, self.w_desc, self.w_lap)
+            t = core.as_tensor
+            return core.solve_rowwise(t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap).numpy()
         ky, kx = self.shape
         inv_blocks = np.linalg.inv(self.row_blocks())
         rhs = self.normal_rhs()
@@ -281,7 +280,8 @@ def build_problem(
         row = 0.5 * (np.linalg.norm(P_x, axis=1) + np.linalg.norm(P_y, axis=1))
         row = np.where(row > 0, row, 1.0)[:, None]
         lmk = (P_y / row, P_x / row, w_lmk)
-    return FmapProblem(A_x, A_y, laplacian_mask(fx.lam, fy.lam, mask), fx, fy, commute, lmk, w_desc, w_lap)
+    weights = core.laplacian_mask(core.as_tensor(fx.lam), core.as_tensor(fy.lam), mask).numpy()
+    return FmapProblem(A_x, A_y, weights, fx, fy, commute, lmk, w_desc, w_lap)
 
 
 def _unit_pair(Ox: np.ndarray, Oy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -102,12 +102,7 @@ def precompute_shape(mesh: Mesh, k: int = 50, n_wks: int = 32, k_wks: int = 100)
     full = laplacian_eigenbasis(unit, k_all)
     feats = wks(full.eigenvalues, full.values, n_wks)
     feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
-    from ..bases import Basis
-
-    basis = Basis(
-        full.values[:, :k], full.mass, full.provenance[:k], True, full.stiffness, full.eigenvalues[:k]
-    )
-    arrays = basis_arrays(basis)
+    arrays = basis_arrays(full.truncated(k))
     arrays["wks"] = feats
     arrays["vertices"] = mesh.vertices
     arrays["faces"] = mesh.faces

@@ -4,7 +4,8 @@ Shapes: ``B`` pairs, ``V`` vertices (padded), ``K`` basis functions (padded), ``
 channels. A :class:`BasisBatch` holds ``values (B, V, K)``, ``mass (B, V)`` (lumped; 0 on
 padded vertices), the spectral frame of the projected Laplacian ``lam (B, K)``, ``U (B, K, K)``
 (identity on padded columns) and ``valid (B, K)`` (1 for real columns). The solve itself is
-:func:`torchfmap.fmap.core.rotate_and_solve`, the same code the classical path runs.
+:func:`torchfmap.fmap.core.rotate_and_solve`; the classical path runs the same core
+(:func:`~torchfmap.fmap.core.spectral_frame`, :func:`~torchfmap.fmap.core.solve_rowwise`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import NamedTuple
 import torch
 
 from ..errors import ParameterError
-from ..fmap.core import rotate_and_solve
+from ..fmap import core
 
 
 class BasisBatch(NamedTuple):
@@ -96,7 +97,7 @@ def fmap_solve(
     valid_xy = basis_y.valid[..., :, None] * basis_x.valid[..., None, :]
     if bool((valid_xy == 1).all()):
         valid_xy = None  # no padding: skip the masking work
-    C_xy = rotate_and_solve(
+    C_xy = core.rotate_and_solve(
         A_x,
         A_y,
         basis_x.lam,
@@ -110,7 +111,7 @@ def fmap_solve(
     )
     C_yx = None
     if both:
-        C_yx = rotate_and_solve(
+        C_yx = core.rotate_and_solve(
             A_y,
             A_x,
             basis_y.lam,

@@ -10,6 +10,7 @@ from torch import nn
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
+from ..fmap import core
 from ..mesh import Mesh
 from . import functional as F
 from .functional import BasisBatch
@@ -26,9 +27,8 @@ def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
         )
     if basis.stiffness is None:
         raise ParameterError("the basis needs its stiffness matrix (for W = Φᵀ L Φ).")
-    W = basis.projected_laplacian()
-    lam, U = np.linalg.eigh(0.5 * (W + W.T))
-    return {"values": basis.values, "mass": mass.diagonal().copy(), "lam": lam, "U": U}
+    lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
+    return {"values": basis.values, "mass": mass.diagonal().copy(), "lam": lam.numpy(), "U": U.numpy()}
 
 
 class BasisModule(nn.Module):
@@ -65,7 +65,7 @@ class BasisModule(nn.Module):
         out = BasisModule.__new__(BasisModule)
         nn.Module.__init__(out)
         W = self.U @ torch.diag(self.lam) @ self.U.T
-        lam, U = torch.linalg.eigh(W[:k, :k])
+        lam, U = core.spectral_frame(W[:k, :k])
         for name, t in (("values", self.values[:, :k]), ("mass", self.mass), ("lam", lam), ("U", U)):
             out.register_buffer(name, t.clone())
         return out
