@@ -1,20 +1,16 @@
 """Deterministic test meshes shared by the benchmark scripts in ``bench/``.
 
-``bench_mesh(n)`` gives an irregular, closed, genus-0 triangle mesh with exactly ``n`` vertices;
-``real_mesh_path(name)`` locates a real mesh in the shared data folder next to the repository.
+``bench_mesh(n)`` gives an irregular, closed, genus-0 triangle mesh with exactly ``n`` vertices
+(real meshes: ``_common.data_path``).
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
+import _common  # noqa: F401  (puts this checkout first on sys.path, before torchfmap)
 import numpy as np
 from scipy.spatial import ConvexHull
 
 import torchfmap
-
-#: ``<repo>/../shared/data``: real meshes (TOSCA etc.), not part of the repository.
-DATA_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 # Bump centres (unit vectors, normalised below), widths (radians) and heights.
 _BUMP_CENTRES = np.array([[0.0, 0.0, 1.0], [1.0, 0.3, -0.2], [-0.5, -0.8, 0.1], [0.2, 0.9, -0.6]])
@@ -66,7 +62,6 @@ def bench_mesh(n_vertices: int, seed: int = 0) -> torchfmap.Mesh:
     return torchfmap.Mesh(v, f, name=f"bench{n_vertices}")
 
 
-def real_mesh_path(name: str) -> Path | None:
-    """Path of ``<repo>/../shared/data/<name>`` (e.g. ``'tosca_hires_wolf/wolf0.off'``), or None."""
-    path = DATA_DIR / name
-    return path if path.exists() else None
+def mesh_name(n: int) -> str:
+    """``'bench5K'`` for 5000 vertices, ``'bench1234'`` otherwise."""
+    return f"bench{n // 1000}K" if n % 1000 == 0 else f"bench{n}"

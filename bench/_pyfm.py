@@ -13,6 +13,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 
+import _common  # noqa: F401  (puts this checkout first on sys.path, before torchfmap)
 import numpy as np
 
 import torchfmap
@@ -34,6 +35,19 @@ class PyfmRun:
     phases: dict[str, float] = field(default_factory=dict)
     n_descr: int = 0
     k_process: int = 0
+
+
+def _refined_p2p(model, refine: str, step: int, zoomout_samples: int) -> np.ndarray:
+    """``p2p_yx`` after one refinement of the fitted map ``FM_12`` (times include ``get_p2p``)."""
+    if refine == "icp":
+        fm = model.icp_refine(nit=PYFM_ICP_NIT)
+    elif refine == "zoomout":
+        fm = model.zoomout_refine(nit=10, step=step)
+    elif refine == "zoomout-sub":
+        fm = model.zoomout_refine(nit=10, step=step, subsample=zoomout_samples)
+    else:
+        raise ValueError(f"unknown refinement {refine!r}")
+    return np.asarray(model.get_p2p(fm), dtype=np.int64)
 
 
 def run_pyfm(
@@ -94,15 +108,7 @@ def run_pyfm(
         run.n_descr = model.descr1.shape[1]
         for r in refine:
             t0 = time.perf_counter()
-            if r == "icp":
-                fm = model.icp_refine(nit=PYFM_ICP_NIT)
-            elif r == "zoomout":
-                fm = model.zoomout_refine(nit=10, step=step)
-            elif r == "zoomout-sub":
-                fm = model.zoomout_refine(nit=10, step=step, subsample=zoomout_samples)
-            else:
-                raise ValueError(f"unknown refinement {r!r}")
-            run.p2p[r] = np.asarray(model.get_p2p(fm), dtype=np.int64)
+            run.p2p[r] = _refined_p2p(model, r, step, zoomout_samples)
             run.phases[r] = time.perf_counter() - t0
             run.times[r] = run.times[None] + run.phases[r]
     for p2p in run.p2p.values():

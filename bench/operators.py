@@ -1,9 +1,11 @@
 """Benchmark: building Laplacians ``(L, B)`` and factorising ``L + B``, ours vs the reference libraries.
 
-Run by hand from the repository root (prints two markdown tables to stdout, progress to stderr)::
+Run by hand from the repository root (prints two markdown tables to stdout, progress to stderr,
+and writes them to ``bench/results/operators.md``)::
 
-    python bench/operators.py                      # 5K, 50K, 200K vertices + TOSCA wolf0
-    python bench/operators.py --sizes 5000 --repeats 5 --memory
+    python3 bench/operators.py                     # 5K, 50K, 200K vertices + TOSCA wolf0
+    python3 bench/operators.py --sizes 5000 --repeats 5 --memory
+    python3 bench/operators.py --sizes 2000 --repeats 1 --no-real   # quick check
 
 Operators (median of ``--repeats`` timed calls after one warm-up call, all in the same process):
 
@@ -29,14 +31,7 @@ C++ libraries.
 from __future__ import annotations
 
 import argparse
-import gc
-import os
-import statistics
-import sys
-import time
-import tracemalloc
 from collections.abc import Callable
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -44,12 +39,10 @@ import numpy as np
 import potpourri3d as pp3d
 import robust_laplacian
 import scipy.sparse as sp
+from _common import Report, data_path, int_list, load_note, log, timed, traced_peak_mib, versions
+from _meshes import bench_mesh, mesh_name
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import log  # noqa: E402
-from _meshes import bench_mesh, real_mesh_path  # noqa: E402
-
-import torchfmap  # noqa: E402
+import torchfmap
 
 REAL_MESH = "tosca_hires_wolf/wolf0.off"
 OURS = {
@@ -58,21 +51,6 @@ OURS = {
     "ours robust": ("robust", "voronoi"),
     "ours mean_value": ("mean_value", "voronoi"),
 }
-
-
-def timed(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> tuple[float, Any]:
-    """Median wall time of ``repeats`` calls of ``fn`` after ``warmup`` calls, and the last result."""
-    out = None
-    for _ in range(warmup):
-        out = fn()
-    times = []
-    for _ in range(repeats):
-        del out
-        gc.collect()
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
 
 
 def ours(v: np.ndarray, f: np.ndarray, kind: str, mass: str) -> torchfmap.Operators:
@@ -84,28 +62,17 @@ def pp3d_cotan(v: np.ndarray, f: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]
     return pp3d.cotan_laplacian(v, f), pp3d.vertex_areas(v, f)
 
 
-def peak_mib(fn: Callable[[], Any]) -> float:
-    """tracemalloc peak (MiB) of one call of ``fn`` (numpy/scipy allocations only)."""
-    gc.collect()
-    tracemalloc.start()
-    try:
-        fn()
-        return tracemalloc.get_traced_memory()[1] / 2**20
-    finally:
-        tracemalloc.stop()
-
-
 def bench_operators(name: str, mesh: torchfmap.Mesh, repeats: int, memory: bool) -> dict[str, Any]:
     v, f = mesh.vertices, mesh.faces
     row: dict[str, Any] = {"mesh": name, "V": mesh.n_vertices, "F": mesh.n_faces}
     results = {}
     for col, (kind, mass) in OURS.items():
         log(f"  {name}: {col}")
-        row[col], results[col] = timed(lambda k=kind, m=mass: ours(v, f, k, m), repeats)
+        row[col], _, results[col] = timed(lambda k=kind, m=mass: ours(v, f, k, m), repeats, warmup=1)
     log(f"  {name}: potpourri3d")
-    row["pp3d cotan+areas"], (Lp, areas) = timed(lambda: pp3d_cotan(v, f), repeats)
+    row["pp3d cotan+areas"], _, (Lp, areas) = timed(lambda: pp3d_cotan(v, f), repeats, warmup=1)
     log(f"  {name}: robust_laplacian")
-    row["robust_laplacian"], _ = timed(lambda: robust_laplacian.mesh_laplacian(v, f), repeats)
+    row["robust_laplacian"], _, _ = timed(lambda: robust_laplacian.mesh_laplacian(v, f), repeats, warmup=1)
     row["pp3d/ours ratio"] = row["pp3d cotan+areas"] / row["ours cotan+bary"]
     sign = 1.0 if Lp.diagonal().sum() > 0 else -1.0
     L, B = results["ours cotan+bary"]
@@ -113,7 +80,7 @@ def bench_operators(name: str, mesh: torchfmap.Mesh, repeats: int, memory: bool)
     row["|ΔB| rel"] = np.abs(B.diagonal() - areas).max() / np.abs(areas).max()
     row["pp3d sign"] = "+" if sign > 0 else "-"
     if memory:
-        row["ours peak MiB"] = peak_mib(lambda: ours(v, f, "cotan", "voronoi"))
+        row["ours peak MiB"] = traced_peak_mib(lambda: ours(v, f, "cotan", "voronoi"))[0]
     row["_A"] = (results["ours cotan+voronoi [s]"][0] + results["ours cotan+voronoi [s]"][1]).tocsc()
     return row
 
@@ -123,10 +90,8 @@ def bench_factorize(name: str, a: sp.csc_matrix, repeats: int, rng: np.random.Ge
     b = rng.standard_normal(a.shape[0])
     for backend in torchfmap.available_backends():
         log(f"  {name}: factorize {backend} ({repeats} repeat(s))")
-        t, fac = timed(lambda be=backend: torchfmap.factorize(a, spd=True, backend=be), repeats)
-        t0 = time.perf_counter()
-        x = fac.solve(b)
-        t_solve = time.perf_counter() - t0
+        t, _, fac = timed(lambda be=backend: torchfmap.factorize(a, spd=True, backend=be), repeats, warmup=1)
+        t_solve, _, x = timed(lambda fac=fac: fac.solve(b))
         res = np.linalg.norm(a @ x - b) / np.linalg.norm(b)
         rows.append(
             {
@@ -143,23 +108,38 @@ def bench_factorize(name: str, a: sp.csc_matrix, repeats: int, rng: np.random.Ge
     return rows
 
 
-def fmt(x: Any) -> str:
-    if isinstance(x, float):
-        if x == 0.0:
-            return "0"
-        return f"{x:.2e}" if abs(x) < 1e-3 else f"{x:.3f}" if abs(x) < 100 else f"{x:.0f}"
-    if isinstance(x, (int, np.integer)):
-        return f"{x:,}"
-    return str(x)
+def meshes(args) -> list[tuple[str, Callable[[], torchfmap.Mesh]]]:
+    """``(name, builder)`` of every ``--sizes`` bench mesh and, unless ``--no-real``, the real mesh."""
+    out: list[tuple[str, Callable[[], torchfmap.Mesh]]] = [
+        (mesh_name(n), lambda n=n: bench_mesh(n, args.seed)) for n in int_list(args.sizes)
+    ]
+    real = None if args.no_real else data_path(REAL_MESH)
+    if real is not None:
+        out.append((Path(REAL_MESH).stem, lambda: torchfmap.load_mesh(real)))
+    elif not args.no_real:
+        log(f"real mesh {REAL_MESH} not found; skipped")
+    return out
 
 
-def markdown(rows: list[dict], columns: list[str]) -> str:
-    def cell(x: Any) -> str:
-        return fmt(x).replace("|", "\\|")  # a literal pipe would split the cell
-
-    lines = ["| " + " | ".join(cell(c) for c in columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
-    lines += ["| " + " | ".join(cell(r[c]) for c in columns) + " |" for r in rows]
-    return "\n".join(lines)
+def report(args, op_rows: list[dict], fac_rows: list[dict]) -> None:
+    op_cols = ["mesh", "V", "F", *OURS, "pp3d cotan+areas", "robust_laplacian", "pp3d/ours ratio"]
+    op_cols += ["|ΔL| rel", "|ΔB| rel", "pp3d sign"] + (["ours peak MiB"] if args.memory else [])
+    fac_cols = ["mesh", "V", "nnz(A)", "backend", "repeats", "factorize [s]", "solve [s]", "rel. residual"]
+    out = Report("operators")
+    out.table(
+        f"## Building (L, B): median of {args.repeats} after 1 warm-up "
+        f"({versions('scipy', 'potpourri3d', 'robust_laplacian')}; {load_note()} at end)",
+        op_rows,
+        op_cols,
+        note="pp3d/ours = pp3d cotan+areas / ours cotan+bary. |ΔL| rel = max|L_ours - s L_pp3d| / "
+        "max|L_pp3d|, |ΔB| rel = max|B_bary - vertex_areas| / max(vertex_areas); s = pp3d sign.",
+    )
+    out.table(
+        "## Factorising A = L + B (cotan + voronoi), torchfmap.factorize(A, spd=True, backend=...)",
+        fac_rows,
+        fac_cols,
+    )
+    out.save()
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -171,21 +151,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--memory", action="store_true", help="add tracemalloc peak of ours cotan+voronoi")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
-
-    meshes: list[tuple[str, Callable[[], torchfmap.Mesh]]] = [
-        (f"bench{n // 1000}K" if n % 1000 == 0 else f"bench{n}", lambda n=n: bench_mesh(n, args.seed))
-        for n in sizes
-    ]
-    real = real_mesh_path(REAL_MESH)
-    if real is not None and not args.no_real:
-        meshes.append((Path(REAL_MESH).stem, lambda: torchfmap.load_mesh(real)))
-    elif not args.no_real:
-        log(f"real mesh {REAL_MESH} not found; skipped")
-
     rng = np.random.default_rng(args.seed)
     op_rows, fac_rows = [], []
-    for name, make in meshes:
+    for name, make in meshes(args):
         log(f"{name}: building mesh")
         mesh = make()
         row = bench_operators(name, mesh, args.repeats, args.memory)
@@ -194,32 +162,7 @@ def main(argv: list[str] | None = None) -> None:
         fac_repeats = 1 if mesh.n_vertices >= args.large else args.repeats
         fac_rows += bench_factorize(name, a, fac_repeats, rng)
         del mesh, a
-
-    op_cols = [
-        "mesh",
-        "V",
-        "F",
-        *OURS,
-        "pp3d cotan+areas",
-        "robust_laplacian",
-        "pp3d/ours ratio",
-        "|ΔL| rel",
-        "|ΔB| rel",
-        "pp3d sign",
-    ] + (["ours peak MiB"] if args.memory else [])
-    fac_cols = ["mesh", "V", "nnz(A)", "backend", "repeats", "factorize [s]", "solve [s]", "rel. residual"]
-    print(
-        f"## Building (L, B): median of {args.repeats} after 1 warm-up "
-        f"({os.cpu_count()} CPUs; numpy {np.__version__}, scipy {version('scipy')}, potpourri3d "
-        f"{version('potpourri3d')}, robust_laplacian {version('robust_laplacian')})\n"
-    )
-    print(markdown(op_rows, op_cols))
-    print(
-        "\npp3d/ours = pp3d cotan+areas / ours cotan+bary. |ΔL| rel = max|L_ours - s L_pp3d| / "
-        "max|L_pp3d|, |ΔB| rel = max|B_bary - vertex_areas| / max(vertex_areas); s = pp3d sign.\n"
-    )
-    print("## Factorising A = L + B (cotan + voronoi), torchfmap.factorize(A, spd=True, backend=...)\n")
-    print(markdown(fac_rows, fac_cols))
+    report(args, op_rows, fac_rows)
 
 
 if __name__ == "__main__":

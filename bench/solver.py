@@ -1,15 +1,14 @@
 """Benchmark: the differentiable batched functional-map solve and a CPU training step (torch).
 
-Run by hand from the repository root (prints markdown tables to stdout, progress to stderr)::
+Run by hand from the repository root (prints markdown tables to stdout, progress to stderr, and
+writes them to ``bench/results/solver.md``)::
 
-    python bench/solver.py                         # both parts, float32 and float64
-    python bench/solver.py --ks 100 --no-train --no-memory
-    python bench/solver.py --no-solver --train-ks 30 --train-batches 1
+    python3 bench/solver.py                        # both parts, float32 and float64
+    python3 bench/solver.py --ks 100 --no-train --no-memory
+    python3 bench/solver.py --no-solver --train-ks 30 --train-batches 1
+    python3 bench/solver.py --ks 10 --v 200 --batch 2 --repeats 1 --no-train --dtypes float64  # quick
 
-Inputs (random, seeded, built in float64 and cast, so both dtypes see the same numbers): a
-``BasisBatch`` per side with ``values = sqrt(V) Q`` (``Q`` from the QR of a Gaussian ``(V, K)``,
-so ``valuesᵀ diag(mass) values = I`` with the uniform ``mass = 1/V``), ``lam`` sorted uniform
-in ``[0, 100]``, ``U`` orthogonal (QR of a Gaussian ``(K, K)``), ``valid`` all ones.
+Inputs: random, seeded bases and features, see ``bench/_torch_inputs.py``.
 
 (1) Solver. ``fmap_solve(feat_x, feat_y, bx, by, w_desc=1, w_lap=1e-3, both=True)`` (one
 batched ``torch.linalg.solve`` over ``(B, K, K, K)`` per direction) against a per-row loop
@@ -29,15 +28,9 @@ system tensor (two per call, one per direction); ``RSS peak`` is the resident hi
 first fwd+bwd call in a fresh subprocess (inputs built, nothing run yet; includes first-call
 library set-up), falling back to ``ru_maxrss`` where ``clear_refs`` is not writable.
 
-(2) Training step. ``FeatureNet(32, 64, width=64, n_blocks=3)`` on a pair of ``--train-v``
-vertex shapes (random bases as above, Gaussian ``(B, V, 32)`` inputs): features of x and y,
-``fmap_solve`` (both directions, default weights), ``UnsupervisedFMLoss()`` (default weights,
-so the soft point maps ``(B, V, V)`` of the coupling term are included), backward, ``Adam``
-step (lr 1e-3). One warm-up step, then the median of ``--repeats`` steps of each phase. The
-forward phases are timed with ``time.perf_counter`` around each call; the backward is split by
-gradient hooks: ``loss bwd`` ends when the gradients of ``C_xy`` and ``C_yx`` are complete,
-``solver bwd`` when those of both feature tensors are, ``net bwd`` is the rest (the autograd
-engine runs later-created nodes first, so this follows the forward order; approximate).
+(2) Training step: ``bench/train_step.py`` (run here too unless ``--no-train``; its options
+``--train-*`` are accepted).
+
 ``torch.set_num_threads`` is left at its default unless ``--threads N`` is given (also in the
 memory subprocesses); the 1-minute load average is recorded with every row, since another job
 may share the CPUs. On a loaded machine with the default thread count every parallel torch op can
@@ -60,57 +53,23 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from _common import load1, log  # noqa: E402
+import train_step
+from _common import (
+    MiB,
+    Report,
+    int_list,
+    load1,
+    load_note,
+    log,
+    markdown,
+    reset_peak_rss,
+    status_mib,
+)
+from _torch_inputs import DTYPES, solver_inputs
 
-from torchfmap.nn import FeatureNet, UnsupervisedFMLoss
 from torchfmap.nn.functional import BasisBatch, fmap_solve
 
-MiB = 2**20
-DTYPES = {"float32": torch.float32, "float64": torch.float64}
 W_DESC, W_LAP = 1.0, 1e-3
-
-
-def fmt(x: Any) -> str:
-    if isinstance(x, float):
-        if x == 0.0:
-            return "0"
-        if x != x:
-            return "nan"
-        return f"{x:.2e}" if abs(x) < 1e-3 or abs(x) >= 1e6 else f"{x:.3f}" if abs(x) < 100 else f"{x:.0f}"
-    if isinstance(x, int):
-        return f"{x:,}"
-    return str(x)
-
-
-def markdown(rows: list[dict], columns: list[str]) -> str:
-    def cell(x: Any) -> str:
-        return fmt(x).replace("|", "\\|")
-
-    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
-    lines += ["| " + " | ".join(cell(r.get(c, "")) for c in columns) + " |" for r in rows]
-    return "\n".join(lines)
-
-
-# -- inputs ----------------------------------------------------------------------------------------
-def random_basis(b: int, v: int, k: int, dtype: torch.dtype, gen: torch.Generator) -> BasisBatch:
-    """B-orthonormal random basis (uniform mass ``1/V``) with a random spectral frame."""
-    f64 = torch.float64
-    q, _ = torch.linalg.qr(torch.randn(b, v, k, generator=gen, dtype=f64))
-    u, _ = torch.linalg.qr(torch.randn(b, k, k, generator=gen, dtype=f64))
-    lam = torch.sort(100.0 * torch.rand(b, k, generator=gen, dtype=f64), dim=-1).values
-    mass = torch.full((b, v), 1.0 / v, dtype=f64)
-    parts = (q * v**0.5, mass, lam, u, torch.ones(b, k, dtype=f64))
-    return BasisBatch(*(t.to(dtype).contiguous() for t in parts))
-
-
-def solver_inputs(b: int, v: int, k: int, d: int, dtype: torch.dtype, seed: int) -> dict[str, Any]:
-    gen = torch.Generator().manual_seed(seed)
-    bx, by = random_basis(b, v, k, dtype, gen), random_basis(b, v, k, dtype, gen)
-    fx = torch.randn(b, v, d, generator=gen, dtype=torch.float64).to(dtype).requires_grad_(True)
-    fy = torch.randn(b, v, d, generator=gen, dtype=torch.float64).to(dtype).requires_grad_(True)
-    r_xy = torch.randn(b, k, k, generator=gen, dtype=torch.float64).to(dtype)
-    r_yx = torch.randn(b, k, k, generator=gen, dtype=torch.float64).to(dtype)
-    return {"fx": fx, "fy": fy, "bx": bx, "by": by, "r_xy": r_xy, "r_yx": r_yx}
 
 
 # -- the per-row loop baseline ---------------------------------------------------------------------
@@ -225,14 +184,6 @@ def bench_solver_config(dtype_name: str, b: int, v: int, k: int, d: int, args) -
 
 
 # -- memory (fresh subprocess per configuration) --------------------------------------------------
-def _status_mib(key: str) -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def child_memory(spec: str) -> None:
     """``--child method,dtype,B,V,K,D,seed``: one fwd+bwd call; prints JSON peaks (MiB) to stdout."""
     method, dtype_name, *nums = spec.split(",")
@@ -240,17 +191,12 @@ def child_memory(spec: str) -> None:
     inp = solver_inputs(b, v, k, d, DTYPES[dtype_name], seed)
     gc.collect()
     ru_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-        source = "VmHWM"
-    except OSError:
-        source = "ru_maxrss"
-    rss_before = _status_mib("VmRSS")
+    source = "VmHWM" if reset_peak_rss() else "ru_maxrss"
+    rss_before = status_mib("VmRSS")
     fwd_bwd(method, inp)
     ru_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if source == "VmHWM":
-        peak = _status_mib("VmHWM") - rss_before
+        peak = status_mib("VmHWM") - rss_before
     else:
         peak = ru_after - max(ru_before, rss_before)
     print(json.dumps({"peak": peak, "source": source, "rss_before": rss_before, "ru_maxrss": ru_after}))
@@ -266,83 +212,43 @@ def measure_memory(method: str, dtype_name: str, b: int, v: int, k: int, d: int,
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-# -- (2) training step -----------------------------------------------------------------------------
-class Hooks:
-    """Time at which the gradients of all given tensors are complete, per label."""
-
-    def __init__(self) -> None:
-        self.at: dict[str, float] = {}
-
-    def watch(self, label: str, *tensors: torch.Tensor) -> None:
-        left = [len(tensors)]
-
-        def hook(grad: torch.Tensor) -> None:
-            left[0] -= 1
-            if left[0] == 0:
-                self.at[label] = time.perf_counter()
-
-        for t in tensors:
-            t.register_hook(hook)
-
-
-def train_step(net, loss_fn, opt, xin, yin, bx, by) -> tuple[dict[str, float], float]:
-    opt.zero_grad(set_to_none=True)
-    hooks = Hooks()
-    t: dict[str, float] = {}
-    t0 = time.perf_counter()
-    fx, fy = net(xin, bx), net(yin, by)
-    t1 = time.perf_counter()
-    C_xy, C_yx = fmap_solve(fx, fy, bx, by)
-    t2 = time.perf_counter()
-    total = loss_fn(C_xy, C_yx, fx, fy, bx, by)["total"]
-    t3 = time.perf_counter()
-    hooks.watch("loss", C_xy, C_yx)
-    hooks.watch("solver", fx, fy)
-    total.backward()
-    t4 = time.perf_counter()
-    opt.step()
-    t5 = time.perf_counter()
-    t["net fwd"], t["solver fwd"], t["loss fwd"] = t1 - t0, t2 - t1, t3 - t2
-    t["loss bwd"] = hooks.at["loss"] - t3
-    t["solver bwd"] = hooks.at["solver"] - hooks.at["loss"]
-    t["net bwd"] = t4 - hooks.at["solver"]
-    t["backward"], t["adam"], t["step"] = t4 - t3, t5 - t4, t5 - t0
-    return t, total.item()
+def run_solver(args) -> list[str]:
+    """Every (dtype, K) configuration, with the memory subprocesses; returns the report sections."""
+    rows = []
+    for dtype_name in args.dtypes:
+        for k in args.ks:
+            log(f"solver: {dtype_name}, B={args.batch}, K={k}, V={args.v}, D={args.d}")
+            row = bench_solver_config(dtype_name, args.batch, args.v, k, args.d, args)
+            for m in () if args.no_memory else METHODS:
+                log(f"    memory: {m} (fresh subprocess)")
+                mem = measure_memory(m, dtype_name, args.batch, args.v, k, args.d, args)
+                row[f"RSS peak {m} MiB"], row["RSS source"] = mem["peak"], mem["source"]
+            rows.append(row)
+    cols = [
+        "dtype",
+        "B",
+        "K",
+        "V",
+        "D",
+        *(f"{m} {p} [s]" for m in METHODS for p in ("fwd", "bwd", "fwd+bwd")),
+    ]
+    agree = ["dtype", "K", "max|ΔC|", "max|ΔC| rel", "max|Δ∇fx|", "max|Δ∇fx| rel", "max|Δ∇fy|"]
+    agree += ["max|Δ∇fy| rel", "max|C|", "max|∇fx|", "finite", "cond median", "cond max", "system MiB"]
+    if not args.no_memory:
+        agree += [f"RSS peak {m} MiB" for m in METHODS] + ["RSS source"]
+    return [
+        "## (1) fmap_solve (batched) vs per-row loop: forward + backward, both directions; "
+        f"median of {args.repeats} alternating rounds after 1 warm-up",
+        markdown(rows, [*cols, "loop/batched", "load1 start", "load1 end"]),
+        "### Agreement (batched vs loop, last round), conditioning and memory",
+        markdown(rows, agree),
+        "rel = max|Δ| / max|loop value|. cond: row systems of batch item 0, x -> y, in float64. "
+        "system MiB: one (B, K, K, K) tensor (fmap_solve builds one per direction). RSS peak: "
+        "resident high-water mark above the start of one fwd+bwd call in a fresh process.",
+    ]
 
 
-def bench_train_config(dtype_name: str, b: int, k: int, args) -> dict[str, Any]:
-    dtype = DTYPES[dtype_name]
-    v = args.train_v
-    gen = torch.Generator().manual_seed(args.seed)
-    bx, by = random_basis(b, v, k, dtype, gen), random_basis(b, v, k, dtype, gen)
-    xin = torch.randn(b, v, 32, generator=gen, dtype=torch.float64).to(dtype)
-    yin = torch.randn(b, v, 32, generator=gen, dtype=torch.float64).to(dtype)
-    torch.manual_seed(args.seed)
-    net = FeatureNet(32, 64, width=64, n_blocks=3).to(dtype)
-    loss_fn = UnsupervisedFMLoss()
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-    row: dict[str, Any] = {"dtype": dtype_name, "B": b, "K": k, "V": v, "load1 start": load1()}
-    train_step(net, loss_fn, opt, xin, yin, bx, by)  # warm-up
-    steps, losses = [], []
-    for r in range(args.repeats):
-        gc.collect()
-        t, loss = train_step(net, loss_fn, opt, xin, yin, bx, by)
-        steps.append(t)
-        losses.append(loss)
-        log(f"    step {r + 1}/{args.repeats}: {t['step']:.3f} s, loss {loss:.4g}")
-    for key in steps[0]:
-        row[f"{key} [s]"] = statistics.median(s[key] for s in steps)
-    for part in ("net", "solver", "loss"):
-        share = statistics.median((s[f"{part} fwd"] + s[f"{part} bwd"]) / s["step"] for s in steps)
-        row[f"{part} %"] = 100 * share
-    row["adam %"] = 100 * statistics.median(s["adam"] / s["step"] for s in steps)
-    row["loss first→last"] = f"{losses[0]:.4g}→{losses[-1]:.4g}"
-    row["finite"] = "yes" if all(torch.isfinite(torch.tensor(losses))) else "NO"
-    row["load1 end"] = load1()
-    return row
-
-
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=8, help="B of the solver benchmark")
     parser.add_argument("--ks", default="100,50", help="K of the solver benchmark, comma-separated")
@@ -350,9 +256,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--d", type=int, default=64, help="feature channels of the solver benchmark")
     parser.add_argument("--dtypes", default="float32,float64")
     parser.add_argument("--repeats", type=int, default=5, help="timed rounds/steps (median), after 1 warm-up")
-    parser.add_argument("--train-ks", default="30,100")
-    parser.add_argument("--train-batches", default="1,4")
-    parser.add_argument("--train-v", type=int, default=5000)
+    train_step.add_arguments(parser)
     parser.add_argument("--no-solver", action="store_true")
     parser.add_argument("--no-memory", action="store_true", help="skip the subprocess RSS measurements")
     parser.add_argument("--no-train", action="store_true")
@@ -360,80 +264,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    train_step.parse_lists(args)
+    args.ks = int_list(args.ks)
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     if args.child:
         child_memory(args.child)
         return
-    ks = [int(s) for s in args.ks.split(",") if s.strip()]
-    dtypes = [s.strip() for s in args.dtypes.split(",") if s.strip()]
-    train_ks = [int(s) for s in args.train_ks.split(",") if s.strip()]
-    train_batches = [int(s) for s in args.train_batches.split(",") if s.strip()]
-    t_start, load_start = time.perf_counter(), os.getloadavg()
-    print(
+    t_start = time.perf_counter()
+    out = Report("solver")
+    out.add(
         f"# Differentiable solver and training step (torch {torch.__version__}, "
-        f"{torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs; load average 1/5/15 min at "
-        f"start {'/'.join(f'{x:.1f}' for x in load_start)})\n"
+        f"{torch.get_num_threads()} torch threads, {os.cpu_count()} CPUs; {load_note()} at start)"
     )
-
     if not args.no_solver:
-        rows = []
-        for dtype_name in dtypes:
-            for k in ks:
-                log(f"solver: {dtype_name}, B={args.batch}, K={k}, V={args.v}, D={args.d}")
-                row = bench_solver_config(dtype_name, args.batch, args.v, k, args.d, args)
-                if not args.no_memory:
-                    for m in METHODS:
-                        log(f"    memory: {m} (fresh subprocess)")
-                        mem = measure_memory(m, dtype_name, args.batch, args.v, k, args.d, args)
-                        row[f"RSS peak {m} MiB"] = mem["peak"]
-                        row["RSS source"] = mem["source"]
-                rows.append(row)
-        print(
-            f"## (1) fmap_solve (batched) vs per-row loop: forward + backward, both directions; "
-            f"median of {args.repeats} alternating rounds after 1 warm-up\n"
-        )
-        cols = ["dtype", "B", "K", "V", "D"]
-        cols += [f"{m} {p} [s]" for m in METHODS for p in ("fwd", "bwd", "fwd+bwd")]
-        cols += ["loop/batched", "load1 start", "load1 end"]
-        print(markdown(rows, cols))
-        print("\n### Agreement (batched vs loop, last round), conditioning and memory\n")
-        cols = ["dtype", "K", "max|ΔC|", "max|ΔC| rel", "max|Δ∇fx|", "max|Δ∇fx| rel", "max|Δ∇fy|"]
-        cols += ["max|Δ∇fy| rel", "max|C|", "max|∇fx|", "finite", "cond median", "cond max", "system MiB"]
-        if not args.no_memory:
-            cols += [f"RSS peak {m} MiB" for m in METHODS] + ["RSS source"]
-        print(markdown(rows, cols))
-        print(
-            "\nrel = max|Δ| / max|loop value|. cond: row systems of batch item 0, x -> y, in float64. "
-            "system MiB: one (B, K, K, K) tensor (fmap_solve builds one per direction). RSS peak: "
-            "resident high-water mark above the start of one fwd+bwd call in a fresh process.\n"
-        )
-
+        out.add(*run_solver(args))
     if not args.no_train:
-        rows = []
-        for dtype_name in dtypes:
-            for b in train_batches:
-                for k in train_ks:
-                    log(f"train: {dtype_name}, B={b}, K={k}, V={args.train_v}")
-                    rows.append(bench_train_config(dtype_name, b, k, args))
-        print(
-            f"## (2) Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + fmap_solve + "
-            f"UnsupervisedFMLoss + Adam; median of {args.repeats} steps after 1 warm-up "
-            f"({torch.get_num_threads()} torch threads)\n"
-        )
-        cols = ["dtype", "B", "K", "V", "step [s]", "net fwd [s]", "solver fwd [s]", "loss fwd [s]"]
-        cols += ["backward [s]", "loss bwd [s]", "solver bwd [s]", "net bwd [s]", "adam [s]"]
-        print(markdown(rows, cols))
-        print("\n### Split of the step (fwd + bwd per part; median of the per-step shares)\n")
-        cols = ["dtype", "B", "K", "net %", "solver %", "loss %", "adam %", "loss first→last", "finite"]
-        cols += ["load1 start", "load1 end"]
-        print(markdown(rows, cols))
-        print()
-
-    print(
-        f"Load average at end {'/'.join(f'{x:.1f}' for x in os.getloadavg())}; total "
-        f"{time.perf_counter() - t_start:.0f} s."
-    )
+        out.add(*train_step.run_train(args))
+    out.add(f"{load_note()} at end; total {time.perf_counter() - t_start:.0f} s.")
+    out.save()
 
 
 if __name__ == "__main__":

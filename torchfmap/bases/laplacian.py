@@ -51,9 +51,8 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarr
 
     Dense ``scipy.linalg.eigh`` up to :data:`DENSE_LIMIT` vertices; beyond, ARPACK in
     shift-invert mode (``scipy.sparse.linalg.eigsh``) whose inverse ``(L - σB)⁻¹`` is our
-    :func:`~torchfmap.operators.factorize` (a sparse Cholesky where one is installed: at 20K
-    vertices and ``k = 100`` this halves the time of eigsh's own SuperLU path, measured by
-    ``bench/bases.py``).
+    :func:`~torchfmap.operators.factorize` (a sparse Cholesky where one is installed, in place of
+    eigsh's own SuperLU).
     """
     n = L.shape[0]
     if not 1 <= k <= n:
@@ -66,13 +65,12 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarr
         L, B = sp.csc_matrix(L), sp.csc_matrix(B)
         fac = factorize(L - sigma * B, spd=True)  # CHOLMOD / cholespy where installed
         # ARPACK's restarts cost ~ V ncv^2: a Lanczos basis of 1.5k (scipy's default is 2k + 1)
-        # needs as many solves and is 20-25 % faster at k = 100-200 on 17K vertices
+        # needs as many solves and restarts more cheaply
         ncv = min(n, max(k + k // 2 + 1, k + 20))
         d = lumped_diagonal(B)
         if d is not None:
             # lumped mass: the standard problem D^-1/2 L D^-1/2 ψ = λ ψ, φ = D^-1/2 ψ, spares
-            # ARPACK the B inner products (with tol 1e-10: ~20 % faster at 17K vertices, k = 100;
-            # eigenvalues to ~1e-15 relative, residuals ~1e-10)
+            # ARPACK the B inner products (same eigenpairs, residuals at ARPACK_TOL)
             s = np.sqrt(d)
             A = sp.csc_matrix(sp.diags(1.0 / s) @ L @ sp.diags(1.0 / s))
             op_inv = ssla.LinearOperator((n, n), matvec=lambda x: s * fac.solve(s * x), dtype=np.float64)

@@ -4,8 +4,8 @@ Backends, in the order ``backend='auto'`` tries them for symmetric positive defi
 
 ``cholespy``
     A self-contained pip wheel bundling CHOLMOD; installed by the ``fast`` and ``dev`` extras.
-    Factorises as fast as scikit-sparse and solves 2-3x faster (no Python-side copies), which
-    dominates Krylov heat kernels and harmonic bases (many right-hand sides).
+    Preferred for its solves (no Python-side copies), which dominate Krylov heat kernels and
+    harmonic bases (many right-hand sides).
 ``cholmod``
     ``scikit-sparse`` (CHOLMOD, supernodal). Needs SuiteSparse headers to build (``apt-get
     install libsuitesparse-dev; pip install scikit-sparse==0.4.16``), so it is optional.
@@ -14,9 +14,8 @@ Backends, in the order ``backend='auto'`` tries them for symmetric positive defi
     complex systems. For SPD systems we call it in symmetric mode (minimum degree on A+A^T, no
     pivoting), which makes it competitive with CHOLMOD on well-ordered meshes.
 
-Measured by ``bench/operators.py`` on a 200K-vertex cotan ``L + B`` (2 cores): factorisation
-cholmod 1.64 s, cholespy 1.67 s, splu (symmetric mode) 1.76 s; one solve with 50 right-hand
-sides at 50K vertices: cholespy 1.1 ms, cholmod 3.0 ms, splu 2.5 ms per right-hand side.
+Factorisation and solve times of every installed backend: ``bench/operators.py`` (tables in
+``bench/results/operators.md``).
 
 Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the matrix not
 positive definite falls back to ``splu`` under ``auto`` and raises under an explicit backend.
