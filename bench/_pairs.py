@@ -15,7 +15,7 @@ Errors: normalised geodesic error on x (heat method, ``GeodesicSolver``; divided
 (``torchfmap.eval.auc``). The distance rows of a pair are computed once and reused for all its
 maps; the first map of each pair is also scored by ``torchfmap.eval.evaluate_map`` and the
 difference is logged (it must be ~0). All maps are ``p2p_yx``, evaluated against
-``gt = (idx_y, idx_x)``.
+``gt = Correspondence(idx_x, idx_y)``.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def rname(refine: str | None) -> str:
 
 
 class Pair:
-    """Source ``x``, target ``y``, ground truth ``(idx_y, idx_x)`` and fixed landmarks (or None)."""
+    """Source ``x``, target ``y``, ground truth (a ``Correspondence``) and fixed landmarks (or None)."""
 
     def __init__(self, spec: str) -> None:
         self.name = spec
@@ -78,14 +78,14 @@ class Pair:
 
     def _distance_rows(self) -> None:
         t0 = time.perf_counter()
-        uniq, self._inverse = np.unique(self.gt[1], return_inverse=True)
+        uniq, self._inverse = np.unique(self.gt.idx_x, return_inverse=True)
         solver = torchfmap.GeodesicSolver(self.x)
         self._rows = np.vstack([solver.distances(uniq[s : s + 256]) for s in range(0, len(uniq), 256)])
         log(f"  {self.name}: {len(uniq)} geodesic distance rows in {time.perf_counter() - t0:.1f} s")
 
     def errors(self, p2p_yx: np.ndarray) -> np.ndarray:
         """Normalised geodesic errors at every ground-truth row (distance rows computed once)."""
-        idx_y, idx_x = self.gt
+        idx_x, idx_y = self.gt
         if self._rows is None:
             self._distance_rows()
         p2p_yx = np.asarray(p2p_yx, dtype=np.int64)

@@ -127,7 +127,7 @@ def run_main(args, pairs: list[str], rows: list[dict], cache: PairCache, keep: s
         pair = cache.get(spec)
         lmk = pair.landmarks(args.L)
         nx, ny = pair.x.n_vertices, pair.y.n_vertices
-        log(f"{spec}: V_x={nx}, V_y={ny}, {len(pair.gt[0])} gt rows, L={len(lmk)}")
+        log(f"{spec}: V_x={nx}, V_y={ny}, {len(pair.gt.idx_x)} gt rows, L={len(lmk)}")
         for basis in BASES:
             run_ours(pair, basis, lmk, args.k, REFINES, rows)
         if not args.no_pyfm:

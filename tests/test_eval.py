@@ -57,8 +57,10 @@ def test_gt_formats(tmp_path):
     assert read_map(tmp_path / "m.txt").tolist() == [2, 0, 1]
     (tmp_path / "a.vts").write_text("3 7\n1 2\n")
     assert read_vts(tmp_path / "a.vts").tolist() == [2, 0]
-    assert [a.tolist() for a in gt_from_map([2, 0, 1])] == [[0, 1, 2], [2, 0, 1]]
-    assert [a.tolist() for a in gt_from_vts(np.array([5, 6]), np.array([1, 2]))] == [[1, 2], [5, 6]]
+    gt = gt_from_map([2, 0, 1])  # target v -> source gt_yx[v]
+    assert gt.idx_x.tolist() == [2, 0, 1] and gt.idx_y.tolist() == [0, 1, 2]
+    gt = gt_from_vts(np.array([5, 6]), np.array([1, 2]))
+    assert gt.idx_x.tolist() == [5, 6] and gt.idx_y.tolist() == [1, 2]
     with pytest.raises(ParameterError, match="rows must correspond"):
         gt_from_vts(np.array([1]), np.array([1, 2]))
 
@@ -68,7 +70,7 @@ def test_gt_vts_on_real_pair():
     x, y = load_mesh(folder / "cat0.off"), load_mesh(folder / "cat1.off")
     gt = gt_from_vts(read_vts(folder / "corres" / "cat0.vts"), read_vts(folder / "corres" / "cat1.vts"))
     perfect = np.zeros(y.n_vertices, dtype=np.int64)
-    perfect[gt[0]] = gt[1]
+    perfect[gt.idx_y] = gt.idx_x
     report, errors = evaluate_map(x, y, perfect, gt, max_points=300)
     assert report.mean_error < 0.02  # .vts rows are not unique everywhere: a few repeated targets
 

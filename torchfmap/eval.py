@@ -2,8 +2,8 @@
 
 Ground truth comes in the field's formats: the identity (same mesh connectivity, vertex ``i``
 matches ``i``), a 0-based map file (line ``v``: the source vertex of target vertex ``v``), or
-pairs of 1-based ``.vts`` files whose rows correspond. Every form is turned into two index
-arrays ``(idx_y, idx_x)`` of corresponding vertices.
+pairs of 1-based ``.vts`` files whose rows correspond. Every form is turned into a
+:class:`Correspondence` ``(idx_x, idx_y)``: the same order as landmark pairs ``(x, y)``.
 
 Errors are geodesic distances on the source ``x`` between the predicted and the true match,
 divided by ``sqrt(area_x)`` (the convention of the field). Distances come from the heat method
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,30 +35,53 @@ def read_vts(path: str | os.PathLike) -> np.ndarray:
     return data[:, 0] - 1
 
 
-def gt_identity(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(idx_y, idx_x)`` for the identity correspondence on ``n`` vertices."""
+class Correspondence(NamedTuple):
+    """Ground truth: ``idx_x[r]`` on the source corresponds to ``idx_y[r]`` on the target.
+
+    Both ``(P,)`` int arrays; the order ``(x, y)`` is the order of landmark pairs.
+    """
+
+    idx_x: np.ndarray
+    idx_y: np.ndarray
+
+
+def gt_identity(n: int) -> Correspondence:
+    """The identity correspondence on ``n`` vertices."""
     idx = np.arange(n, dtype=np.int64)
-    return idx, idx.copy()
+    return Correspondence(idx, idx.copy())
 
 
-def gt_from_map(gt_yx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(idx_y, idx_x)`` from a full 0-based map ``gt_yx`` (target -> source)."""
+def gt_from_map(gt_yx: np.ndarray) -> Correspondence:
+    """From a full 0-based map ``gt_yx`` (target vertex ``v`` -> its source vertex)."""
     gt_yx = np.asarray(gt_yx, dtype=np.int64)
-    return np.arange(len(gt_yx), dtype=np.int64), gt_yx
+    return Correspondence(gt_yx, np.arange(len(gt_yx), dtype=np.int64))
 
 
-def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(idx_y, idx_x)`` from two 0-based ``.vts`` index arrays whose rows correspond."""
+def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
+    """From two 0-based ``.vts`` index arrays whose rows correspond."""
     if len(vts_x) != len(vts_y):
         raise ParameterError(f".vts files have {len(vts_x)} and {len(vts_y)} rows; rows must correspond.")
-    return np.asarray(vts_y, dtype=np.int64), np.asarray(vts_x, dtype=np.int64)
+    return Correspondence(np.asarray(vts_x, dtype=np.int64), np.asarray(vts_y, dtype=np.int64))
+
+
+def _as_correspondence(gt) -> Correspondence:
+    if not isinstance(gt, Correspondence):
+        try:
+            idx_x, idx_y = gt
+        except (TypeError, ValueError) as err:
+            raise ParameterError(
+                "gt must be a Correspondence (idx_x, idx_y). Fix: build it with gt_from_vts, gt_from_map "
+                "or gt_identity."
+            ) from err
+        gt = Correspondence(idx_x, idx_y)
+    return Correspondence(*(np.asarray(a, dtype=np.int64) for a in gt))
 
 
 # -- pointwise errors --------------------------------------------------------------------------
 def geodesic_errors(
     mesh_x: Mesh,
     p2p_yx: np.ndarray,
-    gt: tuple[np.ndarray, np.ndarray],
+    gt: Correspondence,
     *,
     solver: GeodesicSolver | None = None,
     normalize: bool = True,
@@ -69,11 +93,11 @@ def geodesic_errors(
     Args:
         mesh_x: the source mesh (errors are measured on it).
         p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
-        gt: ``(idx_y, idx_x)`` corresponding vertices.
+        gt: :class:`Correspondence` ``(idx_x, idx_y)`` (a plain pair is read in that order).
         normalize: divide by ``sqrt(area_x)``.
         max_points: evaluate a random subset of at most this many pairs (None: all).
     """
-    idx_y, idx_x = (np.asarray(a, dtype=np.int64) for a in gt)
+    idx_x, idx_y = _as_correspondence(gt)
     p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
     if len(idx_y) != len(idx_x):
         raise ParameterError("ground-truth index arrays differ in length.")
@@ -120,7 +144,8 @@ def bijectivity_error(
 ) -> float:
     """Mean normalised geodesic distance on ``y`` between ``v`` and ``p2p_xy[p2p_yx[v]]``."""
     back = np.asarray(p2p_xy)[np.asarray(p2p_yx)]
-    gt = (back, np.arange(mesh_y.n_vertices))  # treat v as the truth for the round trip
+    # v is the truth for the round trip: the "prediction" at target v is back[v]
+    gt = Correspondence(np.arange(mesh_y.n_vertices), back)
     errs = geodesic_errors(mesh_y, np.arange(mesh_y.n_vertices), gt, max_points=max_points, seed=seed)
     return float(errs.mean())
 
@@ -198,10 +223,10 @@ def retrieval_accuracy(distances: np.ndarray, labels) -> float:
     return float(np.mean(labels[np.argmin(D, axis=1)] == labels))
 
 
-def landmarks_from_gt(mesh_x: Mesh, gt: tuple[np.ndarray, np.ndarray], n: int) -> np.ndarray:
+def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
     """``(n, 2)`` landmark pairs ``(x vertex, y vertex)``: ground-truth rows spread over ``x``
     by Euclidean farthest-point sampling (deterministic; for experiments with known landmarks)."""
-    idx_y, idx_x = (np.asarray(a, dtype=np.int64) for a in gt)
+    idx_x, idx_y = _as_correspondence(gt)
     if not 1 <= n <= len(idx_x):
         raise ParameterError(f"n must be in [1, {len(idx_x)}], got {n}.")
     pts = mesh_x.vertices[idx_x]

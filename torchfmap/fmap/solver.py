@@ -183,7 +183,8 @@ class FmapProblem:
         conjugate gradients on the normal equations, preconditioned by the inverse of the
         Hessian's row blocks (:meth:`row_blocks`, which include the within-row part of the
         coupling terms) and started from their solution (without the coupling terms in the
-        blocks, CG needs far more iterations). Raises :class:`ConvergenceError` if CG has not converged to ``tol`` after ``maxiter`` iterations.
+        blocks, CG needs far more iterations). Raises :class:`ConvergenceError` if CG has not
+        converged to ``tol`` after ``maxiter`` iterations.
         """
         if not self.commute and self.landmarks is None:
             t = core.as_tensor
