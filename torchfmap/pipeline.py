@@ -12,9 +12,11 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from tqdm import tqdm
 
 from .bases import (
     Basis,
+    Column,
     basis_stack,
     concatenate,
     diffusion_basis,
@@ -26,6 +28,7 @@ from .bases import (
 from .bases.laplacian import eigenpairs
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
+from .eval import shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .mesh import Mesh
 from .operators.laplacian import laplacian
@@ -192,8 +195,6 @@ def match(
 
     t0 = time.perf_counter()
     if kind == "laplacian":
-        from .bases import Column
-
         full_x = Basis(
             phi_x, ops_x[1], [Column("laplacian", index=i) for i in range(k_eig)], True, ops_x[0], lam_x
         )
@@ -263,10 +264,6 @@ def shape_distance_matrix(
     the two directions are averaged. Feed the result to
     :func:`~torchfmap.eval.retrieval_accuracy` with class labels.
     """
-    from tqdm import tqdm
-
-    from .eval import shape_distance
-
     n = len(meshes)
     D = np.zeros((n, n))
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j]

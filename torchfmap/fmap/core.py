@@ -12,6 +12,9 @@ import threading
 from typing import Any
 
 import numpy as np
+import torch
+
+from ..errors import ParameterError
 
 
 def _is_torch(x: Any) -> bool:
@@ -20,8 +23,6 @@ def _is_torch(x: Any) -> bool:
 
 def _eye(n: int, like) -> Any:
     if _is_torch(like):
-        import torch
-
         return torch.eye(n, dtype=like.dtype, device=like.device)
     return np.eye(n, dtype=np.asarray(like).dtype)
 
@@ -43,8 +44,6 @@ def laplacian_mask(lam_x, lam_y, kind: str = "laplacian", gamma: float = 0.5, va
         mask = (lx - ly) ** 2
     elif kind == "resolvent":
         if _is_torch(lx):
-            import torch
-
             top = torch.maximum(lx.amax(dim=(-2, -1), keepdim=True), ly.amax(dim=(-2, -1), keepdim=True))
             scale = top.clip(min=1e-300)
         else:
@@ -55,8 +54,6 @@ def laplacian_mask(lam_x, lam_y, kind: str = "laplacian", gamma: float = 0.5, va
         im = 1 / (gy**2 + 1) - 1 / (gx**2 + 1)
         mask = re**2 + im**2
     else:
-        from ..errors import ParameterError
-
         raise ParameterError(f"unknown mask {kind!r}. Fix: 'laplacian' or 'resolvent'.")
     if valid is not None:
         mask = mask * valid
@@ -106,8 +103,6 @@ def _scratch(shape: tuple[int, ...], like):
     B = 8, K = 100), so one buffer per thread and dtype, of at most :data:`SCRATCH_MAX_BYTES`,
     is kept. CUDA tensors come from torch's caching allocator instead.
     """
-    import torch
-
     n = 1
     for d in shape:
         n *= d
@@ -125,7 +120,6 @@ def _scratch(shape: tuple[int, ...], like):
 @functools.cache
 def _rowwise_solve_function():
     """The torch autograd Function of the row-wise solve (built lazily: torch is optional here)."""
-    import torch
 
     class RowwiseSolve(torch.autograd.Function):
         """``c_i = (G + diag(d_i))⁻¹ r_i`` for every row ``i``; shapes ``G (..., Kx, Kx)``,
