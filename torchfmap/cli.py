@@ -8,15 +8,22 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import scipy.sparse.linalg as sla
+from tqdm import tqdm
 
+from ._checks import is_symmetric
+from .bases import basis_stack
+from .data import demo_pair
 from .errors import TorchFmapError
+from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
+from .io import load_mesh
+from .operators import GeodesicSolver, available_backends, laplacian
+from .pipeline import match
+from .seeds import farthest_point_sampling
+from .viz import plot_color_transfer, plot_pck
 
 
 def _operator_summary(mesh, out) -> None:
-    import scipy.sparse.linalg as sla
-
-    from .operators import GeodesicSolver, available_backends, laplacian
-
     rep = mesh.report
     out(
         f"{mesh.name or 'mesh'}: {rep.summary()}; area {mesh.area:.4g}, mean edge {mesh.mean_edge_length:.3g}"
@@ -25,7 +32,7 @@ def _operator_summary(mesh, out) -> None:
         t0 = time.perf_counter()
         L, B = laplacian(mesh, kind=kind)
         dt = time.perf_counter() - t0
-        sym = abs(L - L.T).max() < 1e-10
+        sym = is_symmetric(L)
         neg = int((L.data[L.indices != np.repeat(np.arange(L.shape[0]), np.diff(L.indptr))] > 0).sum())
         out(
             f"  L[{kind:<10}] nnz {L.nnz:>7}  symmetric {str(sym):<5}  positive off-diagonals "
@@ -45,10 +52,6 @@ def _operator_summary(mesh, out) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .data import demo_pair
-    from .eval import evaluate_map, gt_from_map, landmarks_from_gt
-    from .pipeline import match
-
     a, b, gt_ba = demo_pair()
     print(f"torchfmap demo: match {b.name} to {a.name} (shipped pair, ground truth {len(gt_ba)} vertices)")
     for mesh in (a, b):
@@ -71,8 +74,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .io import load_mesh
-
     mesh = load_mesh(args.mesh, allow_components=True)
     _operator_summary(mesh, print)
     return 0
@@ -88,13 +89,6 @@ def read_landmarks(path: str) -> np.ndarray:
 
 
 def cmd_basis(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from .bases import basis_stack
-    from .io import load_mesh
-    from .operators import laplacian
-    from .seeds import farthest_point_sampling
-
     mesh = load_mesh(args.mesh, allow_components=True)
     times = [float(t) for t in args.times.split(",")] if args.times else []
     with tqdm(total=3, desc="basis", unit="step", disable=args.quiet) as bar:
@@ -139,9 +133,6 @@ def read_landmark_pairs(path: str) -> np.ndarray:
 
 
 def cmd_match(args: argparse.Namespace) -> int:
-    from .io import load_mesh
-    from .pipeline import match
-
     src, tgt = load_mesh(args.source), load_mesh(args.target)
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
     result = match(src, tgt, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
@@ -152,19 +143,11 @@ def cmd_match(args: argparse.Namespace) -> int:
         f"{total:.2f} s) -> {args.out}"
     )
     if args.png:
-        from .viz import plot_color_transfer
-
         print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png)}")
     return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from .eval import discover_pairs, evaluate_map, landmarks_from_gt, pck_curve
-    from .io import load_mesh
-    from .pipeline import match
-
     pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
     rows, curves, all_errors = [], {}, []
     for a, b, pa, pb, gt in tqdm(pairs, desc="pairs", disable=args.quiet):
@@ -188,8 +171,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     errors = np.concatenate(all_errors)
     print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
     if args.png:
-        from .viz import plot_pck
-
         curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}
         title = f"{args.basis or 'auto'} basis, k={args.k}"
         print(f"PCK plot -> {plot_pck(curves, args.png, title=title)}")

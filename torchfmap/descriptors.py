@@ -13,9 +13,10 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
+from ._checks import check_vertex_indices
 from .bases.basis import Basis
+from .bases.diffusion import heat_kernels
 from .errors import ParameterError
-from .operators.geodesic import check_vertex_indices
 
 
 def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,8 +83,6 @@ def landmark_descriptors(
     if kind == "heat":
         if operators is None:
             raise ParameterError("heat landmark descriptors need operators=(L, B).")
-        from .bases.diffusion import heat_kernels
-
         L, B = operators
         n = L.shape[0]
         lm = check_vertex_indices(landmarks, n, "landmarks")

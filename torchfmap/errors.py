@@ -29,6 +29,14 @@ class ConvergenceError(TorchFmapError, RuntimeError):
     """An iterative solver stopped before reaching its tolerance (never returned silently)."""
 
 
+class NotPositiveDefiniteError(ParameterError):
+    """A Cholesky backend was asked for, but the matrix is not symmetric positive definite."""
+
+
+class CorruptFileError(TorchFmapError):
+    """A saved file is truncated, altered or unreadable."""
+
+
 class MeshWarning(UserWarning):
     """A mesh property worth knowing about that does not stop the computation (e.g. holes)."""
 

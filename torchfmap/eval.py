@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from .errors import ParameterError
+from .io import SUPPORTED_FORMATS, read_arrays
 from .mesh import Mesh
 from .operators.geodesic import GeodesicSolver
 
@@ -246,10 +248,6 @@ def discover_pairs(folder: str | os.PathLike):
     ``corres/<name>.vts`` files give ``.vts`` ground truth (pairs from ``test_pairs.txt``, or
     consecutive meshes); otherwise meshes with equal vertex counts get the identity.
     """
-    from pathlib import Path
-
-    from .io import SUPPORTED_FORMATS, read_arrays
-
     folder = Path(folder)
     meshes = {
         p.name.split(".")[0]: p for p in sorted(folder.iterdir()) if p.suffix.lower() in SUPPORTED_FORMATS

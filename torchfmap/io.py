@@ -15,6 +15,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from .errors import MeshError
 from .mesh import Mesh
@@ -45,8 +46,6 @@ def merge_soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
 
 def read_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """``(vertices (V, 3) float64, faces (F, 3) int64)`` of a mesh file, vertex order kept."""
-    import trimesh
-
     path = Path(path)
     if not path.exists():
         raise MeshError(f"mesh file {str(path)!r} does not exist. Fix: check the path.")

@@ -18,6 +18,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+import trimesh
 from scipy.sparse.csgraph import connected_components
 
 from .errors import MeshError, _preview
@@ -344,11 +345,13 @@ class Mesh:
         """The mesh with coordinates multiplied by ``alpha`` (areas scale by ``alpha**2``)."""
         return self.copy(self.vertices * float(alpha))
 
-    def normalized(self) -> Mesh:
-        """Centred at the area-weighted centroid and scaled to unit total area."""
-        from .operators.laplacian import normalize_area
-
-        return normalize_area(self)
+    def normalized(self, center: bool = True) -> Mesh:
+        """Scaled to unit total area (and centred at the area-weighted centroid)."""
+        v = self.vertices
+        if center:
+            centroids = v[self.faces].mean(axis=1)
+            v = v - (centroids * self.face_areas[:, None]).sum(axis=0) / self.area
+        return self.copy(v / np.sqrt(self.area))
 
     def permuted(self, perm) -> Mesh:
         """Vertex ``i`` of the result is vertex ``perm[i]`` of this mesh (faces relabelled)."""
@@ -382,6 +385,4 @@ class Mesh:
 
     def to_trimesh(self):
         """A ``trimesh.Trimesh`` view (``process=False``, same vertex order)."""
-        import trimesh
-
         return trimesh.Trimesh(self.vertices, self.faces, process=False)

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from tqdm import tqdm
 
 from .bases import (
     Basis,
@@ -25,6 +26,7 @@ from .bases import (
 )
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
+from .eval import shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .mesh import Mesh
 from .operators.laplacian import Operators, laplacian
@@ -343,10 +345,6 @@ def shape_distance_matrix(
     the two directions are averaged. Feed the result to
     :func:`~torchfmap.eval.retrieval_accuracy` with class labels.
     """
-    from tqdm import tqdm
-
-    from .eval import shape_distance
-
     n = len(meshes)
     D = np.zeros((n, n))
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j]

@@ -13,10 +13,12 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import ParameterError, SeedError
+from ._checks import check_vertex_indices
+from .bases.diffusion import heat_kernels
+from .errors import ParameterError
 from .mesh import Mesh
-from .operators.geodesic import GeodesicSolver, check_vertex_indices
-from .operators.laplacian import Operators, laplacian
+from .operators.geodesic import GeodesicSolver
+from .operators.laplacian import Operators, laplacian, mass_matrix
 
 CurvatureKind = Literal["mean", "gaussian", "abs_mean"]
 
@@ -48,8 +50,6 @@ def gaussian_curvature(mesh: Mesh) -> np.ndarray:
     total = np.bincount(f.ravel(), weights=angles.ravel(), minlength=mesh.n_vertices)
     defect = 2 * np.pi - total
     defect[mesh.boundary_vertices] -= np.pi
-    from .operators.laplacian import mass_matrix
-
     area = mass_matrix(mesh, "voronoi").diagonal()
     return defect / np.maximum(area, 1e-300)
 
@@ -193,20 +193,6 @@ def heat_support_radius(time_abs: float, eps: float) -> float:
     return float(np.sqrt(4.0 * time_abs * np.log(1.0 / eps)))
 
 
-def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:
-    """Raise :class:`SeedError` if a connected component (with faces) has no seed."""
-    labels = mesh.component_labels
-    used = np.unique(labels[np.unique(mesh.faces)])
-    missing = np.setdiff1d(used, labels[seeds])
-    if len(missing):
-        example = int(np.flatnonzero(labels == missing[0])[0])
-        raise SeedError(
-            f"{len(missing)} connected component(s) have no seed (e.g. the one holding vertex "
-            f"{example}); harmonic and Dirichlet problems are undefined there. Fix: add a seed on "
-            "every component, or keep one with `mesh.largest_component()`."
-        )
-
-
 def coverage_seeds(
     mesh: Mesh,
     time: float,
@@ -233,8 +219,6 @@ def coverage_seeds(
     Returns:
         ``(S,)`` seeds (landmarks first).
     """
-    from .bases.diffusion import heat_kernels
-
     if time <= 0:
         raise ParameterError(f"diffusion time must be > 0, got t={time}.")
     if not 0 < eps < 1:

@@ -1,6 +1,7 @@
 """Bases of functions on a mesh: harmonic, diffusion, Laplacian eigenbasis, orthonormal stacks."""
 
-from .basis import Basis, Column, CorruptFileError, support_fraction
+from ..errors import CorruptFileError
+from .basis import Basis, Column, support_fraction
 from .diffusion import DEFAULT_TIMES, cf_poles, diffusion_basis, heat_apply, heat_kernels
 from .harmonic import harmonic_basis, harmonic_functions
 from .laplacian import eigenpairs, fix_signs, laplacian_eigenbasis

@@ -9,7 +9,6 @@ ones, in the order of ``values``.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import ParameterError, TorchFmapError
+from .._files import load_arrays, save_arrays
+from ..errors import ParameterError
+from .orthonormalize import orthonormalize
 
 _FORMAT_VERSION = 1
 
@@ -181,8 +182,6 @@ class Basis:
 
     def orthonormalized(self, method: str = "mgs", tol: float | None = None) -> Basis:
         """A B-orthonormal basis of the same span (dependent columns dropped, recorded)."""
-        from .orthonormalize import orthonormalize
-
         return orthonormalize(self, method=method, tol=tol)
 
     def support(self, eps: float = 1e-3, weighted: bool = False) -> np.ndarray:
@@ -220,29 +219,13 @@ class Basis:
             )
         if self.eigenvalues is not None:
             arrays["eigenvalues"] = self.eigenvalues
-        arrays["checksum"] = np.array(_checksum(arrays))
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        save_arrays(path, arrays)
         return path
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Basis:
         """Read a basis written by :meth:`save`; raises if the file is truncated or altered."""
-        path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except FileNotFoundError:
-            raise
-        except Exception as err:
-            raise CorruptFileError(f"{path} is not a readable basis file ({err}). Fix: rebuild it.") from err
-        stored = str(arrays.pop("checksum", ""))
-        if stored != _checksum(arrays):
-            raise CorruptFileError(f"{path} fails its checksum (altered or truncated). Fix: rebuild it.")
+        arrays = load_arrays(path, what="basis file")
         n = arrays["values"].shape[0]
         mass = sp.csr_matrix((arrays["mass_data"], (arrays["mass_row"], arrays["mass_col"])), shape=(n, n))
         stiffness = None
@@ -264,21 +247,6 @@ class Basis:
         return cls(
             arrays["values"], mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues")
         )
-
-
-class CorruptFileError(TorchFmapError):
-    """A saved file is truncated, altered or unreadable."""
-
-
-def _checksum(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
-    for key in sorted(arrays):
-        a = np.ascontiguousarray(arrays[key])
-        h.update(key.encode())
-        h.update(str(a.dtype).encode())
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
 
 
 def support_fraction(values: np.ndarray, eps: float = 1e-3, mass=None) -> np.ndarray:

@@ -44,12 +44,13 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
+from .._checks import check_seeds_cover_components, check_symmetric, check_vertex_indices, lumped_diagonal
 from ..errors import ParameterError
 from ..mesh import Mesh
-from ..operators.geodesic import check_vertex_indices
-from ..operators.laplacian import Operators, laplacian, lumped_diagonal
+from ..operators.laplacian import Operators, laplacian
 from ..operators.solvers import factorize
 from .basis import Basis, Column
+from .laplacian import eigenpairs
 
 Method = Literal["krylov", "rational", "backward_euler", "spectral"]
 METHODS = ("krylov", "rational", "backward_euler", "spectral")
@@ -169,8 +170,6 @@ def _backward_euler(L, B, X, times, n_steps: int) -> np.ndarray:
 
 
 def _spectral(L, B, X, times, n_eigen: int) -> np.ndarray:
-    from .laplacian import eigenpairs
-
     lam, phi = eigenpairs(L, B, n_eigen)
     coeffs = phi.T @ (B @ X)  # (k, S)
     return np.stack([phi @ (np.exp(-lam * t)[:, None] * coeffs) for t in times])
@@ -396,11 +395,7 @@ def heat_kernels(
     times = np.atleast_1d(np.asarray(times, dtype=np.float64))
     if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):
         raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}. Fix: t > 0.")
-    if abs(L - L.T).max() > 1e-10 * abs(L).max():
-        raise ParameterError(
-            "heat kernels need a symmetric Laplacian (cotan or robust); mean-value weights are not "
-            "self-adjoint. Fix: laplacian(mesh, kind='cotan')."
-        )
+    check_symmetric(L, "heat kernels", "laplacian(mesh, kind='cotan') or kind='robust'")
     if not local or method == "spectral":
         X0 = _initial(B, seeds, n, kernel)
         return heat_apply((L, B), X0, times, method, tol=tol, n_steps=n_steps, n_eigen=n_eigen)
@@ -460,8 +455,6 @@ def diffusion_basis(
     order = np.argsort(rel, kind="stable")
     rel = rel[order]
     seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
-    from ..seeds import check_seeds_cover_components
-
     check_seeds_cover_components(mesh, seeds)
     K = heat_kernels(
         ops,

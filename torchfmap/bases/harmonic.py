@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from .._checks import check_seeds_cover_components, check_vertex_indices, is_symmetric
 from ..errors import SeedError
 from ..mesh import Mesh
-from ..operators.geodesic import check_vertex_indices
 from ..operators.laplacian import LaplacianKind, Operators, laplacian
 from ..operators.solvers import factorize
 from .basis import Basis, Column
@@ -45,7 +45,7 @@ def harmonic_functions(L: sp.spmatrix, seeds, *, symmetric: bool | None = None) 
     if len(interior) == 0:
         return psi
     if symmetric is None:
-        symmetric = abs(L - L.T).max() <= 1e-12 * abs(L).max()
+        symmetric = is_symmetric(L)
     L_ii = L[interior][:, interior]
     rhs = -L[interior][:, seeds].toarray()
     fac = factorize(L_ii, spd=symmetric)
@@ -77,8 +77,6 @@ def harmonic_basis(
     Returns:
         ``Basis`` with ``(V, k)`` values and provenance ``('harmonic', seed)``.
     """
-    from ..seeds import check_seeds_cover_components
-
     seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
     check_seeds_cover_components(mesh, seeds)
     L, B = operators if operators is not None else laplacian(mesh, kind=kind)

@@ -12,9 +12,10 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as ssla
 
+from .._checks import check_symmetric, lumped_diagonal
 from ..errors import ParameterError
 from ..mesh import Mesh
-from ..operators.laplacian import Operators, laplacian, lumped_diagonal
+from ..operators.laplacian import Operators, laplacian
 from ..operators.solvers import factorize
 from .basis import Basis, Column
 
@@ -57,8 +58,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarr
     n = L.shape[0]
     if not 1 <= k <= n:
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
-    if abs(L - L.T).max() > 1e-10 * abs(L).max():
-        raise ParameterError("the eigenbasis needs a symmetric Laplacian. Fix: kind='cotan' or 'robust'.")
+    check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, kind='cotan') or kind='robust'")
     if n <= DENSE_LIMIT or k >= n - 1:
         lam, phi = sla.eigh(L.toarray(), B.toarray(), subset_by_index=(0, k - 1))
     else:

@@ -19,12 +19,15 @@ harmonic -> Laplacian keeps the earliest columns and drops later ones that add n
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ParameterError
-from .basis import Basis, Column
+
+if TYPE_CHECKING:  # annotations only: basis.py imports this module (Basis.orthonormalized)
+    from .basis import Basis, Column
 
 METHODS = ("mgs", "cholqr")
 #: Columns projected out together in :func:`mgs` (block-modified Gram-Schmidt: BLAS-2 speed,
@@ -153,7 +156,7 @@ def _with_kept(basis: Basis, Q: np.ndarray, kept: np.ndarray) -> Basis:
             col += 1
         else:
             prov.append(c)
-    return Basis(Q, basis.mass, prov, orthonormal=True, stiffness=basis.stiffness)
+    return type(basis)(Q, basis.mass, prov, orthonormal=True, stiffness=basis.stiffness)
 
 
 def orthonormalize_pair(

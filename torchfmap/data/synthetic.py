@@ -13,7 +13,9 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
+from ..io import load_mesh
 from ..mesh import Mesh
 
 #: Gaussian bumps (direction, height, width) that break the ellipsoid's symmetries.
@@ -27,8 +29,6 @@ _BUMPS = (
 
 def icosphere(subdivisions: int = 3, radius: float = 1.0) -> Mesh:
     """A geodesic sphere (``10 * 4**s + 2`` vertices) projected onto the sphere of ``radius``."""
-    import trimesh
-
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     v = np.asarray(sphere.vertices, dtype=np.float64)
     v *= radius / np.linalg.norm(v, axis=1, keepdims=True)
@@ -79,7 +79,5 @@ def demo_pair_paths() -> tuple[Path, Path, Path]:
 
 def demo_pair() -> tuple[Mesh, Mesh, np.ndarray]:
     """Load the shipped demo pair: ``(blob_a, blob_b, gt_b_to_a)``."""
-    from ..io import load_mesh
-
     pa, pb, pgt = demo_pair_paths()
     return load_mesh(pa), load_mesh(pb), np.loadtxt(pgt, dtype=np.int64)

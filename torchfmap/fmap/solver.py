@@ -32,11 +32,11 @@ from typing import Literal
 import numpy as np
 import scipy.sparse.linalg as ssla
 
+from .._checks import check_vertex_indices
 from ..bases.basis import Basis
 from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
-from ..operators.geodesic import check_vertex_indices
 from . import core
 
 MaskKind = Literal["laplacian", "resolvent"]

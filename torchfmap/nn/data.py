@@ -13,17 +13,26 @@ import hashlib
 import json
 import logging
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from ..errors import ParameterError
+from .._files import load_arrays, save_arrays
+from ..bases import laplacian_eigenbasis
+from ..descriptors import wks
+from ..errors import CorruptFileError, ParameterError
+from ..io import load_mesh
 from ..mesh import Mesh
+from ..operators.laplacian import normalize_area
 from .functional import BasisBatch
+from .modules import basis_arrays
 
 log = logging.getLogger(__name__)
+
+#: Key of the checksum array in cache entries (kept from the first cache format).
+CACHE_CHECKSUM_KEY = "__checksum__"
 
 
 def mesh_key(mesh: Mesh, params: dict) -> str:
@@ -32,14 +41,6 @@ def mesh_key(mesh: Mesh, params: dict) -> str:
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
-    return h.hexdigest()
-
-
-def _digest(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
-    for key in sorted(arrays):
-        a = np.ascontiguousarray(arrays[key])
-        h.update(key.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
     return h.hexdigest()
 
 
@@ -56,28 +57,16 @@ class PrecomputeCache:
     def load(self, key: str) -> dict[str, np.ndarray] | None:
         """The entry, or None if missing, unreadable or failing its checksum."""
         path = self.path(key)
-        if not path.exists():
-            return None
         try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-            stored = str(arrays.pop("__checksum__"))
-        except Exception as err:  # truncated zip, bad header, missing checksum...
-            log.warning("cache entry %s unreadable (%s): rebuilding", path.name, err)
+            return load_arrays(path, CACHE_CHECKSUM_KEY, what="cache entry")
+        except FileNotFoundError:
             return None
-        if stored != _digest(arrays):
-            log.warning("cache entry %s fails its checksum: rebuilding", path.name)
+        except CorruptFileError as err:  # truncated zip, bad header, missing or wrong checksum...
+            log.warning("cache entry %s unusable (%s): rebuilding", path.name, err)
             return None
-        return arrays
 
     def store(self, key: str, arrays: dict[str, np.ndarray]) -> None:
-        path = self.path(key)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}.tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, __checksum__=np.array(_digest(arrays)), **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        save_arrays(self.path(key), arrays, CACHE_CHECKSUM_KEY)
 
     def get(self, key: str, compute) -> dict[str, np.ndarray]:
         arrays = self.load(key)
@@ -92,11 +81,6 @@ def precompute_shape(mesh: Mesh, k: int = 50, n_wks: int = 32, k_wks: int = 100)
 
     The mesh is scaled to unit area first (learned diffusion times are then comparable).
     """
-    from ..bases import laplacian_eigenbasis
-    from ..descriptors import wks
-    from ..operators.laplacian import normalize_area
-    from .modules import basis_arrays
-
     unit = normalize_area(mesh)
     k_all = max(k, k_wks)
     full = laplacian_eigenbasis(unit, k_all)
@@ -139,16 +123,12 @@ class ShapeDataset(torch.utils.data.Dataset):
         self.precompute(rank, world_size, progress)
 
     def _compute(self, i: int) -> dict[str, np.ndarray]:
-        from ..io import load_mesh
-
         mesh = load_mesh(self.files[i])
         key = mesh_key(mesh, self.params)
         return self.cache.get(key, lambda: precompute_shape(mesh, self.params["k"], self.params["n_wks"]))
 
     def precompute(self, rank: int = 0, world_size: int = 1, progress: bool = True) -> None:
         """Fill the cache; with several ranks each fills its share (then synchronise)."""
-        from tqdm import tqdm
-
         mine = range(rank, len(self.files), world_size)
         for i in tqdm(mine, desc=f"precompute (rank {rank})", disable=not progress):
             self._compute(i)

@@ -8,6 +8,8 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
+from .._checks import check_lumped_mass
+from ..bases import basis_stack, laplacian_eigenbasis
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from ..fmap import core
@@ -21,10 +23,7 @@ def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
     if not basis.orthonormal:
         raise ParameterError("the basis must be B-orthonormal. Fix: orthonormalize(basis) first.")
     mass = sp.csr_matrix(basis.mass)
-    if abs(mass - sp.diags(mass.diagonal())).max() > 0:
-        raise ParameterError(
-            "torch layers need a lumped (diagonal) mass. Fix: mass='voronoi' or 'barycentric'."
-        )
+    check_lumped_mass(mass, "torch layers")
     if basis.stiffness is None:
         raise ParameterError("the basis needs its stiffness matrix (for W = Φᵀ L Φ).")
     lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
@@ -44,8 +43,6 @@ class BasisModule(nn.Module):
     def from_mesh(cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, **kwargs) -> BasisModule:
         """Build with the classical bases: ``'laplacian'`` (k eigenfunctions) or ``'stack'``
         (``seeds`` required; ``kwargs`` go to :func:`~torchfmap.basis_stack`)."""
-        from ..bases import basis_stack, laplacian_eigenbasis
-
         if kind == "laplacian":
             return cls(laplacian_eigenbasis(mesh, k))
         if kind == "stack":

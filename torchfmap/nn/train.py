@@ -9,10 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from ..errors import ParameterError
+from .._files import atomic_write
+from ..eval import geodesic_errors
+from ..fmap.convert import nearest_neighbor
+from ..mesh import Mesh
 from .data import PairDataset, ShapeDataset, collate_pairs
-from .functional import BasisBatch
 from .modules import FeatureNet, RegularizedFMSolver, UnsupervisedFMLoss
 
 
@@ -50,13 +53,11 @@ def forward_pair(net, solver, batch) -> tuple[torch.Tensor, torch.Tensor, torch.
 
 
 def save_checkpoint(path: str | os.PathLike, net: FeatureNet, config: TrainConfig, **extra) -> Path:
-    """Atomic checkpoint: weights, config and extras (temp file + rename)."""
+    """Atomic checkpoint: weights, config and extras (:func:`~torchfmap._files.atomic_write`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save({"state_dict": net.state_dict(), "config": asdict(config), **extra}, tmp)
-    os.replace(tmp, path)
-    return path
+    ckpt = {"state_dict": net.state_dict(), "config": asdict(config), **extra}
+    return atomic_write(path, lambda fh: torch.save(ckpt, fh))
 
 
 def load_checkpoint(path: str | os.PathLike) -> tuple[FeatureNet, TrainConfig, dict]:
@@ -83,8 +84,6 @@ def train(
     With ``world_size > 1`` (inside an initialised process group) the model is wrapped in
     DistributedDataParallel and each rank sees its share of the pairs (DistributedSampler).
     """
-    from tqdm import tqdm
-
     net, solver, loss_fn = build_model(config)
     model = net
     sampler = None
@@ -126,9 +125,6 @@ def train(
 @torch.no_grad()
 def predict_p2p(net: FeatureNet, solver: RegularizedFMSolver, x: dict, y: dict) -> np.ndarray:
     """``p2p_yx`` of one pair of dataset items: learned features -> ``C_xy`` -> nearest neighbours."""
-    from ..fmap.convert import nearest_neighbor
-    from .data import collate_pairs
-
     batch = collate_pairs([(x, y)])
     _, _, C_xy, _ = forward_pair(net, solver, batch)
     phi_x = x["values"].double().numpy()
@@ -138,9 +134,6 @@ def predict_p2p(net: FeatureNet, solver: RegularizedFMSolver, x: dict, y: dict) 
 
 def evaluate(net: FeatureNet, shapes: ShapeDataset, pairs, gts, config: TrainConfig, max_points=500) -> float:
     """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``."""
-    from ..eval import geodesic_errors
-    from ..mesh import Mesh
-
     solver = RegularizedFMSolver(w_lap=config.w_lap)
     errors = []
     for (a, b), gt in zip(pairs, gts, strict=True):
@@ -177,11 +170,3 @@ def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_d
         torch.save(net.state_dict(), Path(out_dir) / f"rank{rank}.pt")
     finally:
         torch.distributed.destroy_process_group()
-
-
-def check_batch_sizes(basis_x: BasisBatch, basis_y: BasisBatch) -> None:
-    """Raise if two padded batches hold different numbers of pairs."""
-    if basis_x.values.shape[0] != basis_y.values.shape[0]:
-        raise ParameterError(
-            f"batch sizes differ: {basis_x.values.shape[0]} x-shapes, {basis_y.values.shape[0]} y-shapes."
-        )

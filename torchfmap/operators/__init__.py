@@ -1,7 +1,8 @@
 """Operators on meshes: Laplace-Beltrami stiffness and mass, geodesics, sparse solvers."""
 
+from .._checks import check_vertex_indices, lumped_diagonal
 from .convert import scipy_to_torch, torch_to_scipy
-from .geodesic import GeodesicSolver, check_vertex_indices, geodesic_distances
+from .geodesic import GeodesicSolver, geodesic_distances
 from .laplacian import (
     Operators,
     laplacian,
@@ -21,6 +22,7 @@ __all__ = [
     "factorize",
     "geodesic_distances",
     "laplacian",
+    "lumped_diagonal",
     "mass_matrix",
     "normalize_area",
     "point_cloud_laplacian",

@@ -9,40 +9,15 @@ accurate on poor triangulations and works on non-manifold meshes.
 from __future__ import annotations
 
 import numpy as np
+import potpourri3d as pp3d
 
-from ..errors import ParameterError, SeedError
+from .._checks import check_vertex_indices
+from ..errors import ParameterError
 from ..mesh import Mesh
 
 #: Largest mesh for which :meth:`GeodesicSolver.distance_matrix` builds a full ``(V, V)`` matrix
 #: without ``force=True`` (``V**2 * 8`` bytes: 400 MB at this size).
 FULL_MATRIX_LIMIT = 7000
-
-
-def check_vertex_indices(indices, n_vertices: int, what: str = "sources") -> np.ndarray:
-    """Validate a 1-D array of vertex indices: integral, in range, no duplicates, not empty."""
-    idx = np.atleast_1d(np.asarray(indices))
-    if idx.size == 0:
-        raise SeedError(f"{what} is empty. Fix: give at least one vertex index.")
-    if idx.ndim != 1:
-        raise SeedError(f"{what} must be a 1-D list of vertex indices, got shape {idx.shape}.")
-    if not np.issubdtype(idx.dtype, np.integer):
-        if np.issubdtype(idx.dtype, np.floating) and np.all(np.mod(idx, 1) == 0):
-            idx = idx.astype(np.int64)
-        else:
-            raise SeedError(f"{what} must be integer vertex indices, got dtype {idx.dtype}.")
-    bad = idx[(idx < 0) | (idx >= n_vertices)]
-    if bad.size:
-        raise SeedError(
-            f"{what} {bad[:8].tolist()} are out of range for a mesh of {n_vertices} vertices. "
-            "Fix: indices are 0-based and must be < V (1-based files need `- 1`)."
-        )
-    uniq, counts = np.unique(idx, return_counts=True)
-    if (counts > 1).any():
-        raise SeedError(
-            f"{what} contain duplicates {uniq[counts > 1][:8].tolist()}. Fix: remove repeated "
-            "vertices (e.g. `np.unique(seeds)` if order does not matter)."
-        )
-    return idx.astype(np.int64)
 
 
 class GeodesicSolver:
@@ -60,8 +35,6 @@ class GeodesicSolver:
     """
 
     def __init__(self, mesh: Mesh, t_coef: float = 1.0, use_robust: bool = True) -> None:
-        import potpourri3d as pp3d
-
         if t_coef <= 0:
             raise ParameterError(f"t_coef must be positive, got {t_coef}.")
         self.mesh = mesh

@@ -28,8 +28,10 @@ from __future__ import annotations
 from typing import Literal, NamedTuple
 
 import numpy as np
+import robust_laplacian
 import scipy.sparse as sp
 
+from .._checks import lumped_diagonal as lumped_diagonal  # public here too (re-export)
 from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 
@@ -130,19 +132,8 @@ def mass_matrix(mesh: Mesh, kind: MassKind = "voronoi") -> sp.csr_matrix:
     raise ParameterError(f"unknown mass kind {kind!r}. Fix: use one of {MASS_KINDS}.")
 
 
-def lumped_diagonal(B: sp.spmatrix) -> np.ndarray | None:
-    """The diagonal ``(V,)`` of a mass matrix ``B`` if ``B`` is diagonal (lumped), else None."""
-    B = sp.csr_matrix(B)
-    d = B.diagonal()
-    if B.nnz == np.count_nonzero(d) and (np.diff(B.indptr) <= 1).all():
-        return d
-    return None
-
-
 def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float = 1e-5) -> Operators:
     """Tufted intrinsic-Delaunay Laplacian of a point cloud ``(V, 3)`` via ``robust-laplacian``."""
-    import robust_laplacian
-
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
         raise MeshError(f"a point cloud must be (V>=4, 3) coordinates, got shape {p.shape}.")
@@ -183,8 +174,6 @@ def laplacian(
             )
         return point_cloud_laplacian(mesh, n_neighbors=n_neighbors, mollify_factor=mollify_factor)
     if kind == "robust":
-        import robust_laplacian
-
         L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
         return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
     stiffness = cotan_stiffness(mesh) if kind == "cotan" else mean_value_stiffness(mesh)
@@ -198,9 +187,4 @@ def total_area(mesh: Mesh) -> float:
 
 def normalize_area(mesh: Mesh, center: bool = True) -> Mesh:
     """The mesh scaled to unit total area (and centred at its area-weighted centroid)."""
-    v = mesh.vertices
-    if center:
-        centroids = v[mesh.faces].mean(axis=1)
-        c = (centroids * mesh.face_areas[:, None]).sum(axis=0) / mesh.area
-        v = v - c
-    return mesh.copy(v / np.sqrt(mesh.area))
+    return mesh.normalized(center=center)

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from ..errors import ParameterError
+from ..errors import NotPositiveDefiniteError, ParameterError
 
 Backend = Literal["auto", "cholmod", "cholespy", "splu"]
 _BACKENDS = ("cholmod", "cholespy", "splu")
@@ -50,10 +50,6 @@ def available_backends() -> list[str]:
             pass
     found.append("splu")
     return found
-
-
-class NotPositiveDefiniteError(ParameterError):
-    """A Cholesky backend was asked for, but the matrix is not symmetric positive definite."""
 
 
 class Factorization:

@@ -1,0 +1,62 @@
+"""Shared input checks (``torchfmap._checks``): symmetry tolerance, lumped mass, vertex indices."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from torchfmap import ParameterError, SeedError, laplacian
+from torchfmap._checks import (
+    check_lumped_mass,
+    check_symmetric,
+    check_vertex_indices,
+    is_symmetric,
+    lumped_diagonal,
+    symmetry_tolerance,
+)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_symmetry_rule_is_scale_free_and_separates_kinds(blob, scale):
+    for kind in ("cotan", "robust"):
+        L = laplacian(blob.scaled(scale), kind)[0] * scale
+        assert is_symmetric(L)
+        check_symmetric(L, "test")
+    L_mv = laplacian(blob, "mean_value")[0]
+    assert not is_symmetric(L_mv)
+    with pytest.raises(ParameterError, match="symmetric Laplacian.*Fix:"):
+        check_symmetric(L_mv, "heat kernels")
+
+
+def test_symmetry_rule_accepts_round_off_rejects_more(blob):
+    L = sp.csr_matrix(laplacian(blob)[0])
+    tol = symmetry_tolerance(L)
+    m = np.diff(L.indptr).max()
+    assert tol == pytest.approx(8 * m * np.finfo(float).eps * abs(L).max())
+    i, j = L.nonzero()
+    off = np.flatnonzero(i != j)[0]
+    E = sp.csr_matrix(([1.0], ([i[off]], [j[off]])), shape=L.shape)
+    assert is_symmetric(L + 0.5 * tol * E)  # round-off-sized asymmetry
+    assert not is_symmetric(L + 2.0 * tol * E)
+    assert is_symmetric(L.toarray()) and is_symmetric(sp.csr_matrix(L.shape))
+
+
+def test_lumped_mass_one_rule(blob):
+    B = laplacian(blob, mass="voronoi")[1]
+    assert np.array_equal(lumped_diagonal(B), B.diagonal())
+    assert lumped_diagonal(laplacian(blob, mass="fem")[1]) is None
+    # explicitly stored zeros (off the diagonal, or a zero-mass vertex) do not matter
+    d = np.array([1.0, 0.0, 2.0])
+    stored = sp.csr_matrix((np.array([1.0, 0.0, 0.0, 2.0]), ([0, 0, 1, 2], [0, 1, 1, 2])), shape=(3, 3))
+    assert np.array_equal(lumped_diagonal(stored), d)
+    assert np.array_equal(lumped_diagonal(np.diag(d)), d)
+    with pytest.raises(ParameterError, match="lumped.*Fix: .*voronoi"):
+        check_lumped_mass(laplacian(blob, mass="fem")[1])
+
+
+def test_vertex_index_messages_name_the_fix():
+    for bad in ([], [[1, 2]], [0.5], [7], [1, 1]):
+        with pytest.raises(SeedError, match="Fix:"):
+            check_vertex_indices(bad, 5, "seeds")
+    assert check_vertex_indices([3.0, 1], 5).dtype == np.int64

@@ -1,0 +1,159 @@
+"""Atomic checksummed files (``torchfmap._files``) behind ``Basis.save/load`` and the nn cache."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from torchfmap import Basis, Column
+from torchfmap._files import atomic_write, checksum, load_arrays, save_arrays
+from torchfmap.bases import CorruptFileError
+from torchfmap.nn.data import PrecomputeCache
+
+
+def _basis(n: int = 400, k: int = 60, value: float = 0.0) -> Basis:
+    rng = np.random.default_rng(int(value * 1000) % 2**32)
+    return Basis(
+        rng.standard_normal((n, k)) + value,
+        sp.diags(np.full(n, 1.0 / n)),
+        [Column("custom") for _ in range(k)],
+        stiffness=sp.identity(n, format="csr"),
+    )
+
+
+def test_two_threads_saving_one_path_both_succeed(tmp_path):
+    path = tmp_path / "basis.npz"
+    bases = [_basis(value=1.0), _basis(value=2.0)]
+    barrier = threading.Barrier(2)
+    errors: list[BaseException] = []
+
+    def worker(basis: Basis) -> None:
+        try:
+            for _ in range(15):
+                barrier.wait()
+                basis.save(path)
+        except BaseException as err:  # reported below
+            errors.append(err)
+            barrier.abort()
+
+    threads = [threading.Thread(target=worker, args=(b,)) for b in bases]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    back = Basis.load(path)  # one of the two, complete
+    assert any(np.array_equal(back.values, b.values) for b in bases)
+    assert [p.name for p in tmp_path.iterdir()] == ["basis.npz"]
+
+
+def _fail_midway(fh, *args, **kwargs):
+    fh.write(b"PK\x03\x04 half a zip")
+    raise OSError("disk full (simulated)")
+
+
+def test_failed_write_leaves_no_temp_file(tmp_path, monkeypatch):
+    monkeypatch.setattr(np, "savez", _fail_midway)
+    with pytest.raises(OSError, match="disk full"):
+        _basis().save(tmp_path / "basis.npz")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_rename_leaves_no_temp_file(tmp_path, monkeypatch):
+    def no_replace(src, dst):
+        raise PermissionError("destination locked (simulated)")
+
+    monkeypatch.setattr("torchfmap._files.os.replace", no_replace)
+    with pytest.raises(PermissionError):
+        save_arrays(tmp_path / "a.npz", {"x": np.arange(3)})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_overwrite_keeps_the_old_file_intact(tmp_path, monkeypatch):
+    """A plain ``open(path, 'wb')`` would have truncated the old file before failing."""
+    path = tmp_path / "basis.npz"
+    old = _basis(value=1.0)
+    old.save(path)
+    monkeypatch.setattr(np, "savez", _fail_midway)
+    with pytest.raises(OSError, match="disk full"):
+        _basis(value=2.0).save(path)
+    monkeypatch.undo()
+    back = Basis.load(path)
+    assert np.array_equal(back.values, old.values)
+    assert [p.name for p in tmp_path.iterdir()] == ["basis.npz"]
+
+
+def test_atomic_write_replaces_only_after_a_complete_write(tmp_path):
+    path = tmp_path / "f.bin"
+    path.write_bytes(b"old")
+
+    def write(fh):
+        fh.write(b"new, partial")
+        assert path.read_bytes() == b"old"  # the destination is untouched while writing
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(path, write)
+    assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["f.bin"]
+    atomic_write(path, lambda fh: fh.write(b"new"))
+    assert path.read_bytes() == b"new"
+
+
+def test_checksum_verified_on_read(tmp_path):
+    path = save_arrays(tmp_path / "a.npz", {"x": np.arange(5.0), "y": np.eye(2)})
+    back = load_arrays(path)
+    assert set(back) == {"x", "y"} and np.array_equal(back["x"], np.arange(5.0))
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["x"] = arrays["x"] + 1e-12
+    np.savez(path, **arrays)
+    with pytest.raises(CorruptFileError, match="checksum"):
+        load_arrays(path)
+    path.write_bytes(path.read_bytes()[:40])
+    with pytest.raises(CorruptFileError, match="rebuild"):
+        load_arrays(path)
+    with pytest.raises(FileNotFoundError):
+        load_arrays(tmp_path / "missing.npz")
+
+
+def test_old_basis_format_still_loads(tmp_path):
+    """A file as the previous ``Basis.save`` wrote it (plain np.savez, ``checksum`` key)."""
+    basis = _basis(n=20, k=3)
+    arrays = {
+        "values": basis.values,
+        "mass_row": np.arange(20, dtype=np.int64),
+        "mass_col": np.arange(20, dtype=np.int64),
+        "mass_data": np.full(20, 1 / 20),
+        "prov_kind": np.array(["custom"] * 3, dtype="U16"),
+        "prov_seed": np.full(3, -1, dtype=np.int64),
+        "prov_time": np.full(3, np.nan),
+        "prov_index": np.full(3, -1, dtype=np.int64),
+        "prov_kept": np.ones(3, dtype=bool),
+        "orthonormal": np.array(False),
+        "version": np.array(1),
+    }
+    arrays["checksum"] = np.array(checksum(arrays))
+    np.savez(tmp_path / "old.npz", **arrays)
+    back = Basis.load(tmp_path / "old.npz")
+    assert np.array_equal(back.values, basis.values) and back.provenance == basis.provenance
+
+
+def test_cache_uses_the_same_writer_and_rebuilds_corrupt_entries(tmp_path):
+    cache = PrecomputeCache(tmp_path)
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"values": np.arange(6.0).reshape(3, 2)}
+
+    first = cache.get("k", compute)
+    second = cache.get("k", compute)
+    assert len(calls) == 1 and np.array_equal(first["values"], second["values"])
+    assert load_arrays(cache.path("k"), "__checksum__").keys() == {"values"}  # cache key kept
+    cache.path("k").write_bytes(cache.path("k").read_bytes()[:50])
+    cache.get("k", compute)
+    assert len(calls) == 2
+    assert [p.name for p in tmp_path.iterdir()] == ["k.npz"]

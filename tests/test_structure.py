@@ -1,0 +1,283 @@
+"""Package structure: module-level imports form a DAG, no function-level imports of torchfmap
+modules (and of third-party ones only when optional), one home per shared check, errors in one
+module."""
+
+from __future__ import annotations
+
+import ast
+import builtins
+import re
+from pathlib import Path
+
+import pytest
+
+import torchfmap
+
+ROOT = Path(torchfmap.__file__).parent
+#: Third-party modules that may be imported inside functions: optional dependencies only.
+OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse"}
+#: Shared checks and file helpers: the only module allowed to define each name.
+HOMES = {
+    "check_vertex_indices": "torchfmap._checks",
+    "check_seeds_cover_components": "torchfmap._checks",
+    "symmetry_tolerance": "torchfmap._checks",
+    "symmetry_defect": "torchfmap._checks",
+    "is_symmetric": "torchfmap._checks",
+    "check_symmetric": "torchfmap._checks",
+    "lumped_diagonal": "torchfmap._checks",
+    "check_lumped_mass": "torchfmap._checks",
+    "checksum": "torchfmap._files",
+    "atomic_write": "torchfmap._files",
+    "save_arrays": "torchfmap._files",
+    "load_arrays": "torchfmap._files",
+}
+
+
+def _module_name(path: Path) -> str:
+    parts = ("torchfmap",) + path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _is_package(path: Path) -> bool:
+    return path.name == "__init__.py"
+
+
+def _sources() -> dict[str, tuple[Path, ast.Module]]:
+    out = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        out[_module_name(path)] = (path, ast.parse(path.read_text(encoding="utf-8"), str(path)))
+    return out
+
+
+SOURCES = _sources()
+
+
+def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    """Absolute name of the module a ``from ... import`` reads from."""
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _imports(module: str, path: Path, tree: ast.Module):
+    """``(module-level, function-level)`` lists of ``(imported module, line)``; a ``from X import
+    y`` where ``X.y`` is a module counts as importing ``X.y`` too. ``if TYPE_CHECKING:`` blocks
+    never run and are skipped."""
+    top, inner = [], []
+
+    def targets(node) -> list[str]:
+        if isinstance(node, ast.Import):
+            return [alias.name for alias in node.names]
+        base = _resolve(module, _is_package(path), node)
+        names = [base]
+        for alias in node.names:
+            if f"{base}.{alias.name}" in SOURCES:
+                names.append(f"{base}.{alias.name}")
+        return names
+
+    def visit(node, in_function: bool) -> None:
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            for child in node.orelse:
+                visit(child, in_function)
+            return
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for name in targets(node):
+                (inner if in_function else top).append((name, node.lineno))
+            return
+        nested = in_function or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+        for child in ast.iter_child_nodes(node):
+            visit(child, nested)
+
+    for node in tree.body:
+        visit(node, False)
+    return top, inner
+
+
+def _ancestors(name: str) -> list[str]:
+    parts = name.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts))]
+
+
+def import_graph(
+    include_functions: bool = False,
+) -> tuple[dict[str, set[str]], dict[str, list[tuple[str, int]]]]:
+    """Module-level edges between torchfmap modules (with ``include_functions``, function-level
+    ones too), and all function-level imports per module.
+
+    Importing ``a.b.c`` also runs the packages ``a`` and ``a.b``: those count as edges too,
+    except packages that contain the importing module (they are already being imported).
+    """
+    graph: dict[str, set[str]] = {name: set() for name in SOURCES}
+    inner_all: dict[str, list[tuple[str, int]]] = {}
+    for module, (path, tree) in SOURCES.items():
+        top, inner = _imports(module, path, tree)
+        inner_all[module] = inner
+        own = set(_ancestors(module)) | ({module} if _is_package(path) else set())
+        for name, _ in top + (inner if include_functions else []):
+            if not name.startswith("torchfmap"):
+                continue
+            for target in [*_ancestors(name), name]:
+                if target in SOURCES and target not in own and target != module:
+                    graph[module].add(target)
+    return graph, inner_all
+
+
+def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def dfs(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt) :] + [nxt]
+            if nxt not in state:
+                found = dfs(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = dfs(node)
+            if found:
+                return found
+    return None
+
+
+def test_walker_sees_every_module_and_resolves_relative_imports():
+    graph, _ = import_graph()
+    assert {"torchfmap", "torchfmap._checks", "torchfmap.nn.data", "torchfmap.bases.basis"} <= set(graph)
+    assert "torchfmap.errors" in graph["torchfmap.bases.basis"]  # from ..errors import ...
+    assert "torchfmap.nn.functional" in graph["torchfmap.nn"]  # from . import functional
+    assert "torchfmap.bases" in graph["torchfmap.seeds"]  # parent package of bases.diffusion runs too
+
+
+def test_cycle_finder_reports_a_cycle():
+    assert _find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_module_level_imports_form_a_dag():
+    graph, _ = import_graph()
+    cycle = _find_cycle(graph)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_no_cycle_hidden_in_function_level_imports():
+    graph, _ = import_graph(include_functions=True)
+    cycle = _find_cycle(graph)
+    assert cycle is None, "import cycle through function-level imports: " + " -> ".join(cycle)
+
+
+def test_no_function_level_import_of_torchfmap_modules():
+    _, inner = import_graph()
+    bad = [
+        f"{module}:{line} imports {name}"
+        for module, items in inner.items()
+        for name, line in items
+        if name == "torchfmap" or name.startswith("torchfmap.")
+    ]
+    assert not bad, "function-level imports of torchfmap modules (move them to module level):\n" + "\n".join(
+        bad
+    )
+
+
+def test_function_level_imports_only_of_optional_dependencies():
+    _, inner = import_graph()
+    bad = [
+        f"{module}:{line} imports {name}"
+        for module, items in inner.items()
+        for name, line in items
+        if not name.startswith("torchfmap") and name.split(".")[0] not in OPTIONAL_IMPORTS
+    ]
+    assert not bad, "function-level imports of required modules:\n" + "\n".join(bad)
+
+
+def _definitions() -> dict[str, list[str]]:
+    """Top-level function and class names -> modules defining them."""
+    found: dict[str, list[str]] = {}
+    for module, (_, tree) in SOURCES.items():
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                found.setdefault(node.name, []).append(module)
+    return found
+
+
+@pytest.mark.parametrize("name", sorted(HOMES))
+def test_shared_helpers_have_one_home(name):
+    assert _definitions().get(name) == [HOMES[name]]
+
+
+def test_symmetry_is_checked_only_in_checks():
+    pattern = re.compile(r"(\b\w+(?:\[\d\])?)\s*-\s*\1\.T\b")  # e.g. `L - L.T`, `ops[0] - ops[0].T`
+    bad = [
+        f"{path.relative_to(ROOT)}:{i}: {line.strip()}"
+        for module, (path, _) in SOURCES.items()
+        if module != "torchfmap._checks"
+        for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert not bad, "symmetry checks outside torchfmap._checks (use is_symmetric/check_symmetric):\n" + (
+        "\n".join(bad)
+    )
+
+
+def _base_names(node: ast.ClassDef) -> list[str]:
+    names = []
+    for base in node.bases:
+        if isinstance(base, ast.Name):
+            names.append(base.id)
+        elif isinstance(base, ast.Attribute):
+            names.append(base.attr)
+    return names
+
+
+def test_every_error_and_warning_class_lives_in_errors():
+    classes = {}
+    for module, (_, tree) in SOURCES.items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                classes.setdefault(node.name, []).append((module, _base_names(node)))
+    exceptional = {n for n in dir(builtins) if n.endswith(("Error", "Exception", "Warning"))}
+    exceptional.add("BaseException")
+    changed = True
+    while changed:  # classes deriving, directly or not, from an exception or warning
+        changed = False
+        for name, defs in classes.items():
+            if name not in exceptional and any(set(b) & exceptional for _, b in defs):
+                exceptional.add(name)
+                changed = True
+    misplaced = [
+        f"{name} in {module}"
+        for name, defs in classes.items()
+        if name in exceptional
+        for module, _ in defs
+        if module != "torchfmap.errors"
+    ]
+    assert not misplaced, "exception/warning classes outside torchfmap.errors: " + ", ".join(misplaced)
+    assert {"CorruptFileError", "NotPositiveDefiniteError", "MeshWarning"} <= exceptional
+
+
+def test_public_error_names_still_importable():
+    from torchfmap.bases import CorruptFileError
+    from torchfmap.errors import CorruptFileError as Home
+    from torchfmap.errors import NotPositiveDefiniteError
+    from torchfmap.operators import check_vertex_indices, lumped_diagonal
+    from torchfmap.operators.laplacian import lumped_diagonal as lumped_from_laplacian
+    from torchfmap.operators.solvers import NotPositiveDefiniteError as FromSolvers
+
+    assert CorruptFileError is Home and FromSolvers is NotPositiveDefiniteError
+    assert lumped_diagonal is lumped_from_laplacian and check_vertex_indices.__module__ == "torchfmap._checks"

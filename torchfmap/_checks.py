@@ -1,0 +1,182 @@
+"""Input checks shared by several modules: the one home of each (imports only :mod:`.errors`).
+
+- :func:`check_vertex_indices`: 1-D, integral, in range, distinct vertex indices (seeds,
+  landmarks, geodesic sources, landmark pairs of a functional map).
+- :func:`check_seeds_cover_components`: every connected component of a mesh holds a seed
+  (harmonic and Dirichlet problems are undefined on a component without one).
+- :func:`is_symmetric` / :func:`check_symmetric`: whether a stiffness matrix is symmetric up to
+  round-off, with one tolerance rule (:func:`symmetry_tolerance`).
+- :func:`lumped_diagonal` / :func:`check_lumped_mass`: whether a mass matrix is lumped
+  (diagonal), and its diagonal.
+
+Every error names the problem and the fix (``... Fix: ...``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import ParameterError, SeedError
+
+if TYPE_CHECKING:  # annotations only: the mesh module sits above this one
+    from .mesh import Mesh
+
+#: Safety factor of :func:`symmetry_tolerance` over the worst-case summation error.
+SYMMETRY_SAFETY = 8.0
+
+
+# -- vertex indices --------------------------------------------------------------------------
+def check_vertex_indices(indices, n_vertices: int, what: str = "sources") -> np.ndarray:
+    """Validate a 1-D array of vertex indices: integral, in range, no duplicates, not empty.
+
+    Returns the indices as int64; integral floats (``3.0``) are accepted.
+    """
+    idx = np.atleast_1d(np.asarray(indices))
+    if idx.size == 0:
+        raise SeedError(f"{what} is empty. Fix: give at least one vertex index.")
+    if idx.ndim != 1:
+        raise SeedError(
+            f"{what} must be a 1-D list of vertex indices, got shape {idx.shape}. Fix: pass a flat "
+            "list or array (e.g. `np.ravel(...)`)."
+        )
+    if not np.issubdtype(idx.dtype, np.integer):
+        if np.issubdtype(idx.dtype, np.floating) and np.all(np.mod(idx, 1) == 0):
+            idx = idx.astype(np.int64)
+        else:
+            raise SeedError(
+                f"{what} must be integer vertex indices, got dtype {idx.dtype}. Fix: pass 0-based "
+                "integer indices (e.g. `np.asarray(idx, dtype=int)`)."
+            )
+    bad = idx[(idx < 0) | (idx >= n_vertices)]
+    if bad.size:
+        raise SeedError(
+            f"{what} {bad[:8].tolist()} are out of range for a mesh of {n_vertices} vertices. "
+            "Fix: indices are 0-based and must be < V (1-based files need `- 1`)."
+        )
+    uniq, counts = np.unique(idx, return_counts=True)
+    if (counts > 1).any():
+        raise SeedError(
+            f"{what} contain duplicates {uniq[counts > 1][:8].tolist()}. Fix: remove repeated "
+            "vertices (e.g. `np.unique(seeds)` if order does not matter)."
+        )
+    return idx.astype(np.int64)
+
+
+def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:
+    """Raise :class:`SeedError` if a connected component (with faces) of ``mesh`` has no seed."""
+    labels = mesh.component_labels
+    used = np.unique(labels[np.unique(mesh.faces)])
+    missing = np.setdiff1d(used, labels[seeds])
+    if len(missing):
+        example = int(np.flatnonzero(labels == missing[0])[0])
+        raise SeedError(
+            f"{len(missing)} connected component(s) have no seed (e.g. the one holding vertex "
+            f"{example}); harmonic and Dirichlet problems are undefined there. Fix: add a seed on "
+            "every component, or keep one with `mesh.largest_component()`."
+        )
+
+
+# -- symmetry ------------------------------------------------------------------------------
+def symmetry_tolerance(A) -> float:
+    """Largest ``|A - Aᵀ|_max`` that counts as round-off: ``8 · m · eps · |A|_max``.
+
+    ``m`` is the largest number of stored entries in a row (``V`` for a dense matrix) and
+    ``eps`` the machine epsilon of float64.
+
+    Why: an assembled stiffness entry ``L_ij`` is a floating-point sum of per-triangle (or
+    per-edge) contributions, at most ``m`` of them (a vertex has at most ``m - 1``
+    neighbours). ``L_ij`` and ``L_ji`` are the same exact sum, possibly accumulated in another
+    order (a different assembly path, a library such as ``robust-laplacian``, a transpose
+    product). Recursive summation of ``m`` terms errs by at most ``(m - 1) u Σ|terms|``
+    (``u = eps / 2``, Higham, *Accuracy and Stability*, §4.2), and ``Σ|terms|`` is bounded by
+    the diagonal, i.e. by ``|A|_max``, for the non-negative weights of a Laplacian; the two
+    orders differ by at most twice that, ``(m - 1) · eps · |A|_max``. The factor 8 covers
+    cancelling (obtuse cotan) weights and a rescaling or cast after assembly. The resulting
+    relative tolerance (~1e-14 on triangle meshes, ``m ≈ 7``) is ten orders of magnitude below
+    the asymmetry of a genuinely non-symmetric operator (mean-value weights: ``O(1)``
+    relative), so the rule is not sensitive to the factor. It scales with the matrix, so a
+    mesh in millimetres and one in metres get the same answer.
+    """
+    if sp.issparse(A):
+        A = sp.csr_matrix(A)
+        m = int(np.diff(A.indptr).max()) if A.shape[0] else 1
+        scale = float(abs(A).max()) if A.nnz else 0.0
+    else:
+        A = np.asarray(A)
+        m = A.shape[-1] if A.ndim == 2 else 1
+        scale = float(np.abs(A).max()) if A.size else 0.0
+    return SYMMETRY_SAFETY * max(m, 1) * np.finfo(np.float64).eps * scale
+
+
+def symmetry_defect(A) -> float:
+    """``|A - Aᵀ|_max`` (infinite for a non-square matrix)."""
+    if A.ndim != 2 or A.shape[0] != A.shape[1]:
+        return float("inf")
+    if sp.issparse(A):
+        A = sp.csr_matrix(A)
+        return float(abs(A - A.T).max()) if A.nnz else 0.0
+    A = np.asarray(A)
+    return float(np.abs(A - A.T).max()) if A.size else 0.0
+
+
+def is_symmetric(A) -> bool:
+    """Whether the square (sparse or dense) matrix ``A`` is symmetric up to round-off
+    (:func:`symmetry_tolerance`)."""
+    return bool(symmetry_defect(A) <= symmetry_tolerance(A))
+
+
+def check_symmetric(
+    L,
+    what: str,
+    fix: str = "build L with laplacian(mesh, kind='cotan') or kind='robust'",
+) -> None:
+    """Raise :class:`ParameterError` unless the stiffness ``L`` is symmetric (:func:`is_symmetric`).
+
+    Args:
+        what: who needs it, e.g. ``'heat kernels'`` (the message reads "heat kernels need a
+            symmetric Laplacian").
+        fix: what the caller should do instead.
+    """
+    defect, tol = symmetry_defect(L), symmetry_tolerance(L)
+    if not defect <= tol:
+        raise ParameterError(
+            f"{what} need a symmetric Laplacian, but |L - Lᵀ|_max = {defect:.2e} exceeds the "
+            f"round-off tolerance {tol:.1e} (mean-value weights are not self-adjoint). Fix: {fix}."
+        )
+
+
+# -- lumped mass ---------------------------------------------------------------------------
+def lumped_diagonal(B) -> np.ndarray | None:
+    """The diagonal ``(V,)`` of a mass matrix ``B`` if ``B`` is diagonal (lumped), else None.
+
+    Explicitly stored zeros are ignored (a lumped mass may store a zero for an unreferenced
+    vertex, or a zero off the diagonal after arithmetic). A ``(V,)`` array is taken as the
+    diagonal itself.
+    """
+    if not sp.issparse(B):
+        B = np.asarray(B)
+        if B.ndim == 1:
+            return B
+        d = np.diagonal(B).copy()
+        return d if not (B - np.diag(d)).any() else None
+    B = sp.csr_matrix(B)
+    rows = np.repeat(np.arange(B.shape[0]), np.diff(B.indptr))
+    if np.any(B.data[rows != B.indices]):
+        return None
+    return B.diagonal()
+
+
+def check_lumped_mass(
+    B, what: str = "torch layers", fix: str = "build the mass with mass='voronoi' or 'barycentric'"
+) -> np.ndarray:
+    """The diagonal ``(V,)`` of a lumped mass ``B``; :class:`ParameterError` if ``B`` is not diagonal."""
+    d = lumped_diagonal(B)
+    if d is None:
+        raise ParameterError(
+            f"{what} need a lumped (diagonal) mass, but this mass matrix has off-diagonal entries "
+            f"(e.g. mass='fem'). Fix: {fix}."
+        )
+    return d

@@ -1,0 +1,97 @@
+"""Atomic, checksummed ``.npz`` files: the one writer and reader behind ``Basis.save/load`` and
+the training precompute cache.
+
+Writing: the arrays and a SHA-256 of them go to a temporary file in the destination folder,
+named uniquely per process *and* thread (``.{name}.{pid}.{thread}.{random}.tmp``), which is
+flushed, fsync'ed and renamed over the destination with :func:`os.replace` (atomic on POSIX
+and Windows). Readers therefore see the old file or the new one, never a mix; two writers of
+one path both succeed and the last rename wins; the temporary file is removed whatever fails.
+
+Reading: the checksum is recomputed and compared; an unreadable, truncated or altered file
+raises :class:`~torchfmap.errors.CorruptFileError`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from .errors import CorruptFileError, ParameterError
+
+#: Key of the checksum array in files written by :meth:`torchfmap.bases.Basis.save`.
+CHECKSUM_KEY = "checksum"
+
+
+def checksum(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 hex digest of named arrays: every key (sorted) with its dtype, shape and bytes."""
+    h = hashlib.sha256()
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        h.update(key.encode())
+        h.update(str(a.dtype).encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _temp_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.{uuid.uuid4().hex[:12]}.tmp")
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> Path:
+    """Write ``path`` atomically: ``write(fh)`` fills a temporary file in the same folder, which
+    is fsync'ed and renamed over ``path``. The temporary file never outlives the call."""
+    path = Path(path)
+    tmp = _temp_path(path)
+    try:
+        with open(tmp, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():  # the write or the rename failed
+            tmp.unlink()
+    return path
+
+
+def save_arrays(
+    path: str | os.PathLike, arrays: dict[str, np.ndarray], checksum_key: str = CHECKSUM_KEY
+) -> Path:
+    """Write ``arrays`` and their :func:`checksum` (under ``checksum_key``) to ``.npz`` atomically."""
+    if checksum_key in arrays:
+        raise ParameterError(f"{checksum_key!r} is reserved for the checksum. Fix: rename that array.")
+    digest = np.array(checksum(arrays))
+    return atomic_write(path, lambda fh: np.savez(fh, **{checksum_key: digest}, **arrays))
+
+
+def load_arrays(
+    path: str | os.PathLike, checksum_key: str = CHECKSUM_KEY, what: str = "file"
+) -> dict[str, np.ndarray]:
+    """The arrays of a file written by :func:`save_arrays`, checksum verified (and removed).
+
+    Raises:
+        FileNotFoundError: no such file.
+        CorruptFileError: unreadable (e.g. truncated), no checksum, or a checksum mismatch.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except FileNotFoundError:
+        raise
+    except Exception as err:  # truncated zip, bad header, a pickled array...
+        raise CorruptFileError(f"{path} is not a readable {what} ({err}). Fix: rebuild it.") from err
+    stored = str(arrays.pop(checksum_key, ""))
+    if stored != checksum(arrays):
+        raise CorruptFileError(
+            f"{path} fails its checksum (altered or truncated, or written without one). Fix: rebuild it."
+        )
+    return arrays
