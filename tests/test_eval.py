@@ -61,6 +61,9 @@ def test_gt_formats(tmp_path):
     assert gt.idx_x.tolist() == [2, 0, 1] and gt.idx_y.tolist() == [0, 1, 2]
     gt = gt_from_vts(np.array([5, 6]), np.array([1, 2]))
     assert gt.idx_x.tolist() == [5, 6] and gt.idx_y.tolist() == [1, 2]
+    # a plain pair could be in either order: refused, with the fix
+    with pytest.raises(ParameterError, match="Correspondence"):
+        geodesic_errors(icosphere(1), np.arange(42), (np.arange(42), np.arange(42)))
     with pytest.raises(ParameterError, match="rows must correspond"):
         gt_from_vts(np.array([1]), np.array([1, 2]))
 

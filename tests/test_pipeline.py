@@ -7,7 +7,7 @@ import pytest
 
 from torchfmap import ParameterError, SeedError
 from torchfmap.cli import main
-from torchfmap.eval import evaluate_map, gt_identity, landmarks_from_gt
+from torchfmap.eval import Correspondence, evaluate_map, gt_identity, landmarks_from_gt
 from torchfmap.pipeline import match
 
 from .conftest import data_path
@@ -20,7 +20,7 @@ def pair():
     x = _bumpy_blob(3)
     perm = np.random.default_rng(2).permutation(x.n_vertices)
     y = x.copy(_bend(x.vertices, 0.3)).permuted(perm)
-    gt = (np.arange(y.n_vertices), perm)
+    gt = Correspondence(idx_x=perm, idx_y=np.arange(y.n_vertices))
     return x, y, gt
 
 

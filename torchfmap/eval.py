@@ -67,15 +67,12 @@ def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
 
 
 def _as_correspondence(gt) -> Correspondence:
+    # a plain pair is refused: its order cannot be checked, and a swapped pair scores silently wrong
     if not isinstance(gt, Correspondence):
-        try:
-            idx_x, idx_y = gt
-        except (TypeError, ValueError) as err:
-            raise ParameterError(
-                "gt must be a Correspondence (idx_x, idx_y). Fix: build it with gt_from_vts, gt_from_map "
-                "or gt_identity."
-            ) from err
-        gt = Correspondence(idx_x, idx_y)
+        raise ParameterError(
+            f"gt must be a Correspondence(idx_x, idx_y), got {type(gt).__name__}. Fix: build it with "
+            "Correspondence(idx_x=..., idx_y=...), gt_from_vts, gt_from_map or gt_identity."
+        )
     return Correspondence(*(np.asarray(a, dtype=np.int64) for a in gt))
 
 
@@ -95,7 +92,7 @@ def geodesic_errors(
     Args:
         mesh_x: the source mesh (errors are measured on it).
         p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
-        gt: :class:`Correspondence` ``(idx_x, idx_y)`` (a plain pair is read in that order).
+        gt: :class:`Correspondence` ``(idx_x, idx_y)``; a plain tuple raises ParameterError.
         normalize: divide by ``sqrt(area_x)``.
         max_points: evaluate a random subset of at most this many pairs (None: all).
     """
