@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from torchfmap import Mesh
-from torchfmap.data import icosphere
+from torchfmap.data import icosphere, make_demo_pair
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -19,6 +19,21 @@ def data_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real data not present: {path}")
     return path
+
+
+def bumpy_blob(subdivisions: int) -> Mesh:
+    """The demo blob (an asymmetric bumpy ellipsoid) at ``10 * 4**s + 2`` vertices: the first
+    mesh of :func:`torchfmap.data.make_demo_pair`."""
+    return make_demo_pair(subdivisions)[0]
+
+
+def bend(vertices: np.ndarray, strength: float) -> np.ndarray:
+    """Bend along x around the z axis (radius ``1/strength``): near-isometric and non-rigid, so
+    a bent copy keeps the connectivity and has the identity as ground truth."""
+    radius = 1.0 / strength
+    theta = vertices[:, 0] / radius
+    rr = radius - vertices[:, 1]
+    return np.stack([rr * np.sin(theta), radius - rr * np.cos(theta), vertices[:, 2]], axis=1)
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -83,9 +98,7 @@ def sphere3() -> Mesh:
 @pytest.fixture(scope="session")
 def blob() -> Mesh:
     """An irregular closed mesh: the demo blob at 642 vertices, with jitter."""
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    m = _bumpy_blob(3)
+    m = bumpy_blob(3)
     rng = np.random.default_rng(1)
     return m.copy(m.vertices + 0.01 * rng.normal(size=m.vertices.shape))
 

@@ -9,16 +9,14 @@ import scipy.linalg as sla
 from torchfmap import ParameterError, diffusion_basis, laplacian, load_mesh
 from torchfmap.bases import cf_poles, heat_kernels
 
-from .conftest import data_path, random_rotation
+from .conftest import bumpy_blob, data_path, random_rotation
 
 REL_TIMES = np.array([1e-4, 1e-3, 1e-2, 1e-1])
 
 
 @pytest.fixture(scope="module")
 def setting():
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    mesh = _bumpy_blob(3)
+    mesh = bumpy_blob(3)
     L, B = laplacian(mesh)
     seeds = np.array([0, 101, 333])
     times = REL_TIMES * mesh.area

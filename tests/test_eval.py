@@ -23,7 +23,7 @@ from torchfmap.eval import (
     smoothness,
 )
 
-from .conftest import data_path
+from .conftest import bend, bumpy_blob, data_path
 
 
 def test_geodesic_error_hand_value():
@@ -91,12 +91,11 @@ def test_shape_distance_and_retrieval():
 
 def test_retrieval_on_two_synthetic_classes():
     """Bent blobs and ellipsoids: shape distances from maps separate the classes."""
-    from torchfmap.data.synthetic import _bend, _bumpy_blob
     from torchfmap.pipeline import shape_distance_matrix
 
-    blob = _bumpy_blob(2)
+    blob = bumpy_blob(2)
     sphere = icosphere(2)
-    shapes = [blob.copy(_bend(blob.vertices, s)) for s in (0.1, 0.2, 0.4)]
+    shapes = [blob.copy(bend(blob.vertices, s)) for s in (0.1, 0.2, 0.4)]
     shapes += [sphere.copy(sphere.vertices * np.array([1.6, a, 0.5])) for a in (0.8, 0.9, 1.0)]
     D = shape_distance_matrix(shapes, k=10, k_descriptors=30)
     assert np.allclose(D, D.T) and np.all(np.diag(D) == 0)

@@ -15,12 +15,12 @@ from torchfmap.fmap import (
     zoomout,
 )
 
+from .conftest import bumpy_blob
+
 
 @pytest.fixture(scope="module")
 def bases(request):
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    x = _bumpy_blob(3)
+    x = bumpy_blob(3)
     perm = np.random.default_rng(5).permutation(x.n_vertices)
     y = x.permuted(perm)  # y vertex i is x vertex perm[i]: p2p_yx = perm
     return x, y, perm, laplacian_eigenbasis(x, 40), laplacian_eigenbasis(y, 40)

@@ -6,22 +6,27 @@ import numpy as np
 import pytest
 import torch
 
-from torchfmap import ParameterError, farthest_point_sampling, laplacian, laplacian_eigenbasis, load_mesh
+from torchfmap import (
+    ParameterError,
+    SeedError,
+    farthest_point_sampling,
+    laplacian,
+    laplacian_eigenbasis,
+    load_mesh,
+)
 from torchfmap.bases import basis_stack
 from torchfmap.descriptors import hks, landmark_descriptors, normalize_descriptors, wks
 from torchfmap.eval import evaluate_map, gt_identity
 from torchfmap.fmap import build_problem, fmap_to_p2p, laplacian_mask, solve_fmap, solve_rowwise
 
-from .conftest import data_path
+from .conftest import bend, bumpy_blob, data_path
 
 
 @pytest.fixture(scope="module")
 def pair():
     """The demo blob and a deformed copy with the same connectivity (identity ground truth)."""
-    from torchfmap.data.synthetic import _bend, _bumpy_blob
-
-    x = _bumpy_blob(3)
-    y = x.copy(_bend(x.vertices, 0.25))
+    x = bumpy_blob(3)
+    y = x.copy(bend(x.vertices, 0.25))
     return x, y
 
 
@@ -217,15 +222,12 @@ def test_bad_inputs(pair):
     bad[3, 2] = np.nan
     with pytest.raises(ParameterError, match=r"non-finite values in columns \[2\]"):
         solve_fmap(bx, by, bad, dy)
-    with pytest.raises(SeedErrorOrParam, match="out of range"):
+    with pytest.raises(SeedError, match=r"target landmarks \[5000\] are out of range for a mesh of"):
         solve_fmap(bx, by, dx, dy, landmarks=[[0, 5000]], w_lmk=1.0)
     from torchfmap import harmonic_basis
 
     with pytest.raises(ParameterError, match="not B-orthonormal"):
         solve_fmap(harmonic_basis(x, [0, 10, 20]), by, dx, dy)
-
-
-SeedErrorOrParam = ValueError
 
 
 def _orientation_by_gradients(mesh, basis, F):

@@ -9,12 +9,12 @@ from torchfmap import Mesh, SeedError, farthest_point_sampling, harmonic_basis, 
 from torchfmap.bases import harmonic_functions
 from torchfmap.operators import solvers
 
+from .conftest import bumpy_blob
+
 
 @pytest.fixture(scope="module")
 def seeds_blob(request):
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    mesh = _bumpy_blob(3)
+    mesh = bumpy_blob(3)
     return mesh, farthest_point_sampling(mesh, 12, metric="euclidean")
 
 

@@ -7,18 +7,18 @@ import pytest
 import torch
 
 from torchfmap import ParameterError, basis_stack, farthest_point_sampling, laplacian_eigenbasis
-from torchfmap.fmap import solve_fmap
+from torchfmap.fmap import solve_fmap, solve_rowwise
 from torchfmap.nn import BasisModule, FeatureNet, RegularizedFMSolver, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn import functional as F
 from torchfmap.nn.functional import BasisBatch
 
+from .conftest import bend, bumpy_blob
+
 
 @pytest.fixture(scope="module")
 def setting():
-    from torchfmap.data.synthetic import _bend, _bumpy_blob
-
-    x = _bumpy_blob(2)
-    y = x.copy(_bend(x.vertices, 0.3))
+    x = bumpy_blob(2)
+    y = x.copy(bend(x.vertices, 0.3))
     rng = np.random.default_rng(0)
     dx = rng.normal(size=(x.n_vertices, 5))
     dy = dx + 0.05 * rng.normal(size=dx.shape)
@@ -61,8 +61,6 @@ def test_rowwise_solve_gradients_match_dense_autograd():
     """The custom backward of the row-wise solve (LU reuse, no (..., Ky, Kx, Kx) gradient)
     equals autograd through torch.linalg.solve on explicit systems, with two leading batch
     dimensions and K_y != K_x; second derivatives are right too (gradgradcheck)."""
-    from torchfmap.fmap.core import solve_rowwise
-
     g = torch.Generator().manual_seed(3)
     A_x = torch.randn(2, 3, 7, 5, dtype=torch.float64, generator=g, requires_grad=True)
     A_y = torch.randn(2, 3, 6, 5, dtype=torch.float64, generator=g, requires_grad=True)
@@ -81,6 +79,21 @@ def test_rowwise_solve_gradients_match_dense_autograd():
     torch.testing.assert_close(C, C_ref, rtol=1e-10, atol=1e-12)
     for a, b in zip(grads, grads_ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+    # padding as collate_shapes makes it (zero coefficient rows for padded columns, valid = 0):
+    # padded entries come out exactly 0 and the valid block equals the unpadded solve,
+    # gradients included (same systems, round-off only)
+    valid = torch.zeros(2, 3, 6, 7, dtype=torch.float64)
+    valid[..., :4, :5] = 1
+    pad_x = torch.cat([A_x[..., :5, :], torch.zeros_like(A_x[..., 5:, :])], dim=-2)
+    pad_y = torch.cat([A_y[..., :4, :], torch.zeros_like(A_y[..., 4:, :])], dim=-2)
+    Cp = solve_rowwise(pad_x, pad_y, mask, 1.0, 0.5, valid)
+    Cu = solve_rowwise(A_x[..., :5, :], A_y[..., :4, :], mask[..., :4, :5], 1.0, 0.5)
+    assert Cp[..., 4:, :].abs().max() == 0 and Cp[..., :, 5:].abs().max() == 0
+    torch.testing.assert_close(Cp[..., :4, :5], Cu, rtol=1e-10, atol=1e-12)
+    gp = torch.autograd.grad((Cp[..., :4, :5] * R[..., :4, :5]).sum(), (A_x, A_y))
+    gu = torch.autograd.grad((Cu * R[..., :4, :5]).sum(), (A_x, A_y))
+    torch.testing.assert_close(gp[0][..., :5, :], gu[0][..., :5, :], rtol=1e-9, atol=1e-11)
+    torch.testing.assert_close(gp[1][..., :4, :], gu[1][..., :4, :], rtol=1e-9, atol=1e-11)
     small = [t.detach()[:1, :1].clone().requires_grad_() for t in (A_x, A_y, mask)]
     assert torch.autograd.gradgradcheck(lambda a, b, m: solve_rowwise(a, b, m, 1.0, 0.5), small)
 
@@ -130,10 +143,8 @@ def test_batched_equals_per_pair(setting):
 
 
 def test_padded_variable_size_batch_equals_unpadded(setting):
-    from torchfmap.data.synthetic import _bumpy_blob
-
     x, y, dx, dy, eig, stack = setting
-    small = _bumpy_blob(1)  # 42 vertices vs 162
+    small = bumpy_blob(1)  # 42 vertices vs 162
     bs = laplacian_eigenbasis(small, 5)
     ds = np.random.default_rng(1).normal(size=(small.n_vertices, 5))
 

@@ -14,17 +14,15 @@ from torchfmap.eval import gt_from_vts, read_vts
 from torchfmap.nn.data import PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
 from torchfmap.nn.train import TrainConfig, build_model, ddp_worker, evaluate, load_checkpoint, train
 
-from .conftest import data_path
+from .conftest import bend, bumpy_blob, data_path
 
 
 @pytest.fixture(scope="module")
 def blob_files(tmp_path_factory):
-    from torchfmap.data.synthetic import _bend, _bumpy_blob
-
     folder = tmp_path_factory.mktemp("blobs")
-    base = _bumpy_blob(2)
+    base = bumpy_blob(2)
     return [
-        save_mesh(base.copy(_bend(base.vertices, s)), folder / f"blob{i}.off")
+        save_mesh(base.copy(bend(base.vertices, s)), folder / f"blob{i}.off")
         for i, s in enumerate((0.1, 0.3, 0.5))
     ]
 

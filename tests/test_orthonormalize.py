@@ -8,12 +8,12 @@ import pytest
 from torchfmap import Basis, ParameterError, basis_stack, farthest_point_sampling, laplacian
 from torchfmap.bases import Column, CorruptFileError, cholqr, mgs, orthonormalize, support_fraction
 
+from .conftest import bumpy_blob
+
 
 @pytest.fixture(scope="module")
 def stack_input(request):
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    mesh = _bumpy_blob(3)
+    mesh = bumpy_blob(3)
     L, B = laplacian(mesh)
     rng = np.random.default_rng(3)
     F = rng.normal(size=(mesh.n_vertices, 12))

@@ -10,16 +10,14 @@ from torchfmap.cli import main
 from torchfmap.eval import Correspondence, evaluate_map, gt_identity, landmarks_from_gt
 from torchfmap.pipeline import match
 
-from .conftest import data_path
+from .conftest import bend, bumpy_blob, data_path
 
 
 @pytest.fixture(scope="module")
 def pair():
-    from torchfmap.data.synthetic import _bend, _bumpy_blob
-
-    x = _bumpy_blob(3)
+    x = bumpy_blob(3)
     perm = np.random.default_rng(2).permutation(x.n_vertices)
-    y = x.copy(_bend(x.vertices, 0.3)).permuted(perm)
+    y = x.copy(bend(x.vertices, 0.3)).permuted(perm)
     gt = Correspondence(idx_x=perm, idx_y=np.arange(y.n_vertices))
     return x, y, gt
 
@@ -125,9 +123,7 @@ def test_cli_eval_on_identity_folder(tmp_path, capsys):
 
 
 def test_identity_gt_on_self_match():
-    from torchfmap.data.synthetic import _bumpy_blob
-
-    x = _bumpy_blob(2)
+    x = bumpy_blob(2)
     result = match(x, x, k=20)
     report, _ = evaluate_map(x, x, result.p2p_yx, gt_identity(x.n_vertices))
     assert report.mean_error < 0.02
