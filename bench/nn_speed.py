@@ -7,7 +7,7 @@ writes it to ``bench/results/nn_speed.md``)::
     python3 bench/nn_speed.py --nn-n 2000 --nn-dim 20     # quick check
 
 (Part (b) of ``bench/match_speed.py``, which still runs it unless ``--no-nn``.)
-``torchfmap.fmap.nearest_neighbor(query, reference, method='brute')`` with ``--nn-n`` x ``--nn-n``
+``torchfmap.fmap.nearest_neighbor(query, reference, search='brute')`` with ``--nn-n`` x ``--nn-n``
 points in ``--nn-dim`` dimensions (reference Gaussian, query a shuffled copy plus 1e-3 noise, so
 the answer is known) for every ``block_bytes`` of ``--nn-blocks`` (32 MiB and 128 MiB): wall time
 and peak resident memory (``VmHWM`` reset through ``/proc/self/clear_refs``) of one untraced
@@ -74,7 +74,7 @@ def cases(query, reference, blocks: list[int]) -> list[tuple[str, Callable[[], n
     out: list[tuple[str, Callable[[], np.ndarray]]] = [
         (
             f"ours block_bytes={mb} MiB",
-            lambda mb=mb: nearest_neighbor(query, reference, method="brute", block_bytes=mb * MiB),
+            lambda mb=mb: nearest_neighbor(query, reference, search="brute", block_bytes=mb * MiB),
         )
         for mb in blocks
     ]

@@ -126,7 +126,7 @@ def measure(mesh: torchfmap.Mesh, ops, seeds: np.ndarray, eps: float, heat_tol: 
         "harmonic": harmonic,
         "diffusion+harmonic": concatenate([diffusion, harmonic]),
     }
-    ortho = {name: orthonormalize(basis, method="mgs") for name, basis in stacks.items()}
+    ortho = {name: orthonormalize(basis, scheme="mgs") for name, basis in stacks.items()}
     res.support_input = per_scale_support(diffusion, eps)
     res.support_ortho = per_scale_support(ortho["diffusion"], eps)
     for name in STACKS:
@@ -136,7 +136,7 @@ def measure(mesh: torchfmap.Mesh, ops, seeds: np.ndarray, eps: float, heat_tol: 
     times = np.array([c.time for c in diffusion.columns])
     for t in TIMES:
         block = diffusion.values[:, np.isclose(times, t, rtol=1e-9, atol=0.0)]
-        res.rank_alone[t] = orthonormalize(Basis(block, diffusion.mass), method="mgs").k
+        res.rank_alone[t] = orthonormalize(Basis(block, diffusion.mass), scheme="mgs").k
     res.seconds = time.perf_counter() - start
     return res
 

@@ -36,7 +36,7 @@ def test_nearest_neighbor_equals_brute_force(rng, method, precision):
     # (Gaussian data: every row's best and second-best distances differ far beyond float32 round-off)
     assert np.min(np.diff(np.sort(d2, axis=1)[:, :2], axis=1)) > 1e-5
     got, dist = nearest_neighbor(
-        q, r, method=method, precision=precision, block_bytes=8 * 200 * 7, return_distance=True
+        q, r, search=method, precision=precision, block_bytes=8 * 200 * 7, return_distance=True
     )
     assert np.array_equal(got, expected)
     assert np.allclose(dist, np.linalg.norm(q - r[expected], axis=1))

@@ -276,17 +276,17 @@ def test_discover_pairs(tmp_path, sphere2):
         save_mesh(sphere2, tmp_path / f"{name}.off")
     pairs = list(discover_pairs(tmp_path))
     assert [(a, b) for a, b, *_ in pairs] == [("a", "b"), ("b", "c")]
-    idx_y, idx_x = pairs[0][4]
-    np.testing.assert_array_equal(idx_y, np.arange(sphere2.n_vertices))
-    np.testing.assert_array_equal(idx_x, idx_y)
+    gt = pairs[0][4]
+    np.testing.assert_array_equal(gt.idx_y, np.arange(sphere2.n_vertices))
+    np.testing.assert_array_equal(gt.idx_x, gt.idx_y)
     (tmp_path / "corres").mkdir()
     np.savetxt(tmp_path / "corres" / "a.vts", [1, 5, 7], fmt="%d")
     np.savetxt(tmp_path / "corres" / "c.vts", [2, 3, 9], fmt="%d")
     (tmp_path / "test_pairs.txt").write_text("c a\n")
     (only,) = list(discover_pairs(tmp_path))
     assert only[:2] == ("c", "a")
-    np.testing.assert_array_equal(only[4][0], [0, 4, 6])  # idx_y: vertices of a
-    np.testing.assert_array_equal(only[4][1], [1, 2, 8])  # idx_x: vertices of c
+    np.testing.assert_array_equal(only[4].idx_x, [1, 2, 8])  # source x = c
+    np.testing.assert_array_equal(only[4].idx_y, [0, 4, 6])  # target y = a
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(ParameterError, match="fewer than two meshes"):

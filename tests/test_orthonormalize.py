@@ -47,7 +47,7 @@ def test_mgs_and_cholqr_agree_on_span(stack_input):
 def test_orthonormalize_records_provenance(stack_input):
     mesh, (L, B), F = stack_input
     prov = [Column("custom", seed=i) for i in range(F.shape[1])]
-    ortho = orthonormalize(Basis(F, B, prov), method="mgs")
+    ortho = orthonormalize(Basis(F, B, prov), scheme="mgs")
     assert ortho.orthonormal and ortho.k == 10
     assert [c.seed for c in ortho.dropped] == [4, 9]
     assert [c.seed for c in ortho.columns] == [0, 1, 2, 3, 5, 6, 7, 8, 10, 11]
@@ -82,10 +82,10 @@ def test_pair_drops_the_same_columns_on_both_shapes(stack_input, method):
 def test_bad_orthonormalisation_arguments(stack_input):
     mesh, (L, B), F = stack_input
     basis = Basis(F, B)
-    with pytest.raises(ParameterError, match="unknown orthonormalisation method"):
-        orthonormalize(basis, method="householder")
+    with pytest.raises(ParameterError, match="unknown orthonormalisation scheme"):
+        orthonormalize(basis, scheme="householder")
     with pytest.raises(ParameterError, match="cholqr resolves linear dependence only down to"):
-        orthonormalize(basis, method="cholqr", tol=1e-10)
+        orthonormalize(basis, scheme="cholqr", tol=1e-10)
     with pytest.raises(ParameterError, match=r"tol must be in \(0, 1\)"):
         orthonormalize(basis, tol=0)
 

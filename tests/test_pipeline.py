@@ -127,3 +127,27 @@ def test_identity_gt_on_self_match():
     result = match(x, x, k=20)
     report, _ = evaluate_map(x, x, result.p2p_yx, gt_identity(x.n_vertices))
     assert report.mean_error < 0.02
+
+
+def test_match_steps_one_by_one_equal_match(pair):
+    """match() is the composition of its public steps: running them by hand gives the same map."""
+    from torchfmap import MatchResult
+    from torchfmap.fmap import fmap_to_p2p, solve_fmap
+    from torchfmap.pipeline import W_LAP, match_bases, match_descriptors, prepare_shape, refine_map
+
+    x, y, gt = pair
+    lm = landmarks_from_gt(x, gt, 6)
+    result = match(x, y, landmarks=lm, basis="laplacian", k=20, refine="icp", k_descriptors=40)
+    assert isinstance(result, MatchResult)
+    sx, sy = prepare_shape(x, 40), prepare_shape(y, 40)
+    bx, by = match_bases(sx, sy, "laplacian", 20, lm)
+    assert bx.k == by.k == 20 and bx.stiffness is not None
+    dx, dy = match_descriptors(sx, sy, lm, k_descriptors=40)
+    C = solve_fmap(
+        bx, by, dx, dy, w_lap=W_LAP["laplacian"], w_orient=1e-2, meshes=(x, y), landmarks=lm, w_lmk=1.0
+    )
+    p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
+    np.testing.assert_array_equal(p2p, result.p2p_yx_initial)
+    C, p2p = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
+    np.testing.assert_array_equal(p2p, result.p2p_yx)
+    np.testing.assert_array_equal(C, result.C_xy)

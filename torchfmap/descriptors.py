@@ -23,19 +23,28 @@ def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, n
     evals = np.asarray(evals, dtype=np.float64)
     evecs = np.asarray(evecs, dtype=np.float64)
     if evecs.ndim != 2 or evals.shape != (evecs.shape[1],):
-        raise ParameterError(f"evals {evals.shape} and evecs {evecs.shape} disagree: need (k,) and (V, k).")
+        raise ParameterError(
+            f"eigenvalues {evals.shape} and eigenvectors {evecs.shape} disagree: need (k,) and (V, k)."
+        )
     if evals.size < 2:
         raise ParameterError("spectral descriptors need at least 2 eigenpairs.")
     return evals, evecs
 
 
-def hks(evals, evecs, n_times: int = 16, times=None) -> np.ndarray:
-    """Heat kernel signature ``Σ_k exp(-λ_k t) φ_k(x)²``: ``(V, n_times)``.
+def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndarray:
+    """Heat kernel signature ``Σ_k exp(-λ_k t) φ_k(x)²``: ``(V, T)``.
 
-    Default times are log-spaced in ``[4 ln 10 / λ_max, 4 ln 10 / λ_1]`` (Sun et al. 2009), so
-    they follow the shape's scale.
+    Args:
+        eigenvalues, eigenvectors: ``(k,)``, ``(V, k)`` eigenpairs of ``L φ = λ B φ``.
+        n_times: number of default times, log-spaced in ``[4 ln 10 / λ_max, 4 ln 10 / λ_1]``
+            (Sun et al. 2009), so they follow the shape's scale.
+        abs_times: ``(T,)`` absolute times (> 0) instead of the default ones.
+
+    Raises:
+        ParameterError: mismatched eigenpairs, fewer than 2, or a time <= 0.
     """
-    evals, evecs = _check_spectrum(evals, evecs)
+    evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
+    times = abs_times
     if times is None:
         lam1 = evals[evals > 1e-10 * evals.max()].min()
         times = np.geomspace(4 * np.log(10) / evals.max(), 4 * np.log(10) / lam1, n_times)
@@ -56,9 +65,9 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.
     return w / np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
 
 
-def wks(evals, evecs, n_energies: int = 100, sigma_factor: float = 7.0) -> np.ndarray:
+def wks(eigenvalues, eigenvectors, n_energies: int = 100, sigma_factor: float = 7.0) -> np.ndarray:
     """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``."""
-    evals, evecs = _check_spectrum(evals, evecs)
+    evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
     return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
 
 

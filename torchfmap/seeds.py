@@ -13,12 +13,24 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import check_vertex_indices
+from ._checks import check_seeds_cover_components, check_vertex_indices
 from .bases.diffusion import heat_kernels
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import GeodesicSolver
 from .operators.laplacian import Operators, laplacian, mass_matrix
+
+__all__ = [
+    "check_seeds_cover_components",
+    "coverage_seeds",
+    "curvature",
+    "curvature_features",
+    "farthest_point_sampling",
+    "gaussian_curvature",
+    "heat_support_radius",
+    "max_curvature_vertex",
+    "mean_curvature",
+]
 
 CurvatureKind = Literal["mean", "gaussian", "abs_mean"]
 

@@ -180,9 +180,9 @@ class Basis:
         eig = None if self.eigenvalues is None else self.eigenvalues[:k]
         return Basis(self.values[:, :k], self.mass, prov, self.orthonormal, self.stiffness, eig)
 
-    def orthonormalized(self, method: str = "mgs", tol: float | None = None) -> Basis:
+    def orthonormalized(self, scheme: str = "mgs", tol: float | None = None) -> Basis:
         """A B-orthonormal basis of the same span (dependent columns dropped, recorded)."""
-        return orthonormalize(self, method=method, tol=tol)
+        return orthonormalize(self, scheme=scheme, tol=tol)
 
     def support(self, eps: float = 1e-3, weighted: bool = False) -> np.ndarray:
         """``(K,)`` support fraction of each column; see :func:`support_fraction`."""

@@ -291,7 +291,7 @@ def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None
 def heat_apply(
     operators: Operators,
     X: np.ndarray,
-    times,
+    abs_times,
     method: Method = "krylov",
     *,
     tol: float = 1e-8,
@@ -300,7 +300,7 @@ def heat_apply(
 ) -> np.ndarray:
     """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``."""
     L, B = operators
-    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
     if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
         raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}.")
     if method not in METHODS:
@@ -367,7 +367,7 @@ def _local_kernel(L, B, graph, seed, t, mean_edge, method, kernel, tol, n_steps,
 def heat_kernels(
     operators: Operators,
     seeds,
-    times,
+    abs_times,
     method: Method = "krylov",
     *,
     kernel: Literal["delta", "indicator"] = "delta",
@@ -382,7 +382,7 @@ def heat_kernels(
     Args:
         operators: ``(L, B)`` of the mesh (``L`` symmetric).
         seeds: ``(S,)`` vertex indices.
-        times: ``(T,)`` absolute times (> 0).
+        abs_times: ``(T,)`` absolute times (> 0).
         method: see the module docstring.
         kernel: ``'delta'`` (``exp(-tA) B⁻¹ e_p``, default) or ``'indicator'`` (``exp(-tA) e_p``).
         tol: relative accuracy target (Krylov convergence, CF order, local patch radius).
@@ -392,7 +392,7 @@ def heat_kernels(
     L, B = operators
     n = L.shape[0]
     seeds = check_vertex_indices(seeds, n, "seeds")
-    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
     if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):
         raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}. Fix: t > 0.")
     check_symmetric(L, "heat kernels", "laplacian(mesh, kind='cotan') or kind='robust'")

@@ -1,6 +1,6 @@
 """B-orthonormalisation with removal of numerically dependent columns.
 
-Two methods, both processing columns *in the given order* (so a stack ordered diffusion ->
+Two schemes, both processing columns *in the given order* (so a stack ordered diffusion ->
 harmonic -> Laplacian keeps the earliest columns and drops later ones that add nothing):
 
 ``mgs``
@@ -29,7 +29,7 @@ from ..errors import ParameterError
 if TYPE_CHECKING:  # annotations only: basis.py imports this module (Basis.orthonormalized)
     from .basis import Basis, Column
 
-METHODS = ("mgs", "cholqr")
+SCHEMES = ("mgs", "cholqr")
 #: Columns projected out together in :func:`mgs` (block-modified Gram-Schmidt: BLAS-2 speed,
 #: with the re-orthogonalisation pass keeping orthogonality at machine precision).
 MGS_BLOCK = 16
@@ -115,31 +115,31 @@ DEFAULT_TOL = {"mgs": 1e-8, "cholqr": 1e-7}
 CHOLQR_MIN_TOL = 1e-7
 
 
-def orthonormalize(basis: Basis, method: str = "mgs", tol: float | None = None) -> Basis:
+def orthonormalize(basis: Basis, scheme: str = "mgs", tol: float | None = None) -> Basis:
     """A B-orthonormal :class:`Basis` spanning the same functions, with dropped columns recorded.
 
     Args:
         basis: input functions (any :class:`Basis`; its kept columns are processed in order).
-        method: ``'mgs'`` (default) or ``'cholqr'``.
+        scheme: ``'mgs'`` (default) or ``'cholqr'``.
         tol: relative tolerance below which a column counts as dependent on the earlier ones
-            (default :data:`DEFAULT_TOL` of the method).
+            (default :data:`DEFAULT_TOL` of the scheme).
     """
-    tol = _check(method, tol)
-    Q, kept = (mgs if method == "mgs" else cholqr)(basis.values, basis.mass, tol)
+    tol = _check(scheme, tol)
+    Q, kept = (mgs if scheme == "mgs" else cholqr)(basis.values, basis.mass, tol)
     return _with_kept(basis, Q, kept)
 
 
-def _check(method: str, tol: float | None) -> float:
-    if method not in METHODS:
-        raise ParameterError(f"unknown orthonormalisation method {method!r}. Fix: use one of {METHODS}.")
-    tol = DEFAULT_TOL[method] if tol is None else float(tol)
+def _check(scheme: str, tol: float | None) -> float:
+    if scheme not in SCHEMES:
+        raise ParameterError(f"unknown orthonormalisation scheme {scheme!r}. Fix: use one of {SCHEMES}.")
+    tol = DEFAULT_TOL[scheme] if tol is None else float(tol)
     if not 0 < tol < 1:
         raise ParameterError(f"tol must be in (0, 1), got {tol}.")
-    if method == "cholqr" and tol < CHOLQR_MIN_TOL:
+    if scheme == "cholqr" and tol < CHOLQR_MIN_TOL:
         raise ParameterError(
             f"cholqr resolves linear dependence only down to {CHOLQR_MIN_TOL:g} (its Gram matrix "
             f"squares the condition number), got tol={tol:g}. Fix: use tol >= {CHOLQR_MIN_TOL:g} or "
-            "method='mgs'."
+            "scheme='mgs'."
         )
     return tol
 
@@ -160,7 +160,7 @@ def _with_kept(basis: Basis, Q: np.ndarray, kept: np.ndarray) -> Basis:
 
 
 def orthonormalize_pair(
-    basis_x: Basis, basis_y: Basis, method: str = "mgs", tol: float | None = None
+    basis_x: Basis, basis_y: Basis, scheme: str = "mgs", tol: float | None = None
 ) -> tuple[Basis, Basis]:
     """Orthonormalise two bases of *corresponding* columns, dropping the same columns on both.
 
@@ -174,13 +174,13 @@ def orthonormalize_pair(
     Returns:
         ``(Φ_x (V_x, R), Φ_y (V_y, R))``, B-orthonormal, with identical kept/dropped provenance.
     """
-    tol = _check(method, tol)
+    tol = _check(scheme, tol)
     if basis_x.k != basis_y.k:
         raise ParameterError(
             f"the bases have {basis_x.k} and {basis_y.k} columns; corresponding bases need the same "
             "columns. Fix: build both from the same seeds (landmark pairs) and parameters."
         )
-    fn = mgs if method == "mgs" else cholqr
+    fn = mgs if scheme == "mgs" else cholqr
     active = np.arange(basis_x.k)
     while True:
         Qx, kx = fn(basis_x.values[:, active], basis_x.mass, tol)

@@ -77,4 +77,4 @@ def basis_stack(
     stacked.stiffness = ops[0]
     if orthonormalization is None:
         return stacked
-    return orthonormalize(stacked, method=orthonormalization, tol=tol)
+    return orthonormalize(stacked, scheme=orthonormalization, tol=tol)

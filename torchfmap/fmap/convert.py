@@ -29,7 +29,7 @@ def nearest_neighbor(
     query: np.ndarray,
     reference: np.ndarray,
     *,
-    method: Literal["auto", "brute", "kdtree"] = "auto",
+    search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "double",
     block_bytes: int = NN_BLOCK_BYTES,
     return_distance: bool = False,
@@ -38,7 +38,7 @@ def nearest_neighbor(
 
     Brute force evaluates ``|r|² - 2 q·r`` for a block of queries at a time in one reused
     ``(block, N)`` buffer of at most ``block_bytes`` (memory is bounded whatever ``M`` and
-    ``N``); a KD-tree is used for low dimensions under ``method='auto'``. Ties go to the
+    ``N``); a KD-tree is used for low dimensions under ``search='auto'``. Ties go to the
     lowest index.
 
     ``precision='single'`` runs the brute-force products in float32 (faster: see
@@ -55,13 +55,13 @@ def nearest_neighbor(
         raise ParameterError("nearest-neighbour inputs contain NaN or inf. Fix: check the map and bases.")
     if precision not in ("double", "single"):
         raise ParameterError(f"unknown precision {precision!r}. Fix: 'double' or 'single'.")
-    if method == "auto":
-        method = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
-    if method == "kdtree":
+    if search == "auto":
+        search = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
+    if search == "kdtree":
         dist, idx = cKDTree(reference).query(query, k=1)
         return (idx.astype(np.int64), dist) if return_distance else idx.astype(np.int64)
-    if method != "brute":
-        raise ParameterError(f"unknown method {method!r}. Fix: 'auto', 'brute' or 'kdtree'.")
+    if search != "brute":
+        raise ParameterError(f"unknown search {search!r}. Fix: 'auto', 'brute' or 'kdtree'.")
     dtype = np.float32 if precision == "single" else np.float64
     # |r|² - 2 q·r as ONE product [q, 1] · [-2r, |r|²]ᵀ (|q|² is constant per row: not needed
     # for the argmin), so each block costs a GEMM and an argmin, no elementwise passes
@@ -102,7 +102,7 @@ def fmap_to_p2p(
     basis_y: Basis,
     *,
     mode: Literal["pullback", "orthogonal"] = "pullback",
-    method: Literal["auto", "brute", "kdtree"] = "auto",
+    search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
 ) -> np.ndarray:
     """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis).
@@ -114,9 +114,9 @@ def fmap_to_p2p(
     ky, kx = C_xy.shape
     phi_x, phi_y = basis_x.values[:, :kx], basis_y.values[:, :ky]
     if mode == "pullback":
-        return nearest_neighbor(phi_y @ C_xy, phi_x, method=method, precision=precision)
+        return nearest_neighbor(phi_y @ C_xy, phi_x, search=search, precision=precision)
     if mode == "orthogonal":
-        return nearest_neighbor(phi_y, phi_x @ C_xy.T, method=method, precision=precision)
+        return nearest_neighbor(phi_y, phi_x @ C_xy.T, search=search, precision=precision)
     raise ParameterError(f"unknown mode {mode!r}. Fix: 'pullback' or 'orthogonal'.")
 
 
@@ -126,7 +126,7 @@ def fmap_to_p2p_bijective(
     basis_x: Basis,
     basis_y: Basis,
     *,
-    method: Literal["auto", "brute", "kdtree"] = "auto",
+    search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
 ) -> np.ndarray:
     """``p2p_yx`` that is consistent with both directions (Ren et al. 2021's bijective term).
@@ -143,7 +143,7 @@ def fmap_to_p2p_bijective(
     phi_x, phi_y = basis_x.values[:, :kx], basis_y.values[:, :ky]
     emb_y = np.hstack([phi_y @ C_xy, phi_y])
     emb_x = np.hstack([phi_x, phi_x @ C_yx])
-    return nearest_neighbor(emb_y, emb_x, method=method, precision=precision)
+    return nearest_neighbor(emb_y, emb_x, search=search, precision=precision)
 
 
 def check_p2p(p2p: np.ndarray, n_target: int, n_source: int, name: str = "p2p") -> np.ndarray:
