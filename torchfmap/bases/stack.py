@@ -74,7 +74,6 @@ def basis_stack(
     if not parts:
         raise ParameterError("empty stack. Fix: give times, harmonic=True or n_eigen > 0.")
     stacked = concatenate(parts)
-    stacked.stiffness = ops[0]
     if orthonormalization is None:
         return stacked
     return orthonormalize(stacked, scheme=orthonormalization, tol=tol)
