@@ -8,6 +8,7 @@
   round-off, with one tolerance rule (:func:`symmetry_tolerance`).
 - :func:`lumped_diagonal` / :func:`check_lumped_mass`: whether a mass matrix is lumped
   (diagonal), and its diagonal.
+- :func:`check_tolerance`: a relative accuracy target in ``[TOL_MIN, TOL_MAX)``.
 
 Every error names the problem and the fix (``... Fix: ...``).
 """
@@ -180,3 +181,29 @@ def check_lumped_mass(
             f"(e.g. mass='fem'). Fix: {fix}."
         )
     return d
+
+
+# -- tolerances ------------------------------------------------------------------------------
+#: Smallest relative tolerance an iterative method is asked for: a few units of double round-off.
+TOL_MIN = 1e-14
+#: Tolerances at or above this leave nothing of the answer (errors of 100 %).
+TOL_MAX = 1.0
+
+
+def check_tolerance(tol, what: str = "tol") -> float:
+    """A relative accuracy target as a float in ``[TOL_MIN, TOL_MAX)``.
+
+    Raises :class:`ParameterError` for NaN, inf, values <= 0 (which would make iterative
+    refinement loops chase an unreachable target), values below double round-off, and values
+    >= 1 (a 100 % error bound is no bound).
+    """
+    try:
+        value = float(tol)
+    except (TypeError, ValueError) as err:
+        raise ParameterError(f"{what} must be a number, got {tol!r}. Fix: e.g. {what}=1e-6.") from err
+    if not np.isfinite(value) or not TOL_MIN <= value < TOL_MAX:
+        raise ParameterError(
+            f"{what} must be a relative accuracy in [{TOL_MIN:g}, {TOL_MAX:g}), got {tol!r}. "
+            f"Fix: e.g. {what}=1e-6 (smaller is more accurate and slower)."
+        )
+    return value

@@ -231,8 +231,8 @@ def coverage_seeds(
     Returns:
         ``(S,)`` seeds (landmarks first).
     """
-    if time <= 0:
-        raise ParameterError(f"diffusion time must be > 0, got t={time}.")
+    if not np.isfinite(time) or time <= 0:
+        raise ParameterError(f"diffusion time must be finite and > 0, got t={time}. Fix: e.g. t=1e-2.")
     if not 0 < eps < 1:
         raise ParameterError(f"eps must be in (0, 1), got {eps}.")
     ops = operators if operators is not None else laplacian(mesh)

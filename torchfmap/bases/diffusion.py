@@ -44,7 +44,13 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .._checks import check_seeds_cover_components, check_symmetric, check_vertex_indices, lumped_diagonal
+from .._checks import (
+    check_seeds_cover_components,
+    check_symmetric,
+    check_tolerance,
+    check_vertex_indices,
+    lumped_diagonal,
+)
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.laplacian import Operators, laplacian
@@ -61,6 +67,8 @@ LOCAL_MAX_FRACTION = 0.25
 #: ``local='auto'`` tries patches only for times whose Gaussian support is below this fraction
 #: of the area: beyond it, one global Krylov solve shared by all seeds is cheaper.
 LOCAL_AUTO_FRACTION = 0.05
+#: Most times a local patch grows by 1.5x (1.5^40 ~ 1e7 times the first radius: past any mesh).
+LOCAL_MAX_GROWTH = 40
 #: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
 KRYLOV_BLOCK_BYTES = 512 * 2**20
 #: Seeds per Krylov block: multi-column sparse solves cost less per column, but a block's work
@@ -298,8 +306,13 @@ def heat_apply(
     n_steps: int = 1,
     n_eigen: int = 200,
 ) -> np.ndarray:
-    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``."""
+    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``.
+
+    Raises :class:`ParameterError` for times that are not finite and > 0, an unknown method, or
+    ``tol`` outside ``[1e-14, 1)`` (:func:`~torchfmap._checks.check_tolerance`).
+    """
     L, B = operators
+    tol = check_tolerance(tol)
     times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
     if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
         raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}.")
@@ -349,7 +362,7 @@ def _local_kernel(L, B, graph, seed, t, mean_edge, method, kernel, tol, n_steps,
     """
     n = L.shape[0]
     radius = max(np.sqrt(4.0 * t * np.log(1.0 / tol)), 3.0 * mean_edge)
-    while True:
+    for _ in range(LOCAL_MAX_GROWTH):
         dist = dijkstra(graph, indices=seed, limit=radius)
         patch = np.flatnonzero(np.isfinite(dist))
         if local == "auto" and len(patch) > LOCAL_MAX_FRACTION * n:
@@ -362,6 +375,7 @@ def _local_kernel(L, B, graph, seed, t, mean_edge, method, kernel, tol, n_steps,
         if len(patch) == n or np.abs(vals[band]).max(initial=0.0) <= tol * np.abs(vals).max():
             return patch, vals
         radius *= 1.5
+    return None  # the patch never settled: the caller solves this seed globally
 
 
 def heat_kernels(
@@ -391,6 +405,7 @@ def heat_kernels(
     """
     L, B = operators
     n = L.shape[0]
+    tol = check_tolerance(tol)
     seeds = check_vertex_indices(seeds, n, "seeds")
     times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
     if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):

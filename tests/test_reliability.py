@@ -1,0 +1,65 @@
+"""Bad input gets a clear error naming the problem and the fix, never a hang or a silent wrong answer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, basis_stack, diffusion_basis, heat_kernels, laplacian
+from torchfmap.cli import main
+from torchfmap.data import icosphere
+from torchfmap.seeds import coverage_seeds
+
+BAD_TOLERANCES = [0.0, -1.0, float("nan"), float("inf"), 2.0, 1.0, 1e-20]
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return icosphere(2)
+
+
+@pytest.mark.parametrize("tol", BAD_TOLERANCES)
+def test_heat_tolerance_out_of_range_is_refused(sphere, tol):
+    """tol <= 0 or NaN used to loop for ever growing local patches; tol >= 1 returned kernels
+    that were mostly wrong; tol=0 divided by zero. Each is now refused before any work."""
+    ops = laplacian(sphere)
+    with pytest.raises(ParameterError, match=r"tol must be a relative accuracy.*Fix"):
+        heat_kernels(ops, [0, 5], [1e-3], tol=tol, local=True, vertices=sphere.vertices)
+    with pytest.raises(ParameterError, match="tol must be"):
+        diffusion_basis(sphere, [0, 5], [1e-3], tol=tol)
+    with pytest.raises(ParameterError, match="tol must be"):
+        basis_stack(sphere, [0, 5], times=[1e-3], heat_tol=tol)
+
+
+def test_heat_tolerance_in_range_is_accepted(sphere):
+    """The bounds are inclusive at the bottom: the most demanding accepted tolerance still works."""
+    K = heat_kernels(laplacian(sphere), [0], [1e-2], tol=1e-14)
+    assert np.isfinite(K).all()
+
+
+def test_cli_basis_bad_tolerance_is_a_clear_error(tmp_path, sphere, capsys):
+    from torchfmap import save_mesh
+
+    path = save_mesh(sphere, tmp_path / "s.off")
+    code = main(
+        [
+            "basis",
+            str(path),
+            "--seeds",
+            "4",
+            "--kind",
+            "diffusion",
+            "--tol",
+            "-1",
+            "--out",
+            str(tmp_path / "b.npz"),
+        ]
+    )
+    assert code != 0
+    assert "tol must be" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("t", [0.0, -1.0, float("nan"), float("inf")])
+def test_coverage_seeds_bad_time(sphere, t):
+    with pytest.raises(ParameterError, match="diffusion time must be finite and > 0"):
+        coverage_seeds(sphere, t)
