@@ -63,3 +63,39 @@ def test_cli_basis_bad_tolerance_is_a_clear_error(tmp_path, sphere, capsys):
 def test_coverage_seeds_bad_time(sphere, t):
     with pytest.raises(ParameterError, match="diffusion time must be finite and > 0"):
         coverage_seeds(sphere, t)
+
+
+@pytest.mark.parametrize("which", ["all", "half"])
+def test_flipped_faces_are_reoriented_and_reported(which):
+    """A target with flipped faces (all, or every other one) used to be matched as its mirror
+    image through the orientation term. The mesh is re-oriented on construction (closed
+    components outward), with a MeshWarning, and matches exactly like the original."""
+    from torchfmap import Mesh, MeshWarning, match
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    y = x.copy(bend(x.vertices, 0.3))
+    faces = y.faces.copy()
+    rows = slice(None) if which == "all" else slice(None, None, 2)
+    faces[rows] = faces[rows][:, ::-1]
+    with pytest.warns(MeshWarning, match="reversed the corner order"):
+        flipped = Mesh(y.vertices, faces)
+    assert flipped.report.n_flipped_faces == len(faces[rows])
+    np.testing.assert_array_equal(flipped.faces, y.faces)
+    a = match(x, y, k=15, k_descriptors=30)
+    b = match(x, flipped, k=15, k_descriptors=30)
+    np.testing.assert_array_equal(a.p2p_yx, b.p2p_yx)
+
+
+def test_consistent_mesh_is_left_alone(sphere):
+    """An outward, consistent mesh is not touched (no warning, same faces)."""
+    import warnings
+
+    from torchfmap import Mesh
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = Mesh(sphere.vertices, sphere.faces)
+    assert m.report.n_flipped_faces == 0
+    np.testing.assert_array_equal(m.faces, sphere.faces)

@@ -7,26 +7,33 @@ boundary, components) are computed lazily and cached.
 
 Validation (:func:`validate_mesh`) raises :class:`~torchfmap.errors.MeshError` for inputs
 that would give silently wrong operators, with a message naming the problem and the fix,
-and reports (without failing) properties such as holes.
+and reports (without failing) properties such as holes. :class:`Mesh` also orients every
+component consistently (:func:`orient_faces`), warns when it had to, and records it in
+``mesh.report.n_flipped_faces``: the orientation term of the functional-map solver reads the
+normals, and a shape with flipped faces would otherwise be matched as its mirror image.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 import trimesh
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-from .errors import MeshError, _preview
+from .errors import MeshError, MeshWarning, _preview
 
 log = logging.getLogger(__name__)
 
 #: Faces whose area is below ``DEGENERATE_RTOL * mean_edge_length**2`` count as degenerate.
 DEGENERATE_RTOL = 1e-12
+#: Components with at most this fraction of boundary edges count as closed for orientation.
+CLOSED_BOUNDARY_FRACTION = 0.02
 
 
 @dataclass(frozen=True)
@@ -40,6 +47,9 @@ class MeshReport:
     n_boundary_loops: int
     unreferenced: np.ndarray = field(repr=False)
     euler_characteristic: int = 0
+    #: faces whose corner order :class:`Mesh` reversed to orient every component consistently
+    #: (and closed components outward); 0 when the file was already consistent.
+    n_flipped_faces: int = 0
 
     @property
     def is_closed(self) -> bool:
@@ -47,9 +57,10 @@ class MeshReport:
 
     def summary(self) -> str:
         holes = "closed" if self.is_closed else f"{self.n_boundary_loops} boundary loop(s)"
+        flipped = f", {self.n_flipped_faces} faces re-oriented" if self.n_flipped_faces else ""
         return (
             f"{self.n_vertices} vertices, {self.n_faces} faces, {self.n_components} component(s), "
-            f"{holes}, Euler characteristic {self.euler_characteristic}"
+            f"{holes}, Euler characteristic {self.euler_characteristic}{flipped}"
         )
 
 
@@ -194,6 +205,74 @@ def validate_mesh(
     return report
 
 
+def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
+    """Faces with a consistent orientation on every connected component: ``(faces (F, 3), n_flipped)``.
+
+    Two faces sharing an edge are consistent when they traverse it in opposite directions.
+    Each component is oriented like a breadth-first spanning tree of its faces (edges shared by
+    exactly two faces), keeping the orientation that most of its input faces already had; a
+    component that is closed or nearly so (at most :data:`CLOSED_BOUNDARY_FRACTION` of its edges
+    on a boundary: small holes) and encloses volume (``|signed volume| > 1 %`` of ``area^1.5``)
+    is then turned outward. Corner order changes,
+    vertex order never does. Non-orientable components (a Möbius band) keep a valid
+    orientation on the spanning tree and their remaining conflicts. ``n_flipped`` counts the
+    faces whose corner order was reversed.
+    """
+    v, f = _as_arrays(vertices, faces)
+    nf = len(f)
+    he = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)
+    owner = np.repeat(np.arange(nf), 3)
+    n = len(v)
+    key = np.minimum(he[:, 0], he[:, 1]) * n + np.maximum(he[:, 0], he[:, 1])
+    order = np.argsort(key, kind="stable")
+    k_sorted = key[order]
+    first = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
+    counts = np.diff(np.r_[first, len(k_sorted)])
+    pairs = first[counts == 2]  # manifold interior edges: half-edges order[p], order[p + 1]
+    h0, h1 = order[pairs], order[pairs + 1]
+    same_dir = he[h0, 0] == he[h1, 0]  # both faces traverse the edge the same way: inconsistent
+    flip = np.zeros(nf, dtype=bool)
+    if same_dir.any():
+        a, b = owner[h0], owner[h1]
+        graph = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(nf, nf)).tocsr()
+        graph = graph + graph.T
+        relative = sp.coo_matrix((same_dir.astype(np.int8) + 1, (a, b)), shape=(nf, nf)).tocsr()
+        relative = relative + relative.T  # 2: needs a flip relative to the neighbour, 1: does not
+        n_comp, labels = connected_components(graph, directed=False)
+        for c in range(n_comp):
+            root = int(np.flatnonzero(labels == c)[0])
+            bfs, pred = breadth_first_order(graph, root, directed=False, return_predecessors=True)
+            kids = bfs[1:]
+            needs = np.asarray(relative[kids, pred[kids]]).ravel() == 2
+            for face, parent, x in zip(kids.tolist(), pred[kids].tolist(), needs.tolist(), strict=True):
+                flip[face] = flip[parent] ^ x  # parents come before children in BFS order
+            members = labels == c
+            if flip[members].sum() * 2 > members.sum():  # keep the majority's orientation
+                flip[members] = ~flip[members]
+    out = f.copy()
+    out[flip] = out[flip][:, ::-1]
+    # closed (or nearly closed) components: outward normals (positive signed volume)
+    adj = sp.coo_matrix((np.ones(3 * nf), (he[:, 0], he[:, 1])), shape=(n, n))
+    _, vlabels = connected_components(adj, directed=False)
+    flabels = vlabels[out[:, 0]]
+    x0, x1, x2 = v[out[:, 0]], v[out[:, 1]], v[out[:, 2]]
+    centre = v[np.unique(out)].mean(axis=0)
+    vol = np.einsum("ij,ij->i", x0 - centre, np.cross(x1 - centre, x2 - centre)) / 6.0
+    area = _face_areas(v, out)
+    comp_vol = np.bincount(flabels, weights=vol)
+    comp_area = np.bincount(flabels, weights=area)
+    # "closed enough": at most CLOSED_BOUNDARY_FRACTION of the component's edges on a boundary
+    boundary_he = first[counts == 1]
+    comp_boundary = np.bincount(flabels[owner[order[boundary_he]]], minlength=len(comp_vol))
+    comp_edges = np.bincount(flabels, minlength=len(comp_vol)) * 1.5
+    closed = comp_boundary <= CLOSED_BOUNDARY_FRACTION * comp_edges
+    inward = closed & (comp_vol < -0.01 * comp_area**1.5)
+    turn = inward[flabels]
+    out[turn] = out[turn][:, ::-1]
+    flipped = flip ^ turn
+    return out, int(flipped.sum())
+
+
 class Mesh:
     """A validated triangle mesh. Vertex order is never changed.
 
@@ -229,7 +308,19 @@ class Mesh:
         )
         self._report: MeshReport | None = None
         if validate:
-            self._report = validate_mesh(self.vertices, self.faces, **self._flags)
+            report = validate_mesh(self.vertices, self.faces, **self._flags)
+            faces, n_flipped = orient_faces(self.vertices, self.faces)
+            if n_flipped:
+                self.faces = np.ascontiguousarray(faces)
+                report = dataclasses.replace(report, n_flipped_faces=n_flipped)
+                warnings.warn(
+                    f"{name or 'mesh'}: reversed the corner order of {n_flipped} of {len(faces)} faces so "
+                    "that every component is consistently oriented (closed ones outward); vertex "
+                    "order is unchanged. mesh.report.n_flipped_faces records it.",
+                    MeshWarning,
+                    stacklevel=2,
+                )
+            self._report = report
 
     # -- basic sizes -------------------------------------------------------------------------
     @property
