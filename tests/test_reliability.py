@@ -99,3 +99,45 @@ def test_consistent_mesh_is_left_alone(sphere):
         m = Mesh(sphere.vertices, sphere.faces)
     assert m.report.n_flipped_faces == 0
     np.testing.assert_array_equal(m.faces, sphere.faces)
+
+
+def _off_text(mesh) -> str:
+    lines = ["OFF", f"{mesh.n_vertices} {mesh.n_faces} 0"]
+    lines += [" ".join(f"{c:.9g}" for c in v) for v in mesh.vertices]
+    lines += ["3 " + " ".join(str(i) for i in f) for f in mesh.faces]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("cut", [1, 5, 200])
+def test_truncated_off_is_refused_naming_the_counts(tmp_path, sphere, cut):
+    """A file missing its last face lines used to load with a new hole (or an
+    'allow_unreferenced' hint): the header's counts are now checked."""
+    from torchfmap import MeshError, load_mesh
+
+    text = _off_text(sphere).splitlines()
+    path = tmp_path / "cut.off"
+    path.write_text("\n".join(text[:-cut]) + "\n")
+    with pytest.raises(MeshError, match=r"truncated.*declares 162 vertices and 320 faces.*Fix"):
+        load_mesh(path)
+
+
+def test_off_with_latin1_comment_loads(tmp_path, sphere):
+    """A non-UTF-8 byte in a comment used to need an undeclared charset detector."""
+    from torchfmap import load_mesh
+
+    path = tmp_path / "latin.off"
+    text = _off_text(sphere).replace("OFF\n", "OFF\n# caf\xe9 (Latin-1)\n", 1)
+    path.write_bytes(text.encode("latin-1"))
+    np.testing.assert_allclose(load_mesh(path).vertices, sphere.vertices, rtol=1e-8)
+
+
+def test_mesh_errors_name_the_file_and_folders_are_refused(tmp_path, sphere):
+    from torchfmap import MeshError, load_mesh
+
+    bad = sphere.vertices.copy()
+    path = tmp_path / "nan.off"
+    path.write_text(_off_text(sphere.copy(bad)).replace(_off_text(sphere).splitlines()[2], "nan 0 0", 1))
+    with pytest.raises(MeshError, match=r"nan\.off.*NaN"):
+        load_mesh(path)
+    with pytest.raises(MeshError, match="is a folder"):
+        load_mesh(tmp_path)
