@@ -207,3 +207,14 @@ def check_tolerance(tol, what: str = "tol") -> float:
             f"Fix: e.g. {what}=1e-6 (smaller is more accurate and slower)."
         )
     return value
+
+
+# -- counts ----------------------------------------------------------------------------------
+def check_count(value, low: int, high: int, what: str) -> int:
+    """An integer in ``[low, high]`` (a basis size, a number of seeds...), as ``int``.
+
+    Refuses bools, floats (``20.0``) and out-of-range values with :class:`ParameterError`.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise ParameterError(f"{what} must be an integer in [{low}, {high}], got {value!r}.")
+    return int(value)

@@ -14,14 +14,11 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
+from ._checks import check_count
 from .bases import (
     Basis,
     basis_stack,
-    concatenate,
-    diffusion_basis,
-    harmonic_basis,
     laplacian_eigenbasis,
-    orthonormalize,
     orthonormalize_pair,
 )
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
@@ -30,7 +27,7 @@ from .eval import shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .mesh import Mesh
 from .operators.laplacian import Operators, laplacian
-from .seeds import farthest_point_sampling
+from .seeds import DistanceRows, corresponding_seeds, farthest_point_sampling
 
 BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
 RefineKind = Literal["icp", "zoomout"]
@@ -41,13 +38,27 @@ BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
 #: Laplacians of small-t heat kernels have very large top eigenvalues, which dominate the
 #: mask's mean, so diffusion bases need a larger weight than eigenbases.
 W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
-#: Relative diffusion times of feature-aware bases, large (coarse) to small (fine).
-MATCH_TIMES = (1e-1, 3e-2, 1e-2, 3e-3)
+#: Fixed-size refinement steps (point map <-> functional map) for feature-aware bases.
+FEATURE_REFINE_STEPS = 5
+#: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
+#: seeds (relative to the descriptor term; ``inf``: ``C = I`` exactly, no descriptors needed).
+W_PRIOR = float("inf")
+
+
+def seed_time(n_seeds: int) -> float:
+    """Relative heat time whose kernel width matches the covering radius of ``n_seeds`` seeds.
+
+    ``n`` seeds cover a surface of unit area with radius about ``sqrt(1 / n)``; the kernel
+    ``exp(-d² / 4t)`` falls to ``1/e`` at ``d = sqrt(4t)``, so ``t = 1 / (4 n)``: each point is
+    then told apart by the few kernels around it, without gaps between seeds.
+    """
+    return 1.0 / (4.0 * n_seeds)
 
 
 @dataclass
 class MatchResult:
-    """Output of :func:`match`: ``p2p_yx (V_y,)``, ``C_xy (K_y, K_x)``, the bases and timings."""
+    """Output of :func:`match`: ``p2p_yx (V_y,)``, ``C_xy (K_y, K_x)``, the bases and timings;
+    ``seeds`` ``(S, 2)`` are the corresponding seed pairs of feature-aware bases (else None)."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -55,6 +66,7 @@ class MatchResult:
     basis_y: Basis
     p2p_yx_initial: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
+    seeds: np.ndarray | None = None
 
 
 @dataclass
@@ -63,18 +75,21 @@ class PreparedShape:
 
     ``mesh``; ``operators`` ``(L, B)`` (``(V, V)`` sparse stiffness and lumped mass);
     ``eigenbasis``: the first ``n_eigen`` Laplacian eigenfunctions as a B-orthonormal
-    :class:`~torchfmap.Basis` (``(V, n_eigen)`` values, eigenvalues ascending).
+    :class:`~torchfmap.Basis` (``(V, n_eigen)`` values, eigenvalues ascending; None when
+    ``n_eigen = 0``); ``distances``: geodesic distance rows, computed on first use.
     """
 
     mesh: Mesh
     operators: Operators
-    eigenbasis: Basis
+    eigenbasis: Basis | None
+    distances: DistanceRows
 
 
 def prepare_shape(mesh: Mesh, n_eigen: int) -> PreparedShape:
     """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`match` does per shape)."""
     ops = laplacian(mesh)
-    return PreparedShape(mesh, ops, laplacian_eigenbasis(mesh, n_eigen, operators=ops))
+    eig = laplacian_eigenbasis(mesh, n_eigen, operators=ops) if n_eigen else None
+    return PreparedShape(mesh, ops, eig, DistanceRows(mesh))
 
 
 def match_descriptors(
@@ -95,6 +110,8 @@ def match_descriptors(
         raise ParameterError(f"n_descriptors must be >= 1, got {n_descriptors}.")
     out = []
     for s, shape in enumerate((shape_x, shape_y)):
+        if shape.eigenbasis is None:
+            raise ParameterError("WKS descriptors need eigenpairs. Fix: prepare_shape(mesh, n_eigen > 0).")
         eig = shape.eigenbasis.truncated(min(k_descriptors, shape.eigenbasis.k))
         step = max(1, 100 // n_descriptors)
         parts = [wks(eig.eigenvalues, eig.values, 100)[:, ::step][:, :n_descriptors]]
@@ -104,76 +121,78 @@ def match_descriptors(
     return out[0], out[1]
 
 
+def _columns_per_seed(kind: str, times) -> int:
+    n_times = len(times) if times is not None else 1
+    return {"harmonic": 1, "diffusion": n_times, "stack": n_times + 1}[kind]
+
+
 def match_bases(
     shape_x: PreparedShape,
     shape_y: PreparedShape,
     kind: BasisKind,
     k: int,
     landmarks: np.ndarray | None = None,
-    times=MATCH_TIMES,
-) -> tuple[Basis, Basis]:
-    """The pair of B-orthonormal bases :func:`match` solves in.
+    times=None,
+) -> tuple[Basis, Basis, np.ndarray | None]:
+    """The pair of B-orthonormal bases :func:`match` solves in, with exactly ``k`` columns each,
+    and the corresponding seed pairs ``(S, 2)`` they are built at (None for the eigenbasis).
 
     ``'laplacian'``: the first ``k`` eigenfunctions of each prepared shape. Feature-aware kinds
-    (``'harmonic'``, ``'diffusion'``, ``'stack'``) are built on both shapes from the same
-    ``landmarks`` ``(L, 2)`` and orthonormalised together, so that column ``i`` is built from
-    the same landmark and scale on both (raises :class:`ParameterError` without landmarks).
+    are built at ``S`` corresponding seeds (the landmarks, then farthest-point seeds placed on
+    ``y`` by :func:`~torchfmap.seeds.corresponding_seeds`), so column ``i`` is the same
+    function (same seed, same scale) on both shapes: ``'diffusion'`` heat kernels at each
+    relative time in ``times`` (default: one time, :func:`seed_time` of ``S``), ``'harmonic'``
+    harmonic functions, ``'stack'`` both. ``S = ceil(k / columns per seed)``; the two raw bases
+    are orthonormalised together (:func:`~torchfmap.orthonormalize_pair`, landmark columns
+    first) and cut to ``k``; if dependent columns were dropped, seeds are added until ``k``
+    columns remain (bounded by the vertex count).
+
+    Raises:
+        ParameterError: a feature-aware kind without landmarks, or ``k`` outside its range.
     """
     if kind == "laplacian":
-        return shape_x.eigenbasis.truncated(k), shape_y.eigenbasis.truncated(k)
+        if shape_x.eigenbasis is None or shape_y.eigenbasis is None:
+            raise ParameterError("the eigenbasis needs eigenpairs. Fix: prepare_shape(mesh, n_eigen >= k).")
+        return shape_x.eigenbasis.truncated(k), shape_y.eigenbasis.truncated(k), None
     if landmarks is None:
         raise ParameterError(
             f"the {kind} basis is built from corresponding landmarks on both shapes. Fix: pass "
             "landmarks (pairs of vertices), or use basis='laplacian'."
         )
-    n_eigen = max(0, k - (len(times) + 1) * len(landmarks)) if kind == "stack" else 0
-    raw = []
-    for s, shape in enumerate((shape_x, shape_y)):
-        mesh, ops, seeds = shape.mesh, shape.operators, landmarks[:, s]
-        if kind == "harmonic":
-            raw.append(harmonic_basis(mesh, seeds, operators=ops))
-        elif kind == "diffusion":
-            raw.append(diffusion_basis(mesh, seeds, times, operators=ops, tol=1e-6, local=False))
-        else:
-            raw.append(
-                basis_stack(
-                    mesh,
-                    seeds,
-                    times=times,
-                    operators=ops,
-                    heat_tol=1e-6,
-                    local=False,
-                    orthonormalization=None,
-                )
+    top = min(shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
+    per_seed = _columns_per_seed(kind, times)
+    n_seeds = max(len(landmarks), -(-k // per_seed))
+    for _ in range(8):  # bounded: each pass adds seeds for the missing columns
+        seeds = corresponding_seeds(
+            shape_x.mesh,
+            shape_y.mesh,
+            landmarks,
+            min(n_seeds, top),
+            distances=(shape_x.distances, shape_y.distances),
+        )
+        rel_times = tuple(times) if times is not None else (seed_time(len(seeds)),)
+        raw = [
+            basis_stack(
+                shape.mesh,
+                seeds[:, s],
+                times=rel_times if kind != "harmonic" else (),
+                harmonic=kind != "diffusion",
+                operators=shape.operators,
+                heat_tol=1e-6,
+                local=False,
+                orthonormalization=None,
             )
-    bx, by = orthonormalize_pair(*raw)
-    if n_eigen:  # eigenfunctions fill up to k; they do not correspond column by column
-        bx = orthonormalize(concatenate([bx, shape_x.eigenbasis.truncated(n_eigen)]))
-        by = orthonormalize(concatenate([by, shape_y.eigenbasis.truncated(n_eigen)]))
-    return bx, by
-
-
-def _coarse_to_fine(shape_x, shape_y, pairs: np.ndarray, kind: str, times) -> tuple[list[Basis], list[Basis]]:
-    """Nested corresponding feature-aware bases for ZoomOut: growing scales (large to small t)."""
-    shapes = (shape_x, shape_y)
-    parts = [
-        [
-            diffusion_basis(sh.mesh, pairs[:, s], [t], operators=sh.operators, tol=1e-6, local=False)
-            for t in times
+            for s, shape in enumerate((shape_x, shape_y))
         ]
-        for s, sh in enumerate(shapes)
-    ]
-    if kind == "stack":
-        for s, sh in enumerate(shapes):
-            parts[s].append(harmonic_basis(sh.mesh, pairs[:, s], operators=sh.operators))
-    seq_x, seq_y = [], []
-    for j in range(len(parts[0])):
-        bx, by = orthonormalize_pair(*(concatenate(p[: j + 1]) for p in parts))
-        seq_x.append(bx)
-        seq_y.append(by)
-    if kind == "diffusion":  # the last level equals the matching basis
-        seq_x, seq_y = seq_x[:-1], seq_y[:-1]
-    return seq_x, seq_y
+        bx, by = orthonormalize_pair(*raw)
+        if bx.k >= k or n_seeds >= top:
+            break
+        n_seeds += -(-(k - bx.k) // per_seed)
+    if bx.k < k:
+        raise ParameterError(
+            f"only {bx.k} independent {kind} columns could be built (k={k}). Fix: lower k or use more seeds."
+        )
+    return bx.truncated(k), by.truncated(k), seeds
 
 
 def refine_map(
@@ -188,15 +207,15 @@ def refine_map(
     kind: BasisKind,
     k_final: int,
     mode: P2PMode,
-    landmarks: np.ndarray | None = None,
-    times=MATCH_TIMES,
     zoomout_samples: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(C_xy, p2p_yx)`` refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`match`).
 
     ICP works in ``basis_x, basis_y``. ZoomOut in the eigenbasis grows the prepared
     eigenbases up to ``k_final`` (on ``zoomout_samples`` farthest-point samples per shape if
-    given); for feature-aware bases it runs over growing scales of corresponding kernels.
+    given). In feature-aware bases, whose columns correspond one to one, it starts from the
+    current map and alternates ``C = Φ_yᵀ B_y Φ_x[p2p]`` and the point map
+    :data:`FEATURE_REFINE_STEPS` times at full size (:func:`~torchfmap.fmap.zoomout_sequence`).
     """
     if method == "icp":
         return icp_refine(C_xy, basis_x, basis_y, mode=mode)
@@ -212,14 +231,8 @@ def refine_map(
             )
         k = min(C_xy.shape)
         return zoomout(C_xy, full_x, full_y, k_final, step=max(1, k // 10), mode=mode, subsample=samples)
-    if kind == "harmonic":
-        raise ParameterError(
-            "ZoomOut needs nested bases that grow; a harmonic basis only grows with more "
-            "corresponding seeds, and the landmarks are all there is. Fix: refine='icp', or "
-            "basis='stack' / 'diffusion' (ZoomOut over growing scales)."
-        )
-    seq_x, seq_y = _coarse_to_fine(shape_x, shape_y, landmarks, kind, times)
-    return zoomout_sequence(p2p_yx, seq_x + [basis_x], seq_y + [basis_y], mode=mode)
+    steps = FEATURE_REFINE_STEPS
+    return zoomout_sequence(p2p_yx, [basis_x] * steps, [basis_y] * steps, mode=mode)
 
 
 def match(
@@ -237,7 +250,8 @@ def match(
     w_orient: float = 1e-2,
     w_dcomm: float = 0.0,
     w_lmk: float = 1.0,
-    times=MATCH_TIMES,
+    w_prior: float | None = None,
+    times=None,
     p2p_mode: P2PMode | None = None,
     zoomout_samples: int | None = None,
 ) -> MatchResult:
@@ -248,21 +262,28 @@ def match(
     :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` ->
     :func:`refine_map`.
 
+    With landmarks the default is the feature-aware ``'diffusion'`` basis: ``k`` heat kernels
+    at corresponding seeds (see :func:`match_bases`), whose map is close to the identity; the
+    solve is then pulled to ``C = I`` with weight ``w_prior`` (default :data:`W_PRIOR`; at
+    ``inf`` the identity is the map and no descriptors are computed).
+
     Args:
         mesh_x, mesh_y: source and target.
         landmarks: ``(L, 2)`` corresponding pairs ``(vertex on x, vertex on y)``; required by
-            the feature-aware bases, used as descriptors and constraints by all.
+            the feature-aware bases, used as descriptors and constraints by the eigenbasis.
         basis: ``'laplacian'``, ``'harmonic'``, ``'diffusion'`` or ``'stack'`` (default:
-            ``'stack'`` with landmarks, ``'laplacian'`` without).
-        k: basis size (eigenfunctions; for stacks, the eigenfunctions fill up to ``k``).
+            ``'diffusion'`` with landmarks, ``'laplacian'`` without).
+        k: basis size; every basis has exactly ``k`` columns.
         refine: ``'icp'`` or ``'zoomout'`` (eigenbasis: up to ``k_final``, default ``2k``;
-            feature-aware: over growing scales), or None.
+            feature-aware: fixed-size iterations from the current map), or None.
         n_descriptors, k_descriptors: see :func:`match_descriptors`.
         w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
             :data:`W_LAP` of the basis), orientation preservation (tells left from right,
             which WKS alone cannot), descriptor commutativity and pointwise landmark
             preservation (see :func:`~torchfmap.fmap.solve_fmap`). With the last three at 0
             the solve is the exact row-wise one; otherwise preconditioned CG.
+        w_prior: proximity-to-identity weight for feature-aware bases (see above).
+        times: relative diffusion times of feature-aware bases (default: :func:`seed_time`).
         p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
             default ``'orthogonal'`` for the eigenbasis, ``'pullback'`` for feature-aware bases.
         zoomout_samples: run eigenbasis ZoomOut on this many farthest-point samples per shape
@@ -277,38 +298,50 @@ def match(
     pairs = None
     if landmarks is not None and len(np.atleast_1d(landmarks)):
         pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
-    kind = basis or ("stack" if pairs is not None else "laplacian")
+    kind = basis or ("diffusion" if pairs is not None else "laplacian")
     if kind not in BASIS_KINDS:
         raise ParameterError(f"unknown basis {kind!r}. Fix: one of {BASIS_KINDS}.")
+    k = check_count(k, 1, min(mesh_x.n_vertices, mesh_y.n_vertices) - 1, "k (basis size)")
     grow = refine == "zoomout" and kind == "laplacian"
     k_final = k_final if k_final is not None else (2 * k if grow else k)
-    n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else k_descriptors
+    if grow and k_final < k:
+        raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
+    prior = kind != "laplacian"
+    w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
+    need_desc = not (prior and np.isinf(w_prior))
+    n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else (k_descriptors if need_desc else 0)
     shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    bx, by = match_bases(shape_x, shape_y, kind, k, pairs, times)
+    bx, by, seeds = match_bases(shape_x, shape_y, kind, k, pairs, times)
     timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    desc_x, desc_y = match_descriptors(
-        shape_x, shape_y, pairs, n_descriptors=n_descriptors, k_descriptors=k_descriptors
-    )
+    if need_desc:
+        desc_x, desc_y = match_descriptors(
+            shape_x, shape_y, pairs, n_descriptors=n_descriptors, k_descriptors=k_descriptors
+        )
     timings["descriptors"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    C = solve_fmap(
-        bx,
-        by,
-        desc_x,
-        desc_y,
-        w_lap=W_LAP[kind] if w_lap is None else w_lap,
-        w_orient=w_orient,
-        w_dcomm=w_dcomm,
-        meshes=(mesh_x, mesh_y),
-        landmarks=pairs,
-        w_lmk=w_lmk if pairs is not None else 0.0,
-    )
+    if need_desc:
+        C = solve_fmap(
+            bx,
+            by,
+            desc_x,
+            desc_y,
+            w_lap=W_LAP[kind] if w_lap is None else w_lap,
+            w_orient=w_orient,
+            w_dcomm=w_dcomm,
+            meshes=(mesh_x, mesh_y),
+            landmarks=pairs,
+            w_lmk=w_lmk if pairs is not None else 0.0,
+            prior=np.eye(by.k, bx.k) if prior else None,
+            w_prior=w_prior,
+        )
+    else:
+        C = np.eye(by.k, bx.k)
     mode = p2p_mode or ("orthogonal" if kind == "laplacian" else "pullback")
     p2p = fmap_to_p2p(C, bx, by, mode=mode)
     timings["fmap+p2p"] = time.perf_counter() - t0
@@ -327,12 +360,10 @@ def match(
             kind=kind,
             k_final=k_final,
             mode=mode,
-            landmarks=pairs,
-            times=times,
             zoomout_samples=zoomout_samples,
         )
     timings["refine"] = time.perf_counter() - t0
-    return MatchResult(p2p, C, bx, by, initial, timings)
+    return MatchResult(p2p, C, bx, by, initial, timings, seeds)
 
 
 def shape_distance_matrix(

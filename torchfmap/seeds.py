@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import check_seeds_cover_components, check_vertex_indices
+from ._checks import check_count, check_seeds_cover_components, check_vertex_indices
 from .bases.diffusion import heat_kernels
 from .errors import ParameterError
 from .mesh import Mesh
@@ -21,7 +21,9 @@ from .operators.geodesic import GeodesicSolver
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
 __all__ = [
+    "DistanceRows",
     "check_seeds_cover_components",
+    "corresponding_seeds",
     "coverage_seeds",
     "curvature",
     "curvature_features",
@@ -198,6 +200,84 @@ def farthest_point_sampling(
         mind[nxt] = 0.0
     out = np.asarray(seeds, dtype=np.int64)
     return (out, float(mind.max())) if return_radius else out
+
+
+class DistanceRows:
+    """Geodesic distance rows of one mesh, in units of ``sqrt(area)``, computed once per source."""
+
+    def __init__(self, mesh: Mesh, solver: GeodesicSolver | None = None) -> None:
+        self.solver = solver if solver is not None else GeodesicSolver(mesh)
+        self.scale = 1.0 / np.sqrt(mesh.area)
+        self._rows: dict[int, np.ndarray] = {}
+
+    def __call__(self, source: int) -> np.ndarray:
+        """``(V,)`` distances from ``source``."""
+        source = int(source)
+        if source not in self._rows:
+            self._rows[source] = np.maximum(self.solver.distance(source), 0.0) * self.scale
+        return self._rows[source]
+
+    def rows(self, sources) -> np.ndarray:
+        """``(S, V)`` distances from each source."""
+        return np.stack([self(s) for s in sources])
+
+
+def corresponding_seeds(
+    mesh_x: Mesh,
+    mesh_y: Mesh,
+    landmarks,
+    n_seeds: int,
+    *,
+    distances: tuple[DistanceRows, DistanceRows] | None = None,
+) -> np.ndarray:
+    """``(n_seeds, 2)`` corresponding seed pairs ``(x vertex, y vertex)``: the landmarks, then
+    farthest-point seeds on ``x`` placed on ``y`` by progressive, locally weighted trilateration.
+
+    A point is fixed (up to symmetry) by its geodesic distances to known corresponding points.
+    Each new seed ``s`` (geodesic farthest-point sampling on ``x``, continuing from the placed
+    seeds) goes to ``argmin_v Σ_a w_a (d_y(v, a_y) - d_x(s, a_x))²`` over the pairs ``a`` placed
+    so far, with ``w_a = 1 / (d_x(s, a_x)² + r²)`` and ``r = sqrt(1 / n_seeds)`` the covering
+    radius of the seeds (distances in units of ``sqrt(area)``). Near anchors dominate: a smooth
+    non-isometric deformation is close to a similarity locally, so near distances are the
+    ones it distorts least, and since seeds are placed in farthest-point order every new seed
+    has anchors within about one covering radius. Seeds are distinct on both shapes.
+
+    Args:
+        mesh_x, mesh_y: source and target.
+        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)``, ``1 <= L <= n_seeds``.
+        n_seeds: total number of pairs returned (landmarks first, in the given order).
+        distances: prebuilt :class:`DistanceRows` of both meshes to reuse.
+
+    Raises:
+        SeedError: invalid landmarks; ParameterError: ``n_seeds`` outside
+        ``[L, min(V_x, V_y)]``.
+    """
+    pairs = np.asarray(landmarks)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
+        raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
+    check_vertex_indices(pairs[:, 0], mesh_x.n_vertices, "source landmarks")
+    check_vertex_indices(pairs[:, 1], mesh_y.n_vertices, "target landmarks")
+    top = min(mesh_x.n_vertices, mesh_y.n_vertices)
+    n_seeds = check_count(n_seeds, len(pairs), top, "n_seeds (landmarks to vertices)")
+    dx, dy = distances if distances is not None else (DistanceRows(mesh_x), DistanceRows(mesh_y))
+    r2 = 1.0 / n_seeds
+    placed = [(int(a), int(b)) for a, b in pairs]
+    used_x, used_y = {a for a, _ in placed}, {b for _, b in placed}
+    nearest = np.min(dx.rows([a for a, _ in placed]), axis=0)
+    nearest[list(used_x)] = -np.inf
+    while len(placed) < n_seeds:  # bounded: one seed per pass, at most n_seeds passes
+        s = int(np.argmax(nearest))
+        d_s = np.array([dx(a)[s] for a, _ in placed])
+        weights = 1.0 / (d_s**2 + r2)
+        cost = weights @ (dy.rows([b for _, b in placed]) - d_s[:, None]) ** 2
+        cost[list(used_y)] = np.inf
+        v = int(np.argmin(cost))
+        placed.append((s, v))
+        used_x.add(s)
+        used_y.add(v)
+        nearest = np.minimum(nearest, dx(s))
+        nearest[s] = -np.inf
+    return np.asarray(placed, dtype=np.int64)
 
 
 def heat_support_radius(time_abs: float, eps: float) -> float:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from .._checks import check_count
 from .._files import load_arrays, save_arrays
 from ..errors import ParameterError
 from .orthonormalize import orthonormalize
@@ -168,9 +169,7 @@ class Basis:
         Provenance keeps the first ``k`` kept columns and the dropped columns recorded before
         them. Raises :class:`ParameterError` unless ``1 <= k <= K``.
         """
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= self.k:
-            raise ParameterError(f"k must be an integer in [1, {self.k}] for this basis, got {k!r}.")
-        k = int(k)
+        k = check_count(k, 1, self.k, "k (columns kept)")
         prov, kept = [], 0
         for c in self.provenance:
             if kept == k:

@@ -1,5 +1,5 @@
 """Data: small synthetic meshes for tests and the shipped demo pair."""
 
-from .synthetic import demo_pair, demo_pair_paths, icosphere, make_demo_pair
+from .synthetic import demo_pair, demo_pair_paths, icosphere, make_demo_pair, stretch_deform
 
-__all__ = ["demo_pair", "demo_pair_paths", "icosphere", "make_demo_pair"]
+__all__ = ["demo_pair", "demo_pair_paths", "icosphere", "make_demo_pair", "stretch_deform"]

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..errors import ParameterError
 from ..io import load_mesh
 from ..mesh import Mesh
 
@@ -81,3 +82,32 @@ def demo_pair() -> tuple[Mesh, Mesh, np.ndarray]:
     """Load the shipped demo pair: ``(blob_a, blob_b, gt_b_to_a)``."""
     pa, pb, pgt = demo_pair_paths()
     return load_mesh(pa), load_mesh(pb), np.loadtxt(pgt, dtype=np.int64)
+
+
+def stretch_deform(mesh: Mesh, seed: int = 0, strength: float = 1.0) -> Mesh:
+    """A smooth, non-isometric deformation of ``mesh`` that keeps vertex ids and faces.
+
+    Vertex ``i`` of the result is vertex ``i`` of ``mesh`` moved, so the ground truth of the
+    pair ``(mesh, result)`` is the identity. Two smooth maps of R^3, drawn from ``seed``:
+    (1) a local anisotropic stretch ``v += s w(v) ((v - c)·a) a`` along a random unit axis
+    ``a``, with ``w`` a Gaussian bump of width ``0.35 sqrt(area)`` around a random vertex
+    ``c``; (2) a "limb scaling" ``v = c2 + (1 + 0.6 s w2(v)) (v - c2)`` around a random vertex
+    ``c2`` among the tenth farthest from the centroid (bump width ``0.25 sqrt(area)``).
+    ``s = strength`` (0 returns the same geometry). Deterministic for a given ``seed``.
+    """
+    if not np.isfinite(strength) or strength < 0:
+        raise ParameterError(f"strength must be finite and >= 0, got {strength}. Fix: e.g. strength=1.")
+    rng = np.random.default_rng(seed)
+    v = np.array(mesh.vertices, dtype=np.float64)
+    scale = np.sqrt(mesh.area)
+    c = v[rng.integers(len(v))]
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    w = np.exp(-np.sum((v - c) ** 2, axis=1) / (2 * (0.35 * scale) ** 2))
+    v = v + strength * w[:, None] * ((v - c) @ axis)[:, None] * axis[None]
+    far = np.argsort(np.linalg.norm(v - v.mean(axis=0), axis=1))[-max(1, len(v) // 10) :]
+    c2 = v[far[rng.integers(len(far))]]
+    w2 = np.exp(-np.sum((v - c2) ** 2, axis=1) / (2 * (0.25 * scale) ** 2))
+    v = c2 + (1.0 + 0.6 * strength * w2)[:, None] * (v - c2)
+    name = f"{mesh.name}~{seed}" if mesh.name else None
+    return Mesh(v, mesh.faces, name=name, **mesh._flags)

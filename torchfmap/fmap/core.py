@@ -95,8 +95,11 @@ def solve_rowwise(
     w_desc: float,
     w_lap: float,
     valid: torch.Tensor | None = None,
+    prior: torch.Tensor | None = None,
+    w_prior: float = 0.0,
 ) -> torch.Tensor:
-    """Minimise ``w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C_ij²`` exactly, one system per row.
+    """Minimise ``w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C_ij² + w_prior ‖C - P‖²`` exactly,
+    one system per row.
 
     Args:
         A_x, A_y: ``(..., K_x, D)``, ``(..., K_y, D)`` descriptor coefficients.
@@ -104,6 +107,8 @@ def solve_rowwise(
         valid: optional ``(..., K_y, K_x)`` 0/1 marking existing entries of a padded batch:
             padded coefficients get a unit diagonal and a zero right-hand side, so they come
             out 0 and the valid block equals the unpadded solution.
+        prior, w_prior: optional ``(..., K_y, K_x)`` map ``P`` the solution is pulled towards
+            (e.g. the identity between bases built at corresponding seeds), and its weight.
 
     Returns:
         ``C (..., K_y, K_x)``. One batched LU over the ``(..., K_y, K_x, K_x)`` systems;
@@ -112,6 +117,9 @@ def solve_rowwise(
     G = w_desc * (A_x @ A_x.transpose(-1, -2))  # (..., Kx, Kx)
     rhs = w_desc * (A_y @ A_x.transpose(-1, -2))  # (..., Ky, Kx)
     diag = w_lap * mask  # (..., Ky, Kx): added to the diagonal of row i's system
+    if prior is not None and w_prior:
+        diag = diag + w_prior
+        rhs = rhs + w_prior * prior
     if valid is not None:
         diag = diag + (1 - valid)
         rhs = rhs * valid
@@ -171,18 +179,23 @@ def rotate_and_solve(
     w_lap: float,
     mask: MaskKind = "laplacian",
     valid: torch.Tensor | None = None,
+    prior: torch.Tensor | None = None,
+    w_prior: float = 0.0,
 ) -> torch.Tensor:
     """``C_xy (..., K_y, K_x)`` in any B-orthonormal basis from its spectral frames.
 
     Args:
         A_x, A_y: ``(..., K_x, D)``, ``(..., K_y, D)`` descriptor coefficients ``Φᵀ M F``.
         lam_x, U_x, lam_y, U_y: the frames ``W = U diag(lam) Uᵀ`` (:func:`spectral_frame`).
-        valid: see :func:`solve_rowwise`.
+        valid, prior, w_prior: see :func:`solve_rowwise` (``prior`` in the unrotated frame;
+            ``‖C - P‖`` is unchanged by the orthogonal rotations).
 
     Rotating ``A`` by ``U`` makes ``‖C W_x - W_y C‖²`` the diagonal mask ``(λ_x,j - λ_y,i)²``
     on ``C' = U_yᵀ C U_x``, so :func:`solve_rowwise` is exact; the result is rotated back.
     """
     A_xr = U_x.transpose(-1, -2) @ A_x
     A_yr = U_y.transpose(-1, -2) @ A_y
-    Cr = solve_rowwise(A_xr, A_yr, laplacian_mask(lam_x, lam_y, mask, valid=valid), w_desc, w_lap, valid)
+    Pr = None if prior is None else U_y.transpose(-1, -2) @ prior @ U_x
+    weights = laplacian_mask(lam_x, lam_y, mask, valid=valid)
+    Cr = solve_rowwise(A_xr, A_yr, weights, w_desc, w_lap, valid, Pr, w_prior)
     return U_y @ Cr @ U_x.transpose(-1, -2)

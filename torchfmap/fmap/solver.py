@@ -119,6 +119,8 @@ class FmapProblem:
     landmarks: tuple[np.ndarray, np.ndarray, float] | None  # (P_y', P_x', weight)
     w_desc: float
     w_lap: float
+    prior: np.ndarray | None = None  # rotated prior map P' = U_yᵀ P U_x
+    w_prior: float = 0.0  # absolute weight of ‖C' - P'‖²
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -132,6 +134,8 @@ class FmapProblem:
         if self.landmarks is not None:
             Py, Px, w = self.landmarks
             e += w * np.sum((Py @ Cr - Px) ** 2)
+        if self.prior is not None:
+            e += self.w_prior * np.sum((Cr - self.prior) ** 2)
         return float(e)
 
     def normal_matvec(self, Cr: np.ndarray) -> np.ndarray:
@@ -143,6 +147,8 @@ class FmapProblem:
         if self.landmarks is not None:
             Py, _, w = self.landmarks
             out += w * Py.T @ (Py @ Cr)
+        if self.prior is not None:
+            out += self.w_prior * Cr
         return out
 
     def normal_rhs(self) -> np.ndarray:
@@ -150,6 +156,8 @@ class FmapProblem:
         if self.landmarks is not None:
             Py, Px, w = self.landmarks
             rhs = rhs + w * Py.T @ Px
+        if self.prior is not None:
+            rhs = rhs + self.w_prior * self.prior
         return rhs
 
     def row_blocks(self) -> np.ndarray:
@@ -174,6 +182,8 @@ class FmapProblem:
         if self.landmarks is not None:
             Py, _, w = self.landmarks
             blocks += w * np.einsum("li,li->i", Py, Py)[:, None, None] * eye
+        if self.prior is not None:
+            blocks += self.w_prior * eye
         return blocks
 
     def solve(self, tol: float = 1e-8, maxiter: int = 2000) -> np.ndarray:
@@ -188,7 +198,10 @@ class FmapProblem:
         """
         if not self.commute and self.landmarks is None:
             t = core.as_tensor
-            return core.solve_rowwise(t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap).numpy()
+            prior = None if self.prior is None else t(self.prior)
+            return core.solve_rowwise(
+                t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap, None, prior, self.w_prior
+            ).numpy()
         ky, kx = self.shape
         inv_blocks = np.linalg.inv(self.row_blocks())
         rhs = self.normal_rhs()
@@ -232,6 +245,8 @@ def build_problem(
     meshes: tuple[Mesh, Mesh] | None = None,
     landmarks=None,
     w_lmk: float = 0.0,
+    prior=None,
+    w_prior: float = 0.0,
 ) -> FmapProblem:
     """Assemble a :class:`FmapProblem`; see :func:`solve_fmap` for the arguments."""
     for name, basis in (("basis_x", basis_x), ("basis_y", basis_y)):
@@ -248,8 +263,11 @@ def build_problem(
             f"descriptor counts differ: desc_x has {desc_x.shape[1]}, desc_y has {desc_y.shape[1]}. Fix: "
             "compute the same descriptors (same parameters) on both shapes."
         )
-    if min(w_desc, w_lap, w_dcomm, w_orient, w_lmk) < 0:
-        raise ParameterError("energy weights must be >= 0.")
+    weights = {"w_desc": w_desc, "w_lap": w_lap, "w_dcomm": w_dcomm, "w_orient": w_orient, "w_lmk": w_lmk}
+    weights["w_prior"] = w_prior
+    bad = {k: v for k, v in weights.items() if not (np.isfinite(v) and v >= 0)}
+    if bad:
+        raise ParameterError(f"energy weights must be finite and >= 0, got {bad}.")
     fx = SpectralFrame.of(basis_x.projected_laplacian())
     fy = SpectralFrame.of(basis_y.projected_laplacian())
     A_x = fx.U.T @ basis_x.project(desc_x)
@@ -281,8 +299,19 @@ def build_problem(
         row = 0.5 * (np.linalg.norm(P_x, axis=1) + np.linalg.norm(P_y, axis=1))
         row = np.where(row > 0, row, 1.0)[:, None]
         lmk = (P_y / row, P_x / row, w_lmk)
-    weights = core.laplacian_mask(core.as_tensor(fx.lam), core.as_tensor(fy.lam), mask).numpy()
-    return FmapProblem(A_x, A_y, weights, fx, fy, commute, lmk, w_desc, w_lap)
+    prior_r, w_prior_abs = None, 0.0
+    if prior is not None and w_prior > 0:
+        prior = np.asarray(prior, dtype=np.float64)
+        if prior.shape != (basis_y.k, basis_x.k):
+            raise ParameterError(
+                f"prior must be (K_y, K_x) = {(basis_y.k, basis_x.k)}, got {prior.shape}. Fix: e.g. "
+                "np.eye(K_y, K_x) for bases built at corresponding seeds."
+            )
+        prior_r = fy.U.T @ prior @ fx.U
+        # relative to the descriptor term: w_prior = 1 weighs like an average row of it
+        w_prior_abs = w_prior * w_desc * max(float(np.sum(A_x**2)) / basis_x.k, 1e-300)
+    mask_w = core.laplacian_mask(core.as_tensor(fx.lam), core.as_tensor(fy.lam), mask).numpy()
+    return FmapProblem(A_x, A_y, mask_w, fx, fy, commute, lmk, w_desc, w_lap, prior_r, w_prior_abs)
 
 
 def _unit_pair(Ox: np.ndarray, Oy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -315,6 +344,9 @@ def solve_fmap(
         w_orient: orientation term weight (needs ``meshes=(mesh_x, mesh_y)``);
             ``orient_reversing=True`` for mirror maps.
         landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk``.
+        prior, w_prior: a ``(K_y, K_x)`` map the solution is pulled towards, ``w_prior ‖C - P‖²``
+            (e.g. the identity between bases built at corresponding seeds); ``w_prior`` is
+            relative to the descriptor term (1 weighs like an average row of ``‖C A_x - A_y‖²``).
 
     Returns:
         ``C_xy``.

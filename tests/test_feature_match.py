@@ -1,0 +1,119 @@
+"""Feature-aware matching with few landmarks: corresponding seeds, k-column bases, identity prior."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchfmap import ParameterError, SeedError, match
+from torchfmap.data import stretch_deform
+from torchfmap.fmap import build_problem, core, solve_fmap
+from torchfmap.pipeline import match_bases, prepare_shape
+from torchfmap.seeds import corresponding_seeds
+
+from .conftest import bend, bumpy_blob
+
+
+@pytest.fixture(scope="module")
+def permuted_pair():
+    """A mesh and its vertex-permuted copy: y vertex i is x vertex perm[i]."""
+    x = bumpy_blob(3)
+    perm = np.random.default_rng(4).permutation(x.n_vertices)
+    inverse = np.argsort(perm)
+    y = x.permuted(perm)
+    landmarks = np.array([[v, inverse[v]] for v in (3, 200, 450, 600)])
+    return x, y, perm, landmarks
+
+
+@pytest.mark.parametrize("kind", ["diffusion", "harmonic", "stack"])
+def test_feature_bases_have_exactly_k_orthonormal_corresponding_columns(kind):
+    """Every feature-aware basis honours k: k B-orthonormal columns on both shapes, column i
+    built at seed pair i (landmarks first)."""
+    x = bumpy_blob(3)
+    y = x.copy(bend(x.vertices, 0.3))
+    lm = np.array([[5, 5], [300, 300], [500, 500]])
+    sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+    bx, by, seeds = match_bases(sx, sy, kind, 25, lm)
+    assert bx.k == by.k == 25
+    # modified Gram-Schmidt with re-orthogonalisation: orthogonality to a few eps per column
+    tol = 100 * 25 * np.finfo(float).eps
+    np.testing.assert_allclose(bx.gram(), np.eye(25), atol=tol)
+    np.testing.assert_allclose(by.gram(), np.eye(25), atol=tol)
+    np.testing.assert_array_equal(seeds[: len(lm)], lm)
+    seed_of = {int(a): int(b) for a, b in seeds}
+    for cx, cy in zip(bx.columns, by.columns, strict=True):
+        assert cx.kind == cy.kind and cx.time == cy.time and seed_of[cx.seed] == cy.seed
+
+
+def test_exact_seeds_on_a_permuted_copy_give_the_identity_map(permuted_pair):
+    """With an exact copy, trilateration places every seed exactly, the bases correspond
+    exactly, C = I and the point map is the permutation, raw and refined."""
+    x, y, perm, lm = permuted_pair
+    result = match(x, y, landmarks=lm, k=30, refine="zoomout")
+    inverse = np.argsort(perm)
+    np.testing.assert_array_equal(result.seeds[:, 1], inverse[result.seeds[:, 0]])
+    np.testing.assert_array_equal(result.p2p_yx_initial, perm)
+    np.testing.assert_array_equal(result.p2p_yx, perm)
+
+
+def test_identity_prior_solve_recovers_the_identity(permuted_pair):
+    """Exactly corresponding bases and descriptors: C = I zeroes every term of the energy, so
+    the solve returns it (up to the row-wise solve's round-off) for any prior weight."""
+    x, y, perm, lm = permuted_pair
+    sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+    bx, by, _ = match_bases(sx, sy, "diffusion", 20, lm)
+    F = np.random.default_rng(0).normal(size=(x.n_vertices, 8))
+    for w_prior in (0.1, 10.0):
+        C = solve_fmap(bx, by, F, F[perm], w_lap=1.0, prior=np.eye(20), w_prior=w_prior)
+        np.testing.assert_allclose(C, np.eye(20), atol=1e-8)
+
+
+def test_prior_pulls_the_core_solution_and_matches_the_classical_path():
+    """w_prior -> inf gives the prior; w_prior = 0 ignores it; the classical problem with a
+    prior equals the core's rotate_and_solve with the same prior."""
+    g = torch.Generator().manual_seed(1)
+    A_x, A_y = (
+        torch.randn(6, 9, generator=g, dtype=torch.float64),
+        torch.randn(5, 9, generator=g, dtype=torch.float64),
+    )
+    lam_x, U_x = core.spectral_frame(torch.diag(torch.rand(6, generator=g, dtype=torch.float64)))
+    lam_y, U_y = core.spectral_frame(torch.diag(torch.rand(5, generator=g, dtype=torch.float64)))
+    P = torch.randn(5, 6, generator=g, dtype=torch.float64)
+    args = (A_x, A_y, lam_x, U_x, lam_y, U_y)
+    free = core.rotate_and_solve(*args, w_desc=1.0, w_lap=0.1)
+    torch.testing.assert_close(
+        core.rotate_and_solve(*args, w_desc=1.0, w_lap=0.1, prior=P, w_prior=0.0), free
+    )
+    strong = core.rotate_and_solve(*args, w_desc=1.0, w_lap=0.1, prior=P, w_prior=1e12)
+    torch.testing.assert_close(strong, P, atol=1e-9, rtol=0)
+
+
+def test_corresponding_seeds_bad_input(permuted_pair):
+    x, y, _, lm = permuted_pair
+    with pytest.raises(ParameterError, match="n_seeds"):
+        corresponding_seeds(x, y, lm, 2)
+    with pytest.raises(ParameterError, match="n_seeds"):
+        corresponding_seeds(x, y, lm, 10.0)
+    with pytest.raises(SeedError):
+        corresponding_seeds(x, y, np.array([[0, 10**6]]), 5)
+    with pytest.raises(ParameterError, match="prior must be"):
+        sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+        bx, by, _ = match_bases(sx, sy, "diffusion", 10, lm)
+        F = np.ones((x.n_vertices, 2))
+        build_problem(bx, by, F, F, prior=np.eye(3), w_prior=1.0)
+
+
+def test_stretch_deform_keeps_ids_and_is_not_isometric():
+    """Same faces and vertex count (ground truth = identity), deterministic, identity at
+    strength 0; at strength 1 the limb scaling alone stretches edges near its centre by up to
+    1 + 0.6 = 1.6, so some edge grows by more than 1.5x."""
+    x = bumpy_blob(3)
+    y = stretch_deform(x, seed=3, strength=1.0)
+    np.testing.assert_array_equal(y.faces, x.faces)
+    np.testing.assert_array_equal(stretch_deform(x, seed=3, strength=1.0).vertices, y.vertices)
+    np.testing.assert_allclose(stretch_deform(x, seed=3, strength=0.0).vertices, x.vertices, atol=0)
+    ratio = y.edge_lengths / x.edge_lengths
+    assert ratio.max() > 1.5
+    with pytest.raises(ParameterError, match="strength"):
+        stretch_deform(x, strength=-1.0)
