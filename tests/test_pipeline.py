@@ -28,7 +28,7 @@ def pair():
         ("laplacian", None),
         ("laplacian", "zoomout"),
         ("laplacian", "icp"),
-        ("harmonic", "icp"),
+        ("harmonic", "zoomout"),
         ("diffusion", None),
         ("stack", "zoomout"),
         ("stack", "icp"),
@@ -67,8 +67,11 @@ def test_match_bad_input(pair):
         match(x, y, landmarks=[[0, 10**6]], basis="stack")
     with pytest.raises(ParameterError, match=r"\(L, 2\) pairs"):
         match(x, y, landmarks=[1, 2, 3], basis="stack")
-    with pytest.raises(ParameterError, match="ZoomOut needs nested bases"):
-        match(x, y, landmarks=landmarks_from_gt(x, gt, 6), basis="harmonic", refine="zoomout")
+    for bad_k in (0, -5, 20.0, x.n_vertices):
+        with pytest.raises(ParameterError, match=r"k \(basis size\) must be an integer"):
+            match(x, y, k=bad_k)
+    with pytest.raises(ParameterError, match="k_final=10 is below k=20"):
+        match(x, y, k=20, refine="zoomout", k_final=10)
 
 
 def test_cli_match_writes_target_to_source_map(tmp_path, pair, capsys):
@@ -140,7 +143,8 @@ def test_match_steps_one_by_one_equal_match(pair):
     result = match(x, y, landmarks=lm, basis="laplacian", k=20, refine="icp", k_descriptors=40)
     assert isinstance(result, MatchResult)
     sx, sy = prepare_shape(x, 40), prepare_shape(y, 40)
-    bx, by = match_bases(sx, sy, "laplacian", 20, lm)
+    bx, by, seeds = match_bases(sx, sy, "laplacian", 20, lm)
+    assert seeds is None
     assert bx.k == by.k == 20 and bx.stiffness is not None
     dx, dy = match_descriptors(sx, sy, lm, k_descriptors=40)
     C = solve_fmap(
