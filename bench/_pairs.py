@@ -2,7 +2,9 @@
 and ``weight_sweep.py``.
 
 Pairs: ``A-B`` is ``tosca5k_dev/A.off`` (source x) and ``B.off`` (target y), ground truth the
-rows of ``corres/A.vts`` and ``corres/B.vts``; ``cat-lion`` is ``pyfm_cat_lion`` with x = cat-00,
+rows of ``corres/A.vts`` and ``corres/B.vts``; ``A~B`` is the same with ``B`` deformed
+non-isometrically by ``torchfmap.data.stretch_deform(B, seed=crc32(name of B), strength=1)``
+(vertex ids kept, so the same ground truth); ``cat-lion`` is ``pyfm_cat_lion`` with x = cat-00,
 y = lion-00 and ground truth ``lion2cat`` (line i: the cat vertex of lion vertex i).
 
 Landmarks, the same for every method of a pair: on TOSCA pairs, L ground-truth rows spread over x
@@ -27,6 +29,7 @@ import signal
 import subprocess
 import time
 import traceback
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +38,7 @@ from _common import REPO_ROOT, load1, log, require_data, versions
 from _pyfm import run_pyfm
 
 import torchfmap
+from torchfmap.data import stretch_deform
 from torchfmap.errors import ParameterError
 from torchfmap.eval import auc, evaluate_map, gt_from_map, gt_from_vts, landmarks_from_gt, read_map, read_vts
 from torchfmap.pipeline import match
@@ -60,10 +64,13 @@ class Pair:
             self.gt = gt_from_map(read_map(folder / "lion2cat"))
             self.fixed = np.loadtxt(folder / "landmarks.txt", dtype=np.int64)  # (cat, lion)
         else:
-            a, b = spec.split("-")
+            stretched = "~" in spec  # A~B: y = B deformed non-isometrically (ids kept)
+            a, b = spec.replace("~", "-").split("-")
             folder = require_data("tosca5k_dev")
             self.x = torchfmap.load_mesh(folder / f"{a}.off")
             self.y = torchfmap.load_mesh(folder / f"{b}.off")
+            if stretched:
+                self.y = stretch_deform(self.y, seed=zlib.crc32(b.encode()), strength=1.0)
             corres = folder / "corres"
             self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
             self.fixed = None
