@@ -152,6 +152,6 @@ def test_match_steps_one_by_one_equal_match(pair):
     )
     p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx_initial)
-    C, p2p = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
+    C, p2p, *_ = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx)
     np.testing.assert_array_equal(C, result.C_xy)

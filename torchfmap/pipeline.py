@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from tqdm import tqdm
@@ -40,6 +40,8 @@ BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
 W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
 #: Fixed-size refinement steps (point map <-> functional map) for feature-aware bases.
 FEATURE_REFINE_STEPS = 5
+#: Rounds of seed re-placement after the fixed-size refinement (:func:`replace_seeds`).
+FEATURE_SEED_MOVES = 2
 #: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
 #: seeds (relative to the descriptor term; ``inf``: ``C = I`` exactly, no descriptors needed).
 W_PRIOR = float("inf")
@@ -170,21 +172,7 @@ def match_bases(
             min(n_seeds, top),
             distances=(shape_x.distances, shape_y.distances),
         )
-        rel_times = tuple(times) if times is not None else (seed_time(len(seeds)),)
-        raw = [
-            basis_stack(
-                shape.mesh,
-                seeds[:, s],
-                times=rel_times if kind != "harmonic" else (),
-                harmonic=kind != "diffusion",
-                operators=shape.operators,
-                heat_tol=1e-6,
-                local=False,
-                orthonormalization=None,
-            )
-            for s, shape in enumerate((shape_x, shape_y))
-        ]
-        bx, by = orthonormalize_pair(*raw)
+        bx, by = seed_bases(shape_x, shape_y, kind, seeds, times)
         if bx.k >= k or n_seeds >= top:
             break
         n_seeds += -(-(k - bx.k) // per_seed)
@@ -193,6 +181,65 @@ def match_bases(
             f"only {bx.k} independent {kind} columns could be built (k={k}). Fix: lower k or use more seeds."
         )
     return bx.truncated(k), by.truncated(k), seeds
+
+
+def seed_bases(
+    shape_x: PreparedShape, shape_y: PreparedShape, kind: BasisKind, seeds: np.ndarray, times=None
+) -> tuple[Basis, Basis]:
+    """Corresponding feature-aware bases at seed pairs ``(S, 2)``, orthonormalised together
+    (every column; :func:`match_bases` cuts them to ``k``). ``times``: relative diffusion times
+    (default: one, :func:`seed_time` of ``S``)."""
+    rel_times = tuple(times) if times is not None else (seed_time(len(seeds)),)
+    raw = [
+        basis_stack(
+            shape.mesh,
+            seeds[:, s],
+            times=rel_times if kind != "harmonic" else (),
+            harmonic=kind != "diffusion",
+            operators=shape.operators,
+            heat_tol=1e-6,
+            local=False,
+            orthonormalization=None,
+        )
+        for s, shape in enumerate((shape_x, shape_y))
+    ]
+    return orthonormalize_pair(*raw)
+
+
+def replace_seeds(
+    shape_x: PreparedShape, shape_y: PreparedShape, seeds: np.ndarray, p2p_yx: np.ndarray, n_fixed: int
+) -> np.ndarray:
+    """Seed pairs with their ``y`` side moved to where the current map sends them, within reason.
+
+    Each seed ``s`` after the first ``n_fixed`` (the landmarks) goes to the ``y`` vertex whose
+    image under ``p2p_yx`` is geodesically nearest to ``s``, but only if that moves it less
+    than the seeds' covering radius ``sqrt(1 / S)`` (in units of ``sqrt(area)``) and keeps the
+    seeds distinct; otherwise it stays. The map, refined in the seeds' own basis, corrects the
+    small placement errors of trilateration; the radius keeps one wrong region of the map from
+    dragging seeds across the shape.
+    """
+    radius = np.sqrt(1.0 / len(seeds))
+    out = seeds.copy()
+    used = {int(v) for v in seeds[:n_fixed, 1]}
+    for i in range(n_fixed, len(seeds)):
+        s, old = int(seeds[i, 0]), int(seeds[i, 1])
+        order = np.argsort(shape_x.distances(s)[p2p_yx], kind="stable")
+        new = next(int(v) for v in order if int(v) not in used)
+        if shape_y.distances(old)[new] >= radius and old not in used:
+            new = old
+        out[i, 1] = new
+        used.add(new)
+    return out
+
+
+class Refined(NamedTuple):
+    """Result of :func:`refine_map`: the map, the bases it lives in and their seeds (or None)."""
+
+    C_xy: np.ndarray
+    p2p_yx: np.ndarray
+    basis_x: Basis
+    basis_y: Basis
+    seeds: np.ndarray | None
 
 
 def refine_map(
@@ -207,18 +254,23 @@ def refine_map(
     kind: BasisKind,
     k_final: int,
     mode: P2PMode,
+    seeds: np.ndarray | None = None,
+    n_fixed: int = 0,
+    times=None,
     zoomout_samples: int | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(C_xy, p2p_yx)`` refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`match`).
+) -> Refined:
+    """The map refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`match`).
 
     ICP works in ``basis_x, basis_y``. ZoomOut in the eigenbasis grows the prepared
     eigenbases up to ``k_final`` (on ``zoomout_samples`` farthest-point samples per shape if
-    given). In feature-aware bases, whose columns correspond one to one, it starts from the
-    current map and alternates ``C = Φ_yᵀ B_y Φ_x[p2p]`` and the point map
-    :data:`FEATURE_REFINE_STEPS` times at full size (:func:`~torchfmap.fmap.zoomout_sequence`).
+    given). In feature-aware bases built at ``seeds`` (``(S, 2)``, the first ``n_fixed`` being
+    landmarks), whose columns correspond one to one, it starts from the current map,
+    alternates ``C = Φ_yᵀ B_y Φ_x[p2p]`` and the point map :data:`FEATURE_REFINE_STEPS` times at
+    full size, then :data:`FEATURE_SEED_MOVES` times moves the seeds to where the map puts them
+    (:func:`replace_seeds`), rebuilds the bases (:func:`seed_bases`) and alternates again.
     """
     if method == "icp":
-        return icp_refine(C_xy, basis_x, basis_y, mode=mode)
+        return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=mode), basis_x, basis_y, seeds)
     if method != "zoomout":
         raise ParameterError(f"unknown refinement {method!r}. Fix: 'icp', 'zoomout' or None.")
     if kind == "laplacian":
@@ -230,9 +282,19 @@ def refine_map(
                 for m in (shape_x.mesh, shape_y.mesh)
             )
         k = min(C_xy.shape)
-        return zoomout(C_xy, full_x, full_y, k_final, step=max(1, k // 10), mode=mode, subsample=samples)
+        C, p2p = zoomout(C_xy, full_x, full_y, k_final, step=max(1, k // 10), mode=mode, subsample=samples)
+        return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
     steps = FEATURE_REFINE_STEPS
-    return zoomout_sequence(p2p_yx, [basis_x] * steps, [basis_y] * steps, mode=mode)
+    bx, by = basis_x, basis_y
+    C, p2p = zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode)
+    if seeds is None:
+        return Refined(C, p2p, bx, by, None)
+    for _ in range(FEATURE_SEED_MOVES):
+        seeds = replace_seeds(shape_x, shape_y, seeds, p2p, n_fixed)
+        bx, by = (b.truncated(basis_x.k) for b in seed_bases(shape_x, shape_y, kind, seeds, times))
+        p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=mode)
+        C, p2p = zoomout_sequence(p2p, [bx] * steps, [by] * steps, mode=mode)
+    return Refined(C, p2p, bx, by, seeds)
 
 
 def match(
@@ -349,7 +411,7 @@ def match(
 
     t0 = time.perf_counter()
     if refine is not None:
-        C, p2p = refine_map(
+        C, p2p, bx, by, seeds = refine_map(
             C,
             p2p,
             shape_x,
@@ -360,6 +422,9 @@ def match(
             kind=kind,
             k_final=k_final,
             mode=mode,
+            seeds=seeds,
+            n_fixed=0 if pairs is None else len(pairs),
+            times=times,
             zoomout_samples=zoomout_samples,
         )
     timings["refine"] = time.perf_counter() - t0
