@@ -117,3 +117,30 @@ def test_stretch_deform_keeps_ids_and_is_not_isometric():
     assert ratio.max() > 1.5
     with pytest.raises(ParameterError, match="strength"):
         stretch_deform(x, strength=-1.0)
+
+
+def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_pair):
+    """With the exact map, a seed misplaced by one edge goes back to its true image; one
+    misplaced by more than the covering radius sqrt(1/S) stays put; landmarks never move."""
+    from torchfmap.pipeline import replace_seeds
+
+    x, y, perm, lm = permuted_pair
+    inverse = np.argsort(perm)
+    sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+    seeds = corresponding_seeds(x, y, lm, 12, distances=(sx.distances, sy.distances))
+    true_y = inverse[seeds[:, 0]]
+    np.testing.assert_array_equal(seeds[:, 1], true_y)
+    radius = np.sqrt(1.0 / len(seeds))
+    near_i, far_i = len(lm), len(lm) + 1
+    ring = y.edges[(y.edges == true_y[near_i]).any(axis=1)].ravel()
+    near = int(next(v for v in ring if v != true_y[near_i] and v not in set(seeds[:, 1])))
+    d_far = sy.distances(true_y[far_i])
+    far = int(np.argmax(np.where(np.isin(np.arange(y.n_vertices), seeds[:, 1]), -1, d_far)))
+    assert d_far[far] > radius
+    moved = seeds.copy()
+    moved[near_i, 1], moved[far_i, 1] = near, far
+    out = replace_seeds(sx, sy, moved, perm, len(lm))
+    np.testing.assert_array_equal(out[: len(lm)], seeds[: len(lm)])
+    assert out[near_i, 1] == true_y[near_i]
+    assert out[far_i, 1] == far
+    assert len(set(out[:, 1].tolist())) == len(out)
