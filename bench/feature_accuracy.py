@@ -160,6 +160,7 @@ def main(argv: list[str] | None = None) -> None:
     sets = {"iso": str_list(args.iso), "non-iso": str_list(args.noniso)}
     Ls = int_list(args.L)
     rows: list[dict] = []
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     for names in sets.values():
         for name in names:
