@@ -141,3 +141,27 @@ def test_mesh_errors_name_the_file_and_folders_are_refused(tmp_path, sphere):
         load_mesh(path)
     with pytest.raises(MeshError, match="is a folder"):
         load_mesh(tmp_path)
+
+
+@pytest.mark.parametrize("alpha", [1e-6, 1e5, 1e12])
+def test_eigenpairs_are_scale_covariant(alpha):
+    """Scaling a mesh by alpha scales L's eigenvalues by 1/alpha² and the B-orthonormal
+    eigenvectors by 1/alpha (cotan L is scale-free, B scales with alpha²). The fixed absolute
+    shift used to make cost and result depend on units (wrong maps from 1e8 on)."""
+    from torchfmap.bases import eigenpairs
+
+    from .conftest import bumpy_blob
+
+    mesh = bumpy_blob(4)  # above the dense limit: the shift-invert ARPACK path
+    lam, phi = eigenpairs(*laplacian(mesh), 12)
+    lam_s, phi_s = eigenpairs(*laplacian(mesh.scaled(alpha)), 12)
+    # ARPACK converges each pair to ARPACK_TOL relative, in both runs
+    np.testing.assert_allclose(lam_s * alpha**2, lam, rtol=1e-6, atol=1e-8 * lam[-1])
+    np.testing.assert_allclose(np.abs(phi_s * alpha), np.abs(phi), atol=1e-4 * np.abs(phi).max())
+
+
+def test_overflowing_scale_is_named(sphere):
+    from torchfmap import MeshError, laplacian_eigenbasis
+
+    with pytest.raises((ParameterError, MeshError), match="over- or underflows"):
+        laplacian_eigenbasis(sphere.scaled(1e155), 5)

@@ -154,8 +154,13 @@ def validate_mesh(
             "from a 1-based format)."
         )
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    areas = _face_areas(v, f)
-    mean_edge = float(np.mean(np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1))) or 1.0
+    # degeneracy is scale-free: judge it on coordinates scaled to unit size, so that a tiny or
+    # huge mesh is not called degenerate because its areas under- or overflow
+    extent = float(np.abs(v).max())
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        unit = v / extent if 0 < extent < np.inf else v
+        areas = _face_areas(unit, f)
+        mean_edge = float(np.mean(np.linalg.norm(unit[f[:, 1]] - unit[f[:, 0]], axis=1))) or 1.0
     bad = np.flatnonzero(repeated | (areas <= DEGENERATE_RTOL * mean_edge**2))
     if len(bad):
         raise MeshError(
@@ -255,10 +260,12 @@ def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
     adj = sp.coo_matrix((np.ones(3 * nf), (he[:, 0], he[:, 1])), shape=(n, n))
     _, vlabels = connected_components(adj, directed=False)
     flabels = vlabels[out[:, 0]]
-    x0, x1, x2 = v[out[:, 0]], v[out[:, 1]], v[out[:, 2]]
-    centre = v[np.unique(out)].mean(axis=0)
+    extent = float(np.abs(v).max())
+    unit = v / extent if 0 < extent < np.inf else v  # the sign test is scale-free: no overflow
+    x0, x1, x2 = unit[out[:, 0]], unit[out[:, 1]], unit[out[:, 2]]
+    centre = unit[np.unique(out)].mean(axis=0)
     vol = np.einsum("ij,ij->i", x0 - centre, np.cross(x1 - centre, x2 - centre)) / 6.0
-    area = _face_areas(v, out)
+    area = _face_areas(unit, out)
     comp_vol = np.bincount(flabels, weights=vol)
     comp_area = np.bincount(flabels, weights=area)
     # "closed enough": at most CLOSED_BOUNDARY_FRACTION of the component's edges on a boundary

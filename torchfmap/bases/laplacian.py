@@ -54,11 +54,28 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8) -> tuple[np.ndarray, np.ndarr
     shift-invert mode (``scipy.sparse.linalg.eigsh``) whose inverse ``(L - σB)⁻¹`` is our
     :func:`~torchfmap.operators.factorize` (a sparse Cholesky where one is installed, in place of
     eigsh's own SuperLU).
+
+    The problem is solved in a scale-free frame: ``B`` is divided by its total (the area), so
+    the shift ``sigma`` is relative to a unit-area surface and cost and accuracy do not depend
+    on the mesh's units; the eigenpairs are scaled back. Raises :class:`ParameterError` when the
+    area is not a finite positive float64 (a mesh so large or small that it overflows).
     """
     n = L.shape[0]
     if not 1 <= k <= n:
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
     check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, kind='cotan') or kind='robust'")
+    area = float(B.sum())
+    if not np.isfinite(area) or area <= 0 or not np.isfinite(1.0 / area):
+        raise ParameterError(
+            f"the mass matrix sums to {area!r}: the mesh's scale over- or underflows float64. Fix: "
+            "rescale it first, e.g. mesh.normalized() or mesh.scaled(alpha)."
+        )
+    lam, phi = _unit_area_eigenpairs(L, B / area, k, sigma)
+    return lam / area, phi / np.sqrt(area)
+
+
+def _unit_area_eigenpairs(L, B, k: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    n = L.shape[0]
     if n <= DENSE_LIMIT or k >= n - 1:
         lam, phi = sla.eigh(L.toarray(), B.toarray(), subset_by_index=(0, k - 1))
     else:

@@ -176,8 +176,18 @@ def laplacian(
     if kind == "robust":
         L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
         return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
-    stiffness = cotan_stiffness(mesh) if kind == "cotan" else mean_value_stiffness(mesh)
-    return Operators(stiffness, mass_matrix(mesh, mass))
+    with np.errstate(all="ignore"):  # over/underflow is detected on the result, just below
+        stiffness = cotan_stiffness(mesh) if kind == "cotan" else mean_value_stiffness(mesh)
+        ops = Operators(stiffness, mass_matrix(mesh, mass))
+        total = float(ops.mass.sum())
+    finite = np.isfinite(ops.stiffness.data).all() and np.isfinite(ops.mass.data).all()
+    if not (finite and 0 < total < np.inf):
+        raise MeshError(
+            f"the {kind} Laplacian of this mesh has non-finite entries or no mass: its scale (largest "
+            f"coordinate {np.abs(mesh.vertices).max():.3g}) over- or underflows float64 products. "
+            "Fix: rescale it first, e.g. mesh.normalized()."
+        )
+    return ops
 
 
 def total_area(mesh: Mesh) -> float:
