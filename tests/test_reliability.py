@@ -165,3 +165,54 @@ def test_overflowing_scale_is_named(sphere):
 
     with pytest.raises((ParameterError, MeshError), match="over- or underflows"):
         laplacian_eigenbasis(sphere.scaled(1e155), 5)
+
+
+def test_geodesic_distance_between_components_is_infinite():
+    """No path joins two components: their distance is inf (it was a finite constant, on which
+    errors and farthest-point seeds were silently built); FPS then seeds every component."""
+    from torchfmap import GeodesicSolver, Mesh, farthest_point_sampling
+
+    a = icosphere(1)
+    b = a.copy(a.vertices + 5.0)
+    two = Mesh(
+        np.vstack([a.vertices, b.vertices]),
+        np.vstack([a.faces, b.faces + a.n_vertices]),
+        allow_components=True,
+    )
+    d = GeodesicSolver(two).distance(0)
+    assert np.isinf(d[a.n_vertices :]).all() and np.isfinite(d[: a.n_vertices]).all()
+    seeds = farthest_point_sampling(two, 2)
+    assert len(set(two.component_labels[seeds].tolist())) == 2
+
+
+def test_evaluation_refuses_invalid_maps(sphere):
+    """-1 used to wrap to the last vertex, a map in the wrong direction was scored, floats and
+    out-of-range entries gave bare IndexErrors, max_points=0 gave NaN."""
+    from torchfmap.eval import evaluate_map, geodesic_errors, gt_identity
+
+    small = icosphere(1)
+    n = sphere.n_vertices
+    gt = gt_identity(small.n_vertices)
+    good = np.arange(small.n_vertices)
+    cases = {
+        "outside": good - 1,  # holds -1
+        "outside ": good + 1,  # holds n
+        "integer": good.astype(float),
+    }
+    for match_text, p2p in cases.items():
+        with pytest.raises(ParameterError, match=match_text.strip()):
+            geodesic_errors(small, p2p, gt)
+    with pytest.raises(ParameterError, match="looks like a map x -> y"):
+        evaluate_map(small, sphere, good, gt)
+    with pytest.raises(ParameterError, match="max_points"):
+        geodesic_errors(small, good, gt, max_points=0)
+    assert n > small.n_vertices
+
+
+def test_zero_based_vts_is_refused(tmp_path):
+    from torchfmap.eval import read_vts
+
+    path = tmp_path / "a.vts"
+    np.savetxt(path, [0, 4, 7], fmt="%d")
+    with pytest.raises(ParameterError, match="1-based"):
+        read_vts(path)

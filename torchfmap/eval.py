@@ -32,8 +32,17 @@ def read_map(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_vts(path: str | os.PathLike) -> np.ndarray:
-    """A ``.vts`` file (1-based vertex ids, first column) as 0-based indices."""
+    """A ``.vts`` file (1-based vertex ids, first column) as 0-based indices.
+
+    Raises :class:`ParameterError` if the file holds a 0 or a negative id: it is not 1-based
+    (read as 1-based, a 0-based file would score the true map as a poor one).
+    """
     data = np.loadtxt(path, dtype=np.int64, ndmin=2)
+    if data.size and data[:, 0].min() < 1:
+        raise ParameterError(
+            f"{str(path)!r} holds vertex id {int(data[:, 0].min())}: .vts files are 1-based. Fix: if this "
+            "file is 0-based, read it with np.loadtxt and add no offset (gt_from_vts takes 0-based arrays)."
+        )
     return data[:, 0] - 1
 
 
@@ -97,7 +106,20 @@ def geodesic_errors(
         max_points: evaluate a random subset of at most this many pairs (None: all).
     """
     idx_x, idx_y = _as_correspondence(gt)
-    p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.ndim != 1 or not np.issubdtype(p2p_yx.dtype, np.integer):
+        raise ParameterError(
+            f"p2p_yx must be a 1-D integer array (one source vertex per target vertex), got shape "
+            f"{p2p_yx.shape} and dtype {p2p_yx.dtype}."
+        )
+    if p2p_yx.size and (p2p_yx.min() < 0 or p2p_yx.max() >= mesh_x.n_vertices):
+        raise ParameterError(
+            f"p2p_yx holds vertex indices outside [0, {mesh_x.n_vertices}) of mesh_x (min "
+            f"{int(p2p_yx.min())}, max {int(p2p_yx.max())}). Fix: maps are 0-based, target -> source; "
+            "a map in the other direction (x -> y) must be inverted first."
+        )
+    if max_points is not None and (isinstance(max_points, bool) or int(max_points) < 1):
+        raise ParameterError(f"max_points must be None or >= 1, got {max_points!r}.")
     if len(idx_y) != len(idx_x):
         raise ParameterError("ground-truth index arrays differ in length.")
     if idx_y.size and (idx_y.max() >= len(p2p_yx) or idx_y.min() < 0):
@@ -177,7 +199,18 @@ class MapReport:
 
 
 def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapReport, np.ndarray]:
-    """``(MapReport, errors)`` of ``p2p_yx`` against ground truth ``gt``."""
+    """``(MapReport, errors)`` of ``p2p_yx`` against ground truth ``gt``.
+
+    Raises :class:`ParameterError` unless ``p2p_yx`` has one integer entry per vertex of
+    ``mesh_y``, each a vertex of ``mesh_x`` (a map in the wrong direction is refused).
+    """
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.shape != (mesh_y.n_vertices,):
+        raise ParameterError(
+            f"p2p_yx must have one entry per vertex of mesh_y ({mesh_y.n_vertices}), got shape "
+            f"{p2p_yx.shape}. Fix: p2p_yx[v] is the vertex of x matched to vertex v of y"
+            + (" (this looks like a map x -> y)." if p2p_yx.shape == (mesh_x.n_vertices,) else ".")
+        )
     errors = geodesic_errors(mesh_x, p2p_yx, gt, **kwargs)
     report = MapReport(
         float(errors.mean()),

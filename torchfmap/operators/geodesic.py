@@ -23,6 +23,9 @@ FULL_MATRIX_LIMIT = 7000
 class GeodesicSolver:
     """Heat-method geodesic distances on one mesh; build once, query many times.
 
+    Vertices on another connected component than the source (and unreferenced vertices) are at
+    distance ``inf``: no path joins them.
+
     Args:
         mesh: the surface.
         t_coef: time step factor of the heat method (potpourri3d default 1.0).
@@ -41,21 +44,32 @@ class GeodesicSolver:
         self._solver = pp3d.MeshHeatMethodDistanceSolver(
             mesh.vertices, mesh.faces, t_coef=t_coef, use_robust=use_robust
         )
+        labels = mesh.component_labels.copy()
+        labels[np.setdiff1d(np.arange(mesh.n_vertices), np.unique(mesh.faces))] = -1  # unreferenced
+        self._labels = labels
+        self._single = mesh.n_components == 1 and labels.min() >= 0
+
+    def _cut(self, d: np.ndarray, sources: np.ndarray) -> np.ndarray:
+        """``inf`` where no source's component reaches (the heat method returns a constant)."""
+        if not self._single:
+            d[~np.isin(self._labels, self._labels[sources]) | (self._labels < 0)] = np.inf
+        return d
 
     def distance(self, source: int) -> np.ndarray:
         """``(V,)`` geodesic distance from one vertex."""
         (s,) = check_vertex_indices([source], self.mesh.n_vertices, "source")
-        return np.asarray(self._solver.compute_distance(int(s)), dtype=np.float64)
+        return self._cut(np.asarray(self._solver.compute_distance(int(s)), dtype=np.float64), np.array([s]))
 
     def distance_to_set(self, sources) -> np.ndarray:
         """``(V,)`` distance to the nearest of several sources (one solve, not a minimum)."""
         s = check_vertex_indices(sources, self.mesh.n_vertices)
-        return np.asarray(self._solver.compute_distance_multisource(s.tolist()), dtype=np.float64)
+        d = np.asarray(self._solver.compute_distance_multisource(s.tolist()), dtype=np.float64)
+        return self._cut(d, s)
 
     def distances(self, sources) -> np.ndarray:
         """``(S, V)``: row ``r`` holds distances from ``sources[r]``."""
         s = check_vertex_indices(sources, self.mesh.n_vertices)
-        return np.stack([self._solver.compute_distance(int(i)) for i in s]).astype(np.float64)
+        return np.stack([self.distance(int(i)) for i in s])
 
     def distance_matrix(self, symmetrize: bool = True, force: bool = False) -> np.ndarray:
         """``(V, V)`` all-pairs distances; refuses meshes above ``FULL_MATRIX_LIMIT`` unless forced.
