@@ -216,3 +216,37 @@ def test_zero_based_vts_is_refused(tmp_path):
     np.savetxt(path, [0, 4, 7], fmt="%d")
     with pytest.raises(ParameterError, match="1-based"):
         read_vts(path)
+
+
+def test_no_nan_from_bad_descriptor_parameters(sphere):
+    from torchfmap import laplacian_eigenbasis
+    from torchfmap.descriptors import hks, wks
+
+    basis = laplacian_eigenbasis(sphere, 10)
+    for t in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ParameterError, match="HKS times must be finite"):
+            hks(basis.eigenvalues, basis.values, abs_times=[t])
+    for s in (0.0, -1.0, float("nan")):
+        with pytest.raises(ParameterError, match="sigma_factor"):
+            wks(basis.eigenvalues, basis.values, sigma_factor=s)
+
+
+def test_overflowing_descriptors_are_refused(sphere):
+    from torchfmap import laplacian_eigenbasis, solve_fmap
+
+    basis = laplacian_eigenbasis(sphere, 8)
+    F = np.full((sphere.n_vertices, 3), 1e300)
+    with pytest.raises(ParameterError, match="overflow.*normalize_descriptors"):
+        solve_fmap(basis, basis, F, F)
+
+
+def test_singular_matrix_is_refused_by_factorize(sphere):
+    """L alone is singular (constants in its kernel): spd=True used to return values ~1e16."""
+    from torchfmap import factorize
+    from torchfmap.errors import NotPositiveDefiniteError
+
+    L, B = laplacian(sphere)
+    with pytest.raises(NotPositiveDefiniteError, match="singular.*Fix"):
+        factorize(L, spd=True)
+    x = factorize(L + 1e-3 * B, spd=True).solve(B @ np.ones(sphere.n_vertices))
+    assert np.isfinite(x).all()

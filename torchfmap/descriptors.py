@@ -48,9 +48,11 @@ def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndar
     if times is None:
         lam1 = evals[evals > 1e-10 * evals.max()].min()
         times = np.geomspace(4 * np.log(10) / evals.max(), 4 * np.log(10) / lam1, n_times)
-    times = np.asarray(times, dtype=np.float64)
-    if np.any(times <= 0):
-        raise ParameterError(f"HKS times must be > 0, got {times.tolist()}.")
+    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
+        raise ParameterError(
+            f"HKS times must be finite and > 0, got {times.tolist()}. Fix: e.g. abs_times=None."
+        )
     return (evecs**2) @ np.exp(-np.outer(np.maximum(evals, 0), times))
 
 
@@ -66,8 +68,16 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.
 
 
 def wks(eigenvalues, eigenvectors, n_energies: int = 100, sigma_factor: float = 7.0) -> np.ndarray:
-    """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``."""
+    """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``.
+
+    Raises :class:`ParameterError` for ``n_energies < 1`` or a ``sigma_factor`` that is not
+    finite and > 0 (a zero-width Gaussian gives NaN weights).
+    """
     evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
+    if isinstance(n_energies, bool) or int(n_energies) != n_energies or n_energies < 1:
+        raise ParameterError(f"n_energies must be an integer >= 1, got {n_energies!r}.")
+    if not np.isfinite(sigma_factor) or sigma_factor <= 0:
+        raise ParameterError(f"sigma_factor must be finite and > 0, got {sigma_factor!r}. Fix: e.g. 7.")
     return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
 
 

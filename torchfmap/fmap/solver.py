@@ -270,8 +270,15 @@ def build_problem(
         raise ParameterError(f"energy weights must be finite and >= 0, got {bad}.")
     fx = SpectralFrame.of(basis_x.projected_laplacian())
     fy = SpectralFrame.of(basis_y.projected_laplacian())
-    A_x = fx.U.T @ basis_x.project(desc_x)
-    A_y = fy.U.T @ basis_y.project(desc_y)
+    with np.errstate(over="ignore", invalid="ignore"):
+        A_x = fx.U.T @ basis_x.project(desc_x)
+        A_y = fy.U.T @ basis_y.project(desc_y)
+        gram_ok = np.isfinite(A_x @ A_x.T).all() and np.isfinite(A_y @ A_x.T).all()
+    if not gram_ok:
+        raise ParameterError(
+            "the descriptors' coefficients overflow float64 in the solve (values too large). Fix: "
+            "normalise them first, e.g. torchfmap.descriptors.normalize_descriptors(F, mass)."
+        )
     commute = []
     # commutativity operators cost K^3 per descriptor and CG step: use at most
     # MAX_OPERATOR_DESCRIPTORS descriptors, evenly spaced

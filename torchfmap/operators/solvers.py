@@ -154,13 +154,34 @@ def factorize(
                 f"backend {backend!r} is not installed. Fix: `pip install "
                 f"{'scikit-sparse' if backend == 'cholmod' else 'cholespy'}`, or use backend='auto'."
             )
-        return _cholmod(a) if backend == "cholmod" else _cholespy(a)
+        return _verified(_cholmod(a) if backend == "cholmod" else _cholespy(a), a)
     if backend == "auto" and spd and not complex_matrix:
         for name in available_backends():
             if name == "splu":
                 break
             try:
-                return _cholmod(a) if name == "cholmod" else _cholespy(a)
+                return _verified(_cholmod(a) if name == "cholmod" else _cholespy(a), a)
             except NotPositiveDefiniteError:
                 break  # not SPD after all: LU below handles it
-    return _splu(a, symmetric=spd)
+    return _verified(_splu(a, symmetric=spd), a)
+
+
+#: Largest relative error of the probe solve in :func:`_verified`: a non-singular matrix with
+#: condition number below ~1e12 stays orders of magnitude under it, a singular one does not.
+PROBE_RTOL = 1e-3
+
+
+def _verified(fac: Factorization, a: sp.csc_matrix) -> Factorization:
+    """``fac`` after one probe solve ``A⁻¹ (A r) = r`` (``r`` fixed random): a singular matrix,
+    which direct solvers factorise without complaint and then answer with values ~1e16 or NaN,
+    is refused with :class:`NotPositiveDefiniteError`."""
+    r = np.random.default_rng(0).standard_normal(a.shape[0])
+    with np.errstate(all="ignore"):
+        x = fac.solve(a @ r)
+        err = float(np.linalg.norm(x - r) / np.linalg.norm(r))
+    if not np.isfinite(err) or err > PROBE_RTOL:
+        raise NotPositiveDefiniteError(
+            f"the matrix is singular (a probe solve is off by {err:.1e} relative). Fix: make it "
+            "definite, e.g. factorize(L + s * B) with a shift s > 0 for a Laplacian L."
+        )
+    return fac
