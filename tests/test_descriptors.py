@@ -208,7 +208,7 @@ def test_spectral_descriptor_errors():
         hks(np.ones(2), phi)
     with pytest.raises(ParameterError, match="at least 2"):
         wks(np.ones(1), np.ones((10, 1)))
-    with pytest.raises(ParameterError, match="times must be > 0"):
+    with pytest.raises(ParameterError, match="times must be finite and > 0"):
         hks(np.array([0.0, 1.0, 2.0]), phi, abs_times=[0.1, -1.0])
 
 
