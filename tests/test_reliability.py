@@ -250,3 +250,59 @@ def test_singular_matrix_is_refused_by_factorize(sphere):
         factorize(L, spd=True)
     x = factorize(L + 1e-3 * B, spd=True).solve(B @ np.ones(sphere.n_vertices))
     assert np.isfinite(x).all()
+
+
+def test_temp_litter_of_killed_writers_is_removed_by_the_next_save(tmp_path, sphere):
+    """A writer killed mid-save leaves its hidden temp file; the next save of that path removes
+    it (its process is gone), and keeps files of live writers."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from torchfmap import Basis, laplacian_eigenbasis
+
+    basis = laplacian_eigenbasis(sphere, 4)
+    target = tmp_path / "b.npz"
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    dead = tmp_path / f".b.npz.{child.pid}.1.abc.tmp"
+    dead.write_bytes(b"partial")
+    alive = tmp_path / f".b.npz.{os.getpid()}.99.def.tmp"
+    alive.write_bytes(b"in progress")
+    basis.save(target)
+    assert not dead.exists() and alive.exists()
+    assert Basis.load(target).k == 4
+
+
+def test_long_provenance_names_survive_save(tmp_path, sphere):
+    """Provenance kinds were cut to 16 characters on save."""
+    from torchfmap import Basis, Column, laplacian_eigenbasis
+
+    b = laplacian_eigenbasis(sphere, 2)
+    long = Basis(
+        b.values, b.mass, [Column("a-rather-long-custom-kind-name"), Column("x")], stiffness=b.stiffness
+    )
+    back = Basis.load(long.save(tmp_path / "long.npz"))
+    assert back.provenance[0].kind == "a-rather-long-custom-kind-name"
+
+
+def test_zoomout_refuses_to_shrink(sphere):
+    from torchfmap import laplacian_eigenbasis
+    from torchfmap.fmap import zoomout
+
+    b = laplacian_eigenbasis(sphere, 12)
+    with pytest.raises(ParameterError, match="k_final=4 is below"):
+        zoomout(np.eye(8), b, b, 4)
+
+
+def test_match_on_a_small_mesh_names_the_real_limit():
+    """A 42-vertex mesh with k=10 used to be told 'got k=100' (the hidden descriptor count)."""
+    from torchfmap import match
+
+    s = icosphere(1)
+    result = match(s, s, k=10)
+    assert result.p2p_yx.shape == (42,)
+    with pytest.raises(ParameterError, match=r"k \(basis size\) must be an integer in \[1, 41\]"):
+        match(s, s, k=60)

@@ -45,10 +45,39 @@ def _temp_path(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.{uuid.uuid4().hex[:12]}.tmp")
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (another user's) or cannot tell: keep its file
+    return True
+
+
+def remove_stale_temps(path: str | os.PathLike) -> int:
+    """Delete temporary files of ``path`` left by writers that were killed (their process is
+    gone); returns how many. Files of live processes are kept."""
+    path = Path(path)
+    removed = 0
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        fields = tmp.name[len(path.name) + 2 : -len(".tmp")].split(".")
+        if len(fields) >= 1 and fields[0].isdigit() and not _pid_alive(int(fields[0])):
+            try:
+                tmp.unlink()
+                removed += 1
+            except OSError:
+                pass
+    return removed
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> Path:
     """Write ``path`` atomically: ``write(fh)`` fills a temporary file in the same folder, which
-    is fsync'ed and renamed over ``path``. The temporary file never outlives the call."""
+    is fsync'ed and renamed over ``path``. The temporary file never outlives the call, and
+    temporary files of ``path`` left by killed writers are removed first
+    (:func:`remove_stale_temps`)."""
     path = Path(path)
+    remove_stale_temps(path)
     tmp = _temp_path(path)
     try:
         with open(tmp, "wb") as fh:

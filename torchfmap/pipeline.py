@@ -363,7 +363,9 @@ def match(
     kind = basis or ("diffusion" if pairs is not None else "laplacian")
     if kind not in BASIS_KINDS:
         raise ParameterError(f"unknown basis {kind!r}. Fix: one of {BASIS_KINDS}.")
-    k = check_count(k, 1, min(mesh_x.n_vertices, mesh_y.n_vertices) - 1, "k (basis size)")
+    n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
+    k = check_count(k, 1, n_max, "k (basis size)")
+    k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
     grow = refine == "zoomout" and kind == "laplacian"
     k_final = k_final if k_final is not None else (2 * k if grow else k)
     if grow and k_final < k:

@@ -199,7 +199,7 @@ class Basis:
             "mass_row": mass.row.astype(np.int64),
             "mass_col": mass.col.astype(np.int64),
             "mass_data": mass.data,
-            "prov_kind": np.array([c.kind for c in self.provenance], dtype="U16"),
+            "prov_kind": np.array([c.kind for c in self.provenance], dtype=str),
             "prov_seed": np.array([c.seed for c in self.provenance], dtype=np.int64),
             "prov_time": np.array(
                 [np.nan if c.time is None else c.time for c in self.provenance], dtype=np.float64

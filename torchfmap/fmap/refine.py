@@ -110,6 +110,11 @@ def zoomout(
         ``(C_xy (k_final, k_final), p2p_yx (V_y,))``.
     """
     C = np.asarray(C_xy, dtype=np.float64)
+    if k_final < min(C.shape):
+        raise ParameterError(
+            f"k_final={k_final} is below the map's size {min(C.shape)}: ZoomOut only grows. Fix: "
+            "k_final >= the current K (or truncate C_xy first)."
+        )
     if k_final > min(basis_x.k, basis_y.k):
         raise ParameterError(f"k_final={k_final} exceeds the bases' sizes {basis_x.k}, {basis_y.k}.")
     if step < 1:
