@@ -40,6 +40,9 @@ BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
 W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
 #: Fixed-size refinement steps (point map <-> functional map) for feature-aware bases.
 FEATURE_REFINE_STEPS = 5
+#: Relative accuracy of the heat kernels of seed bases: far below the seeds' placement error
+#: (a few percent of sqrt(area)), so a tighter tolerance changes no map, only the time.
+SEED_HEAT_TOL = 1e-4
 #: Rounds of seed re-placement after the fixed-size refinement (:func:`replace_seeds`).
 FEATURE_SEED_MOVES = 2
 #: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
@@ -189,21 +192,23 @@ def seed_bases(
     """Corresponding feature-aware bases at seed pairs ``(S, 2)``, orthonormalised together
     (every column; :func:`match_bases` cuts them to ``k``). ``times``: relative diffusion times
     (default: one, :func:`seed_time` of ``S``)."""
+    raw_x = _raw_seed_basis(shape_x, kind, seeds[:, 0], times)
+    return orthonormalize_pair(raw_x, _raw_seed_basis(shape_y, kind, seeds[:, 1], times))
+
+
+def _raw_seed_basis(shape: PreparedShape, kind: str, seeds: np.ndarray, times) -> Basis:
+    """One shape's feature-aware functions at ``seeds`` (not orthonormalised)."""
     rel_times = tuple(times) if times is not None else (seed_time(len(seeds)),)
-    raw = [
-        basis_stack(
-            shape.mesh,
-            seeds[:, s],
-            times=rel_times if kind != "harmonic" else (),
-            harmonic=kind != "diffusion",
-            operators=shape.operators,
-            heat_tol=1e-6,
-            local=False,
-            orthonormalization=None,
-        )
-        for s, shape in enumerate((shape_x, shape_y))
-    ]
-    return orthonormalize_pair(*raw)
+    return basis_stack(
+        shape.mesh,
+        seeds,
+        times=rel_times if kind != "harmonic" else (),
+        harmonic=kind != "diffusion",
+        operators=shape.operators,
+        heat_tol=SEED_HEAT_TOL,
+        local=False,
+        orthonormalization=None,
+    )
 
 
 def replace_seeds(
@@ -289,9 +294,11 @@ def refine_map(
     C, p2p = zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode)
     if seeds is None:
         return Refined(C, p2p, bx, by, None)
+    raw_x = _raw_seed_basis(shape_x, kind, seeds[:, 0], times)  # x's seeds never move
     for _ in range(FEATURE_SEED_MOVES):
         seeds = replace_seeds(shape_x, shape_y, seeds, p2p, n_fixed)
-        bx, by = (b.truncated(basis_x.k) for b in seed_bases(shape_x, shape_y, kind, seeds, times))
+        raw_y = _raw_seed_basis(shape_y, kind, seeds[:, 1], times)
+        bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
         p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=mode)
         C, p2p = zoomout_sequence(p2p, [bx] * steps, [by] * steps, mode=mode)
     return Refined(C, p2p, bx, by, seeds)
