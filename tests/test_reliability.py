@@ -306,3 +306,41 @@ def test_match_on_a_small_mesh_names_the_real_limit():
     assert result.p2p_yx.shape == (42,)
     with pytest.raises(ParameterError, match=r"k \(basis size\) must be an integer in \[1, 41\]"):
         match(s, s, k=60)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (None, "cannot read the landmark pair file"),
+        ("", "holds no entries"),
+        ("1 2 3\n", "expected 2 integer column"),
+        ("1\n", "expected 2 integer column"),
+        ("1 x\n", "must be integer"),
+    ],
+)
+def test_cli_landmark_files_give_clear_errors(tmp_path, sphere, capsys, content, message):
+    from torchfmap import save_mesh
+
+    path = save_mesh(sphere, tmp_path / "s.off")
+    lm = tmp_path / "lm.txt"
+    if content is not None:
+        lm.write_text(content)
+    code = main(["match", str(path), str(path), "--landmarks", str(lm), "--out", str(tmp_path / "m.txt")])
+    assert code == 2 and message in capsys.readouterr().err
+
+
+def test_landmark_file_with_bom_and_comments_is_read(tmp_path):
+    from torchfmap.cli import read_landmark_pairs
+
+    lm = tmp_path / "lm.txt"
+    lm.write_bytes("\ufeff# pairs\n1 2\n\n3 4  # a comment\n".encode())
+    np.testing.assert_array_equal(read_landmark_pairs(str(lm)), [[1, 2], [3, 4]])
+
+
+def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere, capsys):
+    from torchfmap import save_mesh
+
+    path = str(save_mesh(sphere, tmp_path / "s.off"))
+    for out, message in ((tmp_path / "missing" / "m.txt", "does not exist"), (tmp_path, "is a folder")):
+        code = main(["match", path, path, "--k", "5", "--out", str(out)])
+        assert code == 2 and message in capsys.readouterr().err

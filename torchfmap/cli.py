@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -87,13 +89,41 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def read_landmarks(path: str) -> np.ndarray:
-    """0-based vertex indices, one per line (the first column if a line has several)."""
-    rows = [ln.split() for ln in open(path).read().splitlines() if ln.strip() and not ln.startswith("#")]
+def read_index_table(path: str, columns: int, what: str) -> np.ndarray:
+    """``(N, columns)`` 0-based integer rows of a text file (``#`` comments, blank lines and a
+    UTF-8 byte-order mark ignored), or a :class:`TorchFmapError` naming the file, line and fix.
+
+    Refuses a missing or unreadable file, an empty one, a line with another number of columns
+    (e.g. a pairs file where single indices are expected, or a third column), and anything
+    that is not an integer.
+    """
     try:
-        return np.array([int(r[0]) for r in rows], dtype=np.int64)
-    except ValueError as err:
-        raise TorchFmapError(f"{path}: landmarks must be integer vertex indices ({err}).") from err
+        with open(path, encoding="utf-8-sig") as fh:
+            text = fh.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise TorchFmapError(f"cannot read the {what} file {path!r} ({err}). Fix: check the path.") from err
+    rows = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) != columns:
+            raise TorchFmapError(
+                f"{path}:{number}: expected {columns} integer column(s) per line ({what}), got "
+                f"{len(fields)}: {line.strip()!r}. Fix: one {what} entry per line."
+            )
+        try:
+            rows.append([int(f) for f in fields])
+        except ValueError as err:
+            raise TorchFmapError(f"{path}:{number}: {what} must be integer vertex indices ({err}).") from err
+    if not rows:
+        raise TorchFmapError(f"the {what} file {path!r} holds no entries. Fix: one entry per line.")
+    return np.array(rows, dtype=np.int64)
+
+
+def read_landmarks(path: str) -> np.ndarray:
+    """0-based vertex indices, one per line."""
+    return read_index_table(path, 1, "landmark")[:, 0]
 
 
 def cmd_basis(args: argparse.Namespace) -> int:
@@ -132,12 +162,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
 
 def read_landmark_pairs(path: str) -> np.ndarray:
     """``(L, 2)`` 0-based pairs ``source_vertex target_vertex``, one per line."""
-    rows = [ln.split() for ln in open(path).read().splitlines() if ln.strip() and not ln.startswith("#")]
-    try:
-        pairs = np.array([[int(r[0]), int(r[1])] for r in rows], dtype=np.int64)
-    except (ValueError, IndexError) as err:
-        raise TorchFmapError(f"{path}: each line must hold two 0-based vertex indices ({err}).") from err
-    return pairs.reshape(-1, 2)
+    return read_index_table(path, 2, "landmark pair")
 
 
 def cmd_match(args: argparse.Namespace) -> int:
@@ -238,9 +263,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any work, output paths that cannot be written: a missing or read-only
+    folder, an existing folder as the file; ``--png`` without matplotlib installed."""
+    for flag in ("out", "png"):
+        value = getattr(args, flag, None)
+        if not value:
+            continue
+        path = os.path.abspath(value)
+        folder = os.path.dirname(path)
+        if os.path.isdir(path):
+            raise TorchFmapError(f"--{flag} {value!r} is a folder. Fix: give a file name inside it.")
+        if not os.path.isdir(folder):
+            raise TorchFmapError(
+                f"--{flag} {value!r}: the folder {folder!r} does not exist. Fix: create it first."
+            )
+        if not os.access(folder, os.W_OK):
+            raise TorchFmapError(
+                f"--{flag} {value!r}: the folder {folder!r} is not writable. Fix: write elsewhere."
+            )
+    if getattr(args, "png", None) and importlib.util.find_spec("matplotlib") is None:
+        raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        check_outputs(args)
         return args.func(args)
     except TorchFmapError as err:
         print(f"torchfmap: error: {type(err).__name__}: {err}", file=sys.stderr)
