@@ -341,6 +341,6 @@ def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere, capsys):
     from torchfmap import save_mesh
 
     path = str(save_mesh(sphere, tmp_path / "s.off"))
-    for out, message in ((tmp_path / "missing" / "m.txt", "does not exist"), (tmp_path, "is a folder")):
+    for out, message in ((tmp_path / "missing" / "m.txt", "no folder"), (tmp_path, "is a folder")):
         code = main(["match", path, path, "--k", "5", "--out", str(out)])
         assert code == 2 and message in capsys.readouterr().err
