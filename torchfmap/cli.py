@@ -275,9 +275,7 @@ def check_outputs(args: argparse.Namespace) -> None:
         if os.path.isdir(path):
             raise TorchFmapError(f"--{flag} {value!r} is a folder. Fix: give a file name inside it.")
         if not os.path.isdir(folder):
-            raise TorchFmapError(
-                f"--{flag} {value!r}: the folder {folder!r} does not exist. Fix: create it first."
-            )
+            raise TorchFmapError(f"--{flag} {value!r}: no folder {folder!r}. Fix: create it first.")
         if not os.access(folder, os.W_OK):
             raise TorchFmapError(
                 f"--{flag} {value!r}: the folder {folder!r} is not writable. Fix: write elsewhere."
