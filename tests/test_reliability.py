@@ -344,3 +344,39 @@ def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere, capsys):
     for out, message in ((tmp_path / "missing" / "m.txt", "no folder"), (tmp_path, "is a folder")):
         code = main(["match", path, path, "--k", "5", "--out", str(out)])
         assert code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["basis", "MESH", "--seeds", "3", "--times", "1e-3,abc", "--out", "OUT"],
+        ["basis", "MESH", "--seeds", "-2", "--out", "OUT"],
+        ["match", "MESH", "MESH", "--k", "0", "--out", "OUT"],
+        ["eval", "FOLDER", "--max-points", "-5"],
+        ["eval", "FOLDER", "--max-pairs", "-1"],
+    ],
+)
+def test_cli_bad_numbers_are_usage_errors(tmp_path, sphere, capsys, argv):
+    """Refused by argparse (usage + 'error: argument ...'), never a traceback after the work."""
+    from torchfmap import save_mesh
+
+    mesh = str(save_mesh(sphere, tmp_path / "s.off"))
+    argv = [{"MESH": mesh, "OUT": str(tmp_path / "o.npz"), "FOLDER": str(tmp_path)}.get(a, a) for a in argv]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2 and "error: argument" in capsys.readouterr().err
+
+
+def test_cli_eval_and_info_edge_cases(tmp_path, capsys):
+    from torchfmap import Mesh, save_mesh
+
+    assert main(["eval", str(tmp_path / "nowhere")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    s = icosphere(1)
+    for name in ("a", "b"):
+        save_mesh(s, tmp_path / f"{name}.off")
+    (tmp_path / "test_pairs.txt").write_text("a c\n")
+    assert main(["eval", str(tmp_path)]) == 2
+    assert "does not hold" in capsys.readouterr().err
+    tet = Mesh(np.eye(4, 3) + [0.1, 0.2, 0.3], [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    assert main(["info", str(save_mesh(tet, tmp_path / "tet.off"))]) == 0

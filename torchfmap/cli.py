@@ -10,11 +10,10 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.sparse.linalg as sla
 from tqdm import tqdm
 
 from ._checks import is_symmetric
-from .bases import basis_stack
+from .bases import basis_stack, eigenpairs
 from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
@@ -41,7 +40,7 @@ def _operator_summary(mesh, out) -> None:
             f"(negative weights) {neg:>5}  mass sum {B.sum():.4g}  ({dt * 1e3:.1f} ms)"
         )
     L, B = laplacian(mesh)
-    vals = sla.eigsh(L, k=6, M=B, sigma=-1e-8, which="LM", return_eigenvectors=False)
+    vals = eigenpairs(L, B, min(6, mesh.n_vertices))[0]
     out(
         "  first eigenvalues of L phi = lambda B phi (x area): "
         + ", ".join(f"{x:.3f}" for x in np.sort(vals) * mesh.area)
@@ -128,7 +127,7 @@ def read_landmarks(path: str) -> np.ndarray:
 
 def cmd_basis(args: argparse.Namespace) -> int:
     mesh = load_mesh(args.mesh, allow_components=True)
-    times = [float(t) for t in args.times.split(",")] if args.times else []
+    times = list(args.times)
     with tqdm(total=3, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
         ops = laplacian(mesh, kind=args.laplacian)
@@ -220,13 +219,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
     p = sub.add_parser("basis", help="compute a basis and save it as .npz")
     p.add_argument("mesh", help="mesh file")
-    p.add_argument("--seeds", type=int, default=0, help="number of seeds (landmarks included)")
+    p.add_argument("--seeds", type=count, default=0, help="number of seeds (landmarks included)")
     p.add_argument("--landmarks", help="file of 0-based vertex indices, one per line; used first")
     p.add_argument("--kind", choices=["harmonic", "diffusion", "laplacian", "stack"], default="stack")
     p.add_argument(
-        "--times", default="0.001,0.003,0.01,0.03", help="relative diffusion times, comma separated"
+        "--times",
+        type=time_list,
+        default="0.001,0.003,0.01,0.03",
+        help="relative diffusion times, comma separated",
     )
-    p.add_argument("--k", type=int, default=50, help="number of Laplacian eigenfunctions")
+    p.add_argument("--k", type=positive_int, default=50, help="number of Laplacian eigenfunctions")
     p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan")
     p.add_argument("--method", choices=["krylov", "rational", "backward_euler", "spectral"], default="krylov")
     p.add_argument("--tol", type=float, default=1e-8, help="heat kernel accuracy")
@@ -244,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--basis", choices=bases, default=None, help="default: stack with landmarks, else laplacian"
     )
-    p.add_argument("--k", type=int, default=50)
+    p.add_argument("--k", type=positive_int, default=50)
     p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
     p.add_argument("--png", help="also save a colour-transfer picture")
@@ -252,15 +254,46 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="match every pair of a folder with ground truth; table + PCK plot")
     p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
     p.add_argument("--basis", choices=bases, default=None)
-    p.add_argument("--k", type=int, default=50)
+    p.add_argument("--k", type=positive_int, default=50)
     p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
-    p.add_argument("--landmarks", type=int, default=0, help="use N ground-truth pairs as landmarks")
-    p.add_argument("--max-pairs", type=int, default=0)
-    p.add_argument("--max-points", type=int, default=None, help="evaluate at most this many points per pair")
+    p.add_argument("--landmarks", type=count, default=0, help="use N ground-truth pairs as landmarks")
+    p.add_argument("--max-pairs", type=count, default=0, help="at most this many pairs (0: all)")
+    p.add_argument(
+        "--max-points", type=positive_int, default=None, help="evaluate at most this many points per pair"
+    )
     p.add_argument("--png", help="save the PCK curves here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)
     return parser
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1 or str(value) != text.strip().lstrip("+"):
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def count(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return 0 if text.strip() == "0" else positive_int(text)
+
+
+def time_list(text: str) -> list[float]:
+    """argparse type: comma-separated finite times > 0 (empty: none)."""
+    if not text.strip():
+        return []
+    try:
+        times = [float(t) for t in text.split(",")]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"times must be comma-separated numbers, got {text!r}") from err
+    if not all(np.isfinite(t) and t > 0 for t in times):
+        raise argparse.ArgumentTypeError(f"times must be finite and > 0, got {text!r}")
+    return times
 
 
 def check_outputs(args: argparse.Namespace) -> None:

@@ -279,6 +279,8 @@ def discover_pairs(folder: str | os.PathLike):
     consecutive meshes); otherwise meshes with equal vertex counts get the identity.
     """
     folder = Path(folder)
+    if not folder.is_dir():
+        raise ParameterError(f"{str(folder)!r} is not a folder. Fix: give the folder that holds the meshes.")
     meshes = {
         p.name.split(".")[0]: p for p in sorted(folder.iterdir()) if p.suffix.lower() in SUPPORTED_FORMATS
     }
@@ -292,7 +294,16 @@ def discover_pairs(folder: str | os.PathLike):
         pairs = list(zip(names[:-1], names[1:], strict=True))
     corres = folder / "corres"
     for a, b in pairs:
+        missing = [n for n in (a, b) if n not in meshes]
+        if missing:
+            raise ParameterError(
+                f"{pairs_file.name} names {missing}, which {folder} does not hold. Fix: add the mesh or "
+                "remove the line."
+            )
         if corres.exists():
+            absent = [corres / f"{n}.vts" for n in (a, b) if not (corres / f"{n}.vts").exists()]
+            if absent:
+                raise ParameterError(f"no ground truth {[str(p) for p in absent]}. Fix: add the .vts files.")
             gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
         else:
             n_a, n_b = len(read_arrays(meshes[a])[0]), len(read_arrays(meshes[b])[0])
