@@ -42,7 +42,7 @@ def test_basis_command(tmp_path, capsys):
 
     mesh_path = demo_pair_paths()[0]
     lm = tmp_path / "landmarks.txt"
-    lm.write_text("# two landmarks\n10 99\n200 5\n")
+    lm.write_text("# two landmarks\n10\n200\n")
     out = tmp_path / "b.npz"
     args = ["basis", str(mesh_path), "--landmarks", str(lm), "--seeds", "6", "--times", "0.01,0.001"]
     assert main([*args, "--k", "8", "--metric", "euclidean", "--out", str(out), "--quiet"]) == 0
@@ -52,3 +52,6 @@ def test_basis_command(tmp_path, capsys):
     assert seeds[:2] == [10, 200] and len(seeds) == 6
     assert main(["basis", str(mesh_path), "--kind", "harmonic", "--out", str(out), "--quiet"]) == 2
     assert "needs seeds" in capsys.readouterr().err
+    lm.write_text("10 99\n200 5\n")  # a pairs file is not a landmark list: refused, not half-read
+    assert main([*args, "--out", str(out), "--quiet"]) == 2
+    assert "expected 1 integer column" in capsys.readouterr().err
