@@ -111,7 +111,7 @@ def test_cli_match_writes_target_to_source_map(tmp_path, pair, capsys):
     bad = tmp_path / "bad.txt"
     bad.write_text("1\n")
     assert main(["match", str(px), str(py), "--landmarks", str(bad), "--out", str(out)]) == 2
-    assert "two 0-based vertex indices" in capsys.readouterr().err
+    assert "expected 2 integer column" in capsys.readouterr().err
 
 
 def test_cli_eval_on_identity_folder(tmp_path, capsys):
