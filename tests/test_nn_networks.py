@@ -10,7 +10,15 @@ import torch
 from torchfmap import Mesh, save_mesh
 from torchfmap.cli import main
 from torchfmap.nn import functional as F
-from torchfmap.nn.data import PairDataset, ShapeDataset, collate_shapes, precompute_shape, shape_item
+from torchfmap.nn.data import (
+    PairDataset,
+    ShapeBatch,
+    ShapeDataset,
+    class_pairs,
+    collate_shapes,
+    precompute_shape,
+    shape_item,
+)
 from torchfmap.nn.geometry import gradient_operator
 from torchfmap.nn.modules import SpectralDiffusion, UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
@@ -168,3 +176,14 @@ def test_match_command_with_checkpoint(tiny_folder, tmp_path, capsys):
     p2p = np.loadtxt(out, dtype=np.int64)
     assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
     assert all(line.strip().isdigit() for line in out.read_text().splitlines())
+
+
+def test_class_pairs_and_shape_batch_to():
+    names = ["cat0", "cat1", "wolf_0", "wolf_1", "dog"]
+    assert class_pairs(names) == [(0, 1), (1, 0), (2, 3), (3, 2)]
+    assert class_pairs(["a", "b"]) == [(0, 1), (1, 0)]  # no class with two shapes: all pairs
+    shape = _batch(bumpy_blob(1))
+    assert isinstance(shape, ShapeBatch)
+    moved = shape.to(torch.float32)
+    assert moved.basis.values.dtype == moved.inputs.dtype == moved.grad.weight_x.dtype == torch.float32
+    assert moved.grad.rows.dtype == moved.lengths.dtype == torch.int64
