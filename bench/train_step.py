@@ -189,9 +189,8 @@ def run_recipes(args) -> list[str]:
             for key in times:
                 gc.collect()
                 times[key].append(step(key))
-            log(
-                f"    K={k} step {r + 1}: baseline {times['baseline'][-1]:.3f} s, recipe {times['recipe'][-1]:.3f} s"
-            )
+            b, c = times["baseline"][-1], times["recipe"][-1]
+            log(f"    K={k} step {r + 1}: baseline {b:.3f} s, recipe {c:.3f} s")
         med = {key: statistics.median(t) for key, t in times.items()}
         rows.append(
             {
