@@ -2,9 +2,8 @@
 optimiser, scheduler and device (here the reference recipe), then errors on the test pairs.
 
 Trains on every mesh of ``../shared/data/tosca5k_dev`` (pairs within classes, no ground truth),
-keeps the weights with the best validation score (the unsupervised loss on a few held-out
-pairs' directions is not available here, so the score is the mean unsupervised loss on the
-test pairs, no ground truth), then prints the mean geodesic error of the test pairs before and
+keeps the weights with the best validation score (the mean unsupervised loss on the test
+pairs, no ground truth), then prints the mean geodesic error of the test pairs before and
 after training. This is transductive: the test shapes are among the (unsupervised) training
 shapes, as in ``torchfmap train FOLDER``.
 
@@ -24,16 +23,16 @@ from pathlib import Path
 import torch
 
 from torchfmap.eval import gt_from_vts, read_vts
-from torchfmap.nn.data import PairDataset, ShapeDataset, class_pairs, collate_pairs
+from torchfmap.nn.data import PairDataset, ShapeDataset, class_pairs
 from torchfmap.nn.train import (
     CosineByTime,
     TrainConfig,
     build_model,
     ddp_worker,
     evaluate,
-    pair_loss,
     save_checkpoint,
     train,
+    unsupervised_score,
 )
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tosca5k_dev"
@@ -83,20 +82,7 @@ def main() -> None:
     before = evaluate(net, shapes, pairs, gts, solver, device=args.device)
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, CosineByTime(args.minutes))
-    score_batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
-
-    @torch.no_grad()
-    def unsupervised_score(model) -> float:
-        model.eval()
-        return sum(
-            float(
-                pair_loss(
-                    model, solver, loss_fn, {**b, "x": b["x"].to(args.device), "y": b["y"].to(args.device)}
-                )["total"]
-            )
-            for b in score_batches
-        ) / len(score_batches)
-
+    validate = unsupervised_score(shapes, pairs, solver, loss_fn, device=args.device)  # no ground truth
     t0 = time.perf_counter()
     state = train(
         net,
@@ -108,7 +94,7 @@ def main() -> None:
         device=args.device,
         epochs=args.epochs,
         minutes=args.minutes,
-        validate=unsupervised_score,
+        validate=validate,
         validate_every=100,
         checkpoint=args.out,
         config=config,

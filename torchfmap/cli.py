@@ -20,7 +20,15 @@ from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh
 from .nn.data import PairDataset, ShapeDataset, class_pairs
-from .nn.train import CosineByTime, TrainConfig, build_model, load_checkpoint, match_with_network, train
+from .nn.train import (
+    CosineByTime,
+    TrainConfig,
+    build_model,
+    load_checkpoint,
+    match_with_network,
+    train,
+    unsupervised_score,
+)
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match
 from .seeds import farthest_point_sampling
@@ -193,6 +201,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(
         f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k})"
     )
+    # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
+    picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+    validate = unsupervised_score(shapes, picked, solver, loss_fn) if args.validate_every else None
     state = train(
         net,
         PairDataset(shapes, pairs),
@@ -204,6 +215,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         minutes=args.minutes,
         max_steps=args.max_steps,
         augment=config.inputs == "xyz",
+        validate=validate,
+        validate_every=args.validate_every,
         checkpoint=args.out,
         config=config,
         resume=args.resume,
@@ -211,9 +224,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     last = state.losses[-1]["total"] if state.losses else float("nan")
-    print(
-        f"{state.step} steps, {state.epoch} epochs, {state.seconds:.0f} s; last loss {last:.4g} -> {args.out}"
-    )
+    best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
+    summary = f"{state.step} steps, {state.epoch} epochs, {state.seconds:.0f} s; last loss {last:.4g}"
+    print(f"{summary}{best} -> {args.out}")
     return 0
 
 
@@ -314,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    p.add_argument("--validate-every", type=int, default=100, help="steps between validations (0: none)")
+    p.add_argument("--validate-pairs", type=int, default=6, help="pairs of the validation score")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
     return parser

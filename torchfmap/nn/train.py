@@ -111,29 +111,43 @@ def pair_loss(net, solver, loss_fn, batch: dict) -> dict[str, torch.Tensor]:
 class CosineByTime:
     """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over a time budget.
 
-    The clock starts at the first call; :meth:`state_dict` / :meth:`load_state_dict` carry the
-    elapsed time across a resume.
+    Counts the time between its calls in this process; ``LambdaLR.state_dict`` saves the time
+    counted so far, and after ``load_state_dict`` in another process the clock continues from
+    there (the gap between the runs is not counted).
     """
 
     def __init__(self, minutes: float, floor: float = 0.02) -> None:
         if minutes <= 0:
             raise ParameterError(f"the time budget must be positive, got {minutes} minutes.")
-        self.seconds, self.floor, self.before, self.start = 60.0 * minutes, floor, 0.0, None
-
-    def elapsed(self) -> float:
-        if self.start is None:
-            self.start = time.perf_counter()
-        return self.before + time.perf_counter() - self.start
+        self.seconds, self.floor = 60.0 * minutes, floor
+        self.counted, self.last, self.pid = 0.0, None, os.getpid()
 
     def __call__(self, step: int) -> float:
-        frac = min(self.elapsed() / self.seconds, 1.0)
+        now = time.perf_counter()
+        if self.last is not None and self.pid == os.getpid():
+            self.counted += now - self.last
+        self.last, self.pid = now, os.getpid()
+        frac = min(self.counted / self.seconds, 1.0)
         return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * frac))
 
-    def state_dict(self) -> dict:
-        return {"before": self.elapsed()}
 
-    def load_state_dict(self, state: dict) -> None:
-        self.before, self.start = state["before"], None
+def unsupervised_score(shapes: ShapeDataset, pairs, solver, loss_fn: UnsupervisedFMLoss, device="cpu"):
+    """``score(net) -> float``: the mean unsupervised loss on ``pairs`` with full (not sampled)
+    soft maps, in eval mode, for :func:`train`'s ``validate`` (no ground truth)."""
+    full = copy.deepcopy(loss_fn)
+    full.n_samples = 0
+    batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
+
+    @torch.no_grad()
+    def score(net) -> float:
+        net.eval()
+        total = 0.0
+        for batch in batches:
+            batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
+            total += float(pair_loss(net, solver, full, batch)["total"])
+        return total / max(len(batches), 1)
+
+    return score
 
 
 @dataclass
@@ -195,8 +209,9 @@ def train(
 ) -> TrainState:
     """Unsupervised training of ``net`` on the pairs of ``data``; returns the :class:`TrainState`.
 
-    Stops after ``epochs`` epochs, ``minutes`` of training (0: no limit) or ``max_steps`` steps
-    (0: no limit), whichever comes first. ``net`` is moved to ``device`` and every batch with it.
+    Stops after ``epochs`` epochs, ``minutes`` of training (0: no limit; a resumed run counts
+    the time of the earlier runs) or ``max_steps`` steps (0: no limit), whichever comes first.
+    ``net`` is moved to ``device`` and every batch with it.
     ``augment``: random rigid motion and scaling of XYZ inputs. ``validate(net) -> score``
     (lower is better) runs every ``validate_every`` steps and at the end; the best weights are
     kept in the checkpoint as ``best_state_dict``. ``checkpoint`` is written atomically at each
