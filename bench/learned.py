@@ -27,10 +27,11 @@ import numpy as np
 import torch
 from _common import RESULTS_DIR, Report, load_note, log, require_data
 
-from torchfmap.eval import geodesic_errors, gt_from_vts, read_vts
+from torchfmap.eval import Correspondence, gt_from_vts, read_vts
 from torchfmap.mesh import Mesh
 from torchfmap.nn.data import ShapeDataset
 from torchfmap.nn.train import adapt, build_model, load_checkpoint, predict_p2p, refine_p2p
+from torchfmap.operators import GeodesicSolver
 
 
 def test_pairs(folder, names, which: str):
@@ -44,13 +45,26 @@ def test_pairs(folder, names, which: str):
     return pairs, gts
 
 
-def errors_of(maps, shapes, pairs, gts, max_points) -> float:
-    out = []
-    for p2p, (a, _), gt in zip(maps, pairs, gts, strict=True):
-        x = shapes[a]
-        mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
-        out.append(geodesic_errors(mesh_x, p2p, gt, max_points=max_points).mean())
-    return float(np.mean(out))
+class PairErrors:
+    """Geodesic errors of many maps of one pair from one set of distance rows (the ground-truth
+    sample of ``max_points`` pairs; :func:`geodesic_errors` with a shared solver)."""
+
+    def __init__(self, shapes, pair, gt, max_points: int) -> None:
+        x = shapes[pair[0]]
+        self.mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
+        idx_x, idx_y = gt
+        if len(idx_y) > max_points:
+            pick = np.sort(np.random.default_rng(0).choice(len(idx_y), max_points, replace=False))
+            idx_x, idx_y = idx_x[pick], idx_y[pick]
+        self.gt = Correspondence(idx_x, idx_y)
+        uniq, inverse = np.unique(idx_x, return_inverse=True)
+        self.rows, self.inverse = GeodesicSolver(self.mesh_x).distances(uniq), inverse
+
+    def mean(self, p2p) -> float:
+        pred = np.asarray(p2p)[self.gt.idx_y]
+        errors = np.maximum(self.rows[self.inverse, pred], 0.0)
+        errors[pred == self.gt.idx_x] = 0.0
+        return float(errors.mean() / np.sqrt(self.mesh_x.area))
 
 
 def loss_png(curves: dict, path) -> None:
@@ -82,75 +96,52 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
     pairs, gts = test_pairs(folder, shapes.names, args.pairs)
     solver, loss_fn = build_model(config)[1:]
     untrained = build_model(config)[0].eval()
-    secs = state.get("epoch_seconds", [])
+    errors: dict[str, list[float]] = {}
+    seconds: dict[str, float] = {}
 
-    def row(method, maps, n, t0, label=label):
-        e = errors_of(maps, shapes, pairs[:n], gts[:n], args.max_points)
+    def add(method: str, fn, pe: PairErrors):
+        t0 = time.perf_counter()
+        p2p = fn()
+        seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0
+        errors.setdefault(method, []).append(pe.mean(p2p))
+        return p2p
+
+    for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):
+        x, y = shapes[a], shapes[b]
+        pe = PairErrors(shapes, (a, b), gt, args.max_points)
+        mx = pe.mesh_x
+        my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
+        add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
+        base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pe)  # noqa: B023
+        add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
+        if not args.no_refine:
+            add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base), pe)  # noqa: B023
+        if args.adapt and i < args.adapt_pairs:
+            add("trained, fmap (adapt subset)", lambda: base, pe)  # noqa: B023
+            tuned = adapt(net, solver, loss_fn, x, y, steps=args.adapt, lr=args.adapt_lr)
+            adapted = add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
+            if not args.no_refine:
+                add(f"adapt {args.adapt} + zoomout", lambda: refine_p2p(mx, my, adapted), pe)  # noqa: B023
+        log(
+            f"{label} pair {i + 1}/{len(pairs)}: "
+            + ", ".join(f"{m} {np.mean(e):.4f}" for m, e in errors.items())
+        )
+    for method, errs in errors.items():
         rows.append(
             {
                 "model": label,
                 "method": method,
-                "pairs": n,
-                "mean error": e,
-                "s / pair": (time.perf_counter() - t0) / n,
+                "pairs": len(errs),
+                "mean error": float(np.mean(errs)),
+                "s / pair": seconds[method] / len(errs),
             }
         )
-        log(f"{label} {method}: {e:.4f}")
-
-    n_all = len(pairs)
-    t0 = time.perf_counter()
-    row(
-        "untrained, fmap",
-        [predict_p2p(untrained, solver, shapes[a], shapes[b]) for a, b in pairs],
-        n_all,
-        t0,
-    )
-    t0 = time.perf_counter()
-    base = [predict_p2p(net, solver, shapes[a], shapes[b]) for a, b in pairs]
-    row("trained, fmap", base, n_all, t0)
-    t0 = time.perf_counter()
-    row(
-        "trained, features",
-        [predict_p2p(net, solver, shapes[a], shapes[b], mode="features") for a, b in pairs],
-        n_all,
-        t0,
-    )
-
-    def meshes(a, b):
-        return [
-            Mesh(shapes[i]["vertices"].numpy(), shapes[i]["faces"].numpy(), validate=False) for i in (a, b)
-        ]
-
-    if not args.no_refine:
-        t0 = time.perf_counter()
-        row(
-            "trained, fmap + zoomout",
-            [refine_p2p(*meshes(a, b), p) for (a, b), p in zip(pairs, base, strict=True)],
-            n_all,
-            t0,
-        )
-    if args.adapt:
-        n = min(args.adapt_pairs, n_all)
-        row("trained, fmap (adapt subset)", base[:n], n, time.perf_counter())
-        t0 = time.perf_counter()
-        adapted = []
-        for a, b in pairs[:n]:
-            tuned = adapt(net, solver, loss_fn, shapes[a], shapes[b], steps=args.adapt, lr=args.adapt_lr)
-            adapted.append(predict_p2p(tuned, solver, shapes[a], shapes[b]))
-        row(f"adapt {args.adapt} steps, fmap", adapted, n, t0)
-        if not args.no_refine:
-            t0 = time.perf_counter()
-            row(
-                f"adapt {args.adapt} + zoomout",
-                [refine_p2p(*meshes(a, b), p) for (a, b), p in zip(pairs[:n], adapted, strict=True)],
-                n,
-                t0,
-            )
+    secs = state.get("epoch_seconds", [])
     report.add(
         f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
         f"{state.get('step', '?')} steps, {state.get('epoch', '?')} full epochs, "
         f"{state.get('seconds', float('nan')):.0f} s training; seconds per full epoch: "
-        + (", ".join(f"{s:.0f}" for s in secs) if secs else "n/a (budget ended inside the first epoch)")
+        + (", ".join(f"{s:.0f}" for s in secs) if secs else "n/a")
     )
 
 
@@ -162,7 +153,7 @@ def main() -> None:
     parser.add_argument("--adapt", type=int, default=0)
     parser.add_argument("--adapt-lr", type=float, default=1e-3)
     parser.add_argument("--adapt-pairs", type=int, default=12)
-    parser.add_argument("--max-points", type=int, default=1000)
+    parser.add_argument("--max-points", type=int, default=500)
     parser.add_argument("--no-refine", action="store_true")
     parser.add_argument("--cache", default=None)
     args = parser.parse_args()
