@@ -73,6 +73,7 @@ def loss_png(curves: dict, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, losses in curves.items():
         total = np.array([t["total"] for t in losses])
