@@ -11,7 +11,7 @@ Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``).
 normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
 process), the trained network's map from the functional map (``fmap``) and from nearest
-neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 30 -> 120 eigenfunctions),
+neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions),
 and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
 adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
 errors on the same pairs. The loss curve of each checkpoint (total per step, moving mean) goes to
@@ -152,7 +152,7 @@ def main() -> None:
     parser.add_argument("--pairs", default="all", choices=["all", "cat", "wolf"])
     parser.add_argument("--name", default="dev")
     parser.add_argument("--adapt", type=int, default=0)
-    parser.add_argument("--adapt-lr", type=float, default=1e-3)
+    parser.add_argument("--adapt-lr", type=float, default=1e-4)
     parser.add_argument("--adapt-pairs", type=int, default=12)
     parser.add_argument("--max-points", type=int, default=500)
     parser.add_argument("--no-refine", action="store_true")

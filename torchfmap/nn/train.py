@@ -420,7 +420,7 @@ def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_d
 
 
 def refine_p2p(
-    mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, k0: int = 30, k_final: int = 120
+    mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, k0: int = 50, k_final: int = 200
 ) -> np.ndarray:
     """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
     -> ``k_final``; returns the refined ``p2p_yx``."""
