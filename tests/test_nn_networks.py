@@ -171,7 +171,22 @@ def test_match_command_with_checkpoint(tiny_folder, tmp_path, capsys):
     out = tmp_path / "map.txt"
     src, tgt = tiny_folder / "blob0.ply", tiny_folder / "blob1.ply"
     assert (
-        main(["match", str(src), str(tgt), "--checkpoint", str(ckpt), "--out", str(out), "--adapt", "1"]) == 0
+        main(
+            [
+                "match",
+                str(src),
+                str(tgt),
+                "--checkpoint",
+                str(ckpt),
+                "--out",
+                str(out),
+                "--adapt",
+                "1",
+                "--refine",
+                "zoomout",
+            ]
+        )
+        == 0
     )
     p2p = np.loadtxt(out, dtype=np.int64)
     assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
