@@ -35,11 +35,14 @@ import time
 from typing import Any
 
 import torch
-from _common import Report, int_list, load1, load_note, log, markdown, str_list
+from _common import Report, data_path, int_list, load1, load_note, log, markdown, str_list
 from _torch_inputs import DTYPES, random_basis
 
-from torchfmap.nn import FeatureNet, UnsupervisedFMLoss
+from torchfmap import load_mesh
+from torchfmap.nn import DiffusionNet, FeatureNet, UnsupervisedFMLoss, collate_shapes
+from torchfmap.nn.data import precompute_shape, shape_item
 from torchfmap.nn.functional import fmap_solve
+from torchfmap.nn.train import TrainConfig
 
 
 class Hooks:
@@ -138,15 +141,85 @@ def run_train(args) -> list[str]:
     ]
 
 
+def run_recipes(args) -> list[str]:
+    """(3) The training step of the recipe vs the first learned path, on cat0/cat1 (real meshes).
+
+    baseline: ``FeatureNet(32, 64, width 64, 3 blocks)`` (diffusion + MLPs) and
+    ``UnsupervisedFMLoss()`` with full ``(V, V)`` soft maps; recipe: ``DiffusionNet(32, 64,
+    width 64, 4 blocks)`` with gradient features and the loss of :class:`TrainConfig`
+    (coupling between ``n_samples`` random vertices per shape). Both: ``K`` eigenfunctions for the
+    solver and the diffusion, ``fmap_solve`` both ways, backward, Adam. Steps alternate between
+    the two, ``--repeats`` each after one warm-up; medians and the ratio recipe / baseline.
+    """
+    folder = data_path("tosca5k_dev")
+    if folder is None:
+        return ["## (3) Recipe vs baseline: skipped (../shared/data/tosca5k_dev absent)"]
+    rows = []
+    for k in args.recipe_ks:
+        log(f"recipe: precompute cat0, cat1 with K={k}")
+        shapes = []
+        for name in ("cat0", "cat1"):
+            arrays = precompute_shape(load_mesh(folder / f"{name}.off"), k, 32, k_net=k)
+            shapes.append(collate_shapes([shape_item(arrays)]))
+        (sx, sy), cfg = shapes, TrainConfig()
+        torch.manual_seed(args.seed)
+        nets = {
+            "baseline": FeatureNet(32, 64, width=64, n_blocks=3),
+            "recipe": DiffusionNet(32, cfg.c_out, cfg.width, cfg.n_blocks, cfg.dropout, cfg.gradients),
+        }
+        losses = {"baseline": UnsupervisedFMLoss(), "recipe": UnsupervisedFMLoss(**cfg.loss_weights)}
+        opts = {key: torch.optim.Adam(net.parameters(), lr=1e-3) for key, net in nets.items()}
+
+        def step(key: str, nets=nets, sx=sx, sy=sy, losses=losses, opts=opts) -> float:
+            net, t0 = nets[key], time.perf_counter()
+            args_x = (sx.inputs, sx.net_basis, sx.grad) if key == "recipe" else (sx.inputs, sx.basis)
+            args_y = (sy.inputs, sy.net_basis, sy.grad) if key == "recipe" else (sy.inputs, sy.basis)
+            fx, fy = net(*args_x), net(*args_y)
+            C_xy, C_yx = fmap_solve(fx, fy, sx.basis, sy.basis)
+            total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis)["total"]
+            opts[key].zero_grad(set_to_none=True)
+            total.backward()
+            opts[key].step()
+            return time.perf_counter() - t0
+
+        times: dict[str, list[float]] = {"baseline": [], "recipe": []}
+        for key in times:
+            step(key)  # warm-up
+        for r in range(args.repeats):
+            for key in times:
+                gc.collect()
+                times[key].append(step(key))
+            b, c = times["baseline"][-1], times["recipe"][-1]
+            log(f"    K={k} step {r + 1}: baseline {b:.3f} s, recipe {c:.3f} s")
+        med = {key: statistics.median(t) for key, t in times.items()}
+        rows.append(
+            {
+                "K": k,
+                "V (x, y)": f"{sx.inputs.shape[1]}, {sy.inputs.shape[1]}",
+                "baseline step [s]": med["baseline"],
+                "recipe step [s]": med["recipe"],
+                "recipe / baseline": med["recipe"] / med["baseline"],
+                "load1": load1(),
+            }
+        )
+    return [
+        f"## (3) Training step of the recipe vs the first learned path, float32, one pair "
+        f"(cat0, cat1); median of {args.repeats} alternating steps ({torch.get_num_threads()} torch threads)",
+        markdown(rows),
+    ]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-ks", default="30,100")
     parser.add_argument("--train-batches", default="1,4")
     parser.add_argument("--train-v", type=int, default=5000)
+    parser.add_argument("--recipe-ks", default="100", help="K of part (3); empty to skip it")
 
 
 def parse_lists(args) -> None:
     args.dtypes = str_list(args.dtypes)
     args.train_ks, args.train_batches = int_list(args.train_ks), int_list(args.train_batches)
+    args.recipe_ks = int_list(args.recipe_ks) if args.recipe_ks else []
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -163,7 +236,10 @@ def main(argv: list[str] | None = None) -> None:
     t_start = time.perf_counter()
     out = Report("train_step")
     out.add(f"# Training step (torch {torch.__version__}, {os.cpu_count()} CPUs; {load_note()} at start)")
-    out.add(*run_train(args))
+    if args.train_ks and args.train_batches:
+        out.add(*run_train(args))
+    if args.recipe_ks:
+        out.add(*run_recipes(args))
     out.add(f"{load_note()} at end; total {time.perf_counter() - t_start:.0f} s.")
     out.save()
 

@@ -1,21 +1,20 @@
-"""Match a pair of meshes on the CPU with a trained checkpoint (see examples/train.py).
+"""Match two meshes with a trained checkpoint (``torchfmap train`` or examples/train.py).
 
-    python examples/infer.py examples/out/fmnet.ckpt SRC.off TGT.off --out map.txt [--png transfer.png]
+    python examples/infer.py model.ckpt SRC.off TGT.ply --out map.txt [--adapt 10] [--refine] [--png t.png]
 
-Writes one line per target vertex: the 0-based index of its source vertex.
+No dataset folder and no cache: both meshes are precomputed in memory as in training. Writes one
+line per target vertex: the 0-based index of its source vertex (the ``torchfmap match`` format).
 """
 
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from torchfmap.nn.data import ShapeDataset
-from torchfmap.nn.modules import RegularizedFMSolver
-from torchfmap.nn.train import load_checkpoint, predict_p2p
+from torchfmap import load_mesh
+from torchfmap.nn.train import load_checkpoint, match_with_network
 
 
 def main() -> None:
@@ -26,21 +25,19 @@ def main() -> None:
     parser.add_argument("source", type=Path)
     parser.add_argument("target", type=Path)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--adapt", type=int, default=0, help="test-time adaptation steps on this pair")
+    parser.add_argument("--refine", action="store_true", help="ZoomOut in the eigenbases")
     parser.add_argument("--png", type=Path)
-    parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "torchfmap-cache")
     args = parser.parse_args()
     net, config, _ = load_checkpoint(args.checkpoint)
-    shapes = ShapeDataset(
-        [args.source, args.target], args.cache, k=config.k, n_wks=config.n_wks, progress=False
-    )
-    p2p = predict_p2p(net, RegularizedFMSolver(w_lap=config.w_lap), shapes[0], shapes[1])
+    src, tgt = load_mesh(args.source), load_mesh(args.target)
+    p2p = match_with_network(net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine)
     np.savetxt(args.out, p2p, fmt="%d")
     print(f"{args.target.name} -> {args.source.name}: {len(p2p)} vertices -> {args.out}")
     if args.png:
-        from torchfmap import load_mesh
         from torchfmap.viz import plot_color_transfer
 
-        plot_color_transfer(load_mesh(args.source), load_mesh(args.target), p2p, args.png)
+        plot_color_transfer(src, tgt, p2p, args.png)
 
 
 if __name__ == "__main__":

@@ -161,7 +161,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
     batch = collate_pairs(items)
     assert batch["names"] == [("big0", "small"), ("small", "big1")]
     for side, col in (("x", 0), ("y", 1)):
-        basis, feats, lengths = batch[side]
+        basis, feats, lengths = batch[side][:3]
         assert basis.values.shape == (2, 642, 8) and feats.shape == (2, 642, 6)
         for b in range(2):
             v, k = items[b][col]["values"].shape
@@ -181,7 +181,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
             *(iy[n][None] for n in ("values", "mass", "lam", "U")),
             torch.ones(1, iy["lam"].shape[0], dtype=torch.float64),
         )
-        ref_xy, ref_yx = F.fmap_solve(ix["wks"][None], iy["wks"][None], bx, by)
+        ref_xy, ref_yx = F.fmap_solve(ix["inputs"][None], iy["inputs"][None], bx, by)
         kx, ky = ix["lam"].shape[0], iy["lam"].shape[0]
         scale = ref_xy.abs().max()
         torch.testing.assert_close(C_xy[b, :ky, :kx], ref_xy[0], rtol=0, atol=1e-10 * float(scale))

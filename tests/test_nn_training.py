@@ -11,7 +11,7 @@ import torch
 
 from torchfmap import save_mesh
 from torchfmap.eval import gt_from_vts, read_vts
-from torchfmap.nn.data import PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
+from torchfmap.nn.data import PairDataset, PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
 from torchfmap.nn.train import TrainConfig, build_model, ddp_worker, evaluate, load_checkpoint, train
 
 from .conftest import bend, bumpy_blob, data_path
@@ -36,7 +36,8 @@ def test_cache_detects_corruption_and_rebuilds(tmp_path, blob_files):
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 3])  # truncated
     assert PrecomputeCache(tmp_path).load(path.stem) is None
-    assert torch.equal(shapes[0]["values"], reference)  # rebuilt transparently
+    reloaded = ShapeDataset(blob_files[:1], tmp_path, k=8, n_wks=8, progress=False)
+    assert torch.equal(reloaded[0]["values"], reference)  # rebuilt transparently
     with np.load(path) as z:  # altered content in a valid container
         arrays = {k: z[k] for k in z.files}
     arrays["mass"] = arrays["mass"] * 2
@@ -46,13 +47,15 @@ def test_cache_detects_corruption_and_rebuilds(tmp_path, blob_files):
         shapes[0]["mass"], ShapeDataset(blob_files[:1], tmp_path, k=8, n_wks=8, progress=False)[0]["mass"]
     )
     path.write_bytes(b"not a zip file")
-    assert torch.equal(shapes[0]["values"], reference)
+    assert torch.equal(
+        ShapeDataset(blob_files[:1], tmp_path, k=8, n_wks=8, progress=False)[0]["values"], reference
+    )
 
 
 def test_collate_pairs(tmp_path, blob_files):
     shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
     batch = collate_pairs([(shapes[0], shapes[1]), (shapes[2], shapes[0])])
-    basis, feats, lengths = batch["x"]
+    basis, feats, lengths = batch["x"][:3]
     assert basis.values.shape == (2, 162, 8) and feats.shape == (2, 162, 8)
     assert batch["names"] == [("blob0", "blob1"), ("blob2", "blob0")]
 
@@ -60,17 +63,30 @@ def test_collate_pairs(tmp_path, blob_files):
 def test_short_training_improves_dev_pair(tmp_path):
     folder = data_path("tosca5k_dev")
     files = [folder / "cat0.off", folder / "cat1.off"]
-    shapes = ShapeDataset(files, tmp_path, k=20, n_wks=16, progress=False)
+    config = TrainConfig(k=20, n_wks=16, k_net=32, lr=3e-3, width=32, c_out=32, n_blocks=2)
+    shapes = ShapeDataset(files, tmp_path, **config.dataset_kwargs(), progress=False)
     gt = gt_from_vts(read_vts(folder / "corres" / "cat0.vts"), read_vts(folder / "corres" / "cat1.vts"))
-    config = TrainConfig(k=20, n_wks=16, epochs=8, lr=3e-3, width=32, c_out=32, n_blocks=2)
-    before = evaluate(build_model(config)[0], shapes, [(0, 1)], [gt], config, max_points=200)
+    net, solver, loss_fn = build_model(config)
+    before = evaluate(net, shapes, [(0, 1)], [gt], solver, max_points=200)
     ckpt = tmp_path / "net.ckpt"
-    net, history = train(shapes, config, checkpoint=ckpt, progress=False)
-    after = evaluate(net, shapes, [(0, 1)], [gt], config, max_points=200)
-    assert history[-1] < history[0]
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+    state = train(
+        net,
+        PairDataset(shapes),
+        loss_fn,
+        opt,
+        solver=solver,
+        epochs=8,
+        checkpoint=ckpt,
+        config=config,
+        progress=False,
+    )
+    after = evaluate(net, shapes, [(0, 1)], [gt], solver, max_points=200)
+    first, last = state.losses[0]["total"], np.mean([t["total"] for t in state.losses[-4:]])
+    assert last < first
     assert after < before
-    loaded, cfg, meta = load_checkpoint(ckpt)
-    assert cfg == config and meta["epoch"] == 8
+    loaded, cfg, meta = load_checkpoint(ckpt, best=False)
+    assert cfg == config and meta["train_state"]["epoch"] == 8
     for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
@@ -82,10 +98,10 @@ def _free_port() -> int:
 
 
 def test_ddp_two_processes_identical_weights(tmp_path, blob_files):
-    config = TrainConfig(k=8, n_wks=8, epochs=1, width=16, c_out=16, n_blocks=1)
+    config = TrainConfig(k=8, n_wks=8, k_net=8, epochs=1, width=16, c_out=16, n_blocks=1)
     torch.multiprocessing.spawn(
         ddp_worker,
-        args=(2, _free_port(), blob_files, tmp_path / "cache", asdict(config), tmp_path),
+        args=(2, _free_port(), blob_files, tmp_path / "cache", asdict(config), tmp_path / "ddp.ckpt"),
         nprocs=2,
     )
     w0 = torch.load(tmp_path / "rank0.pt")

@@ -1,4 +1,4 @@
-"""Command line: ``torchfmap demo | info | basis | match | eval``."""
+"""Command line: ``torchfmap demo | info | basis | match | eval | train``."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from ._checks import is_symmetric
@@ -18,6 +20,16 @@ from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh
+from .nn.data import PairDataset, ShapeDataset, class_pairs
+from .nn.train import (
+    CosineByTime,
+    TrainConfig,
+    build_model,
+    load_checkpoint,
+    match_with_network,
+    train,
+    unsupervised_score,
+)
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match
 from .seeds import farthest_point_sampling
@@ -166,6 +178,25 @@ def read_landmark_pairs(path: str) -> np.ndarray:
 
 def cmd_match(args: argparse.Namespace) -> int:
     src, tgt = load_mesh(args.source), load_mesh(args.target)
+    t0 = time.perf_counter()
+    if args.checkpoint:
+        if args.landmarks:
+            raise TorchFmapError("--checkpoint matches without landmarks. Fix: drop --landmarks.")
+        net, config, _ = load_checkpoint(args.checkpoint)
+        p2p = match_with_network(
+            net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine is not None
+        )
+        np.savetxt(args.out, p2p, fmt="%d")
+        print(
+            f"matched {tgt.n_vertices} target vertices to {src.name} with {args.checkpoint} "
+            f"(adapt {args.adapt} steps, refine {args.refine or '-'}, "
+            f"{time.perf_counter() - t0:.2f} s) -> {args.out}"
+        )
+        if args.png:
+            print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png)}")
+        return 0
+    if args.adapt:
+        raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
     result = match(src, tgt, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
     np.savetxt(args.out, result.p2p_yx, fmt="%d")
@@ -176,6 +207,58 @@ def cmd_match(args: argparse.Namespace) -> int:
     )
     if args.png:
         print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png)}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    config = TrainConfig(
+        k=args.k,
+        basis=args.basis,
+        inputs=args.inputs,
+        epochs=args.epochs,
+        minutes=args.minutes,
+        seed=args.seed,
+    )
+    if args.resume and Path(args.out).exists():
+        saved = load_checkpoint(args.out)[1]
+        config = TrainConfig(**{**vars(saved), "epochs": args.epochs, "minutes": args.minutes})
+    cache = False if args.no_cache else args.cache
+    shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
+    pairs = class_pairs(shapes.names)
+    net, solver, loss_fn = build_model(config)
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+    scheduler = None
+    if args.minutes:
+        scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineByTime(args.minutes))
+    print(
+        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k})"
+    )
+    # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
+    picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+    validate = unsupervised_score(shapes, picked, solver, loss_fn) if args.validate_every else None
+    state = train(
+        net,
+        PairDataset(shapes, pairs),
+        loss_fn,
+        opt,
+        solver=solver,
+        scheduler=scheduler,
+        epochs=args.epochs,
+        minutes=args.minutes,
+        max_steps=args.max_steps,
+        augment=config.inputs == "xyz",
+        validate=validate,
+        validate_every=args.validate_every,
+        checkpoint=args.out,
+        config=config,
+        resume=args.resume,
+        seed=config.seed,
+        progress=not args.quiet,
+    )
+    last = state.losses[-1]["total"] if state.losses else float("nan")
+    best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
+    summary = f"{state.step} steps, {state.epoch} epochs, {state.seconds:.0f} s; last loss {last:.4g}"
+    print(f"{summary}{best} -> {args.out}")
     return 0
 
 
@@ -250,6 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
     p.add_argument("--png", help="also save a colour-transfer picture")
+    p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
+    p.add_argument("--adapt", type=int, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.set_defaults(func=cmd_match)
     p = sub.add_parser("eval", help="match every pair of a folder with ground truth; table + PCK plot")
     p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
@@ -264,6 +349,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--png", help="save the PCK curves here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)
+    p = sub.add_parser("train", help="train a feature network, unsupervised, on every mesh of a folder")
+    p.add_argument(
+        "folder", help="meshes (.off/.ply/.obj/.stl, .gz); pairs within classes sharing a name prefix"
+    )
+    p.add_argument("--out", required=True, help="checkpoint (written atomically during training)")
+    p.add_argument("--minutes", type=float, default=0.0, help="time budget (0: --epochs only)")
+    p.add_argument("--epochs", type=int, default=1000)
+    p.add_argument("--max-steps", type=int, default=0)
+    p.add_argument("--basis", choices=["laplacian", "diffusion", "stack"], default="laplacian")
+    p.add_argument("--k", type=int, default=50, help="functional-map basis size")
+    p.add_argument("--inputs", choices=["wks", "xyz"], default="wks")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
+    p.add_argument("--no-cache", action="store_true")
+    p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    p.add_argument("--validate-every", type=int, default=100, help="steps between validations (0: none)")
+    p.add_argument("--validate-pairs", type=int, default=6, help="pairs of the validation score")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_train)
     return parser
 
 

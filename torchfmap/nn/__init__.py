@@ -6,8 +6,17 @@ Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass, ``(B, V, D)`` featur
 """
 
 from . import functional
-from .data import PairDataset, PrecomputeCache, ShapeDataset, collate_pairs, collate_shapes, precompute_shape
-from .functional import BasisBatch
+from .data import (
+    PairDataset,
+    PrecomputeCache,
+    ShapeBatch,
+    ShapeDataset,
+    class_pairs,
+    collate_pairs,
+    collate_shapes,
+    precompute_shape,
+)
+from .functional import BasisBatch, GradientBatch
 from .modules import (
     BasisModule,
     FeatureNet,
@@ -17,19 +26,26 @@ from .modules import (
     UnsupervisedFMLoss,
     basis_arrays,
 )
+from .networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
 
 __all__ = [
     "BasisBatch",
     "BasisModule",
+    "DiffusionNet",
     "FeatureNet",
+    "FeatureNetwork",
+    "GradientBatch",
     "PairDataset",
     "PrecomputeCache",
     "RegularizedFMSolver",
+    "ShapeBatch",
     "ShapeDataset",
     "SoftPointMap",
+    "SpatialGradientFeatures",
     "SpectralDiffusion",
     "UnsupervisedFMLoss",
     "basis_arrays",
+    "class_pairs",
     "collate_pairs",
     "collate_shapes",
     "functional",

@@ -14,19 +14,24 @@ import json
 import logging
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from .._files import load_arrays, save_arrays
-from ..bases import laplacian_eigenbasis
+from ..bases import concatenate, diffusion_basis, laplacian_eigenbasis, orthonormalize
+from ..bases.basis import Basis
 from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh
 from ..mesh import Mesh
+from ..operators import laplacian
 from ..operators.laplacian import normalize_area
-from .functional import BasisBatch
+from ..seeds import farthest_point_sampling
+from .functional import BasisBatch, GradientBatch
+from .geometry import gradient_operator
 from .modules import basis_arrays
 
 log = logging.getLogger(__name__)
@@ -76,78 +81,201 @@ class PrecomputeCache:
         return arrays
 
 
-def precompute_shape(mesh: Mesh, k: int = 50, n_wks: int = 32, k_wks: int = 100) -> dict[str, np.ndarray]:
-    """Arrays for training: eigenbasis ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``, ``wks (V, n_wks)``.
+BASIS_KINDS = ("laplacian", "diffusion", "stack")
+#: Relative diffusion times of the feature-aware bases on the learned path.
+SEED_TIMES = (0.01, 0.03)
 
-    The mesh is scaled to unit area first (learned diffusion times are then comparable).
+
+def _solver_basis(unit: Mesh, eig: Basis, kind: str, k: int, ops) -> Basis:
+    """The functional-map basis of ``k`` functions: eigenbasis, FPS-seeded diffusion kernels, or
+    a stack (first ``k // 2`` eigenfunctions, then diffusion kernels), B-orthonormal."""
+    if kind == "laplacian":
+        return eig.truncated(k)
+    n_kernels = k if kind == "diffusion" else k - k // 2
+    seeds = farthest_point_sampling(unit, -(-n_kernels // len(SEED_TIMES)) + 1)
+    kernels = diffusion_basis(unit, seeds, SEED_TIMES, operators=ops)
+    parts = [kernels] if kind == "diffusion" else [eig.truncated(k // 2), kernels]
+    basis = orthonormalize(concatenate(parts))
+    if basis.k < k:
+        raise ParameterError(
+            f"the {kind} basis has only {basis.k} independent functions, {k} asked. Fix: lower k."
+        )
+    return basis.truncated(k)
+
+
+def precompute_shape(
+    mesh: Mesh,
+    k: int = 50,
+    n_wks: int = 32,
+    k_wks: int = 100,
+    *,
+    k_net: int = 0,
+    basis: str = "laplacian",
+) -> dict[str, np.ndarray]:
+    """Arrays for training and inference, on the mesh scaled to unit area.
+
+    - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
+    - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
+    - inputs: ``wks (V, n_wks)`` (standardised), ``xyz (V, 3)`` (centred, unit area);
+    - gradient operator: ``grad_rows, grad_cols, grad_x, grad_y (E,)``
+      (:func:`~torchfmap.nn.geometry.gradient_operator`);
+    - the original ``vertices``, ``faces``.
     """
+    if basis not in BASIS_KINDS:
+        raise ParameterError(f"unknown basis kind {basis!r}. Fix: one of {', '.join(BASIS_KINDS)}.")
     unit = normalize_area(mesh)
-    k_all = max(k, k_wks)
-    full = laplacian_eigenbasis(unit, k_all)
-    feats = wks(full.eigenvalues, full.values, n_wks)
+    ops = laplacian(unit)
+    k_all = max(k, k_wks, k_net)
+    full = laplacian_eigenbasis(unit, k_all, operators=ops)
+    feats = wks(full.eigenvalues[:k_wks], full.values[:, :k_wks], n_wks)
     feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
-    arrays = basis_arrays(full.truncated(k))
+    arrays = basis_arrays(_solver_basis(unit, full, basis, k, ops))
+    if k_net:
+        net = basis_arrays(full.truncated(k_net))
+        arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
     arrays["wks"] = feats
+    arrays["xyz"] = (
+        unit.vertices - (unit.vertices * arrays["mass"][:, None]).sum(axis=0) / arrays["mass"].sum()
+    )
+    arrays.update(gradient_operator(unit))
     arrays["vertices"] = mesh.vertices
     arrays["faces"] = mesh.faces
     return arrays
 
 
-class ShapeDataset(torch.utils.data.Dataset):
-    """Meshes of a folder (or a list of files), precomputed through a :class:`PrecomputeCache`.
+def default_cache_dir() -> Path:
+    """The per-user cache folder: ``$XDG_CACHE_HOME/torchfmap`` or ``~/.cache/torchfmap``."""
+    root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(root) / "torchfmap"
 
-    Items are dicts of float tensors: ``values (V, K)``, ``mass (V,)``, ``lam (K,)``, ``U (K, K)``,
-    ``wks (V, C)``, plus ``name`` and the ``index``.
+
+def mesh_files(folder: str | os.PathLike) -> list[Path]:
+    """The mesh files of a folder that :func:`~torchfmap.load_mesh` reads, sorted by name."""
+    files = [
+        f
+        for f in Path(folder).iterdir()
+        if f.is_file() and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES)
+    ]
+    return sorted(files, key=lambda f: f.name)
+
+
+MESH_SUFFIXES = tuple(s + gz for s in (".off", ".ply", ".obj", ".stl") for gz in ("", ".gz"))
+_ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
+
+
+class ShapeDataset(torch.utils.data.Dataset):
+    """Meshes of a folder (or a list of files), precomputed once and held in memory.
+
+    Each mesh is read and precomputed (:func:`precompute_shape`, through a
+    :class:`PrecomputeCache`) once, at construction. ``cache_dir``: a folder, ``None`` for
+    :func:`default_cache_dir`, ``False`` for no cache; a folder that cannot be written is
+    used read-only or not at all (with a warning). ``inputs``: ``'wks'`` or ``'xyz'``.
+
+    Items are dicts of tensors (floats in ``dtype``): solver basis ``values (V, K)``, ``mass (V,)``,
+    ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``, ``net_lam``, ``net_U``;
+    ``inputs (V, C)``; gradient operator ``grad_rows``, ``grad_cols`` (int64), ``grad_x``,
+    ``grad_y`` ``(E,)``; ``xyz (V, 3)`` (unit area); ``vertices``, ``faces``, ``name``, ``index``.
     """
 
     def __init__(
         self,
         files,
-        cache_dir: str | os.PathLike,
+        cache_dir: str | os.PathLike | None | bool = None,
         *,
         k: int = 50,
         n_wks: int = 32,
+        k_net: int = 0,
+        basis: str = "laplacian",
+        inputs: str = "wks",
         dtype: torch.dtype = torch.float32,
         rank: int = 0,
         world_size: int = 1,
         progress: bool = True,
     ) -> None:
-        files = sorted(Path(files).glob("*.off")) if isinstance(files, (str, os.PathLike)) else list(files)
+        files = mesh_files(files) if isinstance(files, (str, os.PathLike)) else list(files)
         if not files:
-            raise ParameterError("no meshes found. Fix: point to a folder with .off files or pass a list.")
+            raise ParameterError(
+                "no meshes found. Fix: point to a folder of .off/.ply/.obj/.stl (.gz) files."
+            )
+        if inputs not in ("wks", "xyz"):
+            raise ParameterError(f"unknown inputs {inputs!r}. Fix: 'wks' or 'xyz'.")
+        if basis not in BASIS_KINDS:
+            raise ParameterError(f"unknown basis kind {basis!r}. Fix: one of {', '.join(BASIS_KINDS)}.")
         self.files = [Path(f) for f in files]
         self.names = [f.name.split(".")[0] for f in self.files]
-        self.cache = PrecomputeCache(cache_dir)
-        self.params = {"k": k, "n_wks": n_wks, "version": 1}
-        self.dtype = dtype
+        self.cache = _open_cache(default_cache_dir() if cache_dir is None else cache_dir)
+        self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 2}
+        self.inputs, self.dtype = inputs, dtype
+        self.items: list[dict | None] = [None] * len(self.files)
         self.precompute(rank, world_size, progress)
 
     def _compute(self, i: int) -> dict[str, np.ndarray]:
         mesh = load_mesh(self.files[i])
-        key = mesh_key(mesh, self.params)
-        return self.cache.get(key, lambda: precompute_shape(mesh, self.params["k"], self.params["n_wks"]))
+        p = self.params
+
+        def compute():
+            return precompute_shape(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"])
+
+        if self.cache is None:
+            return compute()
+        return self.cache.get(mesh_key(mesh, p), compute)
+
+    def _item(self, i: int, arrays: dict[str, np.ndarray]) -> dict:
+        return shape_item(arrays, self.inputs, self.dtype, self.names[i], i)
 
     def precompute(self, rank: int = 0, world_size: int = 1, progress: bool = True) -> None:
-        """Fill the cache; with several ranks each fills its share (then synchronise)."""
-        mine = range(rank, len(self.files), world_size)
-        for i in tqdm(mine, desc=f"precompute (rank {rank})", disable=not progress):
-            self._compute(i)
-        if world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
-            torch.distributed.barrier()
+        """Fill the cache (with several ranks each fills its share, then all synchronise) and
+        load every mesh once."""
+        if world_size > 1 and self.cache is not None:
+            for i in tqdm(range(rank, len(self.files), world_size), desc="precompute", disable=not progress):
+                self._compute(i)
+            if torch.distributed.is_available() and torch.distributed.is_initialized():
+                torch.distributed.barrier()
+        for i in tqdm(range(len(self.files)), desc="load shapes", disable=not progress or rank != 0):
+            self.items[i] = self._item(i, self._compute(i))
 
     def __len__(self) -> int:
         return len(self.files)
 
     def __getitem__(self, i: int) -> dict:
-        arrays = self._compute(i)
-        item = {
-            k: torch.as_tensor(arrays[k], dtype=self.dtype) for k in ("values", "mass", "lam", "U", "wks")
-        }
-        item["vertices"] = torch.as_tensor(arrays["vertices"])
-        item["faces"] = torch.as_tensor(arrays["faces"])
-        item["name"] = self.names[i]
-        item["index"] = i
-        return item
+        return self.items[i]
+
+
+def shape_item(
+    arrays: dict[str, np.ndarray], inputs: str = "wks", dtype=torch.float32, name: str = "", index: int = 0
+) -> dict:
+    """A dataset item (see :class:`ShapeDataset`) from :func:`precompute_shape` arrays."""
+    item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
+    item["inputs"] = torch.as_tensor(arrays[inputs], dtype=dtype)
+    item["xyz"] = torch.as_tensor(arrays["xyz"], dtype=dtype)
+    for key in ("grad_rows", "grad_cols", "vertices", "faces"):
+        item[key] = torch.as_tensor(arrays[key])
+    item["name"], item["index"] = name, index
+    return item
+
+
+def _open_cache(folder) -> PrecomputeCache | None:
+    """A cache in ``folder``; ``False`` or an unusable folder gives None (no cache)."""
+    if folder is False:
+        return None
+    try:
+        cache = PrecomputeCache(folder)
+        probe = cache.folder / f".probe.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+        return cache
+    except OSError as err:
+        log.warning("cache folder %s is not writable (%s): computing without a cache", folder, err)
+        return None
+
+
+def class_pairs(names: list[str]) -> list[tuple[int, int]]:
+    """Ordered pairs within classes: names sharing the prefix before trailing digits (and ``_-``)
+    form a class (``cat0``, ``cat1``); when no class has two shapes, all ordered pairs."""
+    kind = [n.rstrip("0123456789").rstrip("_-") for n in names]
+    n = len(names)
+    pairs = [(i, j) for i in range(n) for j in range(n) if i != j and kind[i] == kind[j]]
+    return pairs or [(i, j) for i in range(n) for j in range(n) if i != j]
 
 
 class PairDataset(torch.utils.data.Dataset):
@@ -166,34 +294,80 @@ class PairDataset(torch.utils.data.Dataset):
         return self.shapes[a], self.shapes[b]
 
 
-def collate_shapes(items: list[dict]) -> tuple[BasisBatch, torch.Tensor, torch.Tensor]:
-    """Pad shapes of different ``V`` and ``K``: ``(BasisBatch, features (B, V, C), lengths (B,))``.
+class ShapeBatch(NamedTuple):
+    """A padded batch of shapes (:func:`collate_shapes`).
 
-    Padded vertices get zero mass and zero basis values; padded columns zero values, ``lam = 0``,
-    an identity block in ``U`` and ``valid = 0``.
+    ``basis`` the solver basis ``(B, V, K)``, ``inputs (B, V, C)``, ``lengths (B,)`` vertex
+    counts, ``net_basis`` the network's basis ``(B, V, K_net)`` (the solver basis when the items
+    have none), ``grad`` the gradient operators (None when the items have none), ``xyz (B, V, 3)``.
     """
-    B = len(items)
-    V = max(it["values"].shape[0] for it in items)
-    K = max(it["values"].shape[1] for it in items)
-    C = items[0]["wks"].shape[1]
-    dtype = items[0]["values"].dtype
-    values = torch.zeros(B, V, K, dtype=dtype)
-    mass = torch.zeros(B, V, dtype=dtype)
-    lam = torch.zeros(B, K, dtype=dtype)
-    U = torch.eye(K, dtype=dtype).repeat(B, 1, 1)
-    valid = torch.zeros(B, K, dtype=dtype)
-    feats = torch.zeros(B, V, C, dtype=dtype)
-    lengths = torch.zeros(B, dtype=torch.long)
+
+    basis: BasisBatch
+    inputs: torch.Tensor
+    lengths: torch.Tensor
+    net_basis: BasisBatch
+    grad: GradientBatch | None
+    xyz: torch.Tensor | None
+
+    def to(self, *args, **kwargs) -> ShapeBatch:
+        """Floats follow ``.to(dtype/device)``; lengths and indices only move device."""
+        basis = self.basis.to(*args, **kwargs)
+        device = basis.values.device
+        net = basis if self.net_basis is self.basis else self.net_basis.to(*args, **kwargs)
+        return ShapeBatch(
+            basis,
+            self.inputs.to(*args, **kwargs),
+            self.lengths.to(device),
+            net,
+            None if self.grad is None else self.grad.to(*args, **kwargs),
+            None if self.xyz is None else self.xyz.to(*args, **kwargs),
+        )
+
+
+def _pad(tensors: list[torch.Tensor], fill: float = 0.0) -> torch.Tensor:
+    """Stack tensors of different sizes, padding every dimension at the end with ``fill``."""
+    shape = [max(t.shape[d] for t in tensors) for d in range(tensors[0].dim())]
+    out = torch.full((len(tensors), *shape), fill, dtype=tensors[0].dtype)
+    for b, t in enumerate(tensors):
+        out[(b, *(slice(0, n) for n in t.shape))] = t
+    return out
+
+
+def _basis_batch(items: list[dict], prefix: str) -> BasisBatch:
+    values = _pad([it[f"{prefix}values"] for it in items])
+    K = values.shape[-1]
+    U = torch.eye(K, dtype=values.dtype).repeat(len(items), 1, 1)
+    valid = torch.zeros(len(items), K, dtype=values.dtype)
     for b, it in enumerate(items):
-        v, k = it["values"].shape
-        values[b, :v, :k] = it["values"]
-        mass[b, :v] = it["mass"]
-        lam[b, :k] = it["lam"]
-        U[b, :k, :k] = it["U"]
+        k = it[f"{prefix}values"].shape[1]
+        U[b, :k, :k] = it[f"{prefix}U"]
         valid[b, :k] = 1
-        feats[b, :v] = it["wks"]
-        lengths[b] = v
-    return BasisBatch(values, mass, lam, U, valid), feats, lengths
+    mass = _pad([it["mass"] for it in items])
+    return BasisBatch(values, mass, _pad([it[f"{prefix}lam"] for it in items]), U, valid)
+
+
+def collate_shapes(items: list[dict]) -> ShapeBatch:
+    """Pad shapes of different ``V`` and ``K`` into a :class:`ShapeBatch`.
+
+    Padded vertices get zero mass, zero basis values, zero inputs and no gradient entries;
+    padded columns zero values, ``lam = 0``, an identity block in ``U`` and ``valid = 0``.
+    Items need ``values, mass, lam, U`` and ``inputs`` (or ``wks``); ``net_*``, ``grad_*`` and
+    ``xyz`` are optional.
+    """
+    basis = _basis_batch(items, "")
+    net = _basis_batch(items, "net_") if all("net_values" in it for it in items) else basis
+    inputs = _pad([it["inputs"] if "inputs" in it else it["wks"] for it in items])
+    lengths = torch.tensor([it["values"].shape[0] for it in items], dtype=torch.long)
+    grad = None
+    if all("grad_rows" in it for it in items):
+        grad = GradientBatch(
+            _pad([it["grad_rows"] for it in items]),
+            _pad([it["grad_cols"] for it in items]),
+            _pad([it["grad_x"] for it in items]),
+            _pad([it["grad_y"] for it in items]),
+        )
+    xyz = _pad([it["xyz"] for it in items]) if all("xyz" in it for it in items) else None
+    return ShapeBatch(basis, inputs, lengths, net, grad, xyz)
 
 
 def collate_pairs(batch: list[tuple[dict, dict]]) -> dict:

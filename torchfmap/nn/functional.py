@@ -36,6 +36,74 @@ class BasisBatch(NamedTuple):
         return BasisBatch(*(t.to(*args, **kwargs) for t in self))
 
 
+class GradientBatch(NamedTuple):
+    """Padded batch of vertex gradient operators (:func:`torchfmap.nn.geometry.gradient_operator`).
+
+    ``rows, cols (B, E)`` (int64) and ``weight_x, weight_y (B, E)``: ``(∇f)_v`` in the tangent
+    frame of ``v`` is ``Σ_{rows == v} weight · f[cols]``. Padded entries have weight 0.
+    """
+
+    rows: torch.Tensor
+    cols: torch.Tensor
+    weight_x: torch.Tensor
+    weight_y: torch.Tensor
+
+    def to(self, *args, **kwargs) -> GradientBatch:
+        """Weights follow ``.to(dtype/device)``; indices only move device."""
+        moved = [t.to(*args, **kwargs) for t in (self.weight_x, self.weight_y)]
+        device = moved[0].device
+        return GradientBatch(self.rows.to(device), self.cols.to(device), *moved)
+
+
+def spatial_gradient(f: torch.Tensor, grad: GradientBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tangent-frame gradient of per-vertex features: ``(B, V, C) -> ((B, V, C), (B, V, C))``.
+
+    The weights are cast to ``f``'s dtype and device.
+    """
+    if f.dim() != 3 or grad.rows.shape[0] != f.shape[0]:
+        raise ParameterError(
+            f"features must be (B, V, C) with B={grad.rows.shape[0]} (the operators' batch), got "
+            f"{tuple(f.shape)}. Fix: collate features and operators of the same shapes."
+        )
+    if grad.rows.numel() and int(grad.rows.max()) >= f.shape[1]:
+        raise ParameterError(
+            f"the gradient operator indexes vertex {int(grad.rows.max())} but the features have "
+            f"V={f.shape[1]}. Fix: use the operators precomputed for these meshes."
+        )
+    B, V, C = f.shape
+    gx, gy = [], []
+    for b in range(B):  # one sparse (2V, V) product per shape: [∇_x; ∇_y] f
+        rows, cols = grad.rows[b].to(f.device), grad.cols[b].to(f.device)
+        index = torch.stack([torch.cat([rows, rows + V]), torch.cat([cols, cols])])
+        weights = torch.cat([grad.weight_x[b], grad.weight_y[b]]).to(dtype=f.dtype, device=f.device)
+        op = torch.sparse_coo_tensor(index, weights, (2 * V, V), check_invariants=False).coalesce()
+        out = torch.sparse.mm(op, f[b])
+        gx.append(out[:V])
+        gy.append(out[V:])
+    return torch.stack(gx), torch.stack(gy)
+
+
+def gradient_features(
+    gx: torch.Tensor, gy: torch.Tensor, A_re: torch.Tensor, A_im: torch.Tensor
+) -> torch.Tensor:
+    """DiffusionNet's spatial gradient features: ``tanh(Re(conj(g) ⊙ (A g)))``, ``(B, V, C)``.
+
+    ``g = gx + i gy (B, V, C)`` are tangent-frame gradients and ``A = A_re + i A_im (C, C)`` a
+    complex channel mixing, so the result does not depend on the choice of tangent frame (a
+    frame rotation multiplies ``g`` by a unit complex number). The ``A_im`` part is the normal
+    component of cross products of gradients: it changes sign under a reflection of the
+    surface, which is what lets a network tell left from right.
+    """
+    if gx.shape != gy.shape or A_re.shape != A_im.shape or A_re.shape != (gx.shape[-1], gx.shape[-1]):
+        raise ParameterError(
+            f"gradients must have equal shapes (B, V, C) and A_re, A_im be (C, C); got {tuple(gx.shape)}, "
+            f"{tuple(gy.shape)}, {tuple(A_re.shape)}, {tuple(A_im.shape)}."
+        )
+    b_re = gx @ A_re.T - gy @ A_im.T
+    b_im = gy @ A_re.T + gx @ A_im.T
+    return torch.tanh(gx * b_re + gy * b_im)
+
+
 def project(basis: BasisBatch, f: torch.Tensor) -> torch.Tensor:
     """``Φᵀ M f``: ``(B, V, D) -> (B, K, D)``."""
     _check_batch(basis, f, "features")

@@ -130,9 +130,9 @@ class UnsupervisedFMLoss(nn.Module):
         super().__init__()
         self.w = dict(bij=w_bij, orth=w_orth, lap=w_lap, couple=w_couple)
         self.soft = SoftPointMap(tau)
-        self.n_samples = n_samples  # >0: coupling on a random subset of target rows (memory V_s x V)
+        self.n_samples = n_samples  # > 0: coupling between random vertex subsets (n x n soft maps)
 
-    def _rows(self, basis: BasisBatch, feats: torch.Tensor) -> tuple[BasisBatch, torch.Tensor]:
+    def _samples(self, basis: BasisBatch, feats: torch.Tensor) -> tuple[BasisBatch, torch.Tensor]:
         """A random subset of vertices, its mass rescaled to the total (an unbiased integral)."""
         V = feats.shape[1]
         if not self.n_samples or V <= self.n_samples:
@@ -145,6 +145,8 @@ class UnsupervisedFMLoss(nn.Module):
     def forward(
         self, C_xy, C_yx, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch
     ) -> dict[str, torch.Tensor]:
+        """The weighted terms and their sum ``'total'``; the coupling term's soft maps are
+        ``(B, n, n)`` between ``n_samples`` random vertices of each shape (all when 0)."""
         terms = {
             "bij": F.bijectivity_loss(C_xy, C_yx, basis_x.valid, basis_y.valid),
             "orth": F.orthogonality_loss(C_xy, basis_x.valid) + F.orthogonality_loss(C_yx, basis_y.valid),
@@ -152,12 +154,12 @@ class UnsupervisedFMLoss(nn.Module):
         if self.w["lap"]:
             terms["lap"] = F.laplacian_commutativity_loss(C_xy, basis_x, basis_y)
         if self.w["couple"]:
-            sub_y, rows_y = self._rows(basis_y, feat_y)
-            sub_x, rows_x = self._rows(basis_x, feat_x)
-            pi_yx = self.soft(feat_x, rows_y, basis_x.mass)
-            pi_xy = self.soft(feat_y, rows_x, basis_y.mass)
-            terms["couple"] = F.coupling_loss(C_xy, pi_yx, basis_x, sub_y) + F.coupling_loss(
-                C_yx, pi_xy, basis_y, sub_x
+            sub_x, rows_x = self._samples(basis_x, feat_x)
+            sub_y, rows_y = self._samples(basis_y, feat_y)
+            pi_yx = self.soft(rows_x, rows_y, sub_x.mass)
+            pi_xy = self.soft(rows_y, rows_x, sub_y.mass)
+            terms["couple"] = F.coupling_loss(C_xy, pi_yx, sub_x, sub_y) + F.coupling_loss(
+                C_yx, pi_xy, sub_y, sub_x
             )
         terms["total"] = sum(self.w[name] * value for name, value in terms.items())
         return terms

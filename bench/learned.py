@@ -1,0 +1,176 @@
+"""Benchmark: the learned path on the dev data: errors of trained checkpoints, before / after
+training, with test-time adaptation and ZoomOut refinement, per-epoch time, loss curves.
+
+Run by hand from the repository root, after ``torchfmap train`` (see README, "Learning")::
+
+    torchfmap train ../shared/data/tosca5k_dev --out /tmp/learn/dev.ckpt --minutes 15
+    python3 bench/learned.py --checkpoints dev=/tmp/learn/dev.ckpt --adapt 10 --adapt-pairs 12
+    python3 bench/learned.py --checkpoints eigen=a.ckpt,stack=b.ckpt --pairs all --name bases
+
+Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``). Errors: mean
+normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
+Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
+process), the trained network's map from the functional map (``fmap``) and from nearest
+neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions),
+and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
+adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
+errors on the same pairs. The loss curve of each checkpoint (total per step, moving mean) goes to
+``bench/results/learned_<name>_loss.png``. No ground truth is used anywhere but in the errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from _common import RESULTS_DIR, Report, load_note, log, require_data
+
+from torchfmap.eval import Correspondence, gt_from_vts, read_vts
+from torchfmap.mesh import Mesh
+from torchfmap.nn.data import ShapeDataset
+from torchfmap.nn.train import adapt, build_model, load_checkpoint, predict_p2p, refine_p2p
+from torchfmap.operators import GeodesicSolver
+
+
+def test_pairs(folder, names, which: str):
+    rows = [ln.split()[:2] for ln in (folder / "test_pairs.txt").read_text().splitlines() if ln.strip()]
+    rows = [r for r in rows if which == "all" or r[0].startswith(which)]
+    pairs = [(names.index(a), names.index(b)) for a, b in rows]
+    gts = [
+        gt_from_vts(read_vts(folder / "corres" / f"{a}.vts"), read_vts(folder / "corres" / f"{b}.vts"))
+        for a, b in rows
+    ]
+    return pairs, gts
+
+
+class PairErrors:
+    """Geodesic errors of many maps of one pair from one set of distance rows (the ground-truth
+    sample of ``max_points`` pairs; :func:`geodesic_errors` with a shared solver)."""
+
+    def __init__(self, shapes, pair, gt, max_points: int) -> None:
+        x = shapes[pair[0]]
+        self.mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
+        idx_x, idx_y = gt
+        if len(idx_y) > max_points:
+            pick = np.sort(np.random.default_rng(0).choice(len(idx_y), max_points, replace=False))
+            idx_x, idx_y = idx_x[pick], idx_y[pick]
+        self.gt = Correspondence(idx_x, idx_y)
+        uniq, inverse = np.unique(idx_x, return_inverse=True)
+        self.rows, self.inverse = GeodesicSolver(self.mesh_x).distances(uniq), inverse
+
+    def mean(self, p2p) -> float:
+        pred = np.asarray(p2p)[self.gt.idx_y]
+        errors = np.maximum(self.rows[self.inverse, pred], 0.0)
+        errors[pred == self.gt.idx_x] = 0.0
+        return float(errors.mean() / np.sqrt(self.mesh_x.area))
+
+
+def loss_png(curves: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, losses in curves.items():
+        total = np.array([t["total"] for t in losses])
+        w = max(1, len(total) // 50)
+        ax.plot(np.convolve(total, np.ones(w) / w, mode="valid"), label=f"{label} (mean of {w})")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("unsupervised loss")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: dict) -> None:
+    label, path = spec.split("=")
+    net, config, ckpt = load_checkpoint(path)
+    state = ckpt.get("train_state", {})
+    curves[label] = state.get("losses", [])
+    shapes = ShapeDataset(folder, args.cache, **config.dataset_kwargs(), progress=False)
+    pairs, gts = test_pairs(folder, shapes.names, args.pairs)
+    solver, loss_fn = build_model(config)[1:]
+    untrained = build_model(config)[0].eval()
+    errors: dict[str, list[float]] = {}
+    seconds: dict[str, float] = {}
+
+    def add(method: str, fn, pe: PairErrors):
+        t0 = time.perf_counter()
+        p2p = fn()
+        seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0
+        errors.setdefault(method, []).append(pe.mean(p2p))
+        return p2p
+
+    for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):
+        x, y = shapes[a], shapes[b]
+        pe = PairErrors(shapes, (a, b), gt, args.max_points)
+        mx = pe.mesh_x
+        my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
+        add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
+        base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pe)  # noqa: B023
+        add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
+        if not args.no_refine:
+            add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base), pe)  # noqa: B023
+        if args.adapt and i < args.adapt_pairs:
+            add("trained, fmap (adapt subset)", lambda: base, pe)  # noqa: B023
+            tuned = adapt(net, solver, loss_fn, x, y, steps=args.adapt, lr=args.adapt_lr)
+            adapted = add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
+            if not args.no_refine:
+                add(f"adapt {args.adapt} + zoomout", lambda: refine_p2p(mx, my, adapted), pe)  # noqa: B023
+        log(
+            f"{label} pair {i + 1}/{len(pairs)}: "
+            + ", ".join(f"{m} {np.mean(e):.4f}" for m, e in errors.items())
+        )
+    for method, errs in errors.items():
+        rows.append(
+            {
+                "model": label,
+                "method": method,
+                "pairs": len(errs),
+                "mean error": float(np.mean(errs)),
+                "s / pair": seconds[method] / len(errs),
+            }
+        )
+    secs = state.get("epoch_seconds", [])
+    report.add(
+        f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
+        f"{state.get('step', '?')} steps, {state.get('epoch', '?')} full epochs, "
+        f"{state.get('seconds', float('nan')):.0f} s training; seconds per full epoch: "
+        + (", ".join(f"{s:.0f}" for s in secs) if secs else "n/a")
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoints", required=True, help="label=path,label=path")
+    parser.add_argument("--pairs", default="all", choices=["all", "cat", "wolf"])
+    parser.add_argument("--name", default="dev")
+    parser.add_argument("--adapt", type=int, default=0)
+    parser.add_argument("--adapt-lr", type=float, default=1e-4)
+    parser.add_argument("--adapt-pairs", type=int, default=12)
+    parser.add_argument("--max-points", type=int, default=500)
+    parser.add_argument("--no-refine", action="store_true")
+    parser.add_argument("--cache", default=None)
+    args = parser.parse_args()
+    folder = require_data("tosca5k_dev")
+    report = Report(f"learned_{args.name}")
+    report.add(f"# Learned path on tosca5k_dev ({args.pairs} test pairs; {load_note()} at start)")
+    rows, curves = [], {}
+    for spec in args.checkpoints.split(","):
+        run_checkpoint(spec, args, folder, report, rows, curves)
+    report.table("Mean geodesic error (normalised by sqrt(area))", rows)
+    png = RESULTS_DIR / f"learned_{args.name}_loss.png"
+    loss_png(curves, png)
+    report.add(f"Loss curves: `{png.relative_to(RESULTS_DIR.parent.parent)}`. {load_note()} at end.")
+    report.save()
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    main()
