@@ -144,3 +144,15 @@ def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_p
     assert out[near_i, 1] == true_y[near_i]
     assert out[far_i, 1] == far
     assert len(set(out[:, 1].tolist())) == len(out)
+
+
+def test_distance_rows_are_cached_and_in_sqrt_area_units():
+    """Rows are geodesic distances divided by sqrt(area) (so a scaled copy gives the same
+    rows), computed once per source."""
+    from torchfmap.seeds import DistanceRows
+
+    x = bumpy_blob(3)
+    rows, scaled = DistanceRows(x), DistanceRows(x.scaled(7.0))
+    a = rows(5)
+    assert rows(5) is a and a[5] == 0 and (a >= 0).all()
+    np.testing.assert_allclose(scaled.rows([5, 9]), rows.rows([5, 9]), rtol=1e-6, atol=1e-9)

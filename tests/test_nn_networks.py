@@ -22,7 +22,7 @@ from torchfmap.nn.data import (
 from torchfmap.nn.geometry import gradient_operator
 from torchfmap.nn.modules import SpectralDiffusion, UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
-from torchfmap.nn.train import features, train
+from torchfmap.nn.train import features, read_checkpoint, train
 
 from .conftest import bend, bumpy_blob, random_rotation
 
@@ -143,10 +143,10 @@ def test_train_command_writes_and_resumes_a_checkpoint(tiny_folder, tmp_path, ca
     ckpt = tmp_path / "model.ckpt"
     args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
     assert main([*args, "--max-steps", "3"]) == 0
-    first = torch.load(ckpt, weights_only=False)
+    first = read_checkpoint(ckpt)
     assert first["train_state"]["step"] == 3 and "6 ordered pairs" in capsys.readouterr().out
     assert main([*args, "--max-steps", "5", "--resume"]) == 0
-    second = torch.load(ckpt, weights_only=False)
+    second = read_checkpoint(ckpt)
     losses = [t["total"] for t in second["train_state"]["losses"]]
     assert second["train_state"]["step"] == 5 and len(losses) == 5 and np.isfinite(losses).all()
     assert losses[:3] == [t["total"] for t in first["train_state"]["losses"]]

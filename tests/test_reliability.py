@@ -380,3 +380,30 @@ def test_cli_eval_and_info_edge_cases(tmp_path, capsys):
     assert "does not hold" in capsys.readouterr().err
     tet = Mesh(np.eye(4, 3) + [0.1, 0.2, 0.3], [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
     assert main(["info", str(save_mesh(tet, tmp_path / "tet.off"))]) == 0
+
+
+def test_checkpoints_are_checksummed_and_load_no_code(tmp_path):
+    """Checkpoints had no checksum (38 of 40 byte flips loaded) and loaded with
+    weights_only=False (pickled code from the file would run)."""
+    import torch
+
+    from torchfmap.errors import CorruptFileError
+    from torchfmap.nn.train import read_checkpoint, save_checkpoint
+
+    net = torch.nn.Linear(3, 2)
+    path = save_checkpoint(tmp_path / "m.ckpt", net, {"k": 5}, note="x")
+    back = read_checkpoint(path)
+    torch.testing.assert_close(back["state_dict"]["weight"], net.weight.detach())
+    data = bytearray(path.read_bytes())
+    rng = np.random.default_rng(0)
+    for i in rng.choice(len(data), 20, replace=False):
+        flipped = bytearray(data)
+        flipped[i] ^= 0xFF
+        bad = tmp_path / "bad.ckpt"
+        bad.write_bytes(bytes(flipped))
+        with pytest.raises(CorruptFileError):
+            read_checkpoint(bad)
+    plain = tmp_path / "plain.pt"
+    torch.save({"state_dict": net.state_dict()}, plain)  # no header: refused, never unpickled
+    with pytest.raises(CorruptFileError, match="not a torchfmap checkpoint"):
+        read_checkpoint(plain)

@@ -112,7 +112,8 @@ def load_arrays(
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # the file is opened here, not by np.load: a corrupt file then never leaks its handle
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
     except FileNotFoundError:
         raise
@@ -124,3 +125,32 @@ def load_arrays(
             f"{path} fails its checksum (altered or truncated, or written without one). Fix: rebuild it."
         )
     return arrays
+
+
+#: First line of checksummed byte files (:func:`save_checked_bytes`): format tag and version.
+CHECKED_MAGIC = b"TORCHFMAP-CHECKED-1\n"
+
+
+def save_checked_bytes(path: str | os.PathLike, payload: bytes) -> Path:
+    """Write ``payload`` atomically behind a header with its SHA-256 (checkpoints)."""
+    digest = hashlib.sha256(payload).hexdigest().encode()
+    return atomic_write(path, lambda fh: fh.write(CHECKED_MAGIC + digest + b"\n" + payload))
+
+
+def load_checked_bytes(path: str | os.PathLike, what: str = "file") -> bytes:
+    """The payload of a file written by :func:`save_checked_bytes`, its checksum verified.
+
+    Raises :class:`CorruptFileError` for a missing header, a truncated or altered payload.
+    """
+    data = Path(path).read_bytes()
+    head = len(CHECKED_MAGIC)
+    if not data.startswith(CHECKED_MAGIC) or len(data) < head + 65 or data[head + 64 : head + 65] != b"\n":
+        raise CorruptFileError(
+            f"{str(path)!r} is not a torchfmap {what} (no checksummed header). Fix: save it again."
+        )
+    payload = data[head + 65 :]
+    if hashlib.sha256(payload).hexdigest().encode() != data[head : head + 64]:
+        raise CorruptFileError(
+            f"{str(path)!r} fails its checksum (truncated or altered). Fix: save it again."
+        )
+    return payload

@@ -10,6 +10,7 @@ reference recipe used by ``torchfmap train``.
 from __future__ import annotations
 
 import copy
+import io
 import math
 import os
 import time
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .._files import atomic_write
+from .._files import load_checked_bytes, save_checked_bytes
 from ..bases import laplacian_eigenbasis
 from ..errors import ParameterError
 from ..eval import geodesic_errors
@@ -164,18 +165,29 @@ class TrainState:
 
 
 def save_checkpoint(path, net, config: TrainConfig | dict, **extra) -> Path:
-    """Atomic checkpoint: weights, config and extras (:func:`~torchfmap._files.atomic_write`)."""
+    """Atomic, checksummed checkpoint: weights, config and extras
+    (:func:`~torchfmap._files.save_checked_bytes`); read it with :func:`read_checkpoint`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     cfg = asdict(config) if isinstance(config, TrainConfig) else config
     ckpt = {"state_dict": net.state_dict(), "config": cfg, **extra}
-    return atomic_write(path, lambda fh: torch.save(ckpt, fh))
+    buffer = io.BytesIO()
+    torch.save(ckpt, buffer)
+    return save_checked_bytes(path, buffer.getvalue())
+
+
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
+    and plain containers only: a file cannot run code). Raises
+    :class:`~torchfmap.errors.CorruptFileError` for a truncated or altered file."""
+    payload = load_checked_bytes(path, "checkpoint")
+    return torch.load(io.BytesIO(payload), map_location=map_location, weights_only=True)
 
 
 def load_checkpoint(path, best: bool = True) -> tuple[DiffusionNet, TrainConfig, dict]:
     """``(reference network in eval mode, config, the whole checkpoint dict)``; ``best``: the
     weights with the best validation score when the checkpoint has them."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path)
     config = TrainConfig(**ckpt["config"])
     net = build_model(config)[0]
     state = ckpt.get("best_state_dict") if best and ckpt.get("best_state_dict") else ckpt["state_dict"]
@@ -226,7 +238,7 @@ def train(
     state = TrainState()
     best_state = None
     if resume and checkpoint is not None and Path(checkpoint).exists():
-        ckpt = torch.load(checkpoint, map_location=device, weights_only=False)
+        ckpt = read_checkpoint(checkpoint, map_location=device)
         net.load_state_dict(ckpt["state_dict"])
         optimizer.load_state_dict(ckpt["optimizer"])
         if scheduler is not None and ckpt.get("scheduler") is not None:
