@@ -62,19 +62,24 @@ def test_soft_point_map_gradcheck():
     assert torch.autograd.gradcheck(lambda a, b: sinkhorn(a, b), (fx, fy))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="soft_map with sinkhorn_iters > 0 and a padded vertex (mass 0): the column "
-    "logsumexp of an all -inf column has a NaN gradient (nan_to_num fixes only the value)",
-)
 def test_soft_point_map_sinkhorn_gradients_finite_with_padding():
+    """A padded vertex (mass 0) gets no weight and changes nothing: the padded Sinkhorn map equals
+    the unpadded one on the real vertices (round-off), with finite, correct gradients (its
+    all -inf column used to give NaN gradients)."""
     g = torch.Generator().manual_seed(2)
     fx = torch.randn(1, 5, 3, dtype=torch.float64, generator=g, requires_grad=True)
     fy = torch.randn(1, 4, 3, dtype=torch.float64, generator=g, requires_grad=True)
     mass = torch.tensor([[1.0, 1.0, 1.0, 1.0, 0.0]], dtype=torch.float64)
-    pi = SoftPointMap(tau=0.3, sinkhorn_iters=3)(fx, fy, mass)
+    layer = SoftPointMap(tau=0.3, sinkhorn_iters=3)
+    pi = layer(fx, fy, mass)
     grads = torch.autograd.grad(pi[..., 0].sum(), (fx, fy))
     assert all(torch.isfinite(gr).all() for gr in grads)
+    assert pi[..., 4].abs().max() == 0
+    torch.testing.assert_close(pi[..., :4], layer(fx[:, :4], fy), rtol=1e-12, atol=1e-14)
+    assert torch.autograd.gradcheck(lambda a, b: layer(a, b, mass), (fx, fy))
+    for tau in (0.0, -1.0, float("nan")):
+        with pytest.raises(ParameterError, match="tau must be finite"):
+            SoftPointMap(tau=tau)(fx, fy)
 
 
 def test_soft_map_to_fmap_of_identity_is_identity(sphere2):

@@ -407,3 +407,20 @@ def test_checkpoints_are_checksummed_and_load_no_code(tmp_path):
     torch.save({"state_dict": net.state_dict()}, plain)  # no header: refused, never unpickled
     with pytest.raises(CorruptFileError, match="not a torchfmap checkpoint"):
         read_checkpoint(plain)
+
+
+def test_core_refuses_overflow_and_half_precision():
+    """float32 features ~1e20 overflowed the Gram matrix unnoticed (NaN maps); half and bfloat16
+    failed inside LAPACK with 'not implemented'."""
+    import torch
+
+    from torchfmap.fmap import core
+
+    A = torch.full((4, 3), 1e20, dtype=torch.float32)
+    mask = torch.ones(4, 4, dtype=torch.float32)
+    with pytest.raises(ParameterError, match="overflows torch.float32"):
+        core.solve_rowwise(A, A, mask, 1.0, 0.1)
+    for dtype in (torch.float16, torch.bfloat16):
+        A = torch.randn(4, 3).to(dtype)
+        with pytest.raises(ParameterError, match="needs float32 or float64"):
+            core.solve_rowwise(A, A, mask.to(dtype), 1.0, 0.1)

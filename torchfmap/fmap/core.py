@@ -114,8 +114,18 @@ def solve_rowwise(
         ``C (..., K_y, K_x)``. One batched LU over the ``(..., K_y, K_x, K_x)`` systems;
         differentiable (the backward reuses the LU factors).
     """
+    if A_x.dtype not in (torch.float32, torch.float64):
+        raise ParameterError(
+            f"the functional-map solve needs float32 or float64, got {A_x.dtype}. Fix: cast the "
+            "features first, e.g. feats.float() (half precision has too few digits for the LU)."
+        )
     G = w_desc * (A_x @ A_x.transpose(-1, -2))  # (..., Kx, Kx)
     rhs = w_desc * (A_y @ A_x.transpose(-1, -2))  # (..., Ky, Kx)
+    if not bool(torch.isfinite(G).all() and torch.isfinite(rhs).all()):
+        raise ParameterError(
+            f"the descriptor Gram matrix overflows {A_x.dtype} (features too large). Fix: normalise "
+            "the features (e.g. to unit norm per vertex) or solve in float64."
+        )
     diag = w_lap * mask  # (..., Ky, Kx): added to the diagonal of row i's system
     if prior is not None and w_prior:
         diag = diag + w_prior

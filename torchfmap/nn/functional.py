@@ -206,16 +206,26 @@ def soft_map(
 
     Softmax of cosine similarity / ``tau``; padded vertices of ``x`` (``mass_x == 0``) get no
     weight. ``sinkhorn_iters > 0`` alternates row and column normalisation (log domain).
+
+    Raises :class:`ParameterError` unless ``tau`` is finite and > 0.
     """
+    if not (isinstance(tau, (int, float)) and 0 < tau < float("inf")):
+        raise ParameterError(f"tau must be finite and > 0, got {tau!r}. Fix: e.g. tau=0.07.")
     fx = torch.nn.functional.normalize(feat_x, dim=-1)
     fy = torch.nn.functional.normalize(feat_y, dim=-1)
     logits = fy @ fx.transpose(-1, -2) / tau
-    if mass_x is not None:
-        logits = logits.masked_fill((mass_x <= 0)[..., None, :], float("-inf"))
+    padded = None if mass_x is None else (mass_x <= 0)[..., None, :]  # (B, 1, V_x)
+    if padded is not None:
+        logits = logits.masked_fill(padded, float("-inf"))
     log_p = torch.log_softmax(logits, dim=-1)
     for _ in range(sinkhorn_iters):
-        log_p = log_p - torch.logsumexp(log_p, dim=-2, keepdim=True).nan_to_num(neginf=0.0)
-        log_p = torch.log_softmax(log_p, dim=-1)
+        # padded columns hold only -inf: normalise the others, leave those (a finite stand-in
+        # keeps logsumexp's gradient finite; torch.where routes no gradient through it)
+        safe = log_p if padded is None else torch.where(padded, torch.zeros_like(log_p), log_p)
+        col = torch.logsumexp(safe, dim=-2, keepdim=True)
+        if padded is not None:
+            col = torch.where(padded, torch.zeros_like(col), col)
+        log_p = torch.log_softmax(log_p - col, dim=-1)
     return log_p.exp()
 
 
