@@ -8,6 +8,7 @@ both shapes; they therefore need landmarks. The Laplacian eigenbasis needs none.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -43,6 +44,8 @@ FEATURE_REFINE_STEPS = 5
 #: Relative accuracy of the heat kernels of seed bases: far below the seeds' placement error
 #: (a few percent of sqrt(area)), so a tighter tolerance changes no map, only the time.
 SEED_HEAT_TOL = 1e-4
+#: :func:`warn_if_off_by_one` warns when the shifted landmarks distort distances this much less.
+OFF_BY_ONE_RATIO = 0.25
 #: Rounds of seed re-placement after the fixed-size refinement (:func:`replace_seeds`).
 FEATURE_SEED_MOVES = 2
 #: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
@@ -95,6 +98,36 @@ def prepare_shape(mesh: Mesh, n_eigen: int) -> PreparedShape:
     ops = laplacian(mesh)
     eig = laplacian_eigenbasis(mesh, n_eigen, operators=ops) if n_eigen else None
     return PreparedShape(mesh, ops, eig, DistanceRows(mesh))
+
+
+def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> float:
+    """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(a_i, b_i)``, in units of
+    ``sqrt(area)``: small for corresponding landmarks on near-isometric shapes, large for
+    landmarks that do not correspond (e.g. read with the wrong index base)."""
+    dx = shape_x.distances.rows(landmarks[:, 0])[:, landmarks[:, 0]]
+    dy = shape_y.distances.rows(landmarks[:, 1])[:, landmarks[:, 1]]
+    return float(np.mean(np.abs(dx - dy)))
+
+
+def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> None:
+    """Warn (``UserWarning``) when the landmarks shifted by -1 fit the shapes far better than as
+    given: the file was probably 1-based. Needs at least 3 landmarks; costs 2 geodesic solves
+    per landmark, reused by the feature-aware bases."""
+    if len(landmarks) < 3 or landmarks.min() < 1:
+        return
+    shifted = landmarks - 1
+    if len(np.unique(shifted[:, 0])) < len(shifted) or len(np.unique(shifted[:, 1])) < len(shifted):
+        return
+    given = landmark_distortion(shape_x, shape_y, landmarks)
+    other = landmark_distortion(shape_x, shape_y, shifted)
+    if other < OFF_BY_ONE_RATIO * given:
+        warnings.warn(
+            f"the landmarks fit the shapes {given / max(other, 1e-12):.0f}x better shifted by -1 (mean "
+            f"distance distortion {other:.3f} vs {given:.3f} sqrt(area)): were they read 1-based? "
+            "Fix: landmarks are 0-based vertex indices; subtract 1 if the file is 1-based.",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def match_descriptors(
@@ -382,6 +415,8 @@ def match(
     need_desc = not (prior and np.isinf(w_prior))
     n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else (k_descriptors if need_desc else 0)
     shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
+    if pairs is not None:
+        warn_if_off_by_one(shape_x, shape_y, pairs)
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
