@@ -442,3 +442,36 @@ def test_one_based_landmarks_are_flagged():
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message=".*1-based.*")
         match(a, b, landmarks=lm, k=20)
+
+
+def test_kill_during_save_leaves_a_valid_file_and_no_litter_after_the_next_save(tmp_path):
+    """kill -9 at random moments while a process rewrites a basis: the path always holds a
+    complete file (old or new, checksum verified), and the next save removes the dead
+    writer's temp file."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from torchfmap import Basis
+
+    target = tmp_path / "big.npz"
+    code = (
+        "import numpy as np, scipy.sparse as sp, sys\n"
+        "from torchfmap import Basis\n"
+        "v = np.random.default_rng(0).normal(size=(400000, 16))\n"
+        "b = Basis(v, sp.identity(400000, format='csr'))\n"
+        "b.save(sys.argv[1]); print('ready', flush=True)\n"
+        "while True: b.save(sys.argv[1])\n"
+    )
+    for delay in (0.05, 0.2, 0.5):
+        child = subprocess.Popen([sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True)
+        assert child.stdout.readline().strip() == "ready"
+        time.sleep(delay)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        assert Basis.load(target).values.shape == (400000, 16)
+    small = Basis(np.ones((3, 1)), np.ones(3))
+    small.save(target)
+    assert not list(tmp_path.glob(".*.tmp"))
+    assert Basis.load(target).k == 1
