@@ -465,11 +465,13 @@ def test_kill_during_save_leaves_a_valid_file_and_no_litter_after_the_next_save(
         "while True: b.save(sys.argv[1])\n"
     )
     for delay in (0.05, 0.2, 0.5):
-        child = subprocess.Popen([sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True)
-        assert child.stdout.readline().strip() == "ready"
-        time.sleep(delay)
-        child.send_signal(signal.SIGKILL)
-        child.wait()
+        with subprocess.Popen(
+            [sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True
+        ) as child:
+            assert child.stdout.readline().strip() == "ready"
+            time.sleep(delay)
+            child.send_signal(signal.SIGKILL)
+            child.wait()
         assert Basis.load(target).values.shape == (400000, 16)
     small = Basis(np.ones((3, 1)), np.ones(3))
     small.save(target)
