@@ -19,6 +19,7 @@ OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse"}
 #: Shared checks and file helpers: the only module allowed to define each name.
 HOMES = {
     "check_vertex_indices": "torchfmap._checks",
+    "check_landmark_pairs": "torchfmap._checks",
     "check_seeds_cover_components": "torchfmap._checks",
     "symmetry_tolerance": "torchfmap._checks",
     "symmetry_defect": "torchfmap._checks",

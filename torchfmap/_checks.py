@@ -2,6 +2,7 @@
 
 - :func:`check_vertex_indices`: 1-D, integral, in range, distinct vertex indices (seeds,
   landmarks, geodesic sources, landmark pairs of a functional map).
+- :func:`check_landmark_pairs`: ``(L, 2)`` corresponding vertex pairs of two meshes.
 - :func:`check_seeds_cover_components`: every connected component of a mesh holds a seed
   (harmonic and Dirichlet problems are undefined on a component without one).
 - :func:`is_symmetric` / :func:`check_symmetric`: whether a stiffness matrix is symmetric up to
@@ -64,6 +65,17 @@ def check_vertex_indices(indices, n_vertices: int, what: str = "sources") -> np.
             "vertices (e.g. `np.unique(seeds)` if order does not matter)."
         )
     return idx.astype(np.int64)
+
+
+def check_landmark_pairs(landmarks, n_x: int, n_y: int) -> np.ndarray:
+    """``(L, 2)`` int pairs ``(vertex on x, vertex on y)``, validated (shape, range, no duplicates
+    on either side); raises :class:`ParameterError` / :class:`SeedError`."""
+    pairs = np.asarray(landmarks)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
+        raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
+    check_vertex_indices(pairs[:, 0], n_x, "source landmarks")
+    check_vertex_indices(pairs[:, 1], n_y, "target landmarks")
+    return pairs.astype(np.int64)
 
 
 def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:

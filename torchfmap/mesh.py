@@ -84,6 +84,13 @@ def _as_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return v.astype(np.float64, copy=False), f.astype(np.int64, copy=False)
 
 
+def _unit_coordinates(v: np.ndarray) -> np.ndarray:
+    """``v`` divided by its largest absolute coordinate (unchanged if that is 0 or not finite),
+    for scale-free tests that must not over- or underflow."""
+    extent = float(np.abs(v).max())
+    return v / extent if 0 < extent < np.inf else v
+
+
 def _face_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     return 0.5 * np.linalg.norm(cross, axis=1)
@@ -156,9 +163,8 @@ def validate_mesh(
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     # degeneracy is scale-free: judge it on coordinates scaled to unit size, so that a tiny or
     # huge mesh is not called degenerate because its areas under- or overflow
-    extent = float(np.abs(v).max())
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        unit = v / extent if 0 < extent < np.inf else v
+        unit = _unit_coordinates(v)
         areas = _face_areas(unit, f)
         mean_edge = float(np.mean(np.linalg.norm(unit[f[:, 1]] - unit[f[:, 0]], axis=1))) or 1.0
     bad = np.flatnonzero(repeated | (areas <= DEGENERATE_RTOL * mean_edge**2))
@@ -260,8 +266,7 @@ def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
     adj = sp.coo_matrix((np.ones(3 * nf), (he[:, 0], he[:, 1])), shape=(n, n))
     _, vlabels = connected_components(adj, directed=False)
     flabels = vlabels[out[:, 0]]
-    extent = float(np.abs(v).max())
-    unit = v / extent if 0 < extent < np.inf else v  # the sign test is scale-free: no overflow
+    unit = _unit_coordinates(v)  # the sign test is scale-free: no overflow
     x0, x1, x2 = unit[out[:, 0]], unit[out[:, 1]], unit[out[:, 2]]
     centre = unit[np.unique(out)].mean(axis=0)
     vol = np.einsum("ij,ij->i", x0 - centre, np.cross(x1 - centre, x2 - centre)) / 6.0

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import check_count, check_seeds_cover_components, check_vertex_indices
+from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
 from .bases.diffusion import heat_kernels
 from .errors import ParameterError
 from .mesh import Mesh
@@ -252,11 +252,7 @@ def corresponding_seeds(
         SeedError: invalid landmarks; ParameterError: ``n_seeds`` outside
         ``[L, min(V_x, V_y)]``.
     """
-    pairs = np.asarray(landmarks)
-    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
-        raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
-    check_vertex_indices(pairs[:, 0], mesh_x.n_vertices, "source landmarks")
-    check_vertex_indices(pairs[:, 1], mesh_y.n_vertices, "target landmarks")
+    pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     top = min(mesh_x.n_vertices, mesh_y.n_vertices)
     n_seeds = check_count(n_seeds, len(pairs), top, "n_seeds (landmarks to vertices)")
     dx, dy = distances if distances is not None else (DistanceRows(mesh_x), DistanceRows(mesh_y))

@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse.linalg as ssla
 
-from .._checks import check_vertex_indices
+from .._checks import check_landmark_pairs
 from ..bases.basis import Basis
 from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
@@ -325,16 +325,6 @@ def _unit_pair(Ox: np.ndarray, Oy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Scale an operator pair to mean unit Frobenius norm, so term weights are scale-free."""
     scale = 0.5 * (np.linalg.norm(Ox) + np.linalg.norm(Oy))
     return (Ox / scale, Oy / scale) if scale > 0 else (Ox, Oy)
-
-
-def check_landmark_pairs(landmarks, n_x: int, n_y: int) -> np.ndarray:
-    """``(L, 2)`` int pairs ``(vertex on x, vertex on y)``, validated."""
-    pairs = np.asarray(landmarks)
-    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
-        raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
-    check_vertex_indices(pairs[:, 0], n_x, "source landmarks")
-    check_vertex_indices(pairs[:, 1], n_y, "target landmarks")
-    return pairs.astype(np.int64)
 
 
 def solve_fmap(
