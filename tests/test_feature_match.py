@@ -156,3 +156,27 @@ def test_distance_rows_are_cached_and_in_sqrt_area_units():
     a = rows(5)
     assert rows(5) is a and a[5] == 0 and (a >= 0).all()
     np.testing.assert_allclose(scaled.rows([5, 9]), rows.rows([5, 9]), rtol=1e-6, atol=1e-9)
+
+
+def test_seed_kernels_are_solved_once_per_seed_and_agree_with_the_diffusion_basis():
+    """The per-shape kernel cache solves only new (seed, time) pairs, and a basis assembled
+    from it equals ``diffusion_basis`` at the same seeds to within both solves' tolerance."""
+    from torchfmap.bases import diffusion_basis
+    from torchfmap.pipeline import SEED_HEAT_TOL, _raw_seed_basis
+
+    x = bumpy_blob(3)
+    shape = prepare_shape(x, 0)
+    seeds, t = np.array([5, 300, 500, 120]), 0.05
+    first = _raw_seed_basis(shape, "diffusion", seeds[:3], (t,))
+    assert set(shape.kernels) == {(int(s), t) for s in seeds[:3]}
+    cached = {key: value.copy() for key, value in shape.kernels.items()}
+    both = _raw_seed_basis(shape, "diffusion", seeds, (t,))
+    assert len(shape.kernels) == 4  # only seed 120 was solved
+    for key, value in cached.items():
+        np.testing.assert_array_equal(shape.kernels[key], value)
+    np.testing.assert_array_equal(both.values[:, :3], first.values)
+    reference = diffusion_basis(x, seeds, (t,), operators=shape.operators, tol=SEED_HEAT_TOL, local=False)
+    # each solve is within SEED_HEAT_TOL (relative to the kernel's size) of the exact kernel
+    scale = np.abs(reference.values).max(axis=0)
+    assert np.all(np.abs(both.values - reference.values).max(axis=0) <= 2 * SEED_HEAT_TOL * scale)
+    assert [(c.seed, c.time) for c in both.columns] == [(c.seed, c.time) for c in reference.columns]

@@ -15,10 +15,12 @@ from typing import Literal, NamedTuple
 import numpy as np
 from tqdm import tqdm
 
-from ._checks import check_count
+from ._checks import check_count, check_seeds_cover_components, check_vertex_indices
 from .bases import (
     Basis,
+    Column,
     basis_stack,
+    heat_kernels,
     laplacian_eigenbasis,
     orthonormalize_pair,
 )
@@ -84,13 +86,16 @@ class PreparedShape:
     ``mesh``; ``operators`` ``(L, B)`` (``(V, V)`` sparse stiffness and lumped mass);
     ``eigenbasis``: the first ``n_eigen`` Laplacian eigenfunctions as a B-orthonormal
     :class:`~torchfmap.Basis` (``(V, n_eigen)`` values, eigenvalues ascending; None when
-    ``n_eigen = 0``); ``distances``: geodesic distance rows, computed on first use.
+    ``n_eigen = 0``); ``distances``: geodesic distance rows, computed on first use;
+    ``kernels``: heat kernels of seed bases, ``(seed, relative time) -> (V,)``, computed on
+    first use (a seed that refinement leaves in place is not solved again).
     """
 
     mesh: Mesh
     operators: Operators
     eigenbasis: Basis | None
     distances: DistanceRows
+    kernels: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)
 
 
 def prepare_shape(mesh: Mesh, n_eigen: int) -> PreparedShape:
@@ -230,18 +235,37 @@ def seed_bases(
 
 
 def _raw_seed_basis(shape: PreparedShape, kind: str, seeds: np.ndarray, times) -> Basis:
-    """One shape's feature-aware functions at ``seeds`` (not orthonormalised)."""
-    rel_times = tuple(times) if times is not None else (seed_time(len(seeds)),)
-    return basis_stack(
-        shape.mesh,
-        seeds,
-        times=rel_times if kind != "harmonic" else (),
-        harmonic=kind != "diffusion",
-        operators=shape.operators,
-        heat_tol=SEED_HEAT_TOL,
-        local=False,
-        orthonormalization=None,
-    )
+    """One shape's feature-aware functions at ``seeds`` (not orthonormalised).
+
+    Heat kernels are independent per seed, so the ``'diffusion'`` kind solves only the
+    ``(seed, time)`` pairs missing from ``shape.kernels`` and stores them there; harmonic
+    functions depend on the whole seed set and are always rebuilt.
+    """
+    rel_times = tuple(float(t) for t in times) if times is not None else (seed_time(len(seeds)),)
+    if kind != "diffusion":
+        return basis_stack(
+            shape.mesh,
+            seeds,
+            times=rel_times if kind != "harmonic" else (),
+            harmonic=True,
+            operators=shape.operators,
+            heat_tol=SEED_HEAT_TOL,
+            local=False,
+            orthonormalization=None,
+        )
+    mesh = shape.mesh
+    seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
+    check_seeds_cover_components(mesh, seeds)
+    rel_times = tuple(sorted(rel_times))
+    for t in rel_times:
+        missing = np.unique([int(s) for s in seeds if (int(s), t) not in shape.kernels])
+        if len(missing):  # heat_kernels checks the time
+            K = heat_kernels(shape.operators, missing, [t * mesh.area], tol=SEED_HEAT_TOL, local=False)[0]
+            shape.kernels.update({(int(s), t): K[:, j] for j, s in enumerate(missing)})
+    values = np.stack([shape.kernels[int(s), t] for t in rel_times for s in seeds], axis=1)
+    prov = [Column("diffusion", int(s), t) for t in rel_times for s in seeds]  # time-major
+    mass, stiffness = shape.operators[1], shape.operators[0]
+    return Basis(values, mass, prov, stiffness=stiffness)
 
 
 def replace_seeds(
@@ -327,7 +351,7 @@ def refine_map(
     C, p2p = zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode)
     if seeds is None:
         return Refined(C, p2p, bx, by, None)
-    raw_x = _raw_seed_basis(shape_x, kind, seeds[:, 0], times)  # x's seeds never move
+    raw_x = _raw_seed_basis(shape_x, kind, seeds[:, 0], times)  # x's seeds never move (cached)
     for _ in range(FEATURE_SEED_MOVES):
         seeds = replace_seeds(shape_x, shape_y, seeds, p2p, n_fixed)
         raw_y = _raw_seed_basis(shape_y, kind, seeds[:, 1], times)
