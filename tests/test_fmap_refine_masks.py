@@ -88,6 +88,31 @@ def test_zoomout_sequence_fixed_point(permuted_pair):
     np.testing.assert_array_equal(p2p, perm)
 
 
+def test_zoomout_sequence_on_samples_keeps_the_true_map_and_improves_a_noisy_one(permuted_pair):
+    """With samples that correspond exactly (x's samples and their copies on y) the true map is
+    a fixed point of the sampled iteration (least squares on exact rows gives C = I); from a
+    perturbed start the error drops, and the final point map covers every vertex of y."""
+    x, y, perm, bx, by = permuted_pair
+    inv = np.argsort(perm)
+    sx = farthest_point_sampling(x, 120, metric="euclidean")  # > K = 48 columns
+    samples = (sx, inv[sx])
+    C, p2p = zoomout_sequence(perm, bx, by, subsample=samples)
+    np.testing.assert_allclose(C, np.eye(len(C)), atol=1e-8)
+    np.testing.assert_array_equal(p2p, perm)
+    rng = np.random.default_rng(2)
+    start = perm.copy()
+    bad = rng.choice(len(start), len(start) * 3 // 10, replace=False)
+    start[bad] = rng.integers(0, x.n_vertices, len(bad))
+    # independent samples on y (not copies of x's): still an improvement on the start
+    own = (sx, farthest_point_sampling(y, 120, metric="euclidean"))
+    _, p2p = zoomout_sequence(start, bx, by, mode="orthogonal", subsample=own)
+    assert p2p.shape == (y.n_vertices,)
+    err0 = geodesic_errors(x, start, gt_from_map(perm)).mean()
+    assert geodesic_errors(x, p2p, gt_from_map(perm)).mean() < err0
+    with pytest.raises(ParameterError, match="subsample of y"):
+        zoomout_sequence(perm, bx, by, subsample=(sx, np.array([y.n_vertices])))
+
+
 def test_zoomout_sequence_errors(permuted_pair):
     x, y, perm, bx, by = permuted_pair
     with pytest.raises(ParameterError, match="same length"):

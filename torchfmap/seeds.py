@@ -144,7 +144,8 @@ class _Distances:
 
     def __call__(self, i: int) -> np.ndarray:
         if self.metric == "euclidean":
-            return np.linalg.norm(self.mesh.vertices - self.mesh.vertices[i], axis=1)
+            diff = self.mesh.vertices - self.mesh.vertices[i]
+            return np.sqrt(np.einsum("ij,ij->i", diff, diff))
         return np.maximum(self.solver.distance(int(i)), 0.0)
 
 

@@ -135,18 +135,33 @@ def zoomout(
 
 
 def zoomout_sequence(
-    p2p_yx: np.ndarray, bases_x: list[Basis], bases_y: list[Basis], *, mode: Mode = "pullback"
+    p2p_yx: np.ndarray,
+    bases_x: list[Basis],
+    bases_y: list[Basis],
+    *,
+    mode: Mode = "pullback",
+    subsample=None,
 ):
     """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
 
     Starting from a point map, for each pair ``(bases_x[i], bases_y[i])``: project, then
-    convert back. Returns ``(C_xy in the last pair, p2p_yx)``.
+    convert back. With ``subsample`` ``(vertices of x, vertices of y)``, only the first
+    projection uses every vertex; the later steps match samples to samples and fit ``C`` by
+    least squares (as :func:`zoomout`'s accelerated variant), and only the final point map
+    is computed on every vertex. Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
     """
     if len(bases_x) != len(bases_y) or not bases_x:
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
     p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
+    samples = _check_samples(subsample, bases_x[0], bases_y[0])
     C = None
     for bx, by in zip(bases_x, bases_y, strict=True):
-        C = p2p_to_fmap(p2p, bx, by)
-        p2p = fmap_to_p2p(C, bx, by, mode=mode)
+        if samples is None or C is None:
+            C = p2p_to_fmap(p2p, bx, by)
+        else:
+            C = _sample_step(C, bx, by, bx.k, by.k, samples, mode)
+        if samples is None:
+            p2p = fmap_to_p2p(C, bx, by, mode=mode)
+    if samples is not None:
+        p2p = fmap_to_p2p(C, bases_x[-1], bases_y[-1], mode=mode)
     return C, p2p
