@@ -435,12 +435,14 @@ def refine_p2p(
     mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, k0: int = 50, k_final: int = 200
 ) -> np.ndarray:
     """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
-    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes."""
+    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes.
+    Point maps are converted by the orthogonal rule (nearest neighbours of ``Φ_y`` in
+    ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`."""
     k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
     k0 = min(k0, k_final)
     bx, by = laplacian_eigenbasis(mesh_x, k_final), laplacian_eigenbasis(mesh_y, k_final)
     C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
-    return zoomout(C_xy, bx, by, k_final, step=max(1, k0 // 10))[1]
+    return zoomout(C_xy, bx, by, k_final, step=max(1, k0 // 10), mode="orthogonal")[1]
 
 
 def match_with_network(
