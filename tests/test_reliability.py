@@ -477,3 +477,25 @@ def test_kill_during_save_leaves_a_valid_file_and_no_litter_after_the_next_save(
     small.save(target)
     assert not list(tmp_path.glob(".*.tmp"))
     assert Basis.load(target).k == 1
+
+
+def test_unreferenced_vertices_are_refused_by_operators_and_referenced_removes_them(sphere):
+    """Item 5: a mesh kept with allow_unreferenced=True loads, but operators (whose rows at such
+    vertices would be all zero: singular solves) refuse it with the fix; ``referenced()`` gives
+    the submesh and the ids that map results back, and the submesh matches like the original."""
+    from torchfmap import Mesh, MeshError, match
+
+    extra = np.vstack([sphere.vertices[:7], [[5.0, 5.0, 5.0]], sphere.vertices[7:]])
+    faces = np.where(sphere.faces >= 7, sphere.faces + 1, sphere.faces)  # vertex 7 is unused
+    mesh = Mesh(extra, faces, allow_unreferenced=True)
+    with pytest.raises(MeshError, match=r"not used by any face.*mesh.referenced\(\)"):
+        laplacian(mesh)
+    with pytest.raises(MeshError, match="not used by any face"):
+        match(mesh, mesh, k=10)
+    sub, ids = mesh.referenced()
+    assert sub.n_vertices == sphere.n_vertices and 7 not in ids
+    np.testing.assert_array_equal(sub.vertices, sphere.vertices)
+    np.testing.assert_array_equal(sub.faces, sphere.faces)
+    np.testing.assert_array_equal(mesh.vertices[ids], sub.vertices)
+    L_sub, L_ref = laplacian(sub), laplacian(sphere)
+    assert abs(L_sub.stiffness - L_ref.stiffness).max() == 0 and abs(L_sub.mass - L_ref.mass).max() == 0

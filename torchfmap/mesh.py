@@ -179,7 +179,8 @@ def validate_mesh(
         raise MeshError(
             f"{len(unref)} vertices are not used by any face: vertices {_preview(unref)}. "
             "Fix: remove them (this changes vertex indices: remap your correspondences), or pass "
-            "allow_unreferenced=True to keep them (they get zero mass and are excluded from solves)."
+            "allow_unreferenced=True to load the mesh as it is and work on `mesh.referenced()` "
+            "(operators refuse vertices that no face uses)."
         )
     edges, counts, _ = _edge_face_incidence(f)
     bad = np.flatnonzero(counts > 2)
@@ -470,6 +471,16 @@ class Mesh:
         keep = np.ones(self.n_faces, dtype=bool)
         keep[np.asarray(face_indices, dtype=np.int64)] = False
         return Mesh(self.vertices, self.faces[keep], validate=False, name=self.name)
+
+    def referenced(self) -> tuple[Mesh, np.ndarray]:
+        """The mesh without the vertices that no face uses, and the original indices of the
+        kept vertices: ``(mesh, vertex_ids)`` with ``mesh.vertices == self.vertices[vertex_ids]``
+        (relative order preserved). A map computed on the result maps back through
+        ``vertex_ids``: vertex ``i`` there is vertex ``vertex_ids[i]`` here."""
+        ids = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=self.n_vertices))
+        remap = np.full(self.n_vertices, -1, dtype=np.int64)
+        remap[ids] = np.arange(len(ids))
+        return Mesh(self.vertices[ids], remap[self.faces], validate=False, name=self.name), ids
 
     def largest_component(self) -> tuple[Mesh, np.ndarray]:
         """The largest connected component and the original indices of its vertices.

@@ -161,6 +161,10 @@ def laplacian(
 
     Returns:
         :class:`Operators` ``(L, B)``, both ``(V, V)`` CSR float64, ``L`` positive semidefinite.
+
+    Raises:
+        MeshError: a vertex no face uses (see :meth:`~torchfmap.Mesh.referenced`), or a
+            scale at which the products over- or underflow.
     """
     if kind not in LAPLACIAN_KINDS:
         raise ParameterError(f"unknown Laplacian kind {kind!r}. Fix: use one of {LAPLACIAN_KINDS}.")
@@ -173,6 +177,14 @@ def laplacian(
                 "kind='robust'."
             )
         return point_cloud_laplacian(mesh, n_neighbors=n_neighbors, mollify_factor=mollify_factor)
+    unused = np.flatnonzero(np.bincount(mesh.faces.ravel(), minlength=mesh.n_vertices) == 0)
+    if len(unused):
+        raise MeshError(
+            f"{len(unused)} vertices are not used by any face (e.g. {unused[:5].tolist()}): they would "
+            "have no mass and no stiffness, so every solve on them is singular. Fix: "
+            "`sub, ids = mesh.referenced()`, work on `sub`, and map results back (vertex i of sub "
+            "is vertex ids[i] of the mesh)."
+        )
     if kind == "robust":
         L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
         return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
