@@ -157,3 +157,58 @@ def test_cache_uses_the_same_writer_and_rebuilds_corrupt_entries(tmp_path):
     cache.get("k", compute)
     assert len(calls) == 2
     assert [p.name for p in tmp_path.iterdir()] == ["k.npz"]
+
+
+def test_bytes_that_reach_the_disk_wrong_are_caught_before_the_rename(tmp_path, monkeypatch):
+    """A save whose file on disk differs from what was meant (a flipped byte, as a bad disk or
+    a concurrent scribbler would leave) is refused by the read-back check, and the old file
+    stays."""
+    import torchfmap._files as files
+    from torchfmap._files import load_checked_bytes, save_checked_bytes
+
+    path = tmp_path / "model.ckpt"
+    save_checked_bytes(path, b"old weights")
+    real_fsync = files.os.fsync
+
+    def fsync_then_flip(fd):
+        real_fsync(fd)
+        tmp = next(tmp_path.glob(".model.ckpt.*.tmp"))
+        data = bytearray(tmp.read_bytes())
+        data[-3] ^= 0x01
+        tmp.write_bytes(bytes(data))
+
+    monkeypatch.setattr(files.os, "fsync", fsync_then_flip)
+    with pytest.raises(CorruptFileError, match="checksum"):
+        save_checked_bytes(path, b"new weights")
+    monkeypatch.undo()
+    assert load_checked_bytes(path) == b"old weights"
+    assert [p.name for p in tmp_path.iterdir()] == ["model.ckpt"]
+
+
+@pytest.mark.parametrize(
+    "error", [PermissionError(13, "Permission denied"), OSError(28, "No space left on device")]
+)
+def test_unwritable_destination_is_named_with_the_fix(tmp_path, monkeypatch, error):
+    """A read-only folder or a full disk (simulated: tests may run as root, who can write
+    anywhere) gives the same error class and errno, naming the path, saying the old file is
+    unchanged and how to fix it."""
+    import builtins
+
+    import torchfmap._files as files
+
+    path = tmp_path / "a.npz"
+    save_arrays(path, {"x": np.arange(3)})
+    real_open = builtins.open
+
+    def refusing_open(file, mode="r", *args, **kwargs):
+        if "w" in mode and str(file).endswith(".tmp"):
+            raise error
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(files, "open", refusing_open, raising=False)
+    with pytest.raises(type(error)) as info:
+        save_arrays(path, {"x": np.arange(4)})
+    assert info.value.errno == error.errno
+    assert str(path) in str(info.value) and "unchanged" in str(info.value) and "Fix:" in str(info.value)
+    monkeypatch.undo()
+    assert np.array_equal(load_arrays(path)["x"], np.arange(3))

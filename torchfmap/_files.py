@@ -71,11 +71,23 @@ def remove_stale_temps(path: str | os.PathLike) -> int:
     return removed
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> Path:
+def atomic_write(
+    path: str | os.PathLike,
+    write: Callable[[IO[bytes]], None],
+    verify: Callable[[Path], object] | None = None,
+) -> Path:
     """Write ``path`` atomically: ``write(fh)`` fills a temporary file in the same folder, which
-    is fsync'ed and renamed over ``path``. The temporary file never outlives the call, and
+    is fsync'ed, checked by ``verify(temp_path)`` (which raises if the bytes on disk are not what
+    was meant) and renamed over ``path``. The temporary file never outlives the call, and
     temporary files of ``path`` left by killed writers are removed first
-    (:func:`remove_stale_temps`)."""
+    (:func:`remove_stale_temps`).
+
+    Raises:
+        OSError (same subclass and errno): the write or the rename failed (full disk, no
+            permission, read-only folder); the message names ``path`` and says that any
+            previous file there is unchanged.
+        CorruptFileError: ``verify`` refused the written file (nothing was replaced).
+    """
     path = Path(path)
     remove_stale_temps(path)
     tmp = _temp_path(path)
@@ -84,9 +96,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) ->
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
+        if verify is not None:
+            verify(tmp)
         os.replace(tmp, path)
+    except OSError as err:
+        message = (
+            f"could not write {path} ({err.strerror or err}); any previous file there is unchanged. "
+            "Fix: free disk space, check write permission, or choose another folder."
+        )
+        raise (type(err)(err.errno, message) if err.errno is not None else type(err)(message)) from err
     finally:
-        if tmp.exists():  # the write or the rename failed
+        if tmp.exists():  # the write, the check or the rename failed
             tmp.unlink()
     return path
 
@@ -98,7 +118,11 @@ def save_arrays(
     if checksum_key in arrays:
         raise ParameterError(f"{checksum_key!r} is reserved for the checksum. Fix: rename that array.")
     digest = np.array(checksum(arrays))
-    return atomic_write(path, lambda fh: np.savez(fh, **{checksum_key: digest}, **arrays))
+    return atomic_write(
+        path,
+        lambda fh: np.savez(fh, **{checksum_key: digest}, **arrays),
+        verify=lambda tmp: load_arrays(tmp, checksum_key),
+    )
 
 
 def load_arrays(
@@ -134,7 +158,9 @@ CHECKED_MAGIC = b"TORCHFMAP-CHECKED-1\n"
 def save_checked_bytes(path: str | os.PathLike, payload: bytes) -> Path:
     """Write ``payload`` atomically behind a header with its SHA-256 (checkpoints)."""
     digest = hashlib.sha256(payload).hexdigest().encode()
-    return atomic_write(path, lambda fh: fh.write(CHECKED_MAGIC + digest + b"\n" + payload))
+    return atomic_write(
+        path, lambda fh: fh.write(CHECKED_MAGIC + digest + b"\n" + payload), verify=load_checked_bytes
+    )
 
 
 def load_checked_bytes(path: str | os.PathLike, what: str = "file") -> bytes:
