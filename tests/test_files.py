@@ -212,3 +212,6 @@ def test_unwritable_destination_is_named_with_the_fix(tmp_path, monkeypatch, err
     assert str(path) in str(info.value) and "unchanged" in str(info.value) and "Fix:" in str(info.value)
     monkeypatch.undo()
     assert np.array_equal(load_arrays(path)["x"], np.arange(3))
+    assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]  # no temp litter
+    save_arrays(path, {"x": np.arange(4)})  # the next save works and leaves nothing else
+    assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]
