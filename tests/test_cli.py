@@ -45,7 +45,7 @@ def test_basis_command(tmp_path, capsys):
     lm.write_text("# two landmarks\n10\n200\n")
     out = tmp_path / "b.npz"
     args = ["basis", str(mesh_path), "--landmarks", str(lm), "--seeds", "6", "--times", "0.01,0.001"]
-    assert main([*args, "--k", "8", "--metric", "euclidean", "--out", str(out), "--quiet"]) == 0
+    assert main([*args, "--n-eigen", "8", "--metric", "euclidean", "--out", str(out), "--quiet"]) == 0
     basis = Basis.load(out)
     assert basis.orthonormal and np.abs(basis.gram() - np.eye(basis.k)).max() < 1e-10
     seeds = [c.seed for c in basis.provenance if c.kind == "harmonic"]
@@ -55,3 +55,77 @@ def test_basis_command(tmp_path, capsys):
     lm.write_text("10 99\n200 5\n")  # a pairs file is not a landmark list: refused, not half-read
     assert main([*args, "--out", str(out), "--quiet"]) == 2
     assert "expected 1 integer column" in capsys.readouterr().err
+
+
+def test_version_and_defaults_in_help(capsys):
+    import pytest
+
+    import torchfmap
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and torchfmap.__version__ in capsys.readouterr().out
+    for command, flag in (
+        ("match", "--k"),
+        ("eval", "--gt-landmarks"),
+        ("basis", "--n-eigen"),
+        ("train", "--k"),
+    ):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        text = capsys.readouterr().out
+        assert flag in text and "(default: " in text, command
+
+
+def test_match_solves_in_saved_bases_from_the_basis_command(tmp_path, capsys):
+    """`torchfmap basis` files go straight into `match --bases`; on the demo pair (a bend, close
+    to an isometry) the eigenbasis files give the same map as `match --basis laplacian`."""
+    src, tgt = (str(p) for p in demo_pair_paths()[:2])
+    files = []
+    for name, mesh in (("x", src), ("y", tgt)):
+        out = tmp_path / f"{name}.npz"
+        assert (
+            main(["basis", mesh, "--kind", "laplacian", "--n-eigen", "30", "--out", str(out), "--quiet"]) == 0
+        )
+        files.append(str(out))
+    via_files, direct = tmp_path / "a.txt", tmp_path / "b.txt"
+    assert main(["match", src, tgt, "--bases", *files, "--out", str(via_files)]) == 0
+    assert main(["match", src, tgt, "--basis", "laplacian", "--k", "30", "--out", str(direct)]) == 0
+    np.testing.assert_array_equal(np.loadtxt(via_files, dtype=int), np.loadtxt(direct, dtype=int))
+    assert main(["match", src, tgt, "--bases", files[1], files[0], "--out", str(via_files)]) in (0, 2)
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                "match",
+                src,
+                tgt,
+                "--bases",
+                *files,
+                "--refine",
+                "zoomout",
+                "--basis",
+                "stack",
+                "--out",
+                str(via_files),
+            ]
+        )
+        == 2
+    )
+    assert "ZoomOut" in capsys.readouterr().err
+
+
+def test_landmark_pairs_with_swapped_columns_are_named(tmp_path, capsys):
+    from torchfmap import save_mesh
+    from torchfmap.data import icosphere
+
+    big, small = tmp_path / "big.off", tmp_path / "small.off"
+    save_mesh(icosphere(3), big)
+    save_mesh(icosphere(1), small)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("5 600\n7 610\n9 620\n")  # (small vertex, big vertex)
+    out = str(tmp_path / "m.txt")
+    assert main(["match", str(small), str(big), "--landmarks", str(pairs), "--k", "20", "--out", out]) == 0
+    capsys.readouterr()
+    assert main(["match", str(big), str(small), "--landmarks", str(pairs), "--k", "20", "--out", out]) == 2
+    assert "swap the columns" in capsys.readouterr().err

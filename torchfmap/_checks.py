@@ -73,6 +73,17 @@ def check_landmark_pairs(landmarks, n_x: int, n_y: int) -> np.ndarray:
     pairs = np.asarray(landmarks)
     if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
         raise ParameterError(f"landmarks must be (L, 2) pairs (x vertex, y vertex), got shape {pairs.shape}.")
+    if np.issubdtype(pairs.dtype, np.integer) and n_x != n_y and pairs.min() >= 0:
+        fits = pairs[:, 0].max() < n_x and pairs[:, 1].max() < n_y
+        fits_swapped = pairs[:, 1].max() < n_x and pairs[:, 0].max() < n_y
+    else:
+        fits = fits_swapped = True
+    if not fits and fits_swapped:
+        raise SeedError(
+            f"landmark pairs index outside the meshes (x has {n_x} vertices, y {n_y}), but they would "
+            "fit with the two columns swapped. Fix: each pair is (source vertex, target vertex); "
+            "swap the columns (landmarks[:, ::-1])."
+        )
     check_vertex_indices(pairs[:, 0], n_x, "source landmarks")
     check_vertex_indices(pairs[:, 1], n_y, "target landmarks")
     return pairs.astype(np.int64)

@@ -1,4 +1,4 @@
-"""Command line: ``torchfmap demo | info | basis | match | eval | train``."""
+"""Command line: ``torchfmap demo | info | basis | match | eval | train`` (see ``torchfmap --help``)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from . import __version__
 from ._checks import is_symmetric
-from .bases import basis_stack, eigenpairs
+from .bases import Basis, basis_stack, eigenpairs
 from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
@@ -159,7 +160,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
             seeds,
             times=times if args.kind in ("stack", "diffusion") else (),
             harmonic=args.kind in ("stack", "harmonic"),
-            n_eigen=args.k if args.kind in ("stack", "laplacian") else 0,
+            n_eigen=args.n_eigen if args.kind in ("stack", "laplacian") else 0,
             operators=ops,
             method=args.method,
             heat_tol=args.tol,
@@ -177,7 +178,8 @@ def read_landmark_pairs(path: str) -> np.ndarray:
 
 
 def cmd_match(args: argparse.Namespace) -> int:
-    src, tgt = load_mesh(args.source), load_mesh(args.target)
+    src = load_mesh(args.source, allow_components=args.allow_components)
+    tgt = load_mesh(args.target, allow_components=args.allow_components)
     t0 = time.perf_counter()
     if args.checkpoint:
         if args.landmarks:
@@ -198,7 +200,20 @@ def cmd_match(args: argparse.Namespace) -> int:
     if args.adapt:
         raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
-    result = match(src, tgt, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
+    bases = tuple(Basis.load(path) for path in args.bases) if args.bases else None
+    result = match(
+        src,
+        tgt,
+        landmarks=landmarks,
+        basis=args.basis,
+        k=args.k,
+        refine=args.refine,
+        k_final=args.k_final,
+        w_lap=args.w_lap,
+        times=args.times,
+        p2p_mode=args.p2p_mode,
+        bases=bases,
+    )
     np.savetxt(args.out, result.p2p_yx, fmt="%d")
     total = sum(result.timings.values())
     print(
@@ -267,7 +282,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     rows, curves, all_errors = [], {}, []
     for a, b, pa, pb, gt in tqdm(pairs, desc="pairs", disable=args.quiet):
         x, y = load_mesh(pa), load_mesh(pb)
-        landmarks = landmarks_from_gt(x, gt, args.landmarks) if args.landmarks else None
+        landmarks = landmarks_from_gt(x, gt, args.gt_landmarks) if args.gt_landmarks else None
         t0 = time.perf_counter()
         result = match(x, y, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
         dt = time.perf_counter() - t0
@@ -292,81 +307,155 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
+
+  torchfmap demo                      match the shipped demo pair, print errors
+  torchfmap info MESH                 validate a mesh, summarise its operators
+  torchfmap basis MESH --out B.npz    compute and save a basis
+  torchfmap match SRC TGT --out MAP   map target vertices to source vertices
+  torchfmap eval FOLDER               match every pair with ground truth: table, PCK plot
+  torchfmap train FOLDER --out CKPT   train a feature network, unsupervised
+
+Flags mean the same in every subcommand: --landmarks is always a FILE (0-based vertex
+indices), --k the basis size, --out the output file. Run 'torchfmap COMMAND --help'."""
+
+BASES = ["laplacian", "harmonic", "diffusion", "stack"]
+
+
+def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    return sub.add_parser(
+        name, help=help_text, description=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchfmap", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="run on the demo pair shipped in the package")
+    parser = argparse.ArgumentParser(
+        prog="torchfmap", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"torchfmap {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = _sub(sub, "demo", "run on the demo pair shipped in the package")
     p.set_defaults(func=cmd_demo)
-    p = sub.add_parser("info", help="validate a mesh and summarise its operators")
+    p = _sub(sub, "info", "validate a mesh and summarise its operators")
     p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
     p.set_defaults(func=cmd_info)
-    p = sub.add_parser("basis", help="compute a basis and save it as .npz")
-    p.add_argument("mesh", help="mesh file")
-    p.add_argument("--seeds", type=count, default=0, help="number of seeds (landmarks included)")
-    p.add_argument("--landmarks", help="file of 0-based vertex indices, one per line; used first")
-    p.add_argument("--kind", choices=["harmonic", "diffusion", "laplacian", "stack"], default="stack")
+
+    p = _sub(sub, "basis", "compute a basis of one mesh and save it as .npz (Basis.load reads it)")
+    p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
+    p.add_argument("--kind", choices=BASES, default="stack", help="basis kind")
     p.add_argument(
-        "--times",
-        type=time_list,
-        default="0.001,0.003,0.01,0.03",
-        help="relative diffusion times, comma separated",
+        "--seeds", type=count, default=0, help="number of seeds, landmarks included (0: landmarks only)"
     )
-    p.add_argument("--k", type=positive_int, default=50, help="number of Laplacian eigenfunctions")
-    p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan")
-    p.add_argument("--method", choices=["krylov", "rational", "backward_euler", "spectral"], default="krylov")
-    p.add_argument("--tol", type=float, default=1e-8, help="heat kernel accuracy")
-    p.add_argument("--metric", choices=["geodesic", "euclidean"], default="geodesic", help="FPS distance")
-    p.add_argument("--ortho", choices=["mgs", "cholqr"], default="mgs")
+    p.add_argument("--landmarks", metavar="FILE", help="0-based vertex indices, one per line; seeded first")
+    p.add_argument(
+        "--times", type=time_list, default="0.001,0.003,0.01,0.03", help="relative diffusion times"
+    )
+    p.add_argument(
+        "--n-eigen",
+        type=count,
+        default=50,
+        help="Laplacian eigenfunctions (the laplacian kind; appended to stack)",
+    )
+    p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan", help="operator")
+    p.add_argument(
+        "--method",
+        choices=["krylov", "rational", "backward_euler", "spectral"],
+        default="krylov",
+        help="heat solver",
+    )
+    p.add_argument("--tol", type=float, default=1e-8, help="heat kernel relative accuracy")
+    p.add_argument(
+        "--metric", choices=["geodesic", "euclidean"], default="geodesic", help="seed sampling distance"
+    )
+    p.add_argument("--ortho", choices=["mgs", "cholqr"], default="mgs", help="orthonormalisation scheme")
     p.add_argument("--orthonormalize", action="store_true", help="orthonormalise single kinds too")
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_basis)
-    bases = ["laplacian", "harmonic", "diffusion", "stack"]
-    p = sub.add_parser("match", help="map a target mesh to a source mesh; write target->source vertex map")
-    p.add_argument("source")
-    p.add_argument("target")
-    p.add_argument("--landmarks", help="file of 0-based pairs 'source_vertex target_vertex', one per line")
+
+    p = _sub(sub, "match", "map a target mesh to a source mesh; write the target->source vertex map")
+    p.add_argument("source", help="source mesh x (the map's values are its vertex indices)")
+    p.add_argument("target", help="target mesh y (one map line per vertex)")
     p.add_argument(
-        "--basis", choices=bases, default=None, help="default: stack with landmarks, else laplacian"
+        "--landmarks", metavar="FILE", help="0-based pairs 'source_vertex target_vertex', one per line"
     )
-    p.add_argument("--k", type=positive_int, default=50)
-    p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
+    p.add_argument(
+        "--basis",
+        choices=BASES,
+        default=None,
+        help="basis kind (default: diffusion with landmarks, else laplacian)",
+    )
+    p.add_argument(
+        "--bases", nargs=2, metavar=("SRC.npz", "TGT.npz"), help="solve in saved bases ('torchfmap basis')"
+    )
+    p.add_argument(
+        "--k", type=positive_int, default=50, help="basis size (every basis has exactly k columns)"
+    )
+    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    p.add_argument(
+        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default 2k)"
+    )
+    p.add_argument(
+        "--w-lap", type=float, default=None, help="Laplacian-commutativity weight (default: per basis)"
+    )
+    p.add_argument("--times", type=time_list, default=None, help="relative diffusion times of feature bases")
+    p.add_argument(
+        "--p2p-mode",
+        choices=["pullback", "orthogonal"],
+        default=None,
+        help="point-map rule (default: orthogonal for laplacian, else pullback)",
+    )
+    p.add_argument(
+        "--allow-components", action="store_true", help="accept meshes with several connected components"
+    )
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
-    p.add_argument("--png", help="also save a colour-transfer picture")
+    p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
-    p.add_argument("--adapt", type=int, default=0, help="test-time adaptation steps (with --checkpoint)")
+    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.set_defaults(func=cmd_match)
-    p = sub.add_parser("eval", help="match every pair of a folder with ground truth; table + PCK plot")
+
+    p = _sub(sub, "eval", "match every pair of a folder with ground truth; table + PCK plot")
     p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
-    p.add_argument("--basis", choices=bases, default=None)
-    p.add_argument("--k", type=positive_int, default=50)
-    p.add_argument("--refine", choices=["icp", "zoomout"], default=None)
-    p.add_argument("--landmarks", type=count, default=0, help="use N ground-truth pairs as landmarks")
+    p.add_argument("--basis", choices=BASES, default=None, help="basis kind (default as in match)")
+    p.add_argument("--k", type=positive_int, default=50, help="basis size")
+    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    p.add_argument(
+        "--gt-landmarks",
+        type=count,
+        default=0,
+        help="use N ground-truth pairs per pair as landmarks (0: none)",
+    )
     p.add_argument("--max-pairs", type=count, default=0, help="at most this many pairs (0: all)")
     p.add_argument(
-        "--max-points", type=positive_int, default=None, help="evaluate at most this many points per pair"
+        "--max-points",
+        type=positive_int,
+        default=None,
+        help="evaluate at most this many points per pair (default: all)",
     )
-    p.add_argument("--png", help="save the PCK curves here")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--png", help="save the PCK curves here (needs matplotlib)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
-    p = sub.add_parser("train", help="train a feature network, unsupervised, on every mesh of a folder")
+
+    p = _sub(sub, "train", "train a feature network, unsupervised, on every mesh of a folder")
     p.add_argument(
         "folder", help="meshes (.off/.ply/.obj/.stl, .gz); pairs within classes sharing a name prefix"
     )
     p.add_argument("--out", required=True, help="checkpoint (written atomically during training)")
     p.add_argument("--minutes", type=float, default=0.0, help="time budget (0: --epochs only)")
-    p.add_argument("--epochs", type=int, default=1000)
-    p.add_argument("--max-steps", type=int, default=0)
-    p.add_argument("--basis", choices=["laplacian", "diffusion", "stack"], default="laplacian")
-    p.add_argument("--k", type=int, default=50, help="functional-map basis size")
-    p.add_argument("--inputs", choices=["wks", "xyz"], default="wks")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--epochs", type=positive_int, default=1000, help="epochs (upper bound)")
+    p.add_argument("--max-steps", type=count, default=0, help="steps (0: no limit)")
+    p.add_argument(
+        "--basis", choices=["laplacian", "diffusion", "stack"], default="laplacian", help="basis kind"
+    )
+    p.add_argument("--k", type=positive_int, default=50, help="functional-map basis size")
+    p.add_argument("--inputs", choices=["wks", "xyz"], default="wks", help="per-vertex network inputs")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
-    p.add_argument("--no-cache", action="store_true")
+    p.add_argument("--no-cache", action="store_true", help="compute without a cache")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
-    p.add_argument("--validate-every", type=int, default=100, help="steps between validations (0: none)")
-    p.add_argument("--validate-pairs", type=int, default=6, help="pairs of the validation score")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--validate-every", type=count, default=100, help="steps between validations (0: none)")
+    p.add_argument("--validate-pairs", type=positive_int, default=6, help="pairs of the validation score")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
     return parser
 

@@ -391,6 +391,7 @@ def match(
     times=None,
     p2p_mode: P2PMode | None = None,
     zoomout_samples: int | None = None,
+    bases: tuple[Basis, Basis] | None = None,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
 
@@ -425,10 +426,17 @@ def match(
             default ``'orthogonal'`` for the eigenbasis, ``'pullback'`` for feature-aware bases.
         zoomout_samples: run eigenbasis ZoomOut on this many farthest-point samples per shape
             (the final point map uses every vertex).
+        bases: ``(basis_x, basis_y)`` to solve in instead of building them (e.g. files written
+            by ``torchfmap basis``; ``(V_x, K_x)`` and ``(V_y, K_y)``, B-orthonormal). Their
+            columns are not assumed to correspond, so the map is solved from descriptors;
+            ``k`` is ignored; ``basis`` names their kind for the defaults (default:
+            ``'laplacian'`` if every column is an eigenfunction, else ``'stack'``); ZoomOut
+            needs ``'laplacian'`` bases (ICP works in any).
 
     Raises:
         ParameterError: unknown basis or refinement, a feature-aware basis without landmarks,
-            or an invalid ``k``; :class:`~torchfmap.SeedError` for invalid landmarks.
+            an invalid ``k``, or given bases that do not fit the meshes;
+            :class:`~torchfmap.SeedError` for invalid landmarks.
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -436,6 +444,16 @@ def match(
     if landmarks is not None and len(np.atleast_1d(landmarks)):
         pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     kind = basis or ("diffusion" if pairs is not None else "laplacian")
+    if bases is not None:
+        given_x, given_y = _check_given_bases(bases, mesh_x, mesh_y)
+        eigen_only = all(c.kind == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
+        kind = basis or ("laplacian" if eigen_only else "stack")
+        k = min(given_x.k, given_y.k)
+        if refine == "zoomout" and kind != "laplacian":
+            raise ParameterError(
+                "ZoomOut grows nested bases: given bases only support it as eigenbases. Fix: "
+                "refine='icp', or basis='laplacian' with eigenbasis files."
+            )
     if kind not in BASIS_KINDS:
         raise ParameterError(f"unknown basis {kind!r}. Fix: one of {BASIS_KINDS}.")
     n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
@@ -445,7 +463,7 @@ def match(
     k_final = k_final if k_final is not None else (2 * k if grow else k)
     if grow and k_final < k:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
-    prior = kind != "laplacian"
+    prior = kind != "laplacian" and bases is None  # given bases: columns need not correspond
     w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
     need_desc = not (prior and np.isinf(w_prior))
     n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else (k_descriptors if need_desc else 0)
@@ -455,7 +473,10 @@ def match(
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    bx, by, seeds = match_bases(shape_x, shape_y, kind, k, pairs, times)
+    if bases is None:
+        bx, by, seeds = match_bases(shape_x, shape_y, kind, k, pairs, times)
+    else:
+        bx, by, seeds = given_x.truncated(k), given_y.truncated(k), None
     timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -508,6 +529,22 @@ def match(
         )
     timings["refine"] = time.perf_counter() - t0
     return MatchResult(p2p, C, bx, by, initial, timings, seeds)
+
+
+def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]:
+    try:
+        bx, by = bases
+    except (TypeError, ValueError) as err:
+        raise ParameterError("bases must be a pair (basis_x, basis_y) of Basis objects.") from err
+    for b, mesh, name in ((bx, mesh_x, "x"), (by, mesh_y, "y")):
+        if not isinstance(b, Basis):
+            raise ParameterError(f"basis_{name} is a {type(b).__name__}, not a Basis. Fix: Basis.load(path).")
+        if b.n_vertices != mesh.n_vertices:
+            raise ParameterError(
+                f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
+                "pass the basis built on that mesh (bases in the order source, target)."
+            )
+    return bx, by
 
 
 def shape_distance_matrix(

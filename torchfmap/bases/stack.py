@@ -22,9 +22,12 @@ from .orthonormalize import orthonormalize
 
 
 def concatenate(bases: list[Basis]) -> Basis:
-    """Columns of several bases on the same mesh side by side (provenance kept)."""
+    """Columns of several bases on the same mesh side by side (provenance kept); one basis is
+    returned as it is (so an eigenbasis keeps its eigenvalues and orthonormality)."""
     if not bases:
         raise ParameterError("nothing to concatenate. Fix: pass at least one basis.")
+    if len(bases) == 1:
+        return bases[0]
     n = bases[0].n_vertices
     if any(b.n_vertices != n for b in bases):
         raise ParameterError("bases live on meshes of different sizes. Fix: build them on the same mesh.")
