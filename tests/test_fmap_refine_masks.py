@@ -247,7 +247,9 @@ def test_check_p2p_and_landmark_pairs():
     with pytest.raises(ParameterError, match=r"must be \(L, 2\) pairs"):
         check_landmark_pairs([0, 1], 3, 5)
     with pytest.raises(SeedError, match="source landmarks"):
-        check_landmark_pairs([[3, 0]], 3, 5)
+        check_landmark_pairs([[7, 0]], 3, 5)
+    with pytest.raises(SeedError, match="swap the columns"):  # fits only as (y vertex, x vertex)
+        check_landmark_pairs([[4, 0], [3, 2]], 3, 5)
 
 
 def test_multiplication_operator_algebra():

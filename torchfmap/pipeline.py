@@ -28,6 +28,7 @@ from .descriptors import landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
 from .eval import shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
+from .fmap.defaults import W_LAP, W_LMK, W_ORIENT
 from .mesh import Mesh
 from .operators.laplacian import Operators, laplacian
 from .seeds import DistanceRows, corresponding_seeds, farthest_point_sampling
@@ -36,11 +37,6 @@ BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
 RefineKind = Literal["icp", "zoomout"]
 P2PMode = Literal["pullback", "orthogonal"]
 BASIS_KINDS = ("laplacian", "harmonic", "diffusion", "stack")
-#: Default Laplacian-commutativity weight per basis (the mask is normalised to mean 1), chosen
-#: by ``python bench/weight_sweep.py`` (table in ``bench/results/weight_sweep.md``). Projected
-#: Laplacians of small-t heat kernels have very large top eigenvalues, which dominate the
-#: mask's mean, so diffusion bases need a larger weight than eigenbases.
-W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0}
 #: Fixed-size refinement steps (point map <-> functional map) for feature-aware bases.
 FEATURE_REFINE_STEPS = 5
 #: Relative accuracy of the heat kernels of seed bases: far below the seeds' placement error
@@ -384,9 +380,9 @@ def match(
     n_descriptors: int = 20,
     k_descriptors: int = 100,
     w_lap: float | None = None,
-    w_orient: float = 1e-2,
+    w_orient: float = W_ORIENT,
     w_dcomm: float = 0.0,
-    w_lmk: float = 1.0,
+    w_lmk: float = W_LMK,
     w_prior: float | None = None,
     times=None,
     p2p_mode: P2PMode | None = None,

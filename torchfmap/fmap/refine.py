@@ -22,6 +22,7 @@ import numpy as np
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
+from .defaults import default_p2p_mode
 
 Mode = Literal["pullback", "orthogonal"]
 
@@ -33,13 +34,15 @@ def icp_refine(
     n_iter: int = 10,
     tol: float = 1e-10,
     *,
-    mode: Mode = "pullback",
+    mode: Mode | None = None,
 ):
     """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square.
 
     ``mode`` is the point-map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`): ``'orthogonal'``
-    is the classical choice in eigenbases; ``'pullback'`` (default) works in any basis.
+    is the classical choice in eigenbases; ``'pullback'`` works in any basis; default
+    :func:`~torchfmap.fmap.defaults.default_p2p_mode`.
     """
+    mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     C = np.asarray(C_xy, dtype=np.float64)
     if C.shape[0] != C.shape[1]:
         raise ParameterError(f"ICP needs a square map, got {C.shape}. Fix: use the same K on both shapes.")
@@ -92,7 +95,7 @@ def zoomout(
     k_final: int,
     step: int = 1,
     *,
-    mode: Mode = "pullback",
+    mode: Mode | None = None,
     subsample=None,
 ):
     """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
@@ -100,7 +103,8 @@ def zoomout(
     Meaningful when the first columns span nested, coarse-to-fine subspaces (eigenbases).
 
     Args:
-        mode: point-map conversion (``'orthogonal'`` is the classical choice for eigenbases).
+        mode: point-map conversion (default :func:`~torchfmap.fmap.defaults.default_p2p_mode`:
+            ``'orthogonal'``, the classical choice, for eigenbases).
         subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
             (nearest neighbours between samples, least-squares maps), as in the ZoomOut
             paper's accelerated variant; only the final point map uses every vertex. The cost
@@ -120,6 +124,7 @@ def zoomout(
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     samples = _check_samples(subsample, basis_x, basis_y)
+    mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     k = min(C.shape)
     if samples is None:
         p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
@@ -139,7 +144,7 @@ def zoomout_sequence(
     bases_x: list[Basis],
     bases_y: list[Basis],
     *,
-    mode: Mode = "pullback",
+    mode: Mode | None = None,
     subsample=None,
 ):
     """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
@@ -154,6 +159,7 @@ def zoomout_sequence(
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
     p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
     samples = _check_samples(subsample, bases_x[0], bases_y[0])
+    mode = default_p2p_mode(bases_x[-1], bases_y[-1]) if mode is None else mode
     C = None
     for bx, by in zip(bases_x, bases_y, strict=True):
         if samples is None or C is None:

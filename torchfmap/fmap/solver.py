@@ -38,6 +38,7 @@ from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from . import core
+from .defaults import W_LAP, W_LMK, W_ORIENT, default_w_lap
 
 MaskKind = Literal["laplacian", "resolvent"]
 #: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
@@ -237,7 +238,7 @@ def build_problem(
     desc_y: np.ndarray,
     *,
     w_desc: float = 1.0,
-    w_lap: float = 1e-3,
+    w_lap: float = W_LAP["laplacian"],
     mask: MaskKind = "laplacian",
     w_dcomm: float = 0.0,
     w_orient: float = 0.0,
@@ -328,19 +329,39 @@ def _unit_pair(Ox: np.ndarray, Oy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def solve_fmap(
-    basis_x: Basis, basis_y: Basis, desc_x: np.ndarray, desc_y: np.ndarray, **kwargs
+    basis_x: Basis,
+    basis_y: Basis,
+    desc_x: np.ndarray,
+    desc_y: np.ndarray,
+    *,
+    w_desc: float = 1.0,
+    w_lap: float | None = None,
+    mask: MaskKind = "laplacian",
+    w_dcomm: float = 0.0,
+    w_orient: float | None = None,
+    orient_reversing: bool = False,
+    meshes: tuple[Mesh, Mesh] | None = None,
+    landmarks=None,
+    w_lmk: float | None = None,
+    prior=None,
+    w_prior: float = 0.0,
 ) -> np.ndarray:
     """Regularised functional map ``C_xy`` (``(K_y, K_x)``) in any B-orthonormal bases.
+
+    Defaults come from :mod:`torchfmap.fmap.defaults`, the same as :func:`torchfmap.match`
+    and :class:`torchfmap.nn.RegularizedFMSolver`: what is given is used.
 
     Args:
         basis_x, basis_y: B-orthonormal bases with stiffness (``W = Φᵀ L Φ``).
         desc_x, desc_y: ``(V_x, D)``, ``(V_y, D)`` corresponding descriptors.
         w_desc: descriptor preservation weight.
-        w_lap: Laplacian commutativity weight; ``mask='laplacian'`` or ``'resolvent'``.
+        w_lap: Laplacian commutativity weight (default: ``default_w_lap`` of the bases' kind);
+            ``mask='laplacian'`` or ``'resolvent'``.
         w_dcomm: descriptor commutativity weight (multiplication operators).
-        w_orient: orientation term weight (needs ``meshes=(mesh_x, mesh_y)``);
-            ``orient_reversing=True`` for mirror maps.
-        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk``.
+        w_orient: orientation term weight, needs ``meshes=(mesh_x, mesh_y)`` (default:
+            ``W_ORIENT`` when meshes are given, else 0); ``orient_reversing=True`` for mirror maps.
+        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk`` (default:
+            ``W_LMK`` when landmarks are given).
         prior, w_prior: a ``(K_y, K_x)`` map the solution is pulled towards, ``w_prior ‖C - P‖²``
             (e.g. the identity between bases built at corresponding seeds); ``w_prior`` is
             relative to the descriptor term (1 weighs like an average row of ``‖C A_x - A_y‖²``).
@@ -348,5 +369,22 @@ def solve_fmap(
     Returns:
         ``C_xy``.
     """
-    problem = build_problem(basis_x, basis_y, desc_x, desc_y, **kwargs)
+    has_landmarks = landmarks is not None and len(np.atleast_1d(landmarks)) > 0
+    problem = build_problem(
+        basis_x,
+        basis_y,
+        desc_x,
+        desc_y,
+        w_desc=w_desc,
+        w_lap=default_w_lap(basis_x, basis_y) if w_lap is None else w_lap,
+        mask=mask,
+        w_dcomm=w_dcomm,
+        w_orient=(W_ORIENT if meshes is not None else 0.0) if w_orient is None else w_orient,
+        orient_reversing=orient_reversing,
+        meshes=meshes,
+        landmarks=landmarks if has_landmarks else None,
+        w_lmk=(W_LMK if has_landmarks else 0.0) if w_lmk is None else w_lmk,
+        prior=prior,
+        w_prior=w_prior,
+    )
     return problem.unrotate(problem.solve())

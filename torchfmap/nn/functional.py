@@ -16,6 +16,7 @@ import torch
 
 from ..errors import ParameterError
 from ..fmap import core
+from ..fmap.defaults import W_LAP
 
 
 class BasisBatch(NamedTuple):
@@ -136,7 +137,7 @@ def fmap_solve(
     basis_y: BasisBatch,
     *,
     w_desc: float = 1.0,
-    w_lap: float = 1e-3,
+    w_lap: float = W_LAP["laplacian"],
     mask: str = "laplacian",
     both: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -13,6 +13,7 @@ from ..bases import basis_stack, laplacian_eigenbasis
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from ..fmap import core
+from ..fmap.defaults import W_LAP
 from ..mesh import Mesh
 from . import functional as F
 from .functional import BasisBatch
@@ -88,10 +89,19 @@ class RegularizedFMSolver(nn.Module):
     """Differentiable batched functional-map solver for any B-orthonormal bases.
 
     ``forward(feat_x (B, V_x, D), feat_y (B, V_y, D), basis_x, basis_y) ->
-    (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))``.
+    (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` is None with ``both=False``).
+    The defaults are those of :func:`torchfmap.fmap.solve_fmap` for eigenbases (the same
+    core solve gives the same map); for bases with diffusion columns pass
+    ``w_lap=torchfmap.fmap.defaults.W_LAP['diffusion']``.
     """
 
-    def __init__(self, w_desc: float = 1.0, w_lap: float = 1e-3, mask: str = "laplacian", both: bool = True):
+    def __init__(
+        self,
+        w_desc: float = 1.0,
+        w_lap: float = W_LAP["laplacian"],
+        mask: str = "laplacian",
+        both: bool = True,
+    ):
         super().__init__()
         if w_desc <= 0 or w_lap < 0:
             raise ParameterError(f"weights must be w_desc > 0, w_lap >= 0; got {w_desc}, {w_lap}.")
