@@ -183,13 +183,19 @@ def test_no_cycle_hidden_in_function_level_imports():
     assert cycle is None, "import cycle through function-level imports: " + " -> ".join(cycle)
 
 
+#: The one lazy boundary: the command line imports the torch-based learning path only in the
+#: commands that use it, so that classical commands start without torch.
+LAZY_TORCH = {"torchfmap.cli": ("torch", "torchfmap.nn")}
+
+
 def test_no_function_level_import_of_torchfmap_modules():
     _, inner = import_graph()
     bad = [
         f"{module}:{line} imports {name}"
         for module, items in inner.items()
         for name, line in items
-        if name == "torchfmap" or name.startswith("torchfmap.")
+        if (name == "torchfmap" or name.startswith("torchfmap."))
+        and not name.startswith(LAZY_TORCH.get(module, ("-",)))
     ]
     assert not bad, "function-level imports of torchfmap modules (move them to module level):\n" + "\n".join(
         bad
@@ -202,7 +208,9 @@ def test_function_level_imports_only_of_optional_dependencies():
         f"{module}:{line} imports {name}"
         for module, items in inner.items()
         for name, line in items
-        if not name.startswith("torchfmap") and name.split(".")[0] not in OPTIONAL_IMPORTS
+        if not name.startswith("torchfmap")
+        and name.split(".")[0] not in OPTIONAL_IMPORTS
+        and not name.startswith(LAZY_TORCH.get(module, ("-",)))
     ]
     assert not bad, "function-level imports of required modules:\n" + "\n".join(bad)
 
@@ -215,6 +223,26 @@ def _definitions() -> dict[str, list[str]]:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
                 found.setdefault(node.name, []).append(module)
     return found
+
+
+def test_classical_commands_and_import_do_not_import_torch():
+    """``import torchfmap``, the CLI module and a classical match run without importing torch
+    (it costs about a second); the learning path imports it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, torchfmap, torchfmap.cli\n"
+        "from torchfmap.data import demo_pair\n"
+        "from torchfmap.eval import gt_from_map, landmarks_from_gt\n"
+        "x, y, g = demo_pair()\n"
+        "torchfmap.match(x, y, landmarks=landmarks_from_gt(x, gt_from_map(g), 6), k=20)\n"
+        "assert 'torch' not in sys.modules, 'torch was imported'\n"
+        "import torchfmap.nn\n"
+        "assert 'torch' in sys.modules\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
 
 
 @pytest.mark.parametrize("name", sorted(HOMES))

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from . import __version__
@@ -21,16 +20,6 @@ from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh
-from .nn.data import PairDataset, ShapeDataset, class_pairs
-from .nn.train import (
-    CosineByTime,
-    TrainConfig,
-    build_model,
-    load_checkpoint,
-    match_with_network,
-    train,
-    unsupervised_score,
-)
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match
 from .seeds import farthest_point_sampling
@@ -184,6 +173,8 @@ def cmd_match(args: argparse.Namespace) -> int:
     if args.checkpoint:
         if args.landmarks:
             raise TorchFmapError("--checkpoint matches without landmarks. Fix: drop --landmarks.")
+        from .nn.train import load_checkpoint, match_with_network  # torch: only for this path
+
         net, config, _ = load_checkpoint(args.checkpoint)
         p2p = match_with_network(
             net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine is not None
@@ -226,6 +217,11 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    import torch  # the learning path; the classical commands never import torch
+
+    from .nn.data import PairDataset, ShapeDataset, class_pairs
+    from .nn.train import CosineByTime, TrainConfig, build_model, load_checkpoint, train, unsupervised_score
+
     config = TrainConfig(
         k=args.k,
         basis=args.basis,

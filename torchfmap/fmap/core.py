@@ -13,21 +13,22 @@ row of ``C`` (:func:`solve_rowwise`), exact in any B-orthonormal basis.
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import numpy as np
-import torch
 
+from .._lazy import torch
 from ..errors import ParameterError
 
 MaskKind = Literal["laplacian", "resolvent"]
 
 
-def as_tensor(x, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+def as_tensor(x, dtype: torch.dtype | None = None) -> torch.Tensor:
     """A torch view of a numpy array (float64 by default) or the tensor itself, unchanged."""
     if isinstance(x, torch.Tensor):
         return x
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)).to(dtype)
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)).to(dtype or torch.float64)
 
 
 def spectral_frame(W: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -133,48 +134,55 @@ def solve_rowwise(
     if valid is not None:
         diag = diag + (1 - valid)
         rhs = rhs * valid
-    return _RowwiseSolve.apply(G, diag, rhs)
+    return _rowwise_solve().apply(G, diag, rhs)
 
 
-class _RowwiseSolve(torch.autograd.Function):
-    """``c_i = (G + diag(d_i))⁻¹ r_i`` for every row ``i``; ``G (..., Kx, Kx)``,
-    ``d, r (..., Ky, Kx)`` -> ``c (..., Ky, Kx)``.
+@functools.cache
+def _rowwise_solve():
+    """The autograd Function of :func:`solve_rowwise`, defined on first use (torch is
+    imported then); cached, as a class statement would be."""
 
-    Forward: one batched LU of the ``(..., Ky, Kx, Kx)`` systems. Backward reuses the LU
-    factors (``u_i = S_i⁻ᵀ ∂c_i``) and returns ``∂G = -Σ_i u_i c_iᵀ``, ``∂d_i = -u_i ∘ c_i``,
-    ``∂r_i = u_i`` without building a ``(..., Ky, Kx, Kx)`` gradient. Under
-    ``create_graph=True`` (higher derivatives) the backward is recomputed with differentiable
-    dense solves.
-    """
+    class _RowwiseSolve(torch.autograd.Function):
+        """``c_i = (G + diag(d_i))⁻¹ r_i`` for every row ``i``; ``G (..., Kx, Kx)``,
+        ``d, r (..., Ky, Kx)`` -> ``c (..., Ky, Kx)``.
 
-    @staticmethod
-    def forward(ctx, G, diag, rhs):
-        shape = (*G.shape[:-2], diag.shape[-2], *G.shape[-2:])
-        systems = G.unsqueeze(-3).expand(shape).contiguous()
-        systems.diagonal(dim1=-2, dim2=-1).add_(diag)
-        # LAPACK works column-major: factorising the transposed view Sᵀ makes its working
-        # copy a plain memcpy; S x = r is then solved as (Sᵀ)ᵀ x = r (adjoint=True), exact
-        # whether or not round-off left S slightly unsymmetric
-        LU, pivots, info = torch.linalg.lu_factor_ex(systems.mT)
-        if bool((info > 0).any()):
-            raise ParameterError(
-                "the functional-map systems are singular (descriptors span too little and w_lap = 0). "
-                "Fix: use w_lap > 0 or more descriptors."
-            )
-        c = torch.linalg.lu_solve(LU, pivots, rhs[..., None], adjoint=True)[..., 0]
-        ctx.save_for_backward(G, diag, rhs, LU, pivots, c)
-        return c
+        Forward: one batched LU of the ``(..., Ky, Kx, Kx)`` systems. Backward reuses the LU
+        factors (``u_i = S_i⁻ᵀ ∂c_i``) and returns ``∂G = -Σ_i u_i c_iᵀ``, ``∂d_i = -u_i ∘ c_i``,
+        ``∂r_i = u_i`` without building a ``(..., Ky, Kx, Kx)`` gradient. Under
+        ``create_graph=True`` (higher derivatives) the backward is recomputed with differentiable
+        dense solves.
+        """
 
-    @staticmethod
-    def backward(ctx, grad_c):
-        G, diag, rhs, LU, pivots, c = ctx.saved_tensors
-        if torch.is_grad_enabled():  # create_graph: a backward that is itself differentiable
-            systems = G.unsqueeze(-3) + torch.diag_embed(diag)
-            c = torch.linalg.solve(systems, rhs[..., None])[..., 0]
-            u = torch.linalg.solve(systems.transpose(-1, -2), grad_c[..., None])[..., 0]
-        else:
-            u = torch.linalg.lu_solve(LU, pivots, grad_c[..., None])[..., 0]  # Sᵀ u = ∂c
-        return -(u.transpose(-1, -2) @ c), -(u * c), u
+        @staticmethod
+        def forward(ctx, G, diag, rhs):
+            shape = (*G.shape[:-2], diag.shape[-2], *G.shape[-2:])
+            systems = G.unsqueeze(-3).expand(shape).contiguous()
+            systems.diagonal(dim1=-2, dim2=-1).add_(diag)
+            # LAPACK works column-major: factorising the transposed view Sᵀ makes its working
+            # copy a plain memcpy; S x = r is then solved as (Sᵀ)ᵀ x = r (adjoint=True), exact
+            # whether or not round-off left S slightly unsymmetric
+            LU, pivots, info = torch.linalg.lu_factor_ex(systems.mT)
+            if bool((info > 0).any()):
+                raise ParameterError(
+                    "the functional-map systems are singular (descriptors span too little and w_lap = 0). "
+                    "Fix: use w_lap > 0 or more descriptors."
+                )
+            c = torch.linalg.lu_solve(LU, pivots, rhs[..., None], adjoint=True)[..., 0]
+            ctx.save_for_backward(G, diag, rhs, LU, pivots, c)
+            return c
+
+        @staticmethod
+        def backward(ctx, grad_c):
+            G, diag, rhs, LU, pivots, c = ctx.saved_tensors
+            if torch.is_grad_enabled():  # create_graph: a backward that is itself differentiable
+                systems = G.unsqueeze(-3) + torch.diag_embed(diag)
+                c = torch.linalg.solve(systems, rhs[..., None])[..., 0]
+                u = torch.linalg.solve(systems.transpose(-1, -2), grad_c[..., None])[..., 0]
+            else:
+                u = torch.linalg.lu_solve(LU, pivots, grad_c[..., None])[..., 0]  # Sᵀ u = ∂c
+            return -(u.transpose(-1, -2) @ c), -(u * c), u
+
+    return _RowwiseSolve
 
 
 def rotate_and_solve(

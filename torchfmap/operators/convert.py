@@ -6,14 +6,15 @@ import warnings
 
 import numpy as np
 import scipy.sparse as sp
-import torch
+
+from .._lazy import torch
 
 
 def scipy_to_torch(
     matrix: sp.spmatrix | sp.sparray,
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
-    layout: torch.layout = torch.sparse_coo,
+    layout: torch.layout | None = None,
 ) -> torch.Tensor:
     """A scipy sparse ``(M, N)`` matrix as a coalesced torch sparse tensor.
 
@@ -21,6 +22,7 @@ def scipy_to_torch(
         dtype: defaults to the matrix's own dtype (float64 stays float64).
         layout: ``torch.sparse_coo`` (default) or ``torch.sparse_csr``.
     """
+    layout = torch.sparse_coo if layout is None else layout
     coo = sp.coo_matrix(matrix)
     coo.sum_duplicates()
     values = torch.from_numpy(np.ascontiguousarray(coo.data))
