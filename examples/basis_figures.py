@@ -299,7 +299,7 @@ def plot_rank(results: list[SeedResult], path: Path, mesh_name: str) -> None:
             else f"{_time_label(full[0])} .. 1e{int(round(np.log10(full[-1])))}"
         )
         ax_scale.plot([], [], " ", label=f"({span}: all S kept, on the grey line)")
-    ax_scale.set_yscale("log")
+    ax_scale.set_yscale("symlog", linthresh=1)  # columns kept can be 0: a log axis would hide them
     ax_scale.set_ylabel("number of columns of one scale")
     ax_scale.set_title("(c) diffusion stack per scale (small t is orthonormalised first)")
     ax_scale.legend(fontsize=8, loc="upper left")

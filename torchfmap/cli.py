@@ -186,7 +186,7 @@ def cmd_match(args: argparse.Namespace) -> int:
             f"{time.perf_counter() - t0:.2f} s) -> {args.out}"
         )
         if args.png:
-            print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png)}")
+            print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
         return 0
     if args.adapt:
         raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
@@ -212,7 +212,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         f"{total:.2f} s) -> {args.out}"
     )
     if args.png:
-        print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png)}")
+        print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png, up=args.up)}")
     return 0
 
 
@@ -406,6 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
     p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
+    p.add_argument("--up", choices=["x", "y", "z"], default="z", help="the meshes' vertical axis in --png")
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.set_defaults(func=cmd_match)

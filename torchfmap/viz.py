@@ -1,29 +1,49 @@
-"""Pictures a person would rather look at than read: colour transfer of a map, PCK curves (PNG).
+"""Pictures a person would rather look at than read: colour transfer of a map, per-vertex
+errors, PCK curves (PNG).
 
-matplotlib is an optional dependency (``pip install torchfmap[plot]``); it is imported here
-only, with the headless ``Agg`` backend.
+matplotlib is an optional dependency (``pip install torchfmap[plot]``). Figures are drawn with
+matplotlib's object-oriented API on an Agg canvas, so the user's pyplot backend and state are
+never touched.
+
+Meshes are drawn with the axis ``up`` pointing up (default ``'z'``, as TOSCA's meshes; pyFM's
+cat and lion and many graphics files are ``'y'``-up), from two viewpoints, each axis scaled to
+the mesh's extent so the shape fills its panel. The up axis is a parameter, not guessed: on
+the dev meshes neither the extents (a sitting cat is taller than long) nor the area centroid
+tell it reliably.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from .errors import TorchFmapError
+from .errors import ParameterError, TorchFmapError
 from .mesh import Mesh
 
+Axis = Literal["x", "y", "z"]
+#: Azimuths (degrees) of the two viewpoints: three-quarter front and three-quarter back.
+VIEWS = (-60.0, 120.0)
 
-def _pyplot():
+
+def _figure(width: float, height: float):
+    """A matplotlib Figure on its own Agg canvas (no pyplot, no global backend change)."""
     try:
-        import matplotlib
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise TorchFmapError("plots need matplotlib. Fix: pip install 'torchfmap[plot]'.") from err
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
 
-    return plt
+
+def _save(fig, path: str | os.PathLike) -> Path:
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    return path
 
 
 def position_colors(mesh: Mesh) -> np.ndarray:
@@ -32,45 +52,84 @@ def position_colors(mesh: Mesh) -> np.ndarray:
     return v / np.maximum(v.max(axis=0), 1e-300)
 
 
-def _draw(ax, mesh: Mesh, colors: np.ndarray, title: str) -> None:
+def _z_up(vertices: np.ndarray, up: Axis) -> np.ndarray:
+    """Coordinates permuted (a rotation, no mirror) so that axis ``up`` becomes z, the
+    vertical axis of matplotlib's 3-D plots."""
+    order = {"x": (1, 2, 0), "y": (2, 0, 1), "z": (0, 1, 2)}
+    if up not in order:
+        raise ParameterError(f"up must be 'x', 'y' or 'z', got {up!r}.")
+    return vertices[:, order[up]]
+
+
+def _draw(ax, mesh: Mesh, face_colors: np.ndarray, title: str, up: Axis, azimuth: float) -> None:
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    tri = mesh.vertices[mesh.faces]
-    face_colors = colors[mesh.faces].mean(axis=1)
-    ax.add_collection3d(Poly3DCollection(tri, facecolors=face_colors, edgecolors="none"))
-    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    center, radius = (lo + hi) / 2, (hi - lo).max() / 2
-    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), center, strict=True):
-        setter(c - radius, c + radius)
+    v = _z_up(mesh.vertices, up)
+    ax.add_collection3d(Poly3DCollection(v[mesh.faces], facecolors=face_colors, edgecolors="none"))
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi, strict=True):
+        setter(a, b)
+    ax.set_box_aspect(np.maximum(hi - lo, 1e-12 * (hi - lo).max()))  # true proportions, tight frame
+    ax.view_init(elev=15.0, azim=azimuth)
     ax.set_axis_off()
-    ax.set_title(title)
+    ax.set_title(title, fontsize=9)
 
 
-def plot_color_transfer(mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, path: str | os.PathLike) -> Path:
-    """Colour ``x`` by position and carry the colours to ``y`` through ``p2p_yx``; save a PNG."""
-    plt = _pyplot()
+def _face_colors(mesh: Mesh, vertex_colors: np.ndarray) -> np.ndarray:
+    return np.clip(vertex_colors[mesh.faces].mean(axis=1), 0.0, 1.0)
+
+
+def plot_color_transfer(
+    mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, path: str | os.PathLike, *, up: Axis = "z"
+) -> Path:
+    """Colour ``x`` by position and carry the colours to ``y`` through ``p2p_yx`` ``(V_y,)``;
+    save a PNG with both meshes from two viewpoints (a good map gives ``y`` the same smooth
+    colour field as ``x``). ``up``: the meshes' vertical axis."""
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.shape != (mesh_y.n_vertices,):
+        raise ParameterError(f"p2p_yx must have shape ({mesh_y.n_vertices},), got {p2p_yx.shape}.")
     colors = position_colors(mesh_x)
-    fig = plt.figure(figsize=(10, 5))
-    for i, (mesh, col, title) in enumerate(
-        (
-            (mesh_x, colors, f"source {mesh_x.name or ''}"),
-            (mesh_y, colors[np.asarray(p2p_yx)], "target (mapped)"),
-        )
-    ):
-        _draw(fig.add_subplot(1, 2, i + 1, projection="3d"), mesh, col, title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fig = _figure(9, 8)
+    rows = (
+        (mesh_x, colors, f"source {mesh_x.name or 'x'}"),
+        (mesh_y, colors[p2p_yx], f"target {mesh_y.name or 'y'}, colours carried by the map"),
+    )
+    for r, (mesh, col, title) in enumerate(rows):
+        for c, azimuth in enumerate(VIEWS):
+            ax = fig.add_subplot(2, 2, 2 * r + c + 1, projection="3d")
+            _draw(ax, mesh, _face_colors(mesh, col), title if c == 0 else "(other side)", up, azimuth)
+    return _save(fig, path)
+
+
+def plot_errors(
+    mesh: Mesh, errors: np.ndarray, path: str | os.PathLike, *, up: Axis = "z", title: str = ""
+) -> Path:
+    """Per-vertex errors ``(V,)`` (e.g. geodesic error / sqrt(area) of a map, on the target)
+    drawn on ``mesh`` from two viewpoints, with a colour bar; saved as PNG."""
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.shape != (mesh.n_vertices,) or not np.isfinite(errors).all():
+        raise ParameterError(f"errors must be ({mesh.n_vertices},) finite values, got shape {errors.shape}.")
+    norm = Normalize(0.0, max(float(np.percentile(errors, 99)), 1e-12))
+    cmap = colormaps["magma_r"]
+    face = cmap(norm(errors[mesh.faces].mean(axis=1)))[:, :3]
+    fig = _figure(9, 4.5)
+    axes = [fig.add_subplot(1, 2, c + 1, projection="3d") for c in range(2)]
+    for ax, azimuth, label in zip(axes, VIEWS, (title or mesh.name or "errors", "(other side)"), strict=True):
+        _draw(ax, mesh, face, label, up, azimuth)
+    fig.colorbar(ScalarMappable(norm, cmap), ax=axes, shrink=0.7, label="error (99th percentile at the top)")
+    return _save(fig, path)
 
 
 def plot_pck(
     curves: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike, title: str = ""
 ) -> Path:
     """PCK curves ``{label: (thresholds, accuracy)}`` in one PNG."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    fig = _figure(6, 4.5)
+    ax = fig.add_subplot(1, 1, 1)
     for label, (thr, acc) in curves.items():
         ax.plot(thr, 100 * np.asarray(acc), label=label)
     ax.set_xlabel("geodesic error / sqrt(area)")
@@ -79,8 +138,4 @@ def plot_pck(
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
