@@ -192,3 +192,33 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
         torch.testing.assert_close(C_xy[b, :ky, :kx], ref_xy[0], rtol=0, atol=1e-10 * float(scale))
         torch.testing.assert_close(C_yx[b, :kx, :ky], ref_yx[0], rtol=0, atol=1e-10 * float(scale))
         assert not C_xy[b, ky:].any() and not C_xy[b, :, kx:].any()
+
+
+def test_basis_module_rebuilds_from_its_state_dict_and_layers_follow_the_input_dtype():
+    """A BasisModule comes back from state_dict alone, prints its sizes, and the layers cast
+    the float64 basis to the features' dtype (float32 in -> float32 maps), accepting the module
+    itself where a BasisBatch is expected."""
+    import torch
+
+    from torchfmap import laplacian_eigenbasis
+    from torchfmap.data import demo_pair
+    from torchfmap.errors import ParameterError
+    from torchfmap.nn import BasisModule, RegularizedFMSolver
+
+    x, _, _ = demo_pair()
+    bm = BasisModule(laplacian_eigenbasis(x, 12))
+    back = BasisModule.from_state_dict(bm.state_dict())
+    for name in BasisModule.BUFFERS:
+        assert torch.equal(getattr(back, name), getattr(bm, name))
+    assert "V=2562, K=12" in repr(back)
+    with pytest.raises(ParameterError, match="lacks"):
+        BasisModule.from_state_dict({"values": bm.values})
+    feats = torch.randn(1, x.n_vertices, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    solver = RegularizedFMSolver()
+    C64, _ = solver(feats, feats, bm.batch(), bm.batch())
+    C32, _ = solver(feats.float(), feats.float(), bm, bm)
+    assert C64.dtype == torch.float64 and C32.dtype == torch.float32
+    # the same map up to float32 round-off of the K x K solves (cond ~ 1 / w_lap-regularised)
+    assert torch.allclose(C32.double(), C64, atol=1e-3 * float(C64.abs().max()))
+    with pytest.raises(ParameterError, match="expected a BasisBatch"):
+        solver(feats, feats, bm.values, bm.values)

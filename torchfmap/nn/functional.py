@@ -105,14 +105,39 @@ def gradient_features(
     return torch.tanh(gx * b_re + gy * b_im)
 
 
+def basis_like(basis, f: torch.Tensor) -> BasisBatch:
+    """``basis`` as a :class:`BasisBatch` in ``f``'s dtype (bases are precomputed in float64
+    and cast on use, so float32 features get float32 maps). A module with ``.batch()`` (a
+    :class:`~torchfmap.nn.BasisModule`) is accepted.
+
+    Raises:
+        ParameterError: not a basis, or a basis on another device than ``f``.
+    """
+    if not isinstance(basis, BasisBatch) and callable(getattr(basis, "batch", None)):
+        basis = basis.batch()
+    if not isinstance(basis, BasisBatch):
+        raise ParameterError(
+            f"expected a BasisBatch, got {type(basis).__name__}. Fix: pass BasisModule.batch() or "
+            "ShapeBatch.basis."
+        )
+    if basis.values.device != f.device:
+        raise ParameterError(
+            f"the basis is on {basis.values.device}, the features on {f.device}. Fix: move both to "
+            "one device (module.to(device), batch.to(device))."
+        )
+    return basis if basis.values.dtype == f.dtype else basis.to(dtype=f.dtype)
+
+
 def project(basis: BasisBatch, f: torch.Tensor) -> torch.Tensor:
-    """``Φᵀ M f``: ``(B, V, D) -> (B, K, D)``."""
+    """``Φᵀ M f``: ``(B, V, D) -> (B, K, D)``, in ``f``'s dtype."""
+    basis = basis_like(basis, f)
     _check_batch(basis, f, "features")
     return basis.values.transpose(-1, -2) @ (basis.mass[..., None] * f)
 
 
 def reconstruct(basis: BasisBatch, coeffs: torch.Tensor) -> torch.Tensor:
-    """``Φ c``: ``(B, K, D) -> (B, V, D)``."""
+    """``Φ c``: ``(B, K, D) -> (B, V, D)``, in ``coeffs``' dtype."""
+    basis = basis_like(basis, coeffs)
     if coeffs.shape[-2] != basis.values.shape[-1]:
         raise ParameterError(
             f"coefficients have K={coeffs.shape[-2]}, the basis has K={basis.values.shape[-1]}."
@@ -143,9 +168,11 @@ def fmap_solve(
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Regularised functional maps from features, differentiable and batched.
 
-    Returns ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)``. Equal to
-    :func:`torchfmap.fmap.solve_fmap` with the same weights (descriptor + Laplacian terms).
+    Returns ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)`` in the features' dtype.
+    Equal to :func:`torchfmap.fmap.solve_fmap` with the same weights (descriptor + Laplacian
+    terms).
     """
+    basis_x, basis_y = basis_like(basis_x, feat_x), basis_like(basis_y, feat_y)
     if basis_x.values.shape[0] != basis_y.values.shape[0]:
         raise ParameterError(
             f"batch sizes differ: {basis_x.values.shape[0]} x-shapes and {basis_y.values.shape[0]} y-shapes. "

@@ -32,13 +32,46 @@ def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
 
 
 class BasisModule(nn.Module):
-    """A precomputed basis as buffers (moves with ``.to()``): ``values (V, K)``, ``mass (V,)``,
-    ``lam (K,)``, ``U (K, K)`` with ``W = U diag(lam) Uᵀ = Φᵀ L Φ``."""
+    """A precomputed basis as buffers (moves with ``.to()``, saved in ``state_dict``):
+    ``values (V, K)``, ``mass (V,)``, ``lam (K,)``, ``U (K, K)`` with
+    ``W = U diag(lam) Uᵀ = Φᵀ L Φ``. Kept in float64 (``dtype``); layers cast it to their
+    input's dtype on use. ``forward()`` returns :meth:`batch`.
+    """
+
+    BUFFERS = ("values", "mass", "lam", "U")
 
     def __init__(self, basis: Basis, dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
         for name, array in basis_arrays(basis).items():
             self.register_buffer(name, torch.as_tensor(array, dtype=dtype))
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> BasisModule:
+        """Rebuild from :meth:`state_dict` alone (no mesh, no :class:`Basis`).
+
+        Raises:
+            ParameterError: a buffer is missing or the shapes do not fit together.
+        """
+        missing = [name for name in cls.BUFFERS if name not in state]
+        if missing:
+            raise ParameterError(f"state_dict lacks {missing}. Fix: pass a BasisModule's state_dict().")
+        V, K = state["values"].shape
+        if state["mass"].shape != (V,) or state["lam"].shape != (K,) or state["U"].shape != (K, K):
+            raise ParameterError(
+                "state_dict buffers do not fit: values (V, K), mass (V,), lam (K,), U (K, K) expected."
+            )
+        out = cls.__new__(cls)
+        nn.Module.__init__(out)
+        for name in cls.BUFFERS:
+            out.register_buffer(name, state[name].clone())
+        return out
+
+    def extra_repr(self) -> str:
+        return f"V={self.values.shape[0]}, K={self.k}, dtype={self.values.dtype}, device={self.values.device}"
+
+    def forward(self) -> BasisBatch:
+        """This basis as a batch of one (:meth:`batch`)."""
+        return self.batch()
 
     @classmethod
     def from_mesh(cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, **kwargs) -> BasisModule:
@@ -108,6 +141,8 @@ class RegularizedFMSolver(nn.Module):
         self.w_desc, self.w_lap, self.mask, self.both = w_desc, w_lap, mask, both
 
     def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch):
+        """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> (C_xy (B, K_y, K_x), C_yx)``;
+        bases may be :class:`BasisModule` s (cast to the features' dtype)."""
         return F.fmap_solve(
             feat_x,
             feat_y,
@@ -128,6 +163,8 @@ class SoftPointMap(nn.Module):
         self.tau, self.sinkhorn_iters = tau, sinkhorn_iters
 
     def forward(self, feat_x, feat_y, mass_x=None):
+        """``(feat_x (B, V_x, D), feat_y (B, V_y, D)) -> Π_yx (B, V_y, V_x)``, rows summing to 1
+        (``mass_x (B, V_x)`` weights the columns)."""
         return F.soft_map(feat_x, feat_y, tau=self.tau, mass_x=mass_x, sinkhorn_iters=self.sinkhorn_iters)
 
 
@@ -186,6 +223,8 @@ class SpectralDiffusion(nn.Module):
         self.log_t = nn.Parameter(torch.full((channels,), -4.0))
 
     def forward(self, x: torch.Tensor, basis: BasisBatch) -> torch.Tensor:
+        """``x (B, V, C) -> (B, V, C)`` diffused, in ``x``'s dtype."""
+        basis = F.basis_like(basis, x)
         coef = basis.U.transpose(-1, -2) @ F.project(basis, x)  # (B, K, C)
         decay = torch.exp(-basis.lam.clip(min=0)[..., None] * self.log_t.exp())  # (B, K, C)
         return F.reconstruct(basis, basis.U @ (decay * coef))
@@ -209,6 +248,8 @@ class FeatureNet(nn.Module):
         self.head = nn.Linear(width, c_out)
 
     def forward(self, x: torch.Tensor, basis: BasisBatch) -> torch.Tensor:
+        """``x (B, V, C_in)`` -> features ``(B, V, C_out)`` in ``x``'s dtype."""
+        basis = F.basis_like(basis, x)
         if not torch.isfinite(x).all():
             raise ParameterError("FeatureNet input contains NaN or inf. Fix: check the precomputed inputs.")
         h = self.lift(x)

@@ -50,6 +50,7 @@ class SpatialGradientFeatures(nn.Module):
             nn.init.kaiming_uniform_(p, a=5**0.5)
 
     def forward(self, x: torch.Tensor, grad: GradientBatch) -> torch.Tensor:
+        """``x (B, V, C) -> (B, V, C)``."""
         gx, gy = F.spatial_gradient(x, grad)
         return F.gradient_features(gx, gy, self.A_re, self.A_im)
 
@@ -67,6 +68,7 @@ class DiffusionNetBlock(nn.Module):
         )
 
     def forward(self, x: torch.Tensor, basis: BasisBatch, grad: GradientBatch) -> torch.Tensor:
+        """``x (B, V, width) -> (B, V, width)``."""
         diffused = self.diffusion(x, basis)
         parts = [x, diffused]
         if self.gradient is not None:
@@ -103,6 +105,9 @@ class DiffusionNet(nn.Module):
         self.head = nn.Linear(width, c_out)
 
     def forward(self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch) -> torch.Tensor:
+        """``inputs (B, V, C_in)`` -> features ``(B, V, c_out)`` in ``inputs``' dtype; ``basis``
+        a :class:`BasisBatch` (or a module with ``.batch()``), cast to that dtype."""
+        basis = F.basis_like(basis, inputs)
         h = self.lift(inputs)
         for block in self.blocks:
             h = block(h, basis, grad)
