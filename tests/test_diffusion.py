@@ -153,3 +153,20 @@ def test_remeshed_pose_pair_agrees_through_ground_truth():
         corr = np.corrcoef(k0[:, j], k1[:, j])[0, 1]
         rel = np.linalg.norm(k0[:, j] - k1[:, j]) / np.linalg.norm(k0[:, j])
         assert corr > 0.95 and rel < 0.3, (corr, rel)
+
+
+def test_a_kernel_does_not_depend_on_the_seeds_solved_with_it():
+    """Seeds are solved in blocks, but each column stops at its own convergence, so a kernel is
+    the same alone or among others (up to round-off of multi-column solves, far below tol);
+    caches of kernels (``PreparedShape.kernels``) then give the same maps in any pair order."""
+    from torchfmap.data import demo_pair
+
+    mesh = demo_pair()[0]
+    ops = laplacian(mesh)
+    t = [0.01 * mesh.area]
+    seeds = [5, 300, 900, 1500, 2100, 2500]
+    together = heat_kernels(ops, seeds, t, tol=1e-4)[0]
+    for j, seed in enumerate(seeds):
+        alone = heat_kernels(ops, [seed], t, tol=1e-4)[0][:, 0]
+        scale = np.abs(alone).max()
+        assert np.abs(together[:, j] - alone).max() <= 1e-10 * scale

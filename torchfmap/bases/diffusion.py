@@ -218,6 +218,10 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
     beta = np.zeros((s, max_iter))
     prev = None
     times = np.asarray(times, dtype=np.float64)
+    # each column keeps the coefficients of the iteration where it converged, so a kernel
+    # does not depend on the columns it was solved with (nor on their number)
+    final = np.zeros((len(times), s, max_iter))
+    done = np.zeros(s, dtype=bool)
     for m in range(max_iter):
         if m + 2 > store.shape[0]:
             grow = min(store.shape[0], max_iter + 1 - store.shape[0])
@@ -253,11 +257,16 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
             diff = y.copy()
             diff[:, :, :m] -= prev
             err = np.linalg.norm(diff, axis=2) / np.maximum(np.linalg.norm(y, axis=2), 1e-300)
-            if err.max() < 0.2 * tol or (nb < 1e-14).all():  # successive change, with margin
+            # successive change, with margin; an exhausted Krylov space (beta = 0) is exact
+            new = ~done & ((err.max(axis=0) < 0.2 * tol) | (nb < 1e-14))
+            final[:, new, : m + 1] = y[:, new]
+            done |= new
+            if done.all():
                 break
         prev = y
     k = y.shape[2]
-    coef = (y * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
+    final[:, ~done, :k] = y[:, ~done]  # max_iter reached: the last approximation
+    coef = (final[:, :, :k] * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
     out = np.empty((len(times), n, s))
     for r0 in range(0, n, 4096):  # row chunks: cache-friendly transposes, then batched GEMM
         chunk = np.ascontiguousarray(store[:k, r0 : r0 + 4096].transpose(2, 1, 0))  # (s, r, k)
