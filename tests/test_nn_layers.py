@@ -222,3 +222,7 @@ def test_basis_module_rebuilds_from_its_state_dict_and_layers_follow_the_input_d
     assert torch.allclose(C32.double(), C64, atol=1e-3 * float(C64.abs().max()))
     with pytest.raises(ParameterError, match="expected a BasisBatch"):
         solver(feats, feats, bm.values, bm.values)
+    from torchfmap.nn.functional import basis_like
+
+    assert basis_like(bm, feats.float()).values.dtype == torch.float32
+    assert basis_like(bm.batch(), feats) is not None and bm().values.shape == (1, x.n_vertices, 12)
