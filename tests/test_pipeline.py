@@ -155,3 +155,31 @@ def test_match_steps_one_by_one_equal_match(pair):
     C, p2p, *_ = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx)
     np.testing.assert_array_equal(C, result.C_xy)
+
+
+def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_results(tmp_path, monkeypatch):
+    """``evaluate_pairs`` (behind ``torchfmap eval``) prepares every mesh once per process, and a
+    pool of 2 processes returns exactly the single-process maps' errors, in the pairs' order."""
+    import torchfmap.pipeline as pipeline
+    from torchfmap import save_mesh
+    from torchfmap.eval import discover_pairs
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.2, 0.35, 0.5)):  # same vertex ids: identity ground truth
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    pairs = list(discover_pairs(tmp_path))
+    assert len(pairs) == 3  # consecutive meshes: m0-m1, m1-m2, m2-m3
+    prepared = []
+    real = pipeline.prepare_shape
+    monkeypatch.setattr(pipeline, "prepare_shape", lambda mesh, n: prepared.append(mesh) or real(mesh, n))
+    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20)
+    assert len(prepared) == 4  # 4 meshes in 3 pairs
+    monkeypatch.undo()
+    two = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, workers=2)
+    assert [(r.source, r.target) for r in two] == [(a, b) for a, b, *_ in pairs]
+    for r1, r2 in zip(one, two, strict=True):
+        np.testing.assert_array_equal(r1.errors, r2.errors)
+    with pytest.raises(ParameterError, match="workers"):
+        pipeline.evaluate_pairs(pairs, workers=0)

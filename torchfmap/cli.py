@@ -21,7 +21,7 @@ from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh
 from .operators import GeodesicSolver, available_backends, laplacian
-from .pipeline import match
+from .pipeline import evaluate_pairs, match
 from .seeds import farthest_point_sampling
 from .viz import plot_color_transfer, plot_pck
 
@@ -275,17 +275,19 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
-    rows, curves, all_errors = [], {}, []
-    for a, b, pa, pb, gt in tqdm(pairs, desc="pairs", disable=args.quiet):
-        x, y = load_mesh(pa), load_mesh(pb)
-        landmarks = landmarks_from_gt(x, gt, args.gt_landmarks) if args.gt_landmarks else None
-        t0 = time.perf_counter()
-        result = match(x, y, landmarks=landmarks, basis=args.basis, k=args.k, refine=args.refine)
-        dt = time.perf_counter() - t0
-        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=args.max_points)
-        rows.append((a, b, report, dt))
-        curves[f"{a}-{b}"] = pck_curve(errors)
-        all_errors.append(errors)
+    results = evaluate_pairs(
+        pairs,
+        gt_landmarks=args.gt_landmarks,
+        max_points=args.max_points,
+        workers=args.workers,
+        progress=not args.quiet,
+        basis=args.basis,
+        k=args.k,
+        refine=args.refine,
+    )
+    rows = [(r.source, r.target, r.report, r.seconds) for r in results]
+    curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
+    all_errors = [r.errors for r in results]
     print(
         "| source | target | mean err | median | AUC | coverage | time [s] |\n|---|---|---|---|---|---|---|"
     )
@@ -430,6 +432,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="evaluate at most this many points per pair (default: all)",
     )
     p.add_argument("--png", help="save the PCK curves here (needs matplotlib)")
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        help="local processes (each mesh prepared once per process)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 

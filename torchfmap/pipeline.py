@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -26,9 +27,10 @@ from .bases import (
 )
 from .descriptors import landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
-from .eval import shape_distance
+from .eval import evaluate_map, landmarks_from_gt, shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoomout, zoomout_sequence
 from .fmap.defaults import W_LAP, W_LMK, W_ORIENT
+from .io import load_mesh
 from .mesh import Mesh
 from .operators.laplacian import Operators, laplacian
 from .seeds import DistanceRows, corresponding_seeds, farthest_point_sampling
@@ -388,6 +390,7 @@ def match(
     p2p_mode: P2PMode | None = None,
     zoomout_samples: int | None = None,
     bases: tuple[Basis, Basis] | None = None,
+    shapes: tuple[PreparedShape, PreparedShape] | None = None,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
 
@@ -428,6 +431,10 @@ def match(
             ``k`` is ignored; ``basis`` names their kind for the defaults (default:
             ``'laplacian'`` if every column is an eigenfunction, else ``'stack'``); ZoomOut
             needs ``'laplacian'`` bases (ICP works in any).
+        shapes: ``(prepare_shape(mesh_x, ...), prepare_shape(mesh_y, ...))`` to reuse across
+            pairs (operators, eigenpairs, geodesic rows and heat kernels are then computed once
+            per shape, not once per pair); eigenpairs are extended in place when a call needs
+            more. The maps are the same as without.
 
     Raises:
         ParameterError: unknown basis or refinement, a feature-aware basis without landmarks,
@@ -463,7 +470,12 @@ def match(
     w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
     need_desc = not (prior and np.isinf(w_prior))
     n_eigen = max(k_descriptors, k, k_final) if kind == "laplacian" else (k_descriptors if need_desc else 0)
-    shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
+    if shapes is None:
+        shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
+    else:
+        shape_x, shape_y = (
+            _with_eigenpairs(s, m, n_eigen) for s, m in zip(shapes, (mesh_x, mesh_y), strict=True)
+        )
     if pairs is not None:
         warn_if_off_by_one(shape_x, shape_y, pairs)
     timings["operators+eigen"] = time.perf_counter() - t0
@@ -527,6 +539,17 @@ def match(
     return MatchResult(p2p, C, bx, by, initial, timings, seeds)
 
 
+def _with_eigenpairs(shape: PreparedShape, mesh: Mesh, n_eigen: int) -> PreparedShape:
+    """``shape`` (checked to be ``mesh``'s) with at least ``n_eigen`` eigenpairs."""
+    if not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
+        raise ParameterError(
+            "shapes must be (prepare_shape(mesh_x, n), prepare_shape(mesh_y, n)) of these meshes, in order."
+        )
+    if n_eigen and (shape.eigenbasis is None or shape.eigenbasis.k < n_eigen):
+        shape.eigenbasis = laplacian_eigenbasis(mesh, n_eigen, operators=shape.operators)
+    return shape
+
+
 def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]:
     try:
         bx, by = bases
@@ -556,8 +579,105 @@ def shape_distance_matrix(
     n = len(meshes)
     D = np.zeros((n, n))
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
+    shapes = [prepare_shape(m, 0) for m in meshes]  # each shape's work done once, not per pair
     for i, j in tqdm(pairs, desc="shape pairs", disable=not progress):
-        result = match(meshes[i], meshes[j], k=k, **match_kwargs)
+        result = match(meshes[i], meshes[j], k=k, shapes=(shapes[i], shapes[j]), **match_kwargs)
         W_x, W_y = result.basis_x.projected_laplacian(), result.basis_y.projected_laplacian()
         D[i, j] = shape_distance(result.C_xy, W_x, W_y, kind=kind)
     return 0.5 * (D + D.T)
+
+
+class PairResult(NamedTuple):
+    """One evaluated pair of :func:`evaluate_pairs`: names, the report of
+    :func:`~torchfmap.eval.evaluate_map`, its per-point errors and the match time (s)."""
+
+    source: str
+    target: str
+    report: object
+    errors: np.ndarray
+    seconds: float
+
+
+def _evaluate_chunk(
+    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None
+) -> list[PairResult]:
+    """Match and score ``pairs`` in order; each mesh is loaded and prepared once (``shapes``:
+    path -> (mesh, PreparedShape), filled here)."""
+    shapes = {} if shapes is None else shapes
+    out = []
+    for a, b, pa, pb, gt in pairs:
+        for path in (pa, pb):
+            if path not in shapes:
+                mesh = load_mesh(path)
+                shapes[path] = (mesh, prepare_shape(mesh, 0))
+        (x, sx), (y, sy) = shapes[pa], shapes[pb]
+        landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
+        t0 = time.perf_counter()
+        result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
+        seconds = time.perf_counter() - t0
+        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points)
+        out.append(PairResult(a, b, report, errors, seconds))
+    return out
+
+
+def evaluate_pairs(
+    pairs,
+    *,
+    gt_landmarks: int = 0,
+    max_points: int | None = None,
+    workers: int = 1,
+    executor: Executor | None = None,
+    progress: bool = False,
+    **match_kwargs,
+) -> list[PairResult]:
+    """Match and score every pair ``(name_x, name_y, path_x, path_y, gt)`` (as yielded by
+    :func:`~torchfmap.eval.discover_pairs`), in the given order.
+
+    Each mesh is loaded and prepared (:func:`prepare_shape`: operators, eigenpairs, geodesic
+    rows, heat kernels) once per process and reused by every pair it takes part in. With
+    ``workers > 1`` the pairs are split into contiguous chunks (pairs sharing a source stay
+    together) run by a local process pool; ``executor`` runs them on any
+    :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client(...)
+    .get_executor()`` for a cluster). The results are the same as in one process: every map
+    is computed from the same inputs by the same deterministic steps.
+
+    Args:
+        gt_landmarks: use this many ground-truth pairs per pair as landmarks
+            (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
+        max_points: score at most this many points per pair.
+        match_kwargs: passed to :func:`match` (``basis``, ``k``, ``refine``, ...).
+
+    Raises:
+        ParameterError: ``workers < 1``.
+    """
+    pairs = list(pairs)
+    workers = check_count(workers, 1, 4096, "workers")
+    bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
+    if executor is None and workers == 1:
+        shapes: dict = {}
+        results = []
+        for pair in pairs:
+            results += _evaluate_chunk([pair], gt_landmarks, max_points, match_kwargs, shapes)
+            bar.update()
+        bar.close()
+        return results
+    n_chunks = min(len(pairs), 4 * workers)  # a few chunks per worker: balance vs reuse
+    bounds = np.linspace(0, len(pairs), n_chunks + 1).astype(int)
+    chunks = [pairs[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
+    own = executor is None
+    pool = ProcessPoolExecutor(max_workers=workers) if own else executor
+    try:
+        futures = {
+            pool.submit(_evaluate_chunk, c, gt_landmarks, max_points, match_kwargs): i
+            for i, c in enumerate(chunks)
+        }
+        done: dict[int, list[PairResult]] = {}
+        for future in as_completed(futures):
+            i = futures[future]
+            done[i] = future.result()
+            bar.update(len(chunks[i]))
+    finally:
+        bar.close()
+        if own:
+            pool.shutdown(cancel_futures=True)
+    return [r for i in range(len(chunks)) for r in done[i]]
