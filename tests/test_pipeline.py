@@ -183,3 +183,26 @@ def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_result
         np.testing.assert_array_equal(r1.errors, r2.errors)
     with pytest.raises(ParameterError, match="workers"):
         pipeline.evaluate_pairs(pairs, workers=0)
+
+
+def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
+    """The same pairs through Dask distributed's executor (2 worker processes) give exactly the
+    single-process results, in order."""
+    distributed = pytest.importorskip("distributed")
+    import torchfmap.pipeline as pipeline
+    from torchfmap import save_mesh
+    from torchfmap.eval import discover_pairs
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.3, 0.5)):
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    pairs = list(discover_pairs(tmp_path))
+    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        with distributed.Client(cluster) as client:
+            on_cluster = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, executor=client.get_executor())
+    assert [(r.source, r.target) for r in on_cluster] == [(r.source, r.target) for r in one]
+    for r1, r2 in zip(one, on_cluster, strict=True):
+        np.testing.assert_array_equal(r1.errors, r2.errors)

@@ -15,7 +15,7 @@ import torchfmap
 
 ROOT = Path(torchfmap.__file__).parent
 #: Third-party modules that may be imported inside functions: optional dependencies only.
-OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse"}
+OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse", "distributed"}
 #: Shared checks and file helpers: the only module allowed to define each name.
 HOMES = {
     "check_vertex_indices": "torchfmap._checks",

@@ -273,6 +273,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dask_executor(address: str):
+    """A ``concurrent.futures`` executor on the Dask cluster at ``address`` (the 'cluster' extra)."""
+    try:
+        from distributed import Client
+    except ImportError as err:
+        raise TorchFmapError("--dask needs Dask distributed. Fix: pip install 'torchfmap[cluster]'.") from err
+    return Client(address).get_executor()
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
     results = evaluate_pairs(
@@ -280,6 +289,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         gt_landmarks=args.gt_landmarks,
         max_points=args.max_points,
         workers=args.workers,
+        executor=_dask_executor(args.dask) if args.dask else None,
         progress=not args.quiet,
         basis=args.basis,
         k=args.k,
@@ -438,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="local processes (each mesh prepared once per process)",
     )
+    p.add_argument("--dask", metavar="ADDRESS", help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 

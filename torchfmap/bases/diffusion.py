@@ -36,6 +36,7 @@ peak (Dirichlet zero outside), so the cost follows the support, not the mesh.
 
 from __future__ import annotations
 
+import contextlib
 from functools import lru_cache
 from typing import Literal
 
@@ -43,6 +44,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
+from threadpoolctl import ThreadpoolController
 
 from .._checks import (
     check_seeds_cover_components,
@@ -183,7 +185,7 @@ def _spectral(L, B, X, times, n_eigen: int) -> np.ndarray:
     return np.stack([phi @ (np.exp(-lam * t)[:, None] * coeffs) for t in times])
 
 
-def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[np.ndarray, int]:
+def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None) -> tuple[np.ndarray, int]:
     """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``.
 
     ``S = (B + γL)⁻¹ B`` is self-adjoint in the B inner product, so the three-term recurrence
@@ -192,8 +194,11 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
     convergence for matrix functions (Druskin & Knizhnerman), and the stopping test compares
     successive approximations. ``store`` is an optional ``(cap, n, >= s)`` work buffer,
     reused across blocks (first-touch page faults of fresh memory cost as much as the
-    arithmetic here). Returns ``((T, n, s) approximations, iterations)``.
+    arithmetic here). ``small``: a context manager factory run around the tiny ``(s, k, k)``
+    eigenproblems (:func:`_krylov` passes one that limits BLAS to one thread there).
+    Returns ``((T, n, s) approximations, iterations)``.
     """
+    small = small if small is not None else contextlib.nullcontext
     n, s = X.shape
     d = lumped_diagonal(B)
 
@@ -248,7 +253,8 @@ def _krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None) -> tuple[n
         T[:, idx, idx] = alpha[:, :k]
         T[:, idx[1:], idx[:-1]] = beta[:, : k - 1]
         T[:, idx[:-1], idx[1:]] = beta[:, : k - 1]
-        theta, U = np.linalg.eigh(T)  # eigenvalues of (I + gamma A)^{-1}: in (0, 1]
+        with small():  # k x k: threads only add synchronisation (several times slower when busy)
+            theta, U = np.linalg.eigh(T)  # eigenvalues of (I + gamma A)^{-1}: in (0, 1]
         theta = np.clip(theta, 1e-300, 1.0)
         lam = (1.0 / theta - 1.0) / gamma  # (s, k) Ritz values of A
         f = np.exp(-times[:, None, None] * lam[None])  # (T, s, k)
@@ -292,6 +298,11 @@ def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None
     block = max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
     store = np.empty((cap, n, block))
     out = np.empty((len(times),) + X.shape)
+    controller = ThreadpoolController()  # BLAS threads for the tiny eigenproblems only
+
+    def one_thread():
+        return controller.limit(limits=1, user_api="blas")
+
     for group in groups:
         t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
         gamma = KRYLOV_SHIFT * t_lo * (t_hi / t_lo) ** KRYLOV_SHIFT_SPAN_EXP
@@ -300,7 +311,7 @@ def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None
         for start in range(0, s_total, block):
             cols = slice(start, min(start + block, s_total))
             out[group, :, cols], _ = _krylov_block(
-                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store
+                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store, one_thread
             )
     return out
 
