@@ -10,7 +10,8 @@ Run by hand from the repository root, after ``torchfmap train`` (see README, "Le
 Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``). Errors: mean
 normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
-process), the trained network's map from the functional map (``fmap``) and from nearest
+process), the trained network's map from the functional map (``fmap``: orthogonal point-map rule, and
+with the pull-back rule for comparison) and from nearest
 neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions),
 and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
 adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
@@ -114,6 +115,7 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
         my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
         add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
         base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pe)  # noqa: B023
+        add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
         add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
         if not args.no_refine:
             add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base), pe)  # noqa: B023

@@ -112,3 +112,19 @@ def test_ddp_two_processes_identical_weights(tmp_path, blob_files):
     untrained = build_model(config)[0].state_dict()
     assert any(not torch.equal(w0[k], untrained[k]) for k in w0)  # it did train
     assert (tmp_path / "ddp.ckpt").exists()
+
+
+def test_predict_p2p_point_map_rules(tmp_path, blob_files):
+    """Both point-map rules give valid maps; the orthogonal rule is the pull-back rule applied
+    to the transpose (for an orthogonal C they coincide up to ties); unknown rules are refused."""
+    from torchfmap.errors import ParameterError
+    from torchfmap.nn.train import predict_p2p
+
+    shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
+    config = TrainConfig(k=8, n_wks=8, width=8, c_out=8, n_blocks=1)
+    net, solver, _ = build_model(config)
+    for rule in ("orthogonal", "pullback"):
+        p2p = predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode=rule)
+        assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
+    with pytest.raises(ParameterError, match="p2p_mode"):
+        predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode="nearest")

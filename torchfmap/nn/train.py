@@ -339,11 +339,17 @@ def _single(item: dict, device) -> ShapeBatch:
 
 
 @torch.no_grad()
-def predict_p2p(net, solver, x: dict, y: dict, *, mode: str = "fmap", device="cpu") -> np.ndarray:
+def predict_p2p(
+    net, solver, x: dict, y: dict, *, mode: str = "fmap", p2p_mode: str = "orthogonal", device="cpu"
+) -> np.ndarray:
     """``p2p_yx`` of one pair of dataset items (:class:`~torchfmap.nn.data.ShapeDataset`).
 
-    ``mode='fmap'``: learned features -> ``C_xy`` -> nearest neighbours of ``Φ_y C_xy`` in
-    ``Φ_x``; ``mode='features'``: nearest neighbours in the (normalised) feature space.
+    ``mode='fmap'``: learned features -> ``C_xy`` -> point map by ``p2p_mode``:
+    ``'orthogonal'`` (default: nearest neighbour of each row of ``Φ_y`` among the rows of
+    ``Φ_x C_xyᵀ``; the recipe's orthogonality loss makes ``C_xy`` near-orthogonal, and this is
+    the rule :func:`torchfmap.fmap.fmap_to_p2p` uses for such maps) or ``'pullback'``
+    (rows of ``Φ_y C_xy`` among those of ``Φ_x``). ``mode='features'``: nearest neighbours in
+    the (normalised) feature space.
     """
     net.eval()
     sx, sy = _single(x, device), _single(y, device)
@@ -355,9 +361,14 @@ def predict_p2p(net, solver, x: dict, y: dict, *, mode: str = "fmap", device="cp
     if mode != "fmap":
         raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
     C_xy, _ = solver(fx, fy, sx.basis, sy.basis)
+    C = C_xy[0].double().cpu().numpy()
     phi_x = x["values"].double().numpy()
     phi_y = y["values"].double().numpy()
-    return nearest_neighbor(phi_y @ C_xy[0].double().cpu().numpy(), phi_x, precision="single")
+    if p2p_mode == "orthogonal":
+        return nearest_neighbor(phi_y, phi_x @ C.T, precision="single")
+    if p2p_mode == "pullback":
+        return nearest_neighbor(phi_y @ C, phi_x, precision="single")
+    raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
 
 
 def adapt(net, solver, loss_fn, x: dict, y: dict, *, steps: int = 10, lr: float = 1e-4, device="cpu"):
