@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from . import __version__
 from ._checks import is_symmetric
+from ._files import atomic_write
 from .bases import Basis, basis_stack, eigenpairs
 from .data import demo_pair
 from .errors import TorchFmapError
@@ -179,15 +180,8 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p = match_with_network(
             net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine is not None
         )
-        np.savetxt(args.out, p2p, fmt="%d")
-        print(
-            f"matched {tgt.n_vertices} target vertices to {src.name} with {args.checkpoint} "
-            f"(adapt {args.adapt} steps, refine {args.refine or '-'}, "
-            f"{time.perf_counter() - t0:.2f} s) -> {args.out}"
-        )
-        if args.png:
-            print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
-        return 0
+        how = f"with {args.checkpoint} (adapt {args.adapt} steps, refine {args.refine or '-'}"
+        return _write_map(args, src, tgt, p2p, f"{how}, {time.perf_counter() - t0:.2f} s)")
     if args.adapt:
         raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
@@ -205,14 +199,17 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p_mode=args.p2p_mode,
         bases=bases,
     )
-    np.savetxt(args.out, result.p2p_yx, fmt="%d")
-    total = sum(result.timings.values())
-    print(
-        f"matched {tgt.n_vertices} target vertices to {src.name} (K={result.basis_x.k}, "
-        f"{total:.2f} s) -> {args.out}"
-    )
+    how = f"(K={result.basis_x.k}, {sum(result.timings.values()):.2f} s)"
+    return _write_map(args, src, tgt, result.p2p_yx, how)
+
+
+def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
+    """Write the map file atomically (line i: source vertex of target vertex i), report, and
+    draw ``--png``."""
+    atomic_write(args.out, lambda fh: np.savetxt(fh, p2p, fmt="%d"))
+    print(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
     if args.png:
-        print(f"colour transfer -> {plot_color_transfer(src, tgt, result.p2p_yx, args.png, up=args.up)}")
+        print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
     return 0
 
 
