@@ -84,6 +84,12 @@ def test_defaults_agree_between_the_layer_the_classical_solver_and_match(blob):
     assert default_w_lap(bx, by) == W_LAP["laplacian"] == layer.w_lap
     assert default_p2p_mode(bx, by) == "orthogonal"
     np.testing.assert_array_equal(fmap_to_p2p(C, bx, by), fmap_to_p2p(C, bx, by, mode="orthogonal"))
+    from torchfmap.fmap import values_to_p2p  # the same rules on plain arrays (the learned path)
+
+    for mode in ("orthogonal", "pullback"):
+        np.testing.assert_array_equal(
+            values_to_p2p(C, bx.values, by.values, mode=mode), fmap_to_p2p(C, bx, by, mode=mode)
+        )
     lm = np.array([[0, 0], [50, 50], [100, 100]])
     with_lm = solve_fmap(bx, by, dx, dy, landmarks=lm)
     assert not np.allclose(with_lm, C)  # given landmarks are used (w_lmk defaults to W_LMK)

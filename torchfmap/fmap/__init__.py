@@ -6,6 +6,7 @@ from .convert import (
     fmap_to_p2p_bijective,
     nearest_neighbor,
     p2p_to_fmap,
+    values_to_p2p,
 )
 from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
 from .refine import icp_refine, zoomout, zoomout_sequence
@@ -37,6 +38,7 @@ __all__ = [
     "solve_fmap",
     "solve_rowwise",
     "spectral_frame",
+    "values_to_p2p",
     "zoomout",
     "zoomout_sequence",
 ]

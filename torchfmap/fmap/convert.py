@@ -118,7 +118,23 @@ def fmap_to_p2p(
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
     mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     ky, kx = C_xy.shape
-    phi_x, phi_y = basis_x.values[:, :kx], basis_y.values[:, :ky]
+    return values_to_p2p(
+        C_xy, basis_x.values[:, :kx], basis_y.values[:, :ky], mode=mode, search=search, precision=precision
+    )
+
+
+def values_to_p2p(
+    C_xy: np.ndarray,
+    phi_x: np.ndarray,
+    phi_y: np.ndarray,
+    *,
+    mode: Literal["pullback", "orthogonal"],
+    search: Literal["auto", "brute", "kdtree"] = "auto",
+    precision: Literal["double", "single"] = "single",
+) -> np.ndarray:
+    """The point-map rules of :func:`fmap_to_p2p` on plain arrays: ``C_xy (K_y, K_x)``,
+    ``phi_x (V_x, K_x)``, ``phi_y (V_y, K_y)`` -> ``p2p_yx (V_y,)`` (for callers whose bases
+    are arrays or tensors, e.g. the learned path)."""
     if mode == "pullback":
         return nearest_neighbor(phi_y @ C_xy, phi_x, search=search, precision=precision)
     if mode == "orthogonal":

@@ -25,7 +25,7 @@ from .._files import load_checked_bytes, save_checked_bytes
 from ..bases import laplacian_eigenbasis
 from ..errors import ParameterError
 from ..eval import geodesic_errors
-from ..fmap.convert import nearest_neighbor, p2p_to_fmap
+from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
 from ..fmap.refine import zoomout
 from ..mesh import Mesh
 from .data import (
@@ -360,15 +360,11 @@ def predict_p2p(
         return nearest_neighbor(a, b, precision="single")
     if mode != "fmap":
         raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
+    if p2p_mode not in ("orthogonal", "pullback"):
+        raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
     C_xy, _ = solver(fx, fy, sx.basis, sy.basis)
     C = C_xy[0].double().cpu().numpy()
-    phi_x = x["values"].double().numpy()
-    phi_y = y["values"].double().numpy()
-    if p2p_mode == "orthogonal":
-        return nearest_neighbor(phi_y, phi_x @ C.T, precision="single")
-    if p2p_mode == "pullback":
-        return nearest_neighbor(phi_y @ C, phi_x, precision="single")
-    raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
+    return values_to_p2p(C, x["values"].double().numpy(), y["values"].double().numpy(), mode=p2p_mode)
 
 
 def adapt(net, solver, loss_fn, x: dict, y: dict, *, steps: int = 10, lr: float = 1e-4, device="cpu"):
