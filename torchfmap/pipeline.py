@@ -615,7 +615,10 @@ def _evaluate_chunk(
         t0 = time.perf_counter()
         result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
         seconds = time.perf_counter() - t0
-        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points)
+        # errors are geodesic on x: reuse x's prefactored solver instead of building one per pair
+        report, errors = evaluate_map(
+            x, y, result.p2p_yx, gt, max_points=max_points, solver=sx.distances.solver
+        )
         out.append(PairResult(a, b, report, errors, seconds))
     return out
 
