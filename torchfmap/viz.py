@@ -106,17 +106,17 @@ def plot_errors(
 ) -> Path:
     """Per-vertex errors ``(V,)`` (e.g. geodesic error / sqrt(area) of a map, on the target)
     drawn on ``mesh`` from two viewpoints, with a colour bar; saved as PNG."""
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.shape != (mesh.n_vertices,) or not np.isfinite(errors).all():
+        raise ParameterError(f"errors must be ({mesh.n_vertices},) finite values, got shape {errors.shape}.")
+    fig = _figure(9, 4.5)  # first: without matplotlib this is the clear error
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
-    errors = np.asarray(errors, dtype=np.float64)
-    if errors.shape != (mesh.n_vertices,) or not np.isfinite(errors).all():
-        raise ParameterError(f"errors must be ({mesh.n_vertices},) finite values, got shape {errors.shape}.")
     norm = Normalize(0.0, max(float(np.percentile(errors, 99)), 1e-12))
     cmap = colormaps["magma_r"]
     face = cmap(norm(errors[mesh.faces].mean(axis=1)))[:, :3]
-    fig = _figure(9, 4.5)
     axes = [fig.add_subplot(1, 2, c + 1, projection="3d") for c in range(2)]
     for ax, azimuth, label in zip(axes, VIEWS, (title or mesh.name or "errors", "(other side)"), strict=True):
         _draw(ax, mesh, face, label, up, azimuth)
