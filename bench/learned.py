@@ -12,7 +12,8 @@ normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), aver
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
 process), the trained network's map from the functional map (``fmap``: orthogonal point-map rule, and
 with the pull-back rule for comparison) and from nearest
-neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions),
+neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions,
+eigenbases computed once per shape and reused by its pairs),
 and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
 adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
 errors on the same pairs. The loss curve of each checkpoint (total per step, moving mean) goes to
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from _common import RESULTS_DIR, Report, load_note, log, require_data
 
+from torchfmap.bases import laplacian_eigenbasis
 from torchfmap.eval import Correspondence, gt_from_vts, read_vts
 from torchfmap.mesh import Mesh
 from torchfmap.nn.data import ShapeDataset
@@ -108,6 +110,13 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
         errors.setdefault(method, []).append(pe.mean(p2p))
         return p2p
 
+    eigen: dict[int, object] = {}  # ZoomOut's eigenbases, once per shape (not per pair)
+
+    def eigenbasis(i: int, mesh: Mesh):
+        if i not in eigen:
+            eigen[i] = laplacian_eigenbasis(mesh, min(200, mesh.n_vertices - 1))
+        return eigen[i]
+
     for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):
         x, y = shapes[a], shapes[b]
         pe = PairErrors(shapes, (a, b), gt, args.max_points)
@@ -118,13 +127,14 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
         add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
         add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
         if not args.no_refine:
-            add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base), pe)  # noqa: B023
+            bases = (eigenbasis(a, mx), eigenbasis(b, my))
+            add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base, bases=bases), pe)  # noqa: B023
         if args.adapt and i < args.adapt_pairs:
             add("trained, fmap (adapt subset)", lambda: base, pe)  # noqa: B023
             tuned = adapt(net, solver, loss_fn, x, y, steps=args.adapt, lr=args.adapt_lr)
             adapted = add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
             if not args.no_refine:
-                add(f"adapt {args.adapt} + zoomout", lambda: refine_p2p(mx, my, adapted), pe)  # noqa: B023
+                add(f"adapt {args.adapt} + zoomout", lambda: refine_p2p(mx, my, adapted, bases=bases), pe)  # noqa: B023
         log(
             f"{label} pair {i + 1}/{len(pairs)}: "
             + ", ".join(f"{m} {np.mean(e):.4f}" for m, e in errors.items())

@@ -6,8 +6,9 @@ writes them to ``bench/results/train_step.md``)::
     python3 bench/train_step.py                    # float32 and float64, B = 1, 4, K = 30, 100
     python3 bench/train_step.py --train-ks 30 --train-batches 1 --train-v 500 --repeats 1  # quick
 
-(Part (2) of ``bench/solver.py``, which still runs it unless ``--no-train``.) Inputs: random
-bases as in ``bench/_torch_inputs.py``.
+(Parts (2) and (3) of ``bench/solver.py``, which runs them unless ``--no-train``.) Inputs of
+(2): random bases as in ``bench/_torch_inputs.py``; (3): cat0 and cat1 of the dev data, the
+recipe's step against the previous recipe and the first learned path (see :func:`run_recipes`).
 
 (2) Training step. ``FeatureNet(32, 64, width=64, n_blocks=3)`` on a pair of ``--train-v``
 vertex shapes (random bases as above, Gaussian ``(B, V, 32)`` inputs): features of x and y,
@@ -28,6 +29,7 @@ wait for a descheduled worker thread (milliseconds each), which swamps small ops
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import os
 import statistics
@@ -141,19 +143,46 @@ def run_train(args) -> list[str]:
     ]
 
 
-def run_recipes(args) -> list[str]:
-    """(3) The training step of the recipe vs the first learned path, on cat0/cat1 (real meshes).
+def coo_spatial_gradient(f: torch.Tensor, grad) -> tuple[torch.Tensor, torch.Tensor]:
+    """The spatial gradient as the previous recipe applied it (a baseline kept here, not in the
+    library): a COO operator built and coalesced on every call, ``torch.sparse.mm``."""
+    B, V, _ = f.shape
+    gx, gy = [], []
+    for b in range(B):
+        rows, cols = grad.rows[b], grad.cols[b]
+        index = torch.stack([torch.cat([rows, rows + V]), torch.cat([cols, cols])])
+        weights = torch.cat([grad.weight_x[b], grad.weight_y[b]]).to(f.dtype)
+        op = torch.sparse_coo_tensor(index, weights, (2 * V, V), check_invariants=False).coalesce()
+        out = torch.sparse.mm(op, f[b])
+        gx.append(out[:V])
+        gy.append(out[V:])
+    return torch.stack(gx), torch.stack(gy)
 
-    baseline: ``FeatureNet(32, 64, width 64, 3 blocks)`` (diffusion + MLPs) and
-    ``UnsupervisedFMLoss()`` with full ``(V, V)`` soft maps; recipe: ``DiffusionNet(32, 64,
-    width 64, 4 blocks)`` with gradient features and the loss of :class:`TrainConfig`
-    (coupling between ``n_samples`` random vertices per shape). Both: ``K`` eigenfunctions for the
-    solver and the diffusion, ``fmap_solve`` both ways, backward, Adam. Steps alternate between
-    the two, ``--repeats`` each after one warm-up; medians and the ratio recipe / baseline.
+
+def run_recipes(args) -> list[str]:
+    """(3) The training step of the recipe on cat0/cat1 (real meshes, float32) against two
+    baselines run alternately in the same process.
+
+    - ``first``: the first learned path, ``FeatureNet(32, 64, width 64, 3 blocks)`` (diffusion +
+      MLPs) and ``UnsupervisedFMLoss()`` with full ``(V, V)`` soft maps;
+    - ``previous``: the previous recipe, ``DiffusionNet(32, 64, width 64, 4 blocks)`` with its
+      spatial gradient rebuilt as a coalesced COO matrix on every call
+      (:func:`coo_spatial_gradient`) and the coupling term of :class:`TrainConfig`;
+    - ``recipe``: :class:`TrainConfig` as it is (``DiffusionNet`` of its width and blocks,
+      compressed-row gradient operators, coupling between ``n_samples`` random vertices, both
+      soft maps from one similarity matrix).
+
+    All: ``K`` eigenfunctions for the solver and the diffusion, ``fmap_solve`` both ways,
+    backward, Adam. Steps alternate, ``--repeats`` each after one warm-up; medians and the
+    ratios to the recipe.
     """
     folder = data_path("tosca5k_dev")
     if folder is None:
-        return ["## (3) Recipe vs baseline: skipped (../shared/data/tosca5k_dev absent)"]
+        return ["## (3) Recipe vs baselines: skipped (../shared/data/tosca5k_dev absent)"]
+    from unittest import mock
+
+    from torchfmap.nn import functional as F
+
     rows = []
     for k in args.recipe_ks:
         log(f"recipe: precompute cat0, cat1 with K={k}")
@@ -164,47 +193,54 @@ def run_recipes(args) -> list[str]:
         (sx, sy), cfg = shapes, TrainConfig()
         torch.manual_seed(args.seed)
         nets = {
-            "baseline": FeatureNet(32, 64, width=64, n_blocks=3),
+            "first": FeatureNet(32, 64, width=64, n_blocks=3),
+            "previous": DiffusionNet(32, cfg.c_out, 64, 4, cfg.dropout, cfg.gradients),
             "recipe": DiffusionNet(32, cfg.c_out, cfg.width, cfg.n_blocks, cfg.dropout, cfg.gradients),
         }
-        losses = {"baseline": UnsupervisedFMLoss(), "recipe": UnsupervisedFMLoss(**cfg.loss_weights)}
+        losses = {key: UnsupervisedFMLoss(**cfg.loss_weights) for key in nets}
+        losses["first"] = UnsupervisedFMLoss()
         opts = {key: torch.optim.Adam(net.parameters(), lr=1e-3) for key, net in nets.items()}
 
         def step(key: str, nets=nets, sx=sx, sy=sy, losses=losses, opts=opts) -> float:
             net, t0 = nets[key], time.perf_counter()
-            args_x = (sx.inputs, sx.net_basis, sx.grad) if key == "recipe" else (sx.inputs, sx.basis)
-            args_y = (sy.inputs, sy.net_basis, sy.grad) if key == "recipe" else (sy.inputs, sy.basis)
-            fx, fy = net(*args_x), net(*args_y)
-            C_xy, C_yx = fmap_solve(fx, fy, sx.basis, sy.basis)
-            total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis)["total"]
-            opts[key].zero_grad(set_to_none=True)
-            total.backward()
+            args_x = (sx.inputs, sx.basis) if key == "first" else (sx.inputs, sx.net_basis, sx.grad)
+            args_y = (sy.inputs, sy.basis) if key == "first" else (sy.inputs, sy.net_basis, sy.grad)
+            patch = mock.patch.object(F, "spatial_gradient", coo_spatial_gradient)
+            with patch if key == "previous" else contextlib.nullcontext():
+                fx, fy = net(*args_x), net(*args_y)
+                C_xy, C_yx = fmap_solve(fx, fy, sx.basis, sy.basis)
+                total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis)["total"]
+                opts[key].zero_grad(set_to_none=True)
+                total.backward()
             opts[key].step()
             return time.perf_counter() - t0
 
-        times: dict[str, list[float]] = {"baseline": [], "recipe": []}
+        times: dict[str, list[float]] = {key: [] for key in nets}
         for key in times:
             step(key)  # warm-up
         for r in range(args.repeats):
             for key in times:
                 gc.collect()
                 times[key].append(step(key))
-            b, c = times["baseline"][-1], times["recipe"][-1]
-            log(f"    K={k} step {r + 1}: baseline {b:.3f} s, recipe {c:.3f} s")
+            log(f"    K={k} step {r + 1}: " + ", ".join(f"{key} {t[-1]:.3f} s" for key, t in times.items()))
         med = {key: statistics.median(t) for key, t in times.items()}
         rows.append(
             {
                 "K": k,
                 "V (x, y)": f"{sx.inputs.shape[1]}, {sy.inputs.shape[1]}",
-                "baseline step [s]": med["baseline"],
                 "recipe step [s]": med["recipe"],
-                "recipe / baseline": med["recipe"] / med["baseline"],
+                "previous step [s]": med["previous"],
+                "first step [s]": med["first"],
+                "previous / recipe": med["previous"] / med["recipe"],
+                "first / recipe": med["first"] / med["recipe"],
                 "load1": load1(),
             }
         )
     return [
-        f"## (3) Training step of the recipe vs the first learned path, float32, one pair "
-        f"(cat0, cat1); median of {args.repeats} alternating steps ({torch.get_num_threads()} torch threads)",
+        f"## (3) Training step of the recipe (DiffusionNet width {TrainConfig().width}, "
+        f"{TrainConfig().n_blocks} blocks) vs the previous recipe and the first learned path, "
+        f"float32, one pair (cat0, cat1); median of {args.repeats} alternating steps "
+        f"({torch.get_num_threads()} torch threads)",
         markdown(rows),
     ]
 

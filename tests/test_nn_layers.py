@@ -38,6 +38,23 @@ def test_soft_point_map_rows_padding_and_module_equals_functional():
         torch.testing.assert_close(pi, F.soft_map(fx, fy, tau=0.2, mass_x=mass, sinkhorn_iters=iters))
 
 
+def test_soft_maps_both_directions_equal_two_soft_map_calls():
+    """One similarity matrix for both directions: the same maps as two calls, padding on either
+    side (the x side of the second item, the y side of the first), with and without Sinkhorn."""
+    g = torch.Generator().manual_seed(3)
+    fx = torch.randn(2, 9, 4, dtype=torch.float64, generator=g)
+    fy = torch.randn(2, 7, 4, dtype=torch.float64, generator=g)
+    mass_x, mass_y = torch.ones(2, 9, dtype=torch.float64), torch.ones(2, 7, dtype=torch.float64)
+    mass_x[1, 6:] = 0
+    mass_y[0, 5:] = 0
+    for iters in (0, 4):
+        layer = SoftPointMap(tau=0.2, sinkhorn_iters=iters)
+        pi_yx, pi_xy = layer.both(fx, fy, mass_x, mass_y)
+        torch.testing.assert_close(pi_yx, layer(fx, fy, mass_x), rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(pi_xy, layer(fy, fx, mass_y), rtol=1e-12, atol=1e-14)
+        assert pi_xy[0, :, 5:].abs().max() == 0 and pi_yx[1, :, 6:].abs().max() == 0
+
+
 def test_soft_point_map_small_tau_is_nearest_neighbour():
     """As tau -> 0 the softmax of cosine similarity becomes the argmax; with similarity gaps
     ≥ δ, off-argmax weights are ≤ V·exp(-δ/τ): τ = δ/50 gives < V·e^-50."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import torch
 
 from torchfmap import Mesh, save_mesh
@@ -23,6 +24,7 @@ from torchfmap.nn.geometry import gradient_operator
 from torchfmap.nn.modules import SpectralDiffusion, UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
 from torchfmap.nn.train import features, read_checkpoint, train
+from torchfmap.operators.laplacian import normalize_area
 
 from .conftest import bend, bumpy_blob, random_rotation
 
@@ -53,6 +55,42 @@ def test_gradient_is_exact_for_linear_functions_on_a_plane():
     gx, gy = F.spatial_gradient(f, grad)
     torch.testing.assert_close(gx, torch.full_like(gx, 0.7), rtol=0, atol=1e-12)
     torch.testing.assert_close(gy, torch.full_like(gy, -2.0), rtol=0, atol=1e-12)
+
+
+def test_spatial_gradient_in_any_edge_order_and_padded_batches_equals_the_sparse_matrix():
+    """The compressed-row product equals the scipy operator for (a) the precomputed sorted
+    edges with their transpose order, (b) the same edges shuffled without it (sorted on the
+    call), (c) a padded batch of two meshes of different sizes; so do the gradients
+    (``Gᵀ ∂``, checked against scipy's transpose)."""
+    meshes = [bumpy_blob(1), _grid(6)]
+    items = [shape_item(precompute_shape(m, 6, 4, 20), dtype=torch.float64) for m in meshes]
+    batch = collate_shapes(items)
+    V = batch.inputs.shape[1]
+    g = torch.Generator().manual_seed(4)
+    f = torch.randn(2, V, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    seed = torch.randn(2, V, 3, dtype=torch.float64, generator=g)
+    gx, gy = F.spatial_gradient(f, batch.grad)
+    ((gx + 2 * gy) * seed).sum().backward()
+    for b, m in enumerate(meshes):
+        ops = gradient_operator(normalize_area(m))  # precompute_shape works at unit area
+        n = len(m.vertices)
+        edges = (ops["grad_rows"], ops["grad_cols"])
+        Gx, Gy = (sp.csr_matrix((ops[w], edges), shape=(n, n)) for w in ("grad_x", "grad_y"))
+        fb = f[b, :n].detach().numpy()
+        np.testing.assert_allclose(gx[b, :n].detach().numpy(), Gx @ fb, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(gy[b, :n].detach().numpy(), Gy @ fb, rtol=1e-12, atol=1e-12)
+        if n < V:  # padded vertices get no gradient
+            assert gx[b, n:].abs().max() == 0 and gy[b, n:].abs().max() == 0
+        expect = Gx.T @ seed[b, :n].numpy() + 2 * (Gy.T @ seed[b, :n].numpy())
+        np.testing.assert_allclose(f.grad[b, :n].numpy(), expect, rtol=1e-12, atol=1e-12)
+        # shuffled edges, no transpose order: sorted on the call, same result
+        perm = torch.randperm(len(ops["grad_rows"]), generator=g)
+        keys = ("grad_rows", "grad_cols", "grad_x", "grad_y")
+        shuffled = F.GradientBatch(*(torch.as_tensor(ops[k])[perm][None] for k in keys))
+        fb_t = f[b : b + 1, :n].detach()
+        sx, sy = F.spatial_gradient(fb_t, shuffled)
+        torch.testing.assert_close(sx[0], gx[b, :n].detach(), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(sy[0], gy[b, :n].detach(), rtol=1e-12, atol=1e-12)
 
 
 def test_gradient_features_gradcheck():

@@ -128,3 +128,31 @@ def test_predict_p2p_point_map_rules(tmp_path, blob_files):
         assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
     with pytest.raises(ParameterError, match="p2p_mode"):
         predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode="nearest")
+
+
+def test_refine_p2p_reuses_given_eigenbases_and_refuses_wrong_ones():
+    """With the meshes' own eigenbases passed in (reused across pairs), ZoomOut gives exactly the
+    map it computes itself; the true map of a vertex-permuted copy is kept; bases of another
+    size or without eigenvalues are refused."""
+    from torchfmap import Mesh, harmonic_basis, laplacian_eigenbasis
+    from torchfmap.errors import ParameterError
+    from torchfmap.nn.train import refine_p2p
+
+    mesh_x = bumpy_blob(2)
+    perm = np.random.default_rng(0).permutation(mesh_x.n_vertices)
+    inv = np.argsort(perm)
+    mesh_y = Mesh(mesh_x.vertices[perm], inv[mesh_x.faces])  # y vertex i is x vertex perm[i]
+    noisy = perm.copy()
+    flip = np.random.default_rng(1).choice(len(noisy), len(noisy) // 10, replace=False)
+    noisy[flip] = noisy[np.roll(flip, 1)]
+    kw = dict(k0=10, k_final=30)
+    own = refine_p2p(mesh_x, mesh_y, noisy, **kw)
+    same = (laplacian_eigenbasis(mesh_x, 30), laplacian_eigenbasis(mesh_y, 30))
+    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=same), own)
+    bases = (laplacian_eigenbasis(mesh_x, 40), laplacian_eigenbasis(mesh_y, 40))  # truncated to 30
+    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, perm, **kw, bases=bases), perm)
+    assert (refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=bases) == perm).mean() > (noisy == perm).mean()
+    with pytest.raises(ParameterError, match="eigenbasis"):
+        refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(bases[0], laplacian_eigenbasis(mesh_y, 20)))
+    with pytest.raises(ParameterError, match="eigenbasis"):
+        refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(harmonic_basis(mesh_x, np.arange(40)), bases[1]))

@@ -117,7 +117,7 @@ def precompute_shape(
     - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
     - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
     - inputs: ``wks (V, n_wks)`` (standardised), ``xyz (V, 3)`` (centred, unit area);
-    - gradient operator: ``grad_rows, grad_cols, grad_x, grad_y (E,)``
+    - gradient operator: ``grad_rows, grad_cols, grad_x, grad_y, grad_order_t (E,)``
       (:func:`~torchfmap.nn.geometry.gradient_operator`);
     - the original ``vertices``, ``faces``.
     """
@@ -173,8 +173,8 @@ class ShapeDataset(torch.utils.data.Dataset):
 
     Items are dicts of tensors (floats in ``dtype``): solver basis ``values (V, K)``, ``mass (V,)``,
     ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``, ``net_lam``, ``net_U``;
-    ``inputs (V, C)``; gradient operator ``grad_rows``, ``grad_cols`` (int64), ``grad_x``,
-    ``grad_y`` ``(E,)``; ``xyz (V, 3)`` (unit area); ``vertices``, ``faces``, ``name``, ``index``.
+    ``inputs (V, C)``; gradient operator ``grad_rows``, ``grad_cols``, ``grad_order_t`` (int64),
+    ``grad_x``, ``grad_y`` ``(E,)``; ``xyz (V, 3)`` (unit area); ``vertices``, ``faces``, ``name``, ``index``.
     """
 
     def __init__(
@@ -204,7 +204,7 @@ class ShapeDataset(torch.utils.data.Dataset):
         self.files = [Path(f) for f in files]
         self.names = [f.name.split(".")[0] for f in self.files]
         self.cache = _open_cache(default_cache_dir() if cache_dir is None else cache_dir)
-        self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 2}
+        self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 3}
         self.inputs, self.dtype = inputs, dtype
         self.items: list[dict | None] = [None] * len(self.files)
         self.precompute(rank, world_size, progress)
@@ -248,8 +248,9 @@ def shape_item(
     item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
     item["inputs"] = torch.as_tensor(arrays[inputs], dtype=dtype)
     item["xyz"] = torch.as_tensor(arrays["xyz"], dtype=dtype)
-    for key in ("grad_rows", "grad_cols", "vertices", "faces"):
-        item[key] = torch.as_tensor(arrays[key])
+    for key in ("grad_rows", "grad_cols", "grad_order_t", "vertices", "faces"):
+        if key in arrays:
+            item[key] = torch.as_tensor(arrays[key])
     item["name"], item["index"] = name, index
     return item
 
@@ -360,11 +361,21 @@ def collate_shapes(items: list[dict]) -> ShapeBatch:
     lengths = torch.tensor([it["values"].shape[0] for it in items], dtype=torch.long)
     grad = None
     if all("grad_rows" in it for it in items):
+        # padded edges point at the last (padded) vertex with weight 0, so every shape's edges
+        # stay sorted by (row, col) and by (col, row) through order_t
+        last = int(lengths.max()) - 1
+        order_t = None
+        if all("grad_order_t" in it for it in items):
+            E = max(len(it["grad_order_t"]) for it in items)
+            order_t = torch.arange(E).repeat(len(items), 1)
+            for b, it in enumerate(items):
+                order_t[b, : len(it["grad_order_t"])] = it["grad_order_t"]
         grad = GradientBatch(
-            _pad([it["grad_rows"] for it in items]),
-            _pad([it["grad_cols"] for it in items]),
+            _pad([it["grad_rows"] for it in items], last),
+            _pad([it["grad_cols"] for it in items], last),
             _pad([it["grad_x"] for it in items]),
             _pad([it["grad_y"] for it in items]),
+            order_t,
         )
     xyz = _pad([it["xyz"] for it in items]) if all("xyz" in it for it in items) else None
     return ShapeBatch(basis, inputs, lengths, net, grad, xyz)

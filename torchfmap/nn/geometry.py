@@ -3,9 +3,11 @@
 The gradient of a piecewise-linear function is exact on every face; a vertex takes the
 area-weighted mean of its faces' gradients and expresses it in its tangent frame ``(e1, e2)``
 with ``e2 = n × e1`` (``n`` the area-weighted vertex normal, oriented by the face winding). The
-operator is stored as an edge list ``rows, cols, weights_x, weights_y`` (``(E,)`` each) so that
-``(∇f)_v = Σ_{rows == v} weights · f[cols]``; :func:`torchfmap.nn.functional.spatial_gradient`
-applies it in torch. Precomputation is float64.
+operator is stored as an edge list ``rows, cols, weights_x, weights_y`` (``(E,)`` each, sorted
+by ``(row, col)``) so that ``(∇f)_v = Σ_{rows == v} weights · f[cols]``, with the permutation
+``order_t`` that sorts it by ``(col, row)`` (the transpose, for the backward pass);
+:func:`torchfmap.nn.functional.spatial_gradient` applies it in torch as compressed sparse rows.
+Precomputation is float64.
 """
 
 from __future__ import annotations
@@ -37,9 +39,10 @@ def tangent_frames(mesh: Mesh) -> np.ndarray:
 def gradient_operator(mesh: Mesh) -> dict[str, np.ndarray]:
     """The vertex gradient in tangent frames as an edge list (see the module docstring).
 
-    Returns ``{'grad_rows', 'grad_cols'}`` (int64, ``(E,)``) and ``{'grad_x', 'grad_y'}``
-    (float64, ``(E,)``): the ``e1`` and ``e2`` components. Exact (up to the area-weighted
-    vertex averaging) for functions linear in the embedding.
+    Returns ``{'grad_rows', 'grad_cols'}`` (int64, ``(E,)``, sorted by ``(row, col)``),
+    ``{'grad_x', 'grad_y'}`` (float64, ``(E,)``): the ``e1`` and ``e2`` components, and
+    ``'grad_order_t'`` (int64, ``(E,)``): the permutation sorting the edges by ``(col, row)``.
+    Exact (up to the area-weighted vertex averaging) for functions linear in the embedding.
     """
     v, f = mesh.vertices, mesh.faces
     n_v = len(v)
@@ -66,9 +69,12 @@ def gradient_operator(mesh: Mesh) -> dict[str, np.ndarray]:
         out[name] = sp.coo_matrix((w, (rows, cols)), shape=(n_v, n_v)).tocsr()
     pattern = (abs(out["grad_x"]) + abs(out["grad_y"])).tocoo()
     r, c = pattern.row.astype(np.int64), pattern.col.astype(np.int64)
+    by_row = np.lexsort((c, r))
+    r, c = r[by_row], c[by_row]
     return {
         "grad_rows": r,
         "grad_cols": c,
         "grad_x": np.asarray(out["grad_x"][r, c]).ravel(),
         "grad_y": np.asarray(out["grad_y"][r, c]).ravel(),
+        "grad_order_t": np.lexsort((r, c)).astype(np.int64),
     }

@@ -167,6 +167,13 @@ class SoftPointMap(nn.Module):
         (``mass_x (B, V_x)`` weights the columns)."""
         return F.soft_map(feat_x, feat_y, tau=self.tau, mass_x=mass_x, sinkhorn_iters=self.sinkhorn_iters)
 
+    def both(self, feat_x, feat_y, mass_x=None, mass_y=None):
+        """``(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))`` from one similarity matrix
+        (:func:`~torchfmap.nn.functional.soft_maps`)."""
+        return F.soft_maps(
+            feat_x, feat_y, tau=self.tau, mass_x=mass_x, mass_y=mass_y, sinkhorn_iters=self.sinkhorn_iters
+        )
+
 
 class UnsupervisedFMLoss(nn.Module):
     """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``."""
@@ -203,8 +210,7 @@ class UnsupervisedFMLoss(nn.Module):
         if self.w["couple"]:
             sub_x, rows_x = self._samples(basis_x, feat_x)
             sub_y, rows_y = self._samples(basis_y, feat_y)
-            pi_yx = self.soft(rows_x, rows_y, sub_x.mass)
-            pi_xy = self.soft(rows_y, rows_x, sub_y.mass)
+            pi_yx, pi_xy = self.soft.both(rows_x, rows_y, sub_x.mass, sub_y.mass)
             terms["couple"] = F.coupling_loss(C_xy, pi_yx, sub_x, sub_y) + F.coupling_loss(
                 C_yx, pi_xy, sub_y, sub_x
             )

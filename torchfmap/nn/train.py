@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from .._files import load_checked_bytes, save_checked_bytes
-from ..bases import laplacian_eigenbasis
+from ..bases import Basis, laplacian_eigenbasis
 from ..errors import ParameterError
 from ..eval import geodesic_errors
 from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
@@ -50,7 +50,7 @@ class TrainConfig:
     n_wks: int = 32
     basis: str = "laplacian"
     inputs: str = "wks"
-    width: int = 64
+    width: int = 48
     c_out: int = 64
     n_blocks: int = 4
     dropout: float = 0.0
@@ -439,15 +439,43 @@ def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_d
 
 
 def refine_p2p(
-    mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, k0: int = 50, k_final: int = 200
+    mesh_x: Mesh,
+    mesh_y: Mesh,
+    p2p_yx: np.ndarray,
+    k0: int = 50,
+    k_final: int = 200,
+    *,
+    bases: tuple[Basis, Basis] | None = None,
 ) -> np.ndarray:
     """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
     -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes.
     Point maps are converted by the orthogonal rule (nearest neighbours of ``Φ_y`` in
-    ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`."""
+    ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`.
+
+    ``bases``: the meshes' Laplacian eigenbases (:func:`~torchfmap.laplacian_eigenbasis`, at
+    least ``k_final`` columns each), to reuse them across pairs; computed here when None.
+
+    Raises:
+        ParameterError: ``bases`` that are not eigenbases of these meshes' sizes, or have fewer
+            than ``k_final`` columns.
+    """
     k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
     k0 = min(k0, k_final)
-    bx, by = laplacian_eigenbasis(mesh_x, k_final), laplacian_eigenbasis(mesh_y, k_final)
+    if bases is None:
+        bx, by = laplacian_eigenbasis(mesh_x, k_final), laplacian_eigenbasis(mesh_y, k_final)
+    else:
+        bx, by = bases
+        for name, basis, mesh in (("x", bx, mesh_x), ("y", by, mesh_y)):
+            if (
+                getattr(basis, "eigenvalues", None) is None
+                or basis.n_vertices != mesh.n_vertices
+                or basis.k < k_final
+            ):
+                raise ParameterError(
+                    f"bases[{name}] must be the Laplacian eigenbasis of mesh_{name} ({mesh.n_vertices} "
+                    f"vertices) with >= {k_final} columns. Fix: laplacian_eigenbasis(mesh_{name}, {k_final})."
+                )
+        bx, by = bx.truncated(k_final), by.truncated(k_final)
     C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
     return zoomout(C_xy, bx, by, k_final, step=max(1, k0 // 10), mode="orthogonal")[1]
 
