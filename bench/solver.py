@@ -17,7 +17,10 @@ then one ``torch.linalg.solve`` of a ``(K, K)`` system per row of every batch it
 loop, un-rotate), both directions, both with autograd. Features ``(B, V, D)`` Gaussian with
 ``requires_grad``; the scalar is ``Σ R_xy ∘ C_xy + Σ R_yx ∘ C_yx`` with fixed Gaussian ``R``.
 One warm-up of each, then ``--repeats`` rounds alternating batched and loop (so a load from
-another process hits both alike); each cell is a median over rounds. ``loop/batched`` is the
+another process hits both alike); each cell is a median over rounds. Every configuration runs
+twice, batched first in each round and loop first (``order``): the batched solve's large
+``(B, K, K, K)`` buffer meets a different allocator state in each (memory just freed by the
+loop's many small tensors, or by its own previous call). ``loop/batched`` is the
 ratio of the fwd+bwd medians (target >= 3). Agreement: max ``|ΔC|`` over ``C_xy`` and
 ``C_yx`` and max ``|Δ∇feat_x|``, ``|Δ∇feat_y|`` (absolute and relative to the largest entry).
 ``cond`` is the 2-norm condition number of the ``K`` row systems of the first batch item
@@ -29,7 +32,8 @@ first fwd+bwd call in a fresh subprocess (inputs built, nothing run yet; include
 library set-up), falling back to ``ru_maxrss`` where ``clear_refs`` is not writable.
 
 (2) Training step: ``bench/train_step.py`` (run here too unless ``--no-train``; its options
-``--train-*`` are accepted).
+``--train-*`` and ``--recipe-ks`` are accepted): random bases, and (3) the recipe's step on
+real meshes against the previous recipe and the first learned path (``--recipe-ks ''`` skips it).
 
 ``torch.set_num_threads`` is left at its default unless ``--threads N`` is given (also in the
 memory subprocesses); the 1-minute load average is recorded with every row, since another job
@@ -147,16 +151,19 @@ def system_cond(inp: dict[str, Any]) -> tuple[float, float]:
     return cond.median().item(), cond.max().item()
 
 
-def bench_solver_config(dtype_name: str, b: int, v: int, k: int, d: int, args) -> dict[str, Any]:
+def bench_solver_config(
+    dtype_name: str, b: int, v: int, k: int, d: int, args, order: tuple[str, ...] = tuple(METHODS)
+) -> dict[str, Any]:
     dtype = DTYPES[dtype_name]
     inp = solver_inputs(b, v, k, d, dtype, args.seed)
-    row: dict[str, Any] = {"dtype": dtype_name, "B": b, "K": k, "V": v, "D": d, "load1 start": load1()}
-    times: dict[str, list[tuple[float, float]]] = {m: [] for m in METHODS}
+    row: dict[str, Any] = {"dtype": dtype_name, "B": b, "K": k, "V": v, "D": d, "order": " then ".join(order)}
+    row["load1 start"] = load1()
+    times: dict[str, list[tuple[float, float]]] = {m: [] for m in order}
     outs: dict[str, dict[str, torch.Tensor]] = {}
-    for m in METHODS:  # warm-up
+    for m in order:  # warm-up
         fwd_bwd(m, inp)
     for r in range(args.repeats):
-        for m in METHODS:
+        for m in order:
             gc.collect()
             f, bw, outs[m] = fwd_bwd(m, inp)
             times[m].append((f, bw))
@@ -216,10 +223,10 @@ def run_solver(args) -> list[str]:
     """Every (dtype, K) configuration, with the memory subprocesses; returns the report sections."""
     rows = []
     for dtype_name in args.dtypes:
-        for k in args.ks:
-            log(f"solver: {dtype_name}, B={args.batch}, K={k}, V={args.v}, D={args.d}")
-            row = bench_solver_config(dtype_name, args.batch, args.v, k, args.d, args)
-            for m in () if args.no_memory else METHODS:
+        for k, order in ((k, o) for k in args.ks for o in (tuple(METHODS), tuple(reversed(METHODS)))):
+            log(f"solver: {dtype_name}, B={args.batch}, K={k}, V={args.v}, D={args.d}, {order[0]} first")
+            row = bench_solver_config(dtype_name, args.batch, args.v, k, args.d, args, order)
+            for m in () if args.no_memory or order != tuple(METHODS) else METHODS:
                 log(f"    memory: {m} (fresh subprocess)")
                 mem = measure_memory(m, dtype_name, args.batch, args.v, k, args.d, args)
                 row[f"RSS peak {m} MiB"], row["RSS source"] = mem["peak"], mem["source"]
@@ -230,9 +237,10 @@ def run_solver(args) -> list[str]:
         "K",
         "V",
         "D",
+        "order",
         *(f"{m} {p} [s]" for m in METHODS for p in ("fwd", "bwd", "fwd+bwd")),
     ]
-    agree = ["dtype", "K", "max|ΔC|", "max|ΔC| rel", "max|Δ∇fx|", "max|Δ∇fx| rel", "max|Δ∇fy|"]
+    agree = ["dtype", "K", "order", "max|ΔC|", "max|ΔC| rel", "max|Δ∇fx|", "max|Δ∇fx| rel", "max|Δ∇fy|"]
     agree += ["max|Δ∇fy| rel", "max|C|", "max|∇fx|", "finite", "cond median", "cond max", "system MiB"]
     if not args.no_memory:
         agree += [f"RSS peak {m} MiB" for m in METHODS] + ["RSS source"]
@@ -286,6 +294,8 @@ def main(argv: list[str] | None = None) -> None:
         out.add(*run_solver(args))
     if not args.no_train:
         out.add(*train_step.run_train(args))
+        if args.recipe_ks:
+            out.add(*train_step.run_recipes(args))
     out.add(f"{load_note()} at end; total {time.perf_counter() - t_start:.0f} s.")
     out.save()
 

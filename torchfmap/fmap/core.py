@@ -158,10 +158,15 @@ def _rowwise_solve():
             shape = (*G.shape[:-2], diag.shape[-2], *G.shape[-2:])
             systems = G.unsqueeze(-3).expand(shape).contiguous()
             systems.diagonal(dim1=-2, dim2=-1).add_(diag)
-            # LAPACK works column-major: factorising the transposed view Sᵀ makes its working
-            # copy a plain memcpy; S x = r is then solved as (Sᵀ)ᵀ x = r (adjoint=True), exact
-            # whether or not round-off left S slightly unsymmetric
-            LU, pivots, info = torch.linalg.lu_factor_ex(systems.mT)
+            # LAPACK works column-major: the transposed view Sᵀ is its native layout, so the LU
+            # is computed in place in the systems' own buffer (one (..., Ky, Kx, Kx) allocation
+            # per call, not two: fresh pages of a large allocation cost as much as the LU);
+            # S x = r is then solved as (Sᵀ)ᵀ x = r (adjoint=True), exact whether or not
+            # round-off left S slightly unsymmetric
+            LU = systems.mT
+            pivots = torch.empty(shape[:-1], dtype=torch.int32, device=G.device)
+            info = torch.empty(shape[:-2], dtype=torch.int32, device=G.device)
+            torch.linalg.lu_factor_ex(LU, out=(LU, pivots, info))
             if bool((info > 0).any()):
                 raise ParameterError(
                     "the functional-map systems are singular (descriptors span too little and w_lap = 0). "
