@@ -5,15 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchfmap import ParameterError, laplacian_eigenbasis
+from torchfmap import ParameterError, laplacian, laplacian_eigenbasis
 from torchfmap.bases import laplacian as eig_module
 
 from .conftest import random_rotation
 
 
-@pytest.mark.parametrize("dense_limit", [10**6, 10])  # dense eigh and sparse eigsh paths
-def test_orthonormal_sorted_and_paths_agree(blob, monkeypatch, dense_limit):
+@pytest.mark.parametrize(
+    "dense_limit, solver", [(10**6, "auto"), (10, "arpack"), (10, "block")]
+)  # dense eigh, sparse eigsh and block Lanczos paths
+def test_orthonormal_sorted_and_paths_agree(blob, monkeypatch, dense_limit, solver):
     monkeypatch.setattr(eig_module, "DENSE_LIMIT", dense_limit)
+    monkeypatch.setattr(eig_module, "BLOCK_MIN_WORK", 0 if solver == "block" else 10**18)
     basis = laplacian_eigenbasis(blob, 20)
     assert np.abs(basis.gram() - np.eye(20)).max() < 1e-10
     lam = basis.eigenvalues
@@ -22,11 +25,52 @@ def test_orthonormal_sorted_and_paths_agree(blob, monkeypatch, dense_limit):
     assert np.allclose(W, np.diag(lam), atol=1e-8)
 
 
-def test_sparse_and_dense_give_same_functions(blob, monkeypatch):
-    dense = laplacian_eigenbasis(blob, 12).values
+@pytest.mark.parametrize("solver", ["arpack", "block"])
+def test_sparse_and_dense_give_same_functions(blob, monkeypatch, solver):
+    """Both sparse solvers stop at residual ARPACK_TOL·θ: eigenvalues to ~1e-10 relative,
+    vectors to ~residual/gap (the blob's first gaps are O(1), so 1e-6 is generous)."""
+    L, B = laplacian(blob)
+    dense_lam, dense = eig_module.eigenpairs(L, B, 24)
     monkeypatch.setattr(eig_module, "DENSE_LIMIT", 10)
-    sparse = laplacian_eigenbasis(blob, 12).values
-    assert np.abs(dense - sparse).max() < 1e-6  # same signs thanks to the convention
+    lam, sparse = eig_module.eigenpairs(L, B, 24, solver=solver)
+    assert np.abs(lam[1:] - dense_lam[1:]).max() < 1e-8 * dense_lam[-1]
+    simple = [
+        i
+        for i in range(1, 23)
+        if min(dense_lam[i] - dense_lam[i - 1], dense_lam[i + 1] - dense_lam[i]) > 1e-3
+    ]
+    assert len(simple) > 10
+    assert np.abs(dense[:, simple] - sparse[:, simple]).max() < 1e-6  # same signs thanks to the convention
+
+
+def test_block_lanczos_on_a_known_spectrum_with_multiplicities():
+    """A symmetric operator with eigenvalues 1/(l(l+1)+1), multiplicity 2l+1 (the sphere's
+    pattern, shift-inverted): the k largest come out to the convergence tolerance, the
+    vectors orthonormal and spanning the exact eigenspaces; a second run is identical."""
+    rng = np.random.default_rng(0)
+    lam = np.concatenate([np.full(2 * deg + 1, deg * (deg + 1.0)) for deg in range(30)])[:600]
+    Q, _ = np.linalg.qr(rng.standard_normal((600, 600)))
+    A = (Q / (lam + 1.0)) @ Q.T
+    k = 36  # l = 0..5 exactly
+    theta, Y = eig_module.block_lanczos(lambda X: A @ X, 600, k, block=8)
+    np.testing.assert_allclose(theta, 1.0 / (lam[:k] + 1.0), rtol=1e-9)
+    np.testing.assert_allclose(Y.T @ Y, np.eye(k), atol=1e-12)
+    exact = Q[:, :k]
+    assert np.linalg.svd(exact.T @ Y, compute_uv=False).min() > 1 - 1e-9  # same invariant subspace
+    theta2, Y2 = eig_module.block_lanczos(lambda X: A @ X, 600, k, block=8)
+    np.testing.assert_array_equal(Y, Y2)
+
+
+def test_block_lanczos_raises_when_not_converged_and_unknown_solver(blob, monkeypatch):
+    from torchfmap.errors import ConvergenceError
+
+    monkeypatch.setattr(eig_module, "BLOCK_MAX_CYCLES", 2)
+    A = np.diag(1.0 / np.arange(1.0, 201.0))
+    with pytest.raises(ConvergenceError, match="solver='arpack'"):
+        eig_module.block_lanczos(lambda X: A @ X, 200, 20, block=4, tol=0.0)
+    L, B = laplacian(blob)
+    with pytest.raises(ParameterError, match="eigensolver"):
+        eig_module.eigenpairs(L, B, 10, solver="lobpcg")
 
 
 def test_sign_convention_invariant_under_motion_and_permutation(blob, rng):
