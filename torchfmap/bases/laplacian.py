@@ -47,10 +47,11 @@ def start_vector(n: int) -> np.ndarray:
     return np.random.default_rng(0).standard_normal(n)
 
 
-#: ``solver='auto'`` uses block Lanczos when ``V · k`` is at least this (and ``k >= 20``):
-#: below, ARPACK's single-vector solves cost about as much as the block method's
-#: orthogonalisation (``bench/eigenpairs.py``: equal at 5K x 200 and 20K x 100).
-BLOCK_MIN_WORK = 3_000_000
+#: ``solver='auto'`` uses block Lanczos from this many vertices on (and ``k >= 20``). Below,
+#: ARPACK's single-vector solves are cheap and the block method's Gram-Schmidt products
+#: cost more than they save (``bench/eigenpairs.py``: 0.25x at 5K, 0.56-0.88x at 20K,
+#: 1.34-1.38x at 200K vertices, k = 100-200, default threads).
+BLOCK_MIN_VERTICES = 50_000
 #: Shift of the block Lanczos factorisation ``L + s B`` on a unit-area surface. The null
 #: space (``λ = 0``) then maps to ``1/s``: a modest shift keeps the dynamic range ``1 + λ_k/s``
 #: of the shift-inverted spectrum small enough (< 1e6 for ``λ_k`` up to 1e4) that the block
@@ -72,7 +73,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
       (:func:`block_lanczos`): blocks of right-hand sides per solve, Gram-Schmidt as matrix
       products; the same convergence test as ARPACK (residual ``<= ARPACK_TOL · |θ|``);
     - ``solver='arpack'``: ``scipy.sparse.linalg.eigsh`` (shift ``sigma``);
-    - ``solver='auto'``: block when ``V · k >=`` :data:`BLOCK_MIN_WORK`, else ARPACK.
+    - ``solver='auto'``: block from :data:`BLOCK_MIN_VERTICES` vertices on, else ARPACK.
 
     The problem is solved in a scale-free frame: ``B`` is divided by its total (the area), so
     the shift is relative to a unit-area surface and cost and accuracy do not depend on the
@@ -97,7 +98,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
             "rescale it first, e.g. mesh.normalized() or mesh.scaled(alpha)."
         )
     if solver == "auto":
-        solver = "block" if k >= 20 and L.shape[0] * k >= BLOCK_MIN_WORK else "arpack"
+        solver = "block" if k >= 20 and L.shape[0] >= BLOCK_MIN_VERTICES else "arpack"
     lam, phi = _unit_area_eigenpairs(L, B / area, k, sigma, solver)
     return lam / area, phi / np.sqrt(area)
 
