@@ -91,7 +91,7 @@ def main() -> None:
     parser.add_argument("--baseline-pairs", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--synthetic", type=int, default=100, help="synthetic shapes (0: none)")
-    parser.add_argument("--synthetic-v", type=int, default=2000)
+    parser.add_argument("--synthetic-v", type=int, default=1000)
     args = parser.parse_args()
     report = Report("eval_speed")
     report.add(f"# Evaluating collections ({versions('numpy', 'scipy')}; {load_note()} at start)")

@@ -149,13 +149,39 @@ def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_p
 def test_distance_rows_are_cached_and_in_sqrt_area_units():
     """Rows are geodesic distances divided by sqrt(area) (so a scaled copy gives the same
     rows), computed once per source."""
-    from torchfmap.seeds import DistanceRows
+    from torchfmap.operators import DistanceRows
 
     x = bumpy_blob(3)
-    rows, scaled = DistanceRows(x), DistanceRows(x.scaled(7.0))
+    rows, scaled = DistanceRows(x, normalized=True), DistanceRows(x.scaled(7.0), normalized=True)
+    solved = []
+    inner = rows.solver.distances
+    rows.solver.distances = lambda sources: solved.extend(sources) or inner(sources)
     a = rows(5)
-    assert rows(5) is a and a[5] == 0 and (a >= 0).all()
+    np.testing.assert_array_equal(rows(5), a)
+    assert solved == [5] and a[5] == 0 and (a >= 0).all()
     np.testing.assert_allclose(scaled.rows([5, 9]), rows.rows([5, 9]), rtol=1e-6, atol=1e-9)
+    assert solved == [5, 9]
+
+
+def test_distance_rows_budget_keeps_the_first_rows_and_equals_the_solver():
+    """Unnormalised rows equal the solver's bit for bit; with a budget of two rows the third
+    is solved on every request and the first two never again; a negative budget is refused."""
+    from torchfmap import ParameterError
+    from torchfmap.operators import DistanceRows, GeodesicSolver
+
+    x = bumpy_blob(2)
+    solver = GeodesicSolver(x)
+    rows = DistanceRows(x, solver, max_bytes=2 * 8 * x.n_vertices)
+    solved = []
+    inner = solver.distances
+    solver.distances = lambda sources: solved.extend(sources) or inner(sources)
+    first = rows.distances([3, 7, 11])
+    assert solved == [3, 7, 11]
+    np.testing.assert_array_equal(first, inner([3, 7, 11]))
+    np.testing.assert_array_equal(rows.distances([11, 7, 3]), first[[2, 1, 0]])
+    assert solved == [3, 7, 11, 11]
+    with pytest.raises(ParameterError, match="max_bytes"):
+        DistanceRows(x, max_bytes=-1)
 
 
 def test_seed_kernels_are_solved_once_per_seed_and_agree_with_the_diffusion_basis():

@@ -53,6 +53,8 @@ def test_soft_maps_both_directions_equal_two_soft_map_calls():
         torch.testing.assert_close(pi_yx, layer(fx, fy, mass_x), rtol=1e-12, atol=1e-14)
         torch.testing.assert_close(pi_xy, layer(fy, fx, mass_y), rtol=1e-12, atol=1e-14)
         assert pi_xy[0, :, 5:].abs().max() == 0 and pi_yx[1, :, 6:].abs().max() == 0
+        direct = F.soft_maps(fx, fy, tau=0.2, mass_x=mass_x, mass_y=mass_y, sinkhorn_iters=iters)
+        torch.testing.assert_close(direct, (pi_yx, pi_xy), rtol=0, atol=0)
 
 
 def test_soft_point_map_small_tau_is_nearest_neighbour():

@@ -22,7 +22,7 @@ import numpy as np
 from .errors import ParameterError
 from .io import SUPPORTED_FORMATS, read_arrays
 from .mesh import Mesh
-from .operators.geodesic import GeodesicSolver
+from .operators.geodesic import DistanceRows, GeodesicSolver
 
 
 # -- ground truth ------------------------------------------------------------------------------
@@ -91,7 +91,7 @@ def geodesic_errors(
     p2p_yx: np.ndarray,
     gt: Correspondence,
     *,
-    solver: GeodesicSolver | None = None,
+    solver: GeodesicSolver | DistanceRows | None = None,
     normalize: bool = True,
     max_points: int | None = None,
     seed: int = 0,
@@ -102,6 +102,9 @@ def geodesic_errors(
         mesh_x: the source mesh (errors are measured on it).
         p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
         gt: :class:`Correspondence` ``(idx_x, idx_y)``; a plain tuple raises ParameterError.
+        solver: distances on ``mesh_x`` (a :class:`GeodesicSolver`, or a
+            :class:`~torchfmap.operators.DistanceRows` cache to share rows across pairs with
+            this source); built here when None.
         normalize: divide by ``sqrt(area_x)``.
         max_points: evaluate a random subset of at most this many pairs (None: all).
     """

@@ -32,8 +32,9 @@ from .fmap import check_landmark_pairs, fmap_to_p2p, icp_refine, solve_fmap, zoo
 from .fmap.defaults import W_LAP, W_LMK, W_ORIENT
 from .io import load_mesh
 from .mesh import Mesh
+from .operators.geodesic import DistanceRows
 from .operators.laplacian import Operators, laplacian
-from .seeds import DistanceRows, corresponding_seeds, farthest_point_sampling
+from .seeds import corresponding_seeds, farthest_point_sampling
 
 BasisKind = Literal["laplacian", "harmonic", "diffusion", "stack"]
 RefineKind = Literal["icp", "zoomout"]
@@ -105,7 +106,7 @@ def prepare_shape(mesh: Mesh, n_eigen: int) -> PreparedShape:
     """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`match` does per shape)."""
     ops = laplacian(mesh)
     eig = laplacian_eigenbasis(mesh, n_eigen, operators=ops) if n_eigen else None
-    return PreparedShape(mesh, ops, eig, DistanceRows(mesh))
+    return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True))
 
 
 def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> float:
@@ -598,6 +599,10 @@ class PairResult(NamedTuple):
     seconds: float
 
 
+#: Distance rows :func:`evaluate_pairs` keeps for the current source mesh (bytes).
+EVAL_ROWS_BYTES = 512 * 2**20
+
+
 def _evaluate_chunk(
     pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None
 ) -> list[PairResult]:
@@ -605,6 +610,7 @@ def _evaluate_chunk(
     path -> (mesh, PreparedShape), filled here)."""
     shapes = {} if shapes is None else shapes
     out = []
+    rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
     for a, b, pa, pb, gt in pairs:
         for path in (pa, pb):
             if path not in shapes:
@@ -615,10 +621,11 @@ def _evaluate_chunk(
         t0 = time.perf_counter()
         result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
         seconds = time.perf_counter() - t0
-        # errors are geodesic on x: reuse x's prefactored solver instead of building one per pair
-        report, errors = evaluate_map(
-            x, y, result.p2p_yx, gt, max_points=max_points, solver=sx.distances.solver
-        )
+        # errors are geodesic on x, from its ground-truth points: pairs with the same source
+        # reuse its prefactored solver and the rows already solved (kept for one source at a time)
+        if rows is None or rows.solver is not sx.distances.solver:
+            rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
+        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
         out.append(PairResult(a, b, report, errors, seconds))
     return out
 

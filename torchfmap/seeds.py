@@ -17,11 +17,10 @@ from ._checks import check_count, check_landmark_pairs, check_seeds_cover_compon
 from .bases.diffusion import heat_kernels
 from .errors import ParameterError
 from .mesh import Mesh
-from .operators.geodesic import GeodesicSolver
+from .operators.geodesic import DistanceRows, GeodesicSolver
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
 __all__ = [
-    "DistanceRows",
     "check_seeds_cover_components",
     "corresponding_seeds",
     "coverage_seeds",
@@ -203,26 +202,6 @@ def farthest_point_sampling(
     return (out, float(mind.max())) if return_radius else out
 
 
-class DistanceRows:
-    """Geodesic distance rows of one mesh, in units of ``sqrt(area)``, computed once per source."""
-
-    def __init__(self, mesh: Mesh, solver: GeodesicSolver | None = None) -> None:
-        self.solver = solver if solver is not None else GeodesicSolver(mesh)
-        self.scale = 1.0 / np.sqrt(mesh.area)
-        self._rows: dict[int, np.ndarray] = {}
-
-    def __call__(self, source: int) -> np.ndarray:
-        """``(V,)`` distances from ``source``."""
-        source = int(source)
-        if source not in self._rows:
-            self._rows[source] = np.maximum(self.solver.distance(source), 0.0) * self.scale
-        return self._rows[source]
-
-    def rows(self, sources) -> np.ndarray:
-        """``(S, V)`` distances from each source."""
-        return np.stack([self(s) for s in sources])
-
-
 def corresponding_seeds(
     mesh_x: Mesh,
     mesh_y: Mesh,
@@ -247,7 +226,8 @@ def corresponding_seeds(
         mesh_x, mesh_y: source and target.
         landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)``, ``1 <= L <= n_seeds``.
         n_seeds: total number of pairs returned (landmarks first, in the given order).
-        distances: prebuilt :class:`DistanceRows` of both meshes to reuse.
+        distances: prebuilt :class:`~torchfmap.operators.DistanceRows` of both meshes
+            (``normalized=True``) to reuse.
 
     Raises:
         SeedError: invalid landmarks; ParameterError: ``n_seeds`` outside
@@ -256,7 +236,11 @@ def corresponding_seeds(
     pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     top = min(mesh_x.n_vertices, mesh_y.n_vertices)
     n_seeds = check_count(n_seeds, len(pairs), top, "n_seeds (landmarks to vertices)")
-    dx, dy = distances if distances is not None else (DistanceRows(mesh_x), DistanceRows(mesh_y))
+    dx, dy = (
+        distances
+        if distances is not None
+        else (DistanceRows(mesh_x, normalized=True), DistanceRows(mesh_y, normalized=True))
+    )
     r2 = 1.0 / n_seeds
     placed = [(int(a), int(b)) for a, b in pairs]
     used_x, used_y = {a for a, _ in placed}, {b for _, b in placed}

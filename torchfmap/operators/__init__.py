@@ -2,7 +2,7 @@
 
 from .._checks import check_vertex_indices, lumped_diagonal
 from .convert import scipy_to_torch, torch_to_scipy
-from .geodesic import GeodesicSolver, geodesic_distances
+from .geodesic import DistanceRows, GeodesicSolver, geodesic_distances
 from .laplacian import (
     Operators,
     laplacian,
@@ -14,6 +14,7 @@ from .laplacian import (
 from .solvers import Factorization, available_backends, factorize
 
 __all__ = [
+    "DistanceRows",
     "Factorization",
     "GeodesicSolver",
     "Operators",

@@ -86,6 +86,63 @@ class GeodesicSolver:
         return 0.5 * (d + d.T) if symmetrize else d
 
 
+class DistanceRows:
+    """Geodesic distance rows of one mesh, each source solved once and kept for reuse.
+
+    Rows are kept until ``max_bytes`` of them are held (None: no bound); beyond it they are
+    computed but not kept. ``normalized=True`` gives ``max(d, 0) / sqrt(area)`` (units of the
+    square root of the area), else the solver's distances unchanged.
+
+    Args:
+        mesh: the surface.
+        solver: its :class:`GeodesicSolver` (built here when None).
+        normalized: scale as above.
+        max_bytes: bound on the kept rows (8 V bytes each).
+
+    Raises:
+        ParameterError: ``max_bytes`` negative.
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        solver: GeodesicSolver | None = None,
+        *,
+        normalized: bool = False,
+        max_bytes: int | None = None,
+    ) -> None:
+        if max_bytes is not None and max_bytes < 0:
+            raise ParameterError(f"max_bytes must be None or >= 0, got {max_bytes}.")
+        self.mesh = mesh
+        self.solver = solver if solver is not None else GeodesicSolver(mesh)
+        self.scale = 1.0 / np.sqrt(mesh.area) if normalized else None
+        self.max_rows = None if max_bytes is None else int(max_bytes) // (8 * max(mesh.n_vertices, 1))
+        self._rows: dict[int, np.ndarray] = {}
+
+    def __call__(self, source: int) -> np.ndarray:
+        """``(V,)`` distances from ``source``."""
+        return self.distances([source])[0]
+
+    def distances(self, sources) -> np.ndarray:
+        """``(S, V)``: row ``r`` holds distances from ``sources[r]`` (kept rows are not solved
+        again); the interface of :meth:`GeodesicSolver.distances`."""
+        s = check_vertex_indices(sources, self.mesh.n_vertices)
+        missing = [int(i) for i in dict.fromkeys(s.tolist()) if int(i) not in self._rows]
+        fresh = {}
+        if missing:
+            solved = self.solver.distances(missing)
+            if self.scale is not None:
+                solved = np.maximum(solved, 0.0) * self.scale
+            fresh = dict(zip(missing, solved, strict=True))
+        for i, row in fresh.items():
+            if self.max_rows is not None and len(self._rows) >= self.max_rows:
+                break
+            self._rows[i] = row
+        return np.stack([self._rows[i] if i in self._rows else fresh[i] for i in s.tolist()])
+
+    rows = distances
+
+
 def geodesic_distances(mesh: Mesh, sources) -> np.ndarray:
     """``(S, V)`` heat-method distances from each source (one-shot; build a solver to reuse)."""
     return GeodesicSolver(mesh).distances(sources)
