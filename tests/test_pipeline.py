@@ -185,6 +185,33 @@ def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_result
         pipeline.evaluate_pairs(pairs, workers=0)
 
 
+def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkeypatch):
+    """Pairs listed by source share its ground-truth distance rows: three pairs from one source
+    with the same ground-truth points solve each row once; the chunks of a pool are cut where
+    the source changes."""
+    import torchfmap.operators.geodesic as geodesic
+    import torchfmap.pipeline as pipeline
+    from torchfmap import save_mesh
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    paths = []
+    for i, amount in enumerate((0.05, 0.2, 0.35, 0.5)):
+        paths.append(save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off"))
+    gt = gt_identity(x.n_vertices)
+    pairs = [("m0", f"m{i}", paths[0], paths[i], gt) for i in (1, 2, 3)]
+    solved = []
+    real = geodesic.GeodesicSolver.distances
+    counted = lambda self, s: solved.extend(s) or real(self, s)  # noqa: E731
+    monkeypatch.setattr(geodesic.GeodesicSolver, "distances", counted)
+    results = pipeline.evaluate_pairs(pairs, k=20)
+    assert len(results) == 3 and len(solved) == x.n_vertices  # every vertex is a gt point, once
+    other = [("m1", "m2", paths[1], paths[2], gt)]
+    chunks = pipeline._source_chunks(pairs + other + pairs, 3)
+    assert [len(c) for c in chunks] == [3, 1, 3]
+
+
 def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
     """The same pairs through Dask distributed's executor (2 worker processes) give exactly the
     single-process results, in order."""

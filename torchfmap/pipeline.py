@@ -604,10 +604,10 @@ EVAL_ROWS_BYTES = 512 * 2**20
 
 
 def _evaluate_chunk(
-    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None
+    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None
 ) -> list[PairResult]:
     """Match and score ``pairs`` in order; each mesh is loaded and prepared once (``shapes``:
-    path -> (mesh, PreparedShape), filled here)."""
+    path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after each pair."""
     shapes = {} if shapes is None else shapes
     out = []
     rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
@@ -627,7 +627,19 @@ def _evaluate_chunk(
             rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
         report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
         out.append(PairResult(a, b, report, errors, seconds))
+        if on_pair is not None:
+            on_pair()
     return out
+
+
+def _source_chunks(pairs: list, n_chunks: int) -> list[list]:
+    """``pairs`` cut into at most ``n_chunks`` contiguous chunks of similar size, cutting only
+    where the source mesh changes (so a source's rows are solved in one chunk) when possible."""
+    edges = [0] + [i for i in range(1, len(pairs)) if pairs[i][2] != pairs[i - 1][2]] + [len(pairs)]
+    target = np.linspace(0, len(pairs), n_chunks + 1)[1:-1]
+    cuts = sorted({min(edges, key=lambda e, t=t: abs(e - t)) for t in target} - {0, len(pairs)})
+    bounds = [0, *cuts, len(pairs)]
+    return [pairs[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
 
 
 def evaluate_pairs(
@@ -645,11 +657,12 @@ def evaluate_pairs(
 
     Each mesh is loaded and prepared (:func:`prepare_shape`: operators, eigenpairs, geodesic
     rows, heat kernels) once per process and reused by every pair it takes part in. With
-    ``workers > 1`` the pairs are split into contiguous chunks (pairs sharing a source stay
-    together) run by a local process pool; ``executor`` runs them on any
-    :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client(...)
-    .get_executor()`` for a cluster). The results are the same as in one process: every map
-    is computed from the same inputs by the same deterministic steps.
+    ``workers > 1`` the pairs are split into contiguous chunks, cut where the source mesh
+    changes when possible (its scoring rows are then solved once), run by a local process
+    pool; ``executor`` runs them on any :class:`concurrent.futures.Executor` instead (e.g.
+    ``dask.distributed.Client(...).get_executor()`` for a cluster). The results are the same
+    as in one process: every map is computed from the same inputs by the same deterministic
+    steps.
 
     Args:
         gt_landmarks: use this many ground-truth pairs per pair as landmarks
@@ -664,16 +677,11 @@ def evaluate_pairs(
     workers = check_count(workers, 1, 4096, "workers")
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if executor is None and workers == 1:
-        shapes: dict = {}
-        results = []
-        for pair in pairs:
-            results += _evaluate_chunk([pair], gt_landmarks, max_points, match_kwargs, shapes)
-            bar.update()
-        bar.close()
-        return results
-    n_chunks = min(len(pairs), 4 * workers)  # a few chunks per worker: balance vs reuse
-    bounds = np.linspace(0, len(pairs), n_chunks + 1).astype(int)
-    chunks = [pairs[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
+        try:
+            return _evaluate_chunk(pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update)
+        finally:
+            bar.close()
+    chunks = _source_chunks(pairs, min(len(pairs), 4 * workers))  # a few per worker: balance vs reuse
     own = executor is None
     pool = ProcessPoolExecutor(max_workers=workers) if own else executor
     try:

@@ -68,8 +68,12 @@ class GeodesicSolver:
 
     def distances(self, sources) -> np.ndarray:
         """``(S, V)``: row ``r`` holds distances from ``sources[r]``."""
-        s = check_vertex_indices(sources, self.mesh.n_vertices)
-        return np.stack([self.distance(int(i)) for i in s])
+        s = check_vertex_indices(sources, self.mesh.n_vertices)  # checked once, not per row
+        out = np.empty((len(s), self.mesh.n_vertices))
+        for r, i in enumerate(s.tolist()):
+            out[r] = self._solver.compute_distance(i)
+            self._cut(out[r], np.array([i]))
+        return out
 
     def distance_matrix(self, symmetrize: bool = True, force: bool = False) -> np.ndarray:
         """``(V, V)`` all-pairs distances; refuses meshes above ``FULL_MATRIX_LIMIT`` unless forced.
