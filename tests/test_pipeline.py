@@ -212,6 +212,39 @@ def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkey
     assert [len(c) for c in chunks] == [3, 1, 3]
 
 
+def test_evaluate_pairs_pool_after_threaded_torch_work_in_the_parent_does_not_hang(tmp_path):
+    """A pool forked after the parent used torch's thread pool hung in the workers' first
+    torch.linalg.eigh; workers are spawned. Run in a subprocess with a deadline, so a
+    regression fails instead of hanging the suite."""
+    import subprocess
+    import sys
+
+    from torchfmap import save_mesh
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.3, 0.5)):
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    script = (
+        "import torch\n"
+        "from torchfmap.eval import discover_pairs\n"
+        "from torchfmap.pipeline import evaluate_pairs\n"
+        "torch.set_num_threads(2)\n"
+        "a = torch.randn(400, 400, dtype=torch.float64)\n"
+        "torch.linalg.eigh(a @ a.T)  # the parent's intra-op thread pool is up\n"
+        "for _ in range(3):\n"
+        "    a = a @ a / 400\n"
+        f"pairs = list(discover_pairs({str(tmp_path)!r}))\n"
+        "one = evaluate_pairs(pairs, k=60)\n"
+        "two = evaluate_pairs(pairs, k=60, workers=2)\n"
+        "assert all((p.errors == q.errors).all() for p, q in zip(one, two))\n"
+        "print('ok')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr[-2000:]
+
+
 def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
     """The same pairs through Dask distributed's executor (2 worker processes) give exactly the
     single-process results, in order."""

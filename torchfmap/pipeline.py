@@ -7,6 +7,7 @@ both shapes; they therefore need landmarks. The Laplacian eigenbasis needs none.
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 import warnings
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -683,7 +684,10 @@ def evaluate_pairs(
             bar.close()
     chunks = _source_chunks(pairs, min(len(pairs), 4 * workers))  # a few per worker: balance vs reuse
     own = executor is None
-    pool = ProcessPoolExecutor(max_workers=workers) if own else executor
+    # spawned, not forked: a child forked after this process used torch's or BLAS's thread
+    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way)
+    spawn = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=spawn) if own else executor
     try:
         futures = {
             pool.submit(_evaluate_chunk, c, gt_landmarks, max_points, match_kwargs): i
