@@ -90,6 +90,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline-pairs", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--no-dev", action="store_true", help="skip the dev pairs")
     parser.add_argument("--synthetic", type=int, default=100, help="synthetic shapes (0: none)")
     parser.add_argument("--synthetic-v", type=int, default=1000)
     args = parser.parse_args()
@@ -97,7 +98,7 @@ def main() -> None:
     report.add(f"# Evaluating collections ({versions('numpy', 'scipy')}; {load_note()} at start)")
     rows: list = []
     dev = data_path("tosca5k_dev")
-    if dev is not None:
+    if dev is not None and not args.no_dev:
         run("tosca5k_dev test pairs", list(discover_pairs(dev)), args, rows)
     if args.synthetic:
         with tempfile.TemporaryDirectory() as tmp:

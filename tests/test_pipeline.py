@@ -205,8 +205,14 @@ def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkey
     real = geodesic.GeodesicSolver.distances
     counted = lambda self, s: solved.extend(s) or real(self, s)  # noqa: E731
     monkeypatch.setattr(geodesic.GeodesicSolver, "distances", counted)
+    built = []
+    init = geodesic.GeodesicSolver.__init__
+    monkeypatch.setattr(
+        geodesic.GeodesicSolver, "__init__", lambda self, m, **kw: built.append(m) or init(self, m, **kw)
+    )
     results = pipeline.evaluate_pairs(pairs, k=20)
     assert len(results) == 3 and len(solved) == x.n_vertices  # every vertex is a gt point, once
+    assert len(built) == 1  # only the source's geodesic solver is factorised (targets: lazily never)
     other = [("m1", "m2", paths[1], paths[2], gt)]
     chunks = pipeline._source_chunks(pairs + other + pairs, 3)
     assert [len(c) for c in chunks] == [3, 1, 3]

@@ -99,7 +99,7 @@ class DistanceRows:
 
     Args:
         mesh: the surface.
-        solver: its :class:`GeodesicSolver` (built here when None).
+        solver: its :class:`GeodesicSolver` (built on first use when None).
         normalized: scale as above.
         max_bytes: bound on the kept rows (8 V bytes each).
 
@@ -118,10 +118,17 @@ class DistanceRows:
         if max_bytes is not None and max_bytes < 0:
             raise ParameterError(f"max_bytes must be None or >= 0, got {max_bytes}.")
         self.mesh = mesh
-        self.solver = solver if solver is not None else GeodesicSolver(mesh)
+        self._solver = solver
         self.scale = 1.0 / np.sqrt(mesh.area) if normalized else None
         self.max_rows = None if max_bytes is None else int(max_bytes) // (8 * max(mesh.n_vertices, 1))
         self._rows: dict[int, np.ndarray] = {}
+
+    @property
+    def solver(self) -> GeodesicSolver:
+        """The mesh's :class:`GeodesicSolver`, built (prefactored) on first use."""
+        if self._solver is None:
+            self._solver = GeodesicSolver(self.mesh)
+        return self._solver
 
     def __call__(self, source: int) -> np.ndarray:
         """``(V,)`` distances from ``source``."""
