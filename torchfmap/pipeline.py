@@ -8,8 +8,6 @@ both shapes; they therefore need landmarks. The Laplacian eigenbasis needs none.
 from __future__ import annotations
 
 import multiprocessing
-import os
-import sys
 import time
 import warnings
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -635,17 +633,6 @@ def _evaluate_chunk(
     return out
 
 
-def _limit_threads(n: int) -> None:
-    """Pool worker initializer: at most ``n`` BLAS/OpenMP and torch threads in this worker."""
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(n)
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(n)
-    else:  # torch is imported lazily by the fmap core: make its pool size follow
-        os.environ["OMP_NUM_THREADS"] = str(n)
-
-
 def _source_chunks(pairs: list, n_chunks: int) -> list[list]:
     """``pairs`` cut into at most ``n_chunks`` contiguous chunks of similar size, cutting only
     where the source mesh changes (so a source's rows are solved in one chunk) when possible."""
@@ -673,7 +660,7 @@ def evaluate_pairs(
     rows, heat kernels) once per chunk of pairs and reused by every pair it takes part in. With
     ``workers > 1`` the pairs are split into contiguous chunks, cut where the source mesh
     changes when possible (its scoring rows are then solved once), run by a local process
-    pool (spawned processes, ``cpu_count // workers`` BLAS and torch threads each);
+    pool (spawned processes);
     ``executor`` runs them on any :class:`concurrent.futures.Executor` instead (e.g.
     ``dask.distributed.Client(...).get_executor()`` for a cluster). The results are the same
     as in one process: every map is computed from the same inputs by the same deterministic
@@ -701,19 +688,11 @@ def evaluate_pairs(
     # which is cheap (operators; the geodesic factorisation only for sources, on first use)
     chunks = _source_chunks(pairs, min(len(pairs), 4 * workers))
     # spawned, not forked: a child forked after this process used torch's or BLAS's thread
-    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way); each worker
-    # gets its share of the cores for BLAS and torch threads (no oversubscription)
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    pool = (
-        ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_limit_threads,
-            initargs=(threads,),
-        )
-        if own
-        else executor
-    )
+    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way). Workers keep
+    # the default thread counts: with fewer BLAS threads than this process, round-off (and so
+    # near-tied point maps) would differ from the one-process run
+    spawn = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=spawn) if own else executor
     try:
         futures = {
             pool.submit(_evaluate_chunk, c, gt_landmarks, max_points, match_kwargs): i
