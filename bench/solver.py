@@ -293,7 +293,8 @@ def main(argv: list[str] | None = None) -> None:
     if not args.no_solver:
         out.add(*run_solver(args))
     if not args.no_train:
-        out.add(*train_step.run_train(args))
+        if args.train_ks and args.train_batches:
+            out.add(*train_step.run_train(args))
         if args.recipe_ks:
             out.add(*train_step.run_recipes(args))
     out.add(f"{load_note()} at end; total {time.perf_counter() - t_start:.0f} s.")
