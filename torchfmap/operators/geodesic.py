@@ -137,8 +137,8 @@ class DistanceRows:
     def distances(self, sources) -> np.ndarray:
         """``(S, V)``: row ``r`` holds distances from ``sources[r]`` (kept rows are not solved
         again); the interface of :meth:`GeodesicSolver.distances`."""
-        s = check_vertex_indices(sources, self.mesh.n_vertices)
-        missing = [int(i) for i in dict.fromkeys(s.tolist()) if int(i) not in self._rows]
+        s = check_vertex_indices(sources, self.mesh.n_vertices)  # distinct, in range
+        missing = [i for i in s.tolist() if i not in self._rows]
         fresh = {}
         if missing:
             solved = self.solver.distances(missing)
