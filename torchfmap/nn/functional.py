@@ -108,7 +108,7 @@ def spatial_gradient(f: torch.Tensor, grad: GradientBatch) -> tuple[torch.Tensor
             f"the features have V={f.shape[1]}. Fix: use the operators precomputed for these meshes."
         )
     B, V, C = f.shape
-    E = grad.rows.shape[1]
+    N, E = B * V, grad.rows.shape[1]
     offset = V * torch.arange(B, device=f.device)[:, None]  # shape b's vertices are rows bV..bV+V-1
     rows = (grad.rows.to(f.device) + offset).reshape(-1)
     cols = (grad.cols.to(f.device) + offset).reshape(-1)
@@ -117,13 +117,12 @@ def spatial_gradient(f: torch.Tensor, grad: GradientBatch) -> tuple[torch.Tensor
     order_t = None
     if grad.order_t is not None:  # per-shape (col, row) orders; the blocks follow each other
         order_t = (grad.order_t.to(f.device) + E * torch.arange(B, device=f.device)[:, None]).reshape(-1)
-    key = rows * (B * V) + cols
+    key = rows * N + cols
     if key.numel() > 1 and not bool((key[1:] >= key[:-1]).all()):
         by_row = torch.argsort(key)
         rows, cols, wx, wy, order_t = rows[by_row], cols[by_row], wx[by_row], wy[by_row], None
     if order_t is None:
-        order_t = torch.argsort(cols * (B * V) + rows)
-    N = B * V
+        order_t = torch.argsort(cols * N + rows)
     crow, ccol = _row_pointers(rows, N), _row_pointers(cols, N)
     rows_t = rows[order_t]
     gx, gy = _SparsePairProduct.apply(

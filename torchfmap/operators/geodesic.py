@@ -57,8 +57,7 @@ class GeodesicSolver:
 
     def distance(self, source: int) -> np.ndarray:
         """``(V,)`` geodesic distance from one vertex."""
-        (s,) = check_vertex_indices([source], self.mesh.n_vertices, "source")
-        return self._cut(np.asarray(self._solver.compute_distance(int(s)), dtype=np.float64), np.array([s]))
+        return self.distances([source])[0]
 
     def distance_to_set(self, sources) -> np.ndarray:
         """``(V,)`` distance to the nearest of several sources (one solve, not a minimum)."""
