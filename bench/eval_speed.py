@@ -12,11 +12,16 @@ Rows, all in this process (the pool's workers are child processes), same ``match
   prepared again for every pair, as ``eval`` did before shapes were prepared once. It runs on
   the first ``--baseline-pairs`` pairs only; its cost is linear in the number of pairs by
   construction, so the time for all pairs is extrapolated from the time per pair (marked ``*``).
-- ``prepared, 1 process``: ``evaluate_pairs(pairs, workers=1)``: each mesh prepared once;
-- ``prepared, N workers``: ``workers=N`` (``--workers``, a local process pool).
+- ``prepared, 1 process``: ``evaluate_pairs(pairs, workers=1)``: each mesh prepared once, with
+  this process's threads (all CPUs);
+- ``1 process, T threads``: the same with ``threads=T``, ``T = max(1, CPUs // N)``;
+- ``prepared, N workers``: ``workers=N`` (``--workers``, a local process pool), ``T`` threads
+  each (``evaluate_pairs``'s default for a pool).
 
-Speed-ups are against ``per pair`` (extrapolated) and, for the pool, against one process;
-results of the pool are checked to equal the one-process results (per-point errors). Data:
+Speed-ups are against ``per pair`` (extrapolated) and, for the pool, against both one-process
+runs; the pool's results are checked to equal, bit for bit, those of the one-process run with
+the same ``T`` threads (per-point errors; the thread count sets the order of BLAS's parallel
+sums, so runs with different thread counts may differ in near-tied points). Data:
 the 58 test pairs of ``../shared/data/tosca5k_dev`` (14 shapes), and a synthetic collection of ``--synthetic``
 copies of ``bench_mesh(--synthetic-v)``, each bent by its own angle about the x axis (vertex ids
 kept, identity ground truth; consecutive pairs as ``discover_pairs`` forms them).
@@ -25,6 +30,7 @@ kept, identity ground truth; consecutive pairs as ``discover_pairs`` forms them)
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -62,11 +68,17 @@ def run(label: str, pairs: list, args, rows: list) -> None:
     one = evaluate_pairs(pairs, workers=1)
     t_one = time.perf_counter() - t0
     log(f"  prepared, 1 process: {t_one:.1f} s")
+    threads = max(1, (os.cpu_count() or 1) // args.workers)
     t0 = time.perf_counter()
-    pool = evaluate_pairs(pairs, workers=args.workers)
+    one_t = evaluate_pairs(pairs, workers=1, threads=threads)
+    t_one_t = time.perf_counter() - t0
+    log(f"  prepared, 1 process, {threads} thread(s): {t_one_t:.1f} s")
+    t0 = time.perf_counter()
+    pool = evaluate_pairs(pairs, workers=args.workers, threads=threads)
     t_pool = time.perf_counter() - t0
-    log(f"  prepared, {args.workers} workers: {t_pool:.1f} s")
-    same = all(np.array_equal(a.errors, b.errors) for a, b in zip(one, pool, strict=True))
+    log(f"  prepared, {args.workers} workers x {threads} thread(s): {t_pool:.1f} s")
+    same = all(np.array_equal(a.errors, b.errors) for a, b in zip(one_t, pool, strict=True))
+    same_default = all(np.array_equal(a.errors, b.errors) for a, b in zip(one, pool, strict=True))
     shapes = len({p[0] for p in pairs} | {p[1] for p in pairs})
     base = per_pair * len(pairs)
     rows.append(
@@ -76,10 +88,13 @@ def run(label: str, pairs: list, args, rows: list) -> None:
             "shapes": shapes,
             "per pair [s]": f"{base:.0f}*",
             "prepared, 1 process [s]": t_one,
-            f"prepared, {args.workers} workers [s]": t_pool,
+            f"1 process, {threads} thread(s) [s]": t_one_t,
+            f"prepared, {args.workers} workers x {threads} [s]": t_pool,
             "speed-up, 1 process": base / t_one,
             f"{args.workers} workers / 1 process": t_one / t_pool,
-            "pool == 1 process": "yes" if same else "NO",
+            f"{args.workers} workers / 1 process ({threads} thread(s))": t_one_t / t_pool,
+            f"pool == 1 process ({threads} thread(s))": "yes" if same else "NO",
+            "pool == 1 process (all threads)": "yes" if same_default else "no",
             "mean error": float(np.mean([r.errors.mean() for r in one])),
             "load1": load1(),
         }

@@ -118,7 +118,7 @@ def test_cli_eval_on_identity_folder(tmp_path, capsys):
     folder = data_path("tosca_hires_wolf")
     png = tmp_path / "pck.png"
     args = ["eval", str(folder), "--k", "30", "--max-pairs", "1", "--max-points", "200", "--png", str(png)]
-    assert main([*args, "--quiet"]) == 0
+    assert main([*args, "--threads", "1", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "| wolf0 | wolf1 |" in out and png.exists()
     mean = float(out.split("| **all** | | ")[1].split(" ")[0])
@@ -174,15 +174,59 @@ def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_result
     prepared = []
     real = pipeline.prepare_shape
     monkeypatch.setattr(pipeline, "prepare_shape", lambda mesh, n: prepared.append(mesh) or real(mesh, n))
-    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20)
+    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, threads=1)
     assert len(prepared) == 4  # 4 meshes in 3 pairs
     monkeypatch.undo()
-    two = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, workers=2)
+    # the same thread count per process: the pool's maps are the one-process maps, bit for bit
+    two = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, workers=2, threads=1)
     assert [(r.source, r.target) for r in two] == [(a, b) for a, b, *_ in pairs]
     for r1, r2 in zip(one, two, strict=True):
         np.testing.assert_array_equal(r1.errors, r2.errors)
     with pytest.raises(ParameterError, match="workers"):
         pipeline.evaluate_pairs(pairs, workers=0)
+    with pytest.raises(ParameterError, match="threads"):
+        pipeline.evaluate_pairs(pairs, threads=0)
+
+
+def test_evaluate_pairs_runs_with_the_given_threads_and_restores_them(tmp_path, monkeypatch):
+    """``threads`` limits BLAS (threadpoolctl) and torch while the pairs run, and the caller's
+    settings come back afterwards, also when a pair raises."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    import torchfmap.pipeline as pipeline
+    from torchfmap import save_mesh
+    from torchfmap.eval import discover_pairs
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.3)):
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    pairs = list(discover_pairs(tmp_path))
+    seen = []
+    real = pipeline.match
+
+    def recording(*args, **kwargs):
+        blas = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+        seen.append((torch.get_num_threads(), blas))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "match", recording)
+    torch_before = torch.get_num_threads()
+    blas_before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    pipeline.evaluate_pairs(pairs, k=20, threads=1)
+    assert seen and all(t == 1 and all(b == 1 for b in blas) for t, blas in seen)
+    assert torch.get_num_threads() == torch_before
+    assert [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"] == blas_before
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("pair failed")
+
+    monkeypatch.setattr(pipeline, "match", failing)
+    with pytest.raises(RuntimeError, match="pair failed"):
+        pipeline.evaluate_pairs(pairs, k=20, threads=1)
+    assert torch.get_num_threads() == torch_before
 
 
 def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkeypatch):
@@ -218,6 +262,33 @@ def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkey
     assert [len(c) for c in chunks] == [3, 1, 3]
 
 
+def test_a_pool_worker_prepares_each_mesh_once_across_its_chunks(tmp_path, monkeypatch):
+    """A local pool's worker keeps the shapes it prepared for its next chunks (the pool's
+    initializer gives it the store); the calling process keeps nothing between calls."""
+    import torchfmap.pipeline as pipeline
+    from torchfmap import save_mesh
+    from torchfmap.eval import discover_pairs
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.3, 0.5)):
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    pairs = list(discover_pairs(tmp_path))  # m0-m1, m1-m2: m1 in both
+    prepared = []
+    real = pipeline.prepare_shape
+    monkeypatch.setattr(pipeline, "prepare_shape", lambda mesh, n: prepared.append(mesh) or real(mesh, n))
+    for chunk in ([pairs[0]], [pairs[1]]):  # in this process: each chunk prepares its own meshes
+        pipeline._evaluate_chunk(chunk, 0, 200, {"k": 20})
+    assert len(prepared) == 4 and pipeline._POOL_SHAPES is None
+    prepared.clear()
+    monkeypatch.setattr(pipeline, "_POOL_SHAPES", None)  # restored after the test
+    pipeline._init_pool_worker()  # as in a pool's worker process
+    for chunk in ([pairs[0]], [pairs[1]]):
+        pipeline._evaluate_chunk(chunk, 0, 200, {"k": 20})
+    assert len(prepared) == 3  # m1 prepared once
+
+
 def test_evaluate_pairs_pool_after_threaded_torch_work_in_the_parent_does_not_hang(tmp_path):
     """A pool forked after the parent used torch's thread pool hung in the workers' first
     torch.linalg.eigh; workers are spawned. Run in a subprocess with a deadline, so a
@@ -242,8 +313,8 @@ def test_evaluate_pairs_pool_after_threaded_torch_work_in_the_parent_does_not_ha
         "for _ in range(3):\n"
         "    a = a @ a / 400\n"
         f"pairs = list(discover_pairs({str(tmp_path)!r}))\n"
-        "one = evaluate_pairs(pairs, k=60)\n"
-        "two = evaluate_pairs(pairs, k=60, workers=2)\n"
+        "one = evaluate_pairs(pairs, k=60, threads=1)\n"
+        "two = evaluate_pairs(pairs, k=60, workers=2, threads=1)\n"
         "assert all((p.errors == q.errors).all() for p, q in zip(one, two))\n"
         "print('ok')\n"
     )
@@ -263,12 +334,14 @@ def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
     for i, amount in enumerate((0.05, 0.3, 0.5)):
         save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
     pairs = list(discover_pairs(tmp_path))
-    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20)
+    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, threads=1)
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
     ) as cluster:
         with distributed.Client(cluster) as client:
-            on_cluster = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, executor=client.get_executor())
+            on_cluster = pipeline.evaluate_pairs(
+                pairs, gt_landmarks=4, k=20, threads=1, executor=client.get_executor()
+            )
     assert [(r.source, r.target) for r in on_cluster] == [(r.source, r.target) for r in one]
     for r1, r2 in zip(one, on_cluster, strict=True):
         np.testing.assert_array_equal(r1.errors, r2.errors)

@@ -354,6 +354,7 @@ def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere, capsys):
         ["match", "MESH", "MESH", "--k", "0", "--out", "OUT"],
         ["eval", "FOLDER", "--max-points", "-5"],
         ["eval", "FOLDER", "--max-pairs", "-1"],
+        ["eval", "FOLDER", "--threads", "0"],
     ],
 )
 def test_cli_bad_numbers_are_usage_errors(tmp_path, sphere, capsys, argv):

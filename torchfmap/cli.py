@@ -286,6 +286,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         gt_landmarks=args.gt_landmarks,
         max_points=args.max_points,
         workers=args.workers,
+        threads=args.threads,
         executor=_dask_executor(args.dask) if args.dask else None,
         progress=not args.quiet,
         basis=args.basis,
@@ -444,6 +445,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=positive_int,
         default=1,
         help="local processes (each mesh prepared once per process)",
+    )
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        default=None,
+        help="BLAS/torch threads per process (default: all CPUs / workers); equal --threads give "
+        "identical results with any --workers",
     )
     p.add_argument("--dask", metavar="ADDRESS", help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -7,7 +7,9 @@ both shapes; they therefore need landmarks. The Laplacian eigenbasis needs none.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
+import os
 import time
 import warnings
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from ._checks import check_count, check_seeds_cover_components, check_vertex_indices
@@ -602,14 +605,52 @@ class PairResult(NamedTuple):
 
 #: Distance rows :func:`evaluate_pairs` keeps for the current source mesh (bytes).
 EVAL_ROWS_BYTES = 512 * 2**20
+#: Cost of a source's scoring rows in units of one pair's match, for balancing a pool's chunks
+#: (on 5K-vertex meshes, rows from every vertex cost several matches).
+SOURCE_COST = 5.0
+
+# The prepared shapes of a local pool's worker process, kept across the chunks it runs (so a
+# worker prepares each mesh once); set by the pool's initializer in the worker, never in the
+# calling process, and gone with the pool when evaluate_pairs returns.
+_POOL_SHAPES: dict | None = None
+
+
+def _init_pool_worker() -> None:
+    global _POOL_SHAPES
+    _POOL_SHAPES = {}
+
+
+@contextlib.contextmanager
+def _thread_limit(threads: int | None):
+    """BLAS / OpenMP (threadpoolctl) and torch intra-op threads set to ``threads`` inside the
+    block and restored after it; ``None`` leaves them as they are."""
+    if threads is None:
+        yield
+        return
+    import torch
+
+    previous = torch.get_num_threads()
+    with threadpool_limits(limits=threads):
+        torch.set_num_threads(threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(previous)
 
 
 def _evaluate_chunk(
-    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None
+    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None, threads=None
 ) -> list[PairResult]:
-    """Match and score ``pairs`` in order; each mesh is loaded and prepared once (``shapes``:
-    path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after each pair."""
-    shapes = {} if shapes is None else shapes
+    """Match and score ``pairs`` in order with ``threads`` threads (:func:`_thread_limit`); each
+    mesh is loaded and prepared once (``shapes``: path -> (mesh, PreparedShape), filled here);
+    ``on_pair()`` is called after each pair."""
+    if shapes is None:
+        shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
+    with _thread_limit(threads):
+        return _evaluate_pairs_in_order(pairs, gt_landmarks, max_points, match_kwargs, shapes, on_pair)
+
+
+def _evaluate_pairs_in_order(pairs, gt_landmarks, max_points, match_kwargs, shapes, on_pair):
     out = []
     rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
     for a, b, pa, pb, gt in pairs:
@@ -633,12 +674,21 @@ def _evaluate_chunk(
     return out
 
 
+def _chunk_costs(pairs: list) -> np.ndarray:
+    """Estimated cost of each pair in a run of ``pairs``: one match, plus :data:`SOURCE_COST`
+    where the source mesh changes (its scoring rows are solved there)."""
+    new_source = [i == 0 or pairs[i][2] != pairs[i - 1][2] for i in range(len(pairs))]
+    return 1.0 + SOURCE_COST * np.asarray(new_source, dtype=float)
+
+
 def _source_chunks(pairs: list, n_chunks: int) -> list[list]:
-    """``pairs`` cut into at most ``n_chunks`` contiguous chunks of similar size, cutting only
-    where the source mesh changes (so a source's rows are solved in one chunk) when possible."""
+    """``pairs`` cut into at most ``n_chunks`` contiguous chunks of similar estimated cost
+    (:func:`_chunk_costs`), cutting only where the source mesh changes (so a source's rows are
+    solved in one chunk) when possible."""
     edges = [0] + [i for i in range(1, len(pairs)) if pairs[i][2] != pairs[i - 1][2]] + [len(pairs)]
-    target = np.linspace(0, len(pairs), n_chunks + 1)[1:-1]
-    cuts = sorted({min(edges, key=lambda e, t=t: abs(e - t)) for t in target} - {0, len(pairs)})
+    cumulative = np.concatenate([[0.0], np.cumsum(_chunk_costs(pairs))])
+    target = np.linspace(0.0, cumulative[-1], n_chunks + 1)[1:-1]
+    cuts = sorted({min(edges, key=lambda e, t=t: abs(cumulative[e] - t)) for t in target} - {0, len(pairs)})
     bounds = [0, *cuts, len(pairs)]
     return [pairs[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
 
@@ -649,6 +699,7 @@ def evaluate_pairs(
     gt_landmarks: int = 0,
     max_points: int | None = None,
     workers: int = 1,
+    threads: int | None = None,
     executor: Executor | None = None,
     progress: bool = False,
     **match_kwargs,
@@ -662,42 +713,59 @@ def evaluate_pairs(
     changes when possible (its scoring rows are then solved once), run by a local process
     pool (spawned processes);
     ``executor`` runs them on any :class:`concurrent.futures.Executor` instead (e.g.
-    ``dask.distributed.Client(...).get_executor()`` for a cluster). The results are the same
-    as in one process: every map is computed from the same inputs by the same deterministic
-    steps.
+    ``dask.distributed.Client(...).get_executor()`` for a cluster).
+
+    Every chunk runs with ``threads`` BLAS / OpenMP / torch threads. The thread count fixes
+    the order of BLAS's and torch's parallel sums, and so the last bits of eigenvectors and
+    maps (near-tied points may then match differently). For the same ``threads``, the results
+    do not depend on ``workers`` or ``executor``: every map is computed from the same inputs
+    by the same deterministic steps.
 
     Args:
         gt_landmarks: use this many ground-truth pairs per pair as landmarks
             (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
         max_points: score at most this many points per pair.
+        workers: local worker processes (1: this process).
+        threads: threads per worker. ``None``: this process's threads as they are when
+            ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
+            (local pool; no oversubscription) or the executor's own setting. Pass it to
+            compare runs with different ``workers`` bit for bit.
         match_kwargs: passed to :func:`match` (``basis``, ``k``, ``refine``, ...).
 
     Raises:
-        ParameterError: ``workers < 1``.
+        ParameterError: ``workers < 1`` or ``threads < 1``.
     """
     pairs = list(pairs)
     workers = check_count(workers, 1, 4096, "workers")
+    if threads is not None:
+        threads = check_count(threads, 1, 4096, "threads")
+    elif executor is None and workers > 1:
+        threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if executor is None and workers == 1:
         try:
-            return _evaluate_chunk(pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update)
+            return _evaluate_chunk(
+                pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update, threads=threads
+            )
         finally:
             bar.close()
     own = executor is None
-    # a few chunks per worker, balanced as they complete; a chunk prepares its meshes again,
-    # which is cheap (operators; the geodesic factorisation only for sources, on first use)
+    # a few chunks per worker, balanced as they complete; a local pool's worker keeps the
+    # meshes it prepared for its next chunks (an executor's chunks prepare them again)
     chunks = _source_chunks(pairs, min(len(pairs), 4 * workers))
     # spawned, not forked: a child forked after this process used torch's or BLAS's thread
-    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way). Workers keep
-    # the default thread counts: with fewer BLAS threads than this process, round-off (and so
-    # near-tied point maps) would differ from the one-process run
+    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way)
     spawn = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=spawn) if own else executor
+    pool = (
+        ProcessPoolExecutor(max_workers=workers, mp_context=spawn, initializer=_init_pool_worker)
+        if own
+        else executor
+    )
+    # costliest chunks first (longest-processing-time order): the last ones to finish are short
+    order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
     try:
-        futures = {
-            pool.submit(_evaluate_chunk, c, gt_landmarks, max_points, match_kwargs): i
-            for i, c in enumerate(chunks)
-        }
+        args = (gt_landmarks, max_points, match_kwargs)
+        futures = {pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads): i for i in order}
         done: dict[int, list[PairResult]] = {}
         for future in as_completed(futures):
             i = futures[future]
