@@ -50,7 +50,7 @@ def main() -> None:
     args = parser.parse_args()
     limit = threadpool_limits(args.threads) if args.threads else contextlib.nullcontext()
     report = Report("eigenpairs")
-    report.add(f"# Eigenpairs: block Lanczos vs ARPACK ({versions('numpy', 'scipy')}; {load_note()})")
+    report.add(f"# Eigenpairs: block Lanczos vs ARPACK ({versions('scipy')}; {load_note()})")
     rows = []
     with limit:
         for n in int_list(args.sizes):

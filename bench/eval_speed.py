@@ -110,7 +110,7 @@ def main() -> None:
     parser.add_argument("--synthetic-v", type=int, default=1000)
     args = parser.parse_args()
     report = Report("eval_speed")
-    report.add(f"# Evaluating collections ({versions('numpy', 'scipy')}; {load_note()} at start)")
+    report.add(f"# Evaluating collections ({versions('scipy')}; {load_note()} at start)")
     rows: list = []
     dev = data_path("tosca5k_dev")
     if dev is not None and not args.no_dev:

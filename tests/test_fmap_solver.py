@@ -287,3 +287,35 @@ def test_orientation_operator_planar_closed_form():
     # rotating f by 90 degrees in the plane: f = y gives n × ∇y = -x̂, so O[:, 1] = -(area, ∫x, ∫y)
     O_y = orientation_operator(mesh, basis, y)
     np.testing.assert_allclose(O_y[:, 1], -op_x[:, 2], rtol=1e-12)
+
+
+def test_classical_solve_runs_its_small_torch_work_single_threaded(pair, monkeypatch):
+    """The eigen-decompositions and row-wise systems of the classical solve are small: they run
+    with one torch thread (torch's threads otherwise wait for cores held by BLAS's spinning
+    threads after numpy work), and the caller's torch thread count comes back afterwards."""
+    from torchfmap._threads import thread_limit, torch_threads
+    from torchfmap.fmap import core
+
+    x, y = pair
+    bx, by = laplacian_eigenbasis(x, 20), laplacian_eigenbasis(y, 20)
+    dx = normalize_descriptors(wks(bx.eigenvalues, bx.values, 10), bx.mass)
+    dy = normalize_descriptors(wks(by.eigenvalues, by.values, 10), by.mass)
+    seen = []
+    for name in ("spectral_frame", "solve_rowwise", "laplacian_mask"):
+        real = getattr(core, name)
+        monkeypatch.setattr(
+            core,
+            name,
+            lambda *a, _real=real, _n=name, **k: seen.append((_n, torch.get_num_threads())) or _real(*a, **k),
+        )
+    before = torch.get_num_threads()
+    with torch_threads(2):  # as on a multi-core machine, whatever this one has
+        C = solve_fmap(bx, by, dx, dy)
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == before and np.isfinite(C).all()
+    assert {n for n, _ in seen} == {"spectral_frame", "solve_rowwise", "laplacian_mask"}
+    assert all(t == 1 for _, t in seen)
+    with pytest.raises(RuntimeError, match="inside"), thread_limit(1):
+        assert torch.get_num_threads() == 1
+        raise RuntimeError("inside")
+    assert torch.get_num_threads() == before

@@ -7,7 +7,6 @@ both shapes; they therefore need landmarks. The Laplacian eigenbasis needs none.
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing
 import os
 import time
@@ -17,10 +16,10 @@ from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from ._checks import check_count, check_seeds_cover_components, check_vertex_indices
+from ._threads import thread_limit
 from .bases import (
     Basis,
     Column,
@@ -620,33 +619,16 @@ def _init_pool_worker() -> None:
     _POOL_SHAPES = {}
 
 
-@contextlib.contextmanager
-def _thread_limit(threads: int | None):
-    """BLAS / OpenMP (threadpoolctl) and torch intra-op threads set to ``threads`` inside the
-    block and restored after it; ``None`` leaves them as they are."""
-    if threads is None:
-        yield
-        return
-    import torch
-
-    previous = torch.get_num_threads()
-    with threadpool_limits(limits=threads):
-        torch.set_num_threads(threads)
-        try:
-            yield
-        finally:
-            torch.set_num_threads(previous)
-
-
 def _evaluate_chunk(
     pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None, threads=None
 ) -> list[PairResult]:
-    """Match and score ``pairs`` in order with ``threads`` threads (:func:`_thread_limit`); each
-    mesh is loaded and prepared once (``shapes``: path -> (mesh, PreparedShape), filled here);
-    ``on_pair()`` is called after each pair."""
+    """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
+    :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
+    (``shapes``: path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after
+    each pair."""
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
-    with _thread_limit(threads):
+    with thread_limit(threads):
         return _evaluate_pairs_in_order(pairs, gt_landmarks, max_points, match_kwargs, shapes, on_pair)
 
 

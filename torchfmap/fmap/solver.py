@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse.linalg as ssla
 
 from .._checks import check_landmark_pairs
+from .._threads import torch_threads
 from ..bases.basis import Basis
 from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
@@ -55,7 +56,8 @@ class SpectralFrame:
 
     @classmethod
     def of(cls, W: np.ndarray) -> SpectralFrame:
-        lam, U = core.spectral_frame(core.as_tensor(W))
+        with torch_threads(1):  # a small eigenproblem: see torchfmap._threads
+            lam, U = core.spectral_frame(core.as_tensor(W))
         return cls(lam.numpy(), U.numpy())
 
 
@@ -200,9 +202,10 @@ class FmapProblem:
         if not self.commute and self.landmarks is None:
             t = core.as_tensor
             prior = None if self.prior is None else t(self.prior)
-            return core.solve_rowwise(
-                t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap, None, prior, self.w_prior
-            ).numpy()
+            with torch_threads(1):  # K small K x K systems: see torchfmap._threads
+                return core.solve_rowwise(
+                    t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap, None, prior, self.w_prior
+                ).numpy()
         ky, kx = self.shape
         inv_blocks = np.linalg.inv(self.row_blocks())
         rhs = self.normal_rhs()
@@ -318,7 +321,8 @@ def build_problem(
         prior_r = fy.U.T @ prior @ fx.U
         # relative to the descriptor term: w_prior = 1 weighs like an average row of it
         w_prior_abs = w_prior * w_desc * max(float(np.sum(A_x**2)) / basis_x.k, 1e-300)
-    mask_w = core.laplacian_mask(core.as_tensor(fx.lam), core.as_tensor(fy.lam), mask).numpy()
+    with torch_threads(1):
+        mask_w = core.laplacian_mask(core.as_tensor(fx.lam), core.as_tensor(fy.lam), mask).numpy()
     return FmapProblem(A_x, A_y, mask_w, fx, fy, commute, lmk, w_desc, w_lap, prior_r, w_prior_abs)
 
 
