@@ -67,7 +67,7 @@ def main() -> None:
                         log(f"  round {r + 1}: {solver} {t:.2f} s")
                 med = {s: float(np.median(t)) for s, t in times.items()}
                 rel, overlap = agreement(out["arpack"], out["block"], B)
-                auto = "block" if k >= 20 and n >= eig_module.BLOCK_MIN_VERTICES else "arpack"
+                auto = eig_module.auto_solver(n, k)
                 rows.append(
                     {
                         "V": mesh.n_vertices,

@@ -16,7 +16,7 @@ from .conftest import random_rotation
 )  # dense eigh, sparse eigsh and block Lanczos paths
 def test_orthonormal_sorted_and_paths_agree(blob, monkeypatch, dense_limit, solver):
     monkeypatch.setattr(eig_module, "DENSE_LIMIT", dense_limit)
-    monkeypatch.setattr(eig_module, "BLOCK_MIN_VERTICES", 0 if solver == "block" else 10**18)
+    monkeypatch.setattr(eig_module, "BLOCK_MIN_WORK", 0 if solver == "block" else 10**18)
     basis = laplacian_eigenbasis(blob, 20)
     assert np.abs(basis.gram() - np.eye(20)).max() < 1e-10
     lam = basis.eigenvalues

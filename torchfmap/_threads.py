@@ -37,6 +37,17 @@ def torch_threads(n: int | None) -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def blas_threads(n: int | None) -> Iterator[None]:
+    """BLAS threads (threadpoolctl) set to ``n`` inside the block, restored after it (``None``:
+    unchanged)."""
+    if n is None:
+        yield
+        return
+    with threadpool_limits(limits=n, user_api="blas"):
+        yield
+
+
+@contextlib.contextmanager
 def thread_limit(threads: int | None) -> Iterator[None]:
     """BLAS / OpenMP threads (threadpoolctl) and torch's threads set to ``threads`` inside the
     block, restored after it (``None``: all unchanged)."""

@@ -13,6 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as ssla
 
 from .._checks import check_symmetric, lumped_diagonal
+from .._threads import blas_threads
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from ..operators.laplacian import Operators, laplacian
@@ -47,11 +48,16 @@ def start_vector(n: int) -> np.ndarray:
     return np.random.default_rng(0).standard_normal(n)
 
 
-#: ``solver='auto'`` uses block Lanczos from this many vertices on (and ``k >= 20``). Below,
+#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``). Below,
 #: ARPACK's single-vector solves are cheap and the block method's Gram-Schmidt products
-#: cost more than they save (``bench/eigenpairs.py``: 0.25x at 5K, 0.56-0.88x at 20K,
-#: 1.34-1.38x at 200K vertices, k = 100-200, default threads).
-BLOCK_MIN_VERTICES = 50_000
+#: cost more than they save (``bench/eigenpairs.py``, 2 cores: ARPACK / block 0.76-0.86 at
+#: 5K, 1.0 at 17K / k = 100, 1.5 at 17K / k = 200, 1.2-1.4 at 50K).
+BLOCK_MIN_WORK = 3_000_000
+#: Below this many vertices block Lanczos runs with one BLAS thread. Its solves are
+#: single-threaded, and a second BLAS thread, spinning after each thin Gram-Schmidt product,
+#: takes the core they run on (17K, k = 200: 2.4 s with one thread, 4.5 s with two); at 200K
+#: the products are large enough to gain from threads (23.8 s against 27.7 s).
+BLOCK_ONE_THREAD_BELOW = 100_000
 #: Shift of the block Lanczos factorisation ``L + s B`` on a unit-area surface. The null
 #: space (``λ = 0``) then maps to ``1/s``: a modest shift keeps the dynamic range ``1 + λ_k/s``
 #: of the shift-inverted spectrum small enough (< 1e6 for ``λ_k`` up to 1e4) that the block
@@ -73,7 +79,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
       (:func:`block_lanczos`): blocks of right-hand sides per solve, Gram-Schmidt as matrix
       products; the same convergence test as ARPACK (residual ``<= ARPACK_TOL · |θ|``);
     - ``solver='arpack'``: ``scipy.sparse.linalg.eigsh`` (shift ``sigma``);
-    - ``solver='auto'``: block from :data:`BLOCK_MIN_VERTICES` vertices on, else ARPACK.
+    - ``solver='auto'``: block when ``V · k >= BLOCK_MIN_WORK`` (:func:`auto_solver`), else ARPACK.
 
     The problem is solved in a scale-free frame: ``B`` is divided by its total (the area), so
     the shift is relative to a unit-area surface and cost and accuracy do not depend on the
@@ -98,9 +104,14 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
             "rescale it first, e.g. mesh.normalized() or mesh.scaled(alpha)."
         )
     if solver == "auto":
-        solver = "block" if k >= 20 and L.shape[0] >= BLOCK_MIN_VERTICES else "arpack"
+        solver = auto_solver(n, k)
     lam, phi = _unit_area_eigenpairs(L, B / area, k, sigma, solver)
     return lam / area, phi / np.sqrt(area)
+
+
+def auto_solver(n: int, k: int) -> str:
+    """The solver ``eigenpairs(..., solver='auto')`` uses for ``k`` pairs of ``n`` vertices."""
+    return "block" if k >= 20 and n * k >= BLOCK_MIN_WORK else "arpack"
 
 
 def _unit_area_eigenpairs(L, B, k: int, sigma: float, solver: str) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +173,8 @@ def _block_eigenpairs(L, B, k: int, block: int, d: np.ndarray) -> tuple[np.ndarr
     :data:`BLOCK_SHIFT`): the standard form of the problem, ``φ = D^-1/2 ψ``."""
     fac = factorize(sp.csc_matrix(L + BLOCK_SHIFT * B), spd=True)
     s = np.sqrt(d)[:, None]
-    theta, psi = block_lanczos(lambda X: s * fac.solve(s * X), L.shape[0], k, block)
+    with blas_threads(1 if L.shape[0] < BLOCK_ONE_THREAD_BELOW else None):
+        theta, psi = block_lanczos(lambda X: s * fac.solve(s * X), L.shape[0], k, block)
     lam = 1.0 / theta - BLOCK_SHIFT
     order = np.argsort(lam)
     return lam[order], (psi / s)[:, order]
