@@ -30,7 +30,6 @@ kept, identity ground truth; consecutive pairs as ``discover_pairs`` forms them)
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import time
 from pathlib import Path
@@ -41,7 +40,7 @@ from _meshes import bench_mesh
 
 from torchfmap import Mesh, save_mesh
 from torchfmap.eval import discover_pairs
-from torchfmap.pipeline import evaluate_pairs
+from torchfmap.pipeline import evaluate_pairs, pool_threads
 
 
 def synthetic_collection(folder: Path, n_shapes: int, n_vertices: int) -> Path:
@@ -68,7 +67,7 @@ def run(label: str, pairs: list, args, rows: list) -> None:
     one = evaluate_pairs(pairs, workers=1)
     t_one = time.perf_counter() - t0
     log(f"  prepared, 1 process: {t_one:.1f} s")
-    threads = max(1, (os.cpu_count() or 1) // args.workers)
+    threads = pool_threads(args.workers)
     t0 = time.perf_counter()
     one_t = evaluate_pairs(pairs, workers=1, threads=threads)
     t_one_t = time.perf_counter() - t0

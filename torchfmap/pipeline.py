@@ -614,6 +614,11 @@ SOURCE_COST = 5.0
 _POOL_SHAPES: dict | None = None
 
 
+def pool_threads(workers: int) -> int:
+    """Threads per worker of a local pool when none are given: the CPUs shared out."""
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
 def _init_pool_worker() -> None:
     global _POOL_SHAPES
     _POOL_SHAPES = {}
@@ -629,31 +634,27 @@ def _evaluate_chunk(
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
     with thread_limit(threads):
-        return _evaluate_pairs_in_order(pairs, gt_landmarks, max_points, match_kwargs, shapes, on_pair)
-
-
-def _evaluate_pairs_in_order(pairs, gt_landmarks, max_points, match_kwargs, shapes, on_pair):
-    out = []
-    rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
-    for a, b, pa, pb, gt in pairs:
-        for path in (pa, pb):
-            if path not in shapes:
-                mesh = load_mesh(path)
-                shapes[path] = (mesh, prepare_shape(mesh, 0))
-        (x, sx), (y, sy) = shapes[pa], shapes[pb]
-        landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
-        t0 = time.perf_counter()
-        result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
-        seconds = time.perf_counter() - t0
-        # errors are geodesic on x, from its ground-truth points: pairs with the same source
-        # reuse its prefactored solver and the rows already solved (kept for one source at a time)
-        if rows is None or rows.solver is not sx.distances.solver:
-            rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
-        report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
-        out.append(PairResult(a, b, report, errors, seconds))
-        if on_pair is not None:
-            on_pair()
-    return out
+        out = []
+        rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
+        for a, b, pa, pb, gt in pairs:
+            for path in (pa, pb):
+                if path not in shapes:
+                    mesh = load_mesh(path)
+                    shapes[path] = (mesh, prepare_shape(mesh, 0))
+            (x, sx), (y, sy) = shapes[pa], shapes[pb]
+            landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
+            t0 = time.perf_counter()
+            result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
+            seconds = time.perf_counter() - t0
+            # errors are geodesic on x, from its ground-truth points: pairs with the same source
+            # reuse its prefactored solver and the rows already solved (kept for one source at a time)
+            if rows is None or rows.solver is not sx.distances.solver:
+                rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
+            report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
+            out.append(PairResult(a, b, report, errors, seconds))
+            if on_pair is not None:
+                on_pair()
+        return out
 
 
 def _chunk_costs(pairs: list) -> np.ndarray:
@@ -710,7 +711,7 @@ def evaluate_pairs(
         workers: local worker processes (1: this process).
         threads: threads per worker. ``None``: this process's threads as they are when
             ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
-            (local pool; no oversubscription) or the executor's own setting. Pass it to
+            (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
             compare runs with different ``workers`` bit for bit.
         match_kwargs: passed to :func:`match` (``basis``, ``k``, ``refine``, ...).
 
@@ -722,7 +723,7 @@ def evaluate_pairs(
     if threads is not None:
         threads = check_count(threads, 1, 4096, "threads")
     elif executor is None and workers > 1:
-        threads = max(1, (os.cpu_count() or 1) // workers)
+        threads = pool_threads(workers)
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if executor is None and workers == 1:
         try:
