@@ -11,9 +11,9 @@ from 1.2 ms to 14 ms. The classical path therefore runs its small torch work sin
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from ._lazy import torch
 
@@ -34,6 +34,13 @@ def torch_threads(n: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+def blas_limiter(n: int) -> Callable[[], contextlib.AbstractContextManager]:
+    """A factory of contexts setting BLAS threads to ``n``, for a limit entered many times (each
+    Krylov step): the loaded libraries are looked up once here, not at every entry."""
+    controller = ThreadpoolController()
+    return lambda: controller.limit(limits=n, user_api="blas")
 
 
 @contextlib.contextmanager

@@ -44,7 +44,6 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
-from threadpoolctl import ThreadpoolController
 
 from .._checks import (
     check_seeds_cover_components,
@@ -53,6 +52,7 @@ from .._checks import (
     check_vertex_indices,
     lumped_diagonal,
 )
+from .._threads import blas_limiter
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.laplacian import Operators, laplacian
@@ -298,10 +298,7 @@ def _krylov(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None
     block = max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
     store = np.empty((cap, n, block))
     out = np.empty((len(times),) + X.shape)
-    controller = ThreadpoolController()  # BLAS threads for the tiny eigenproblems only
-
-    def one_thread():
-        return controller.limit(limits=1, user_api="blas")
+    one_thread = blas_limiter(1)  # BLAS threads for the tiny eigenproblems only
 
     for group in groups:
         t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
