@@ -17,7 +17,8 @@ from _common import log, timed
 from _meshes import bench_mesh
 
 import torchfmap
-from torchfmap.bases import concatenate, heat_kernels, orthonormalize
+from torchfmap.bases import concatenate, orthonormalize
+from torchfmap.operators.heat import heat_kernels
 
 N_SEEDS = 50
 #: Relative diffusion times (multiplied by the mesh area) of the diffusion bases.

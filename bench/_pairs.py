@@ -40,7 +40,8 @@ from _pyfm import run_pyfm
 import torchfmap
 from torchfmap.data import stretch_deform
 from torchfmap.errors import ParameterError
-from torchfmap.eval import auc, evaluate_map, gt_from_map, gt_from_vts, landmarks_from_gt, read_map, read_vts
+from torchfmap.eval import auc, evaluate_map, gt_from_map, gt_from_vts, landmarks_from_gt
+from torchfmap.io import read_landmark_pairs, read_map, read_vts
 from torchfmap.pipeline import match
 
 BASES = ("laplacian", "harmonic", "diffusion", "stack")
@@ -62,7 +63,7 @@ class Pair:
             self.x = torchfmap.load_mesh(folder / "cat-00.off")
             self.y = torchfmap.load_mesh(folder / "lion-00.off")
             self.gt = gt_from_map(read_map(folder / "lion2cat"))
-            self.fixed = np.loadtxt(folder / "landmarks.txt", dtype=np.int64)  # (cat, lion)
+            self.fixed = read_landmark_pairs(folder / "landmarks.txt")  # (cat, lion)
         else:
             stretched = "~" in spec  # A~B: y = B deformed non-isometrically (ids kept)
             a, b = spec.replace("~", "-").split("-")
@@ -213,7 +214,7 @@ def code_state() -> str:
 def ours_settings() -> str:
     """``match``'s descriptor and weight defaults, as used here."""
     d = {n: p.default for n, p in inspect.signature(match).parameters.items()}
-    from torchfmap.pipeline import W_LAP
+    from torchfmap.fmap.defaults import W_LAP
 
     d["w_lap"] = "/".join(f"{W_LAP[b]:g} ({b})" for b in W_LAP) if d["w_lap"] is None else d["w_lap"]
     weights = ", ".join(

@@ -8,7 +8,7 @@ Run by hand from the repository root (table to stdout and ``bench/results/eigenp
 
 Meshes: ``bench_mesh(V)`` (``bench/_meshes.py``). For each ``(V, k)``: ``eigenpairs(L, B, k,
 solver='arpack')`` (``scipy.sparse.linalg.eigsh`` in shift-invert mode with our sparse Cholesky
-as its inverse) and ``solver='block'`` (block Lanczos, :func:`torchfmap.bases.laplacian.
+as its inverse) and ``solver='block'`` (block Lanczos, :func:`torchfmap.operators.eigen.
 block_lanczos`, with its own Cholesky of ``L + s B``), alternating, ``--repeats`` rounds,
 medians; each time includes its factorisation. Both stop at the same test, residual
 ``<= ARPACK_TOL · |θ|``. Agreement: the largest relative eigenvalue difference (``λ > 0``) and
@@ -27,7 +27,7 @@ from _common import Report, int_list, load1, load_note, log, timed, versions
 from _meshes import bench_mesh
 from threadpoolctl import threadpool_limits
 
-from torchfmap.bases import laplacian as eig_module
+from torchfmap.operators import eigen as eig_module
 from torchfmap.operators import laplacian
 
 

@@ -39,8 +39,8 @@ from _common import Report, data_path, load1, load_note, log, versions
 from _meshes import bench_mesh
 
 from torchfmap import Mesh, save_mesh
+from torchfmap.collection import evaluate_pairs, pool_threads
 from torchfmap.eval import discover_pairs
-from torchfmap.pipeline import evaluate_pairs, pool_threads
 
 
 def synthetic_collection(folder: Path, n_shapes: int, n_vertices: int) -> Path:

@@ -35,7 +35,7 @@ from _bases import HEAT_TOL, N_SEEDS, SMALL_TIMES, TIMES, column_errors, run_tim
 from _common import Report, load_note, log, timed, versions
 from _meshes import mesh_name
 
-from torchfmap.bases import heat_kernels
+from torchfmap.operators.heat import heat_kernels
 
 REF_TOL = 1e-12
 DENSE_LIMIT = 1e-9  # the rational reference must match the dense expm to this

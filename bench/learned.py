@@ -30,15 +30,18 @@ import torch
 from _common import RESULTS_DIR, Report, load_note, log, require_data
 
 from torchfmap.bases import laplacian_eigenbasis
-from torchfmap.eval import Correspondence, gt_from_vts, read_vts
+from torchfmap.eval import Correspondence, gt_from_vts
+from torchfmap.io import read_test_pairs, read_vts
 from torchfmap.mesh import Mesh
+from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.config import build_model
 from torchfmap.nn.data import ShapeDataset
-from torchfmap.nn.train import adapt, build_model, load_checkpoint, predict_p2p, refine_p2p
+from torchfmap.nn.inference import adapt, predict_p2p, refine_p2p
 from torchfmap.operators import GeodesicSolver
 
 
 def test_pairs(folder, names, which: str):
-    rows = [ln.split()[:2] for ln in (folder / "test_pairs.txt").read_text().splitlines() if ln.strip()]
+    rows = read_test_pairs(folder / "test_pairs.txt")
     rows = [r for r in rows if which == "all" or r[0].startswith(which)]
     pairs = [(names.index(a), names.index(b)) for a, b in rows]
     gts = [

@@ -61,7 +61,8 @@ from _pyfm import PYFM_FIT, run_pyfm
 
 import torchfmap
 from torchfmap.eval import auc
-from torchfmap.pipeline import W_LAP, match
+from torchfmap.fmap.defaults import W_LAP
+from torchfmap.pipeline import match
 
 WOLVES = ("tosca_hires_wolf/wolf0.off", "tosca_hires_wolf/wolf1.off")
 

@@ -142,7 +142,7 @@ def max_diff(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
 def system_cond(inp: dict[str, Any]) -> tuple[float, float]:
     """Median and max 2-norm condition number of the row systems of batch item 0, x -> y (float64)."""
     with torch.no_grad():
-        bx, by = (BasisBatch(*(t[:1].double() for t in b)) for b in (inp["bx"], inp["by"]))
+        bx, by = (BasisBatch(*(t[:1].double() for t in b[:5])) for b in (inp["bx"], inp["by"]))
         A_x = bx.values.transpose(-1, -2) @ (bx.mass[..., None] * inp["fx"][:1].double())
         A_y = by.values.transpose(-1, -2) @ (by.mass[..., None] * inp["fy"][:1].double())
         G, _, mask = loop_systems(A_x, A_y, bx.lam, bx.U, by.lam, by.U)

@@ -24,7 +24,8 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 import torchfmap
 from torchfmap.data import demo_pair
-from torchfmap.eval import gt_from_vts, landmarks_from_gt, read_vts
+from torchfmap.eval import gt_from_vts, landmarks_from_gt
+from torchfmap.io import read_vts
 
 
 def workloads(mesh_x, mesh_y, landmarks):

@@ -42,9 +42,9 @@ from _torch_inputs import DTYPES, random_basis
 
 from torchfmap import load_mesh
 from torchfmap.nn import DiffusionNet, FeatureNet, UnsupervisedFMLoss, collate_shapes
+from torchfmap.nn.config import TrainConfig
 from torchfmap.nn.data import precompute_shape, shape_item
 from torchfmap.nn.functional import fmap_solve
-from torchfmap.nn.train import TrainConfig
 
 
 class Hooks:
@@ -143,7 +143,7 @@ def run_train(args) -> list[str]:
     ]
 
 
-def coo_spatial_gradient(f: torch.Tensor, grad) -> tuple[torch.Tensor, torch.Tensor]:
+def coo_spatial_gradient(f: torch.Tensor, grad, *, check=None) -> tuple[torch.Tensor, torch.Tensor]:
     """The spatial gradient as the previous recipe applied it (a baseline kept here, not in the
     library): a COO operator built and coalesced on every call, ``torch.sparse.mm``."""
     B, V, _ = f.shape
@@ -200,8 +200,9 @@ def run_recipes(args) -> list[str]:
         losses = {key: UnsupervisedFMLoss(**cfg.loss_weights) for key in nets}
         losses["first"] = UnsupervisedFMLoss()
         opts = {key: torch.optim.Adam(net.parameters(), lr=1e-3) for key, net in nets.items()}
+        draws = torch.Generator().manual_seed(args.seed)  # the vertex samples of the coupling term
 
-        def step(key: str, nets=nets, sx=sx, sy=sy, losses=losses, opts=opts) -> float:
+        def step(key: str, nets=nets, sx=sx, sy=sy, losses=losses, opts=opts, draws=draws) -> float:
             net, t0 = nets[key], time.perf_counter()
             args_x = (sx.inputs, sx.basis) if key == "first" else (sx.inputs, sx.net_basis, sx.grad)
             args_y = (sy.inputs, sy.basis) if key == "first" else (sy.inputs, sy.net_basis, sy.grad)
@@ -209,7 +210,7 @@ def run_recipes(args) -> list[str]:
             with patch if key == "previous" else contextlib.nullcontext():
                 fx, fy = net(*args_x), net(*args_y)
                 C_xy, C_yx = fmap_solve(fx, fy, sx.basis, sy.basis)
-                total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis)["total"]
+                total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis, generator=draws)["total"]
                 opts[key].zero_grad(set_to_none=True)
                 total.backward()
             opts[key].step()

@@ -10,7 +10,7 @@ summary to ``bench/results/weight_sweep.md``)::
 Pairs and landmarks are those of ``bench/accuracy.py`` (``bench/_pairs.py``: ``--L`` ground-truth
 landmarks spread by farthest-point sampling on TOSCA pairs, the 20 given pairs on cat-lion); every
 other argument of ``match`` keeps its default, no refinement. The summary is the mean over pairs of the mean
-normalised geodesic error; it is how ``torchfmap.pipeline.W_LAP`` was chosen.
+normalised geodesic error; it is how ``torchfmap.fmap.defaults.W_LAP`` was chosen.
 """
 
 from __future__ import annotations

@@ -11,10 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from torchfmap import load_mesh
-from torchfmap.nn.train import load_checkpoint, match_with_network
+from torchfmap.io import load_mesh, write_map
+from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.inference import match_with_network
 
 
 def main() -> None:
@@ -32,7 +31,7 @@ def main() -> None:
     net, config, _ = load_checkpoint(args.checkpoint)
     src, tgt = load_mesh(args.source), load_mesh(args.target)
     p2p = match_with_network(net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine)
-    np.savetxt(args.out, p2p, fmt="%d")
+    write_map(args.out, p2p)
     print(f"{args.target.name} -> {args.source.name}: {len(p2p)} vertices -> {args.out}")
     if args.png:
         from torchfmap.viz import plot_color_transfer

@@ -22,24 +22,19 @@ from pathlib import Path
 
 import torch
 
-from torchfmap.eval import gt_from_vts, read_vts
+from torchfmap.eval import gt_from_vts
+from torchfmap.io import mesh_files, read_test_pairs, read_vts
+from torchfmap.nn.checkpoints import save_checkpoint
+from torchfmap.nn.config import CosineByTime, TrainConfig, build_model
 from torchfmap.nn.data import PairDataset, ShapeDataset, class_pairs
-from torchfmap.nn.train import (
-    CosineByTime,
-    TrainConfig,
-    build_model,
-    ddp_worker,
-    evaluate,
-    save_checkpoint,
-    train,
-    unsupervised_score,
-)
+from torchfmap.nn.inference import evaluate
+from torchfmap.nn.train import ddp_worker, train, unsupervised_score
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tosca5k_dev"
 
 
 def test_pairs(names: list[str], folder: Path, limit: int) -> tuple[list, list]:
-    rows = [ln.split()[:2] for ln in (folder / "test_pairs.txt").read_text().splitlines() if ln.strip()]
+    rows = read_test_pairs(folder / "test_pairs.txt")
     pairs, gts = [], []
     for a, b in rows[:limit]:
         pairs.append((names.index(a), names.index(b)))
@@ -68,7 +63,7 @@ def main() -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-        files = sorted(args.data.glob("*.off"))
+        files = mesh_files(args.data)
         torch.multiprocessing.spawn(
             ddp_worker,
             args=(args.world_size, port, files, args.cache, asdict(config), args.out),

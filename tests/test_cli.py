@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from torchfmap import load_mesh
 from torchfmap.cli import main
@@ -21,6 +22,7 @@ def test_shipped_demo_pair_is_consistent():
     assert abs(a.area - b.area) < 0.01 * a.area
 
 
+@pytest.mark.slow
 def test_demo_command(capsys):
     assert main(["demo"]) == 0
     out = capsys.readouterr().out
@@ -38,20 +40,33 @@ def test_info_command_and_errors(capsys, tmp_path):
 
 
 def test_basis_command(tmp_path, capsys):
+    """``torchfmap basis`` builds a registered kind's basis of exactly --k columns: feature-aware
+    kinds seeded at --landmarks first (farthest points fill the rest), also without landmarks."""
     from torchfmap import Basis
 
     mesh_path = demo_pair_paths()[0]
     lm = tmp_path / "landmarks.txt"
     lm.write_text("# two landmarks\n10\n200\n")
     out = tmp_path / "b.npz"
-    args = ["basis", str(mesh_path), "--landmarks", str(lm), "--seeds", "6", "--times", "0.01,0.001"]
-    assert main([*args, "--n-eigen", "8", "--metric", "euclidean", "--out", str(out), "--quiet"]) == 0
+    args = ["basis", str(mesh_path), "--landmarks", str(lm), "--times", "0.01,0.001"]
+    assert main([*args, "--basis", "stack", "--k", "18", "--out", str(out), "--quiet"]) == 0
     basis = Basis.load(out)
-    assert basis.orthonormal and np.abs(basis.gram() - np.eye(basis.k)).max() < 1e-10
+    assert basis.k == 18 and np.abs(basis.gram() - np.eye(basis.k)).max() < 1e-10
+    assert {c.kind for c in basis.provenance} == {"diffusion", "harmonic"}
     seeds = [c.seed for c in basis.provenance if c.kind == "harmonic"]
-    assert seeds[:2] == [10, 200] and len(seeds) == 6
-    assert main(["basis", str(mesh_path), "--kind", "harmonic", "--out", str(out), "--quiet"]) == 2
-    assert "needs seeds" in capsys.readouterr().err
+    assert seeds[:2] == [10, 200]
+    assert {c.time for c in basis.provenance if c.kind == "diffusion"} == {0.01, 0.001}
+    # with the command's own defaults, every kind works (no landmarks needed to build one basis)
+    for kind in ("harmonic", "eigen_diffusion"):
+        assert main(["basis", str(mesh_path), "--kind", kind, "--k", "12", "--out", str(out), "--quiet"]) == 0
+        assert Basis.load(out).k == 12
+    assert main(["basis", str(mesh_path), "--out", str(out), "--quiet"]) == 0
+    assert {c.kind for c in Basis.load(out).provenance} == {"laplacian"}
+    assert (
+        main(["basis", str(mesh_path), "--landmarks", str(lm), "--basis", "laplacian", "--out", str(out)])
+        == 2
+    )
+    assert "has none" in capsys.readouterr().err
     lm.write_text("10 99\n200 5\n")  # a pairs file is not a landmark list: refused, not half-read
     assert main([*args, "--out", str(out), "--quiet"]) == 2
     assert "expected 1 integer column" in capsys.readouterr().err
@@ -68,7 +83,7 @@ def test_version_and_defaults_in_help(capsys):
     for command, flag in (
         ("match", "--k"),
         ("eval", "--gt-landmarks"),
-        ("basis", "--n-eigen"),
+        ("basis", "--k"),
         ("train", "--k"),
     ):
         with pytest.raises(SystemExit):
@@ -84,9 +99,7 @@ def test_match_solves_in_saved_bases_from_the_basis_command(tmp_path, capsys):
     files = []
     for name, mesh in (("x", src), ("y", tgt)):
         out = tmp_path / f"{name}.npz"
-        assert (
-            main(["basis", mesh, "--kind", "laplacian", "--n-eigen", "30", "--out", str(out), "--quiet"]) == 0
-        )
+        assert main(["basis", mesh, "--basis", "laplacian", "--k", "30", "--out", str(out), "--quiet"]) == 0
         files.append(str(out))
     via_files, direct = tmp_path / "a.txt", tmp_path / "b.txt"
     assert main(["match", src, tgt, "--bases", *files, "--out", str(via_files)]) == 0
@@ -129,3 +142,34 @@ def test_landmark_pairs_with_swapped_columns_are_named(tmp_path, capsys):
     capsys.readouterr()
     assert main(["match", str(big), str(small), "--landmarks", str(pairs), "--k", "20", "--out", out]) == 2
     assert "swap the columns" in capsys.readouterr().err
+
+
+def test_eval_on_a_folder_of_gzipped_meshes(tmp_path, capsys):
+    """Meshes, .vts ground truth and the test-pairs file may all be .gz (one suffix rule)."""
+    import gzip
+
+    from torchfmap import save_mesh
+    from torchfmap.data import icosphere
+    from torchfmap.io import read_map
+
+    a, b, gt_ba = make_demo_pair(subdivisions=2)
+    save_mesh(a, tmp_path / "blob_a.off.gz")
+    save_mesh(b, tmp_path / "blob_b.off.gz")
+    (tmp_path / "corres").mkdir()
+    for name, ids in (("blob_a", gt_ba + 1), ("blob_b", np.arange(1, len(gt_ba) + 1))):
+        (tmp_path / "corres" / f"{name}.vts.gz").write_bytes(gzip.compress("\n".join(map(str, ids)).encode()))
+    (tmp_path / "test_pairs.txt.gz").write_bytes(gzip.compress(b"blob_a blob_b\n"))
+    assert main(["eval", str(tmp_path), "--k", "10", "--quiet"]) == 0
+    assert "| blob_a | blob_b |" in capsys.readouterr().out
+    # without ground-truth files: consecutive same-size meshes, identity ground truth
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for name in ("s0", "s1"):
+        save_mesh(icosphere(1), plain / f"{name}.ply.gz")
+    assert main(["eval", str(plain), "--k", "8", "--quiet"]) == 0
+    assert "| s0 | s1 |" in capsys.readouterr().out
+    # match writes a gzipped map when asked to
+    out = tmp_path / "map.txt.gz"
+    meshes = [str(plain / "s0.ply.gz"), str(plain / "s1.ply.gz")]
+    assert main(["match", *meshes, "--k", "8", "--out", str(out)]) == 0
+    assert read_map(out).shape == (42,)

@@ -1,5 +1,5 @@
 """Descriptors: HKS/WKS against the sphere's closed forms and a naive reference, invariances,
-scale behaviour, landmark descriptors (heat and WKS), normalisation, checks and projection.
+scale behaviour, landmark descriptors (heat and WKS), normalisation and checks.
 
 Discretisation tolerance used below. The cotan Laplacian on a mesh with edges of length at
 most ``h`` approximates an eigenvalue ``λ`` of the smooth surface with a relative error
@@ -24,8 +24,6 @@ from torchfmap.descriptors import (
     hks,
     landmark_descriptors,
     normalize_descriptors,
-    project_descriptors,
-    subsample_descriptors,
     wks,
 )
 
@@ -281,11 +279,8 @@ def test_normalize_descriptors(blob, rng):
     np.testing.assert_allclose(np.einsum("ij,ij->j", NB, B @ NB), [1, 1, 0, 1], rtol=1e-12)
 
 
-def test_subsample_check_and_project_descriptors(blob, rng):
+def test_check_descriptors(blob, rng):
     F = rng.normal(size=(blob.n_vertices, 7))
-    np.testing.assert_array_equal(subsample_descriptors(F, 3), F[:, [0, 3, 6]])
-    with pytest.raises(ParameterError, match="step must be >= 1"):
-        subsample_descriptors(F, 0)
     assert check_descriptors(F[:, 0], blob.n_vertices).shape == (blob.n_vertices, 1)
     with pytest.raises(ParameterError, match="must be \\(V, D\\) with V=642"):
         check_descriptors(F[:-1], blob.n_vertices)
@@ -293,9 +288,3 @@ def test_subsample_check_and_project_descriptors(blob, rng):
     bad[5, 4] = np.nan
     with pytest.raises(ParameterError, match=r"non-finite values in columns \[4\]"):
         check_descriptors(bad, blob.n_vertices, "descriptors")
-    # projection onto a B-orthonormal basis: A = Φᵀ B F, and exact for F in the span
-    basis = laplacian_eigenbasis(blob, 10)
-    coeffs = rng.normal(size=(10, 3))
-    np.testing.assert_allclose(project_descriptors(basis, basis.values @ coeffs), coeffs, atol=1e-10)
-    with pytest.raises(ParameterError):
-        project_descriptors(basis, bad)

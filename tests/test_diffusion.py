@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg as sla
 
 from torchfmap import ParameterError, diffusion_basis, laplacian, load_mesh
-from torchfmap.bases import cf_poles, heat_kernels
+from torchfmap.operators.heat import cf_poles, heat_kernels
 
 from .conftest import bumpy_blob, data_path, random_rotation
 

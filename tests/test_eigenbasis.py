@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, laplacian, laplacian_eigenbasis
-from torchfmap.bases import laplacian as eig_module
+from torchfmap.operators import eigen as eig_module
 
 from .conftest import random_rotation
 

@@ -16,12 +16,11 @@ from torchfmap.eval import (
     gt_from_vts,
     gt_identity,
     pck_curve,
-    read_map,
-    read_vts,
     retrieval_accuracy,
     shape_distance,
     smoothness,
 )
+from torchfmap.io import read_map, read_vts
 
 from .conftest import bend, bumpy_blob, data_path
 

@@ -122,7 +122,7 @@ def test_stretch_deform_keeps_ids_and_is_not_isometric():
 def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_pair):
     """With the exact map, a seed misplaced by one edge goes back to its true image; one
     misplaced by more than the covering radius sqrt(1/S) stays put; landmarks never move."""
-    from torchfmap.pipeline import replace_seeds
+    from torchfmap.seeds import replace_seeds
 
     x, y, perm, lm = permuted_pair
     inverse = np.argsort(perm)
@@ -139,7 +139,7 @@ def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_p
     assert d_far[far] > radius
     moved = seeds.copy()
     moved[near_i, 1], moved[far_i, 1] = near, far
-    out = replace_seeds(sx, sy, moved, perm, len(lm))
+    out = replace_seeds(sx.distances, sy.distances, moved, perm, len(lm))
     np.testing.assert_array_equal(out[: len(lm)], seeds[: len(lm)])
     assert out[near_i, 1] == true_y[near_i]
     assert out[far_i, 1] == far
@@ -188,15 +188,15 @@ def test_seed_kernels_are_solved_once_per_seed_and_agree_with_the_diffusion_basi
     """The per-shape kernel cache solves only new (seed, time) pairs, and a basis assembled
     from it equals ``diffusion_basis`` at the same seeds to within both solves' tolerance."""
     from torchfmap.bases import diffusion_basis
-    from torchfmap.pipeline import SEED_HEAT_TOL, _raw_seed_basis
+    from torchfmap.bases.prepared import SEED_HEAT_TOL, seed_kernels
 
     x = bumpy_blob(3)
     shape = prepare_shape(x, 0)
     seeds, t = np.array([5, 300, 500, 120]), 0.05
-    first = _raw_seed_basis(shape, "diffusion", seeds[:3], (t,))
+    first = seed_kernels(shape, seeds[:3], (t,))
     assert set(shape.kernels) == {(int(s), t) for s in seeds[:3]}
     cached = {key: value.copy() for key, value in shape.kernels.items()}
-    both = _raw_seed_basis(shape, "diffusion", seeds, (t,))
+    both = seed_kernels(shape, seeds, (t,))
     assert len(shape.kernels) == 4  # only seed 120 was solved
     for key, value in cached.items():
         np.testing.assert_array_equal(shape.kernels[key], value)

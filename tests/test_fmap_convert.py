@@ -14,6 +14,7 @@ from torchfmap.fmap import (
     p2p_to_fmap,
     zoomout,
 )
+from torchfmap.fmap.convert import Neighbors, nearest_neighbor_distance
 
 from .conftest import bumpy_blob
 
@@ -35,11 +36,13 @@ def test_nearest_neighbor_equals_brute_force(rng, method, precision):
     expected = np.argmin(d2, axis=1)
     # (Gaussian data: every row's best and second-best distances differ far beyond float32 round-off)
     assert np.min(np.diff(np.sort(d2, axis=1)[:, :2], axis=1)) > 1e-5
-    got, dist = nearest_neighbor(
-        q, r, search=method, precision=precision, block_bytes=8 * 200 * 7, return_distance=True
-    )
-    assert np.array_equal(got, expected)
-    assert np.allclose(dist, np.linalg.norm(q - r[expected], axis=1))
+    options = dict(search=method, precision=precision, block_bytes=8 * 200 * 7)
+    found = nearest_neighbor_distance(q, r, **options)
+    assert isinstance(found, Neighbors) and found.index.dtype == np.int64
+    assert np.array_equal(found.index, expected)
+    assert np.allclose(found.distance, np.linalg.norm(q - r[expected], axis=1))
+    got = nearest_neighbor(q, r, **options)  # the index alone, whatever the search
+    assert isinstance(got, np.ndarray) and np.array_equal(got, expected)
 
 
 def test_nearest_neighbor_errors(rng):

@@ -16,7 +16,6 @@ from torchfmap import (
     laplacian_eigenbasis,
     save_mesh,
 )
-from torchfmap.bases import eigenpairs
 from torchfmap.data import icosphere
 from torchfmap.eval import (
     MapReport,
@@ -36,6 +35,7 @@ from torchfmap.fmap import (
     multiplication_operator,
     zoomout_sequence,
 )
+from torchfmap.operators import eigenpairs
 
 from .conftest import bumpy_blob, smallest_eigenvalues
 

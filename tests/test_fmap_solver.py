@@ -271,7 +271,7 @@ def test_orientation_operator_planar_closed_form():
     """On the plane z = 0 (normal +z), n × ∇x = ŷ, so (n × ∇x)·∇g = ∂g/∂y: in the raw
     'basis' (1, x, y), O[k, l] = ∫ φ_k ∂φ_l/∂y, i.e. O[:, 2] = (area, ∫x, ∫y) and O[:, :2] = 0."""
     from torchfmap.bases import Basis
-    from torchfmap.fmap import orientation_operator
+    from torchfmap.fmap import orientation_operators
 
     from .conftest import planar_grid
 
@@ -279,13 +279,12 @@ def test_orientation_operator_planar_closed_form():
     x, y = mesh.vertices[:, 0], mesh.vertices[:, 1]
     _, B = laplacian(mesh)
     basis = Basis(np.stack([np.ones_like(x), x, y], axis=1), B)
-    op_x = orientation_operator(mesh, basis, x)
+    op_x, O_y = orientation_operators(mesh, basis, np.stack([x, y], axis=1))
     # lumped face quadrature (A/3 per corner) is exact for linear integrands
     integral = lambda g: float(sum(mesh.face_areas * g[mesh.faces].mean(axis=1)))  # noqa: E731
     np.testing.assert_allclose(op_x[:, 2], [integral(np.ones_like(x)), integral(x), integral(y)], rtol=1e-12)
     np.testing.assert_allclose(op_x[:, :2], 0.0, atol=1e-12)
     # rotating f by 90 degrees in the plane: f = y gives n × ∇y = -x̂, so O[:, 1] = -(area, ∫x, ∫y)
-    O_y = orientation_operator(mesh, basis, y)
     np.testing.assert_allclose(O_y[:, 1], -op_x[:, 2], rtol=1e-12)
 
 
@@ -319,3 +318,18 @@ def test_classical_solve_runs_its_small_torch_work_single_threaded(pair, monkeyp
         assert torch.get_num_threads() == 1
         raise RuntimeError("inside")
     assert torch.get_num_threads() == before
+
+
+def test_spectral_frame_is_a_named_tuple():
+    """``core.spectral_frame`` returns ``SpectralFrame(lam, U)``: ascending eigenvalues and an
+    orthogonal frame with ``W = U diag(lam) Uᵀ`` (round-off), also when unpacked."""
+    from torchfmap.fmap import core
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 5, 5, generator=g, dtype=torch.float64)
+    W = A @ A.mT
+    frame = core.spectral_frame(W)
+    assert isinstance(frame, core.SpectralFrame) and frame.lam is frame[0]
+    lam, U = frame
+    assert (lam[:, 1:] >= lam[:, :-1]).all()
+    torch.testing.assert_close(U @ torch.diag_embed(lam) @ U.mT, W, rtol=1e-12, atol=1e-12)

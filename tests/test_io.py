@@ -1,4 +1,5 @@
-"""Loading keeps the file's vertex order for every format (round trip against the raw file)."""
+"""Loading keeps the file's vertex order for every format (round trip against the raw file); one
+suffix rule (``.gz`` everywhere) for every reader, writer and folder listing."""
 
 from __future__ import annotations
 
@@ -7,9 +8,24 @@ import gzip
 import numpy as np
 import pytest
 
-from torchfmap import MeshError, load_mesh, save_mesh
+from torchfmap import MeshError, ParameterError, TorchFmapError, load_mesh, save_mesh
 from torchfmap.data import icosphere
-from torchfmap.io import merge_soup
+from torchfmap.io import (
+    find_file,
+    is_mesh_file,
+    merge_soup,
+    mesh_files,
+    read_index_table,
+    read_landmark_pairs,
+    read_landmarks,
+    read_map,
+    read_test_pairs,
+    read_text,
+    read_vts,
+    shape_name,
+    split_suffix,
+    write_map,
+)
 
 from .conftest import data_path
 
@@ -138,3 +154,68 @@ def test_save_is_atomic(tmp_path, shuffled):
     path = tmp_path / "m.off"
     save_mesh(shuffled, path)
     assert [p.name for p in tmp_path.iterdir()] == ["m.off"]  # no temp file left behind
+
+
+def test_one_suffix_rule_and_mesh_listing(tmp_path):
+    assert split_suffix("a/cat0.OFF.gz") == ("off", True) and split_suffix("m.txt") == ("txt", False)
+    assert split_suffix("lion2cat") == ("", False) and split_suffix("x.gz") == ("", True)
+    assert is_mesh_file("cat.ply.gz") and is_mesh_file("cat.STL") and not is_mesh_file("cat.vts.gz")
+    assert shape_name("dir/cat0.off.gz") == "cat0"
+    for name in ("b.off", "a.OBJ.gz", "c.txt", "d.vts.gz", ".b.off.123.tmp"):
+        (tmp_path / name).write_text("")
+    (tmp_path / "e.off").mkdir()  # a folder is not a mesh file
+    assert [f.name for f in mesh_files(tmp_path)] == ["a.OBJ.gz", "b.off"]
+    with pytest.raises(ParameterError, match="not a folder"):
+        mesh_files(tmp_path / "b.off")
+    assert find_file(tmp_path, "d.vts") == tmp_path / "d.vts.gz" and find_file(tmp_path, "z.vts") is None
+
+
+READERS = [
+    (read_map, "2\n0\n1\n", [2, 0, 1]),
+    (read_vts, "3 7\n1 2\n", [2, 0]),
+    (read_landmarks, "\ufeff# two\n4\n\n5  # end\n", [4, 5]),
+    (read_landmark_pairs, "1 2\n3 4\n", [[1, 2], [3, 4]]),
+    (read_test_pairs, "cat0\tcat1\n\nwolf0 wolf1 extra\n", [("cat0", "cat1"), ("wolf0", "wolf1")]),
+    (lambda path: read_index_table(path, None, "table"), "1 2 3\n4 5 6\n", [[1, 2, 3], [4, 5, 6]]),
+]
+
+
+@pytest.mark.parametrize(("reader", "text", "expected"), READERS)
+def test_every_reader_accepts_gz_the_same_way(tmp_path, reader, text, expected):
+    plain, packed = tmp_path / "f.txt", tmp_path / "f.txt.gz"
+    plain.write_bytes(text.encode())
+    packed.write_bytes(gzip.compress(text.encode()))
+    got_plain, got_packed = reader(plain), reader(packed)
+    assert np.asarray(got_plain).tolist() == np.asarray(got_packed).tolist() == np.asarray(expected).tolist()
+
+
+def test_write_map_round_trips_plain_and_gz(tmp_path):
+    p2p = np.array([3, 0, 2, 2, 1])
+    for name in ("m.txt", "m.txt.gz"):
+        path = write_map(tmp_path / name, p2p)
+        np.testing.assert_array_equal(read_map(path), p2p)
+    assert gzip.decompress((tmp_path / "m.txt.gz").read_bytes()) == (tmp_path / "m.txt").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.txt", "m.txt.gz"]  # atomic: no temp files
+    with pytest.raises(ParameterError, match="1-D integer"):
+        write_map(tmp_path / "bad.txt", np.zeros((2, 2)))
+
+
+def test_index_files_name_the_problem(tmp_path):
+    bad = tmp_path / "lm.txt.gz"
+    bad.write_text("1\n2\n")  # named .gz but not gzip data
+    with pytest.raises(TorchFmapError, match="gzip"):
+        read_landmarks(bad)
+    with pytest.raises(TorchFmapError, match="cannot read the point map file"):
+        read_map(tmp_path / "missing.txt")
+    (tmp_path / "m.txt").write_text("1\n2 3\n")
+    with pytest.raises(TorchFmapError, match=r"m.txt:2: expected 1 integer column"):
+        read_map(tmp_path / "m.txt")
+    (tmp_path / "v.vts").write_text("3\n1.5\n")
+    with pytest.raises(TorchFmapError, match=r"v.vts:2: .vts must be integer"):
+        read_vts(tmp_path / "v.vts")
+    (tmp_path / "pairs.txt").write_text("cat0 cat1\ncat2\n")
+    with pytest.raises(TorchFmapError, match=r"pairs.txt:2: a test pair needs two shape names"):
+        read_test_pairs(tmp_path / "pairs.txt")
+    (tmp_path / "latin.txt").write_bytes(b"1\n\xe9\n")
+    with pytest.raises(TorchFmapError, match="not UTF-8"):
+        read_text(tmp_path / "latin.txt", "landmark")

@@ -38,7 +38,9 @@ def test_module_equals_classical_solver(setting, which):
     bx, by = eig if which == "eig" else stack
     C = solve_fmap(bx, by, dx, dy, w_lap=1e-2)
     tx, ty = as_batch(bx, by)
-    C_xy, C_yx = RegularizedFMSolver(w_lap=1e-2)(torch.tensor(dx)[None], torch.tensor(dy)[None], tx, ty)
+    out = RegularizedFMSolver(w_lap=1e-2)(torch.tensor(dx)[None], torch.tensor(dy)[None], tx, ty)
+    assert isinstance(out, F.FmapPair) and out.C_xy is out[0] and out.C_yx is out[1]
+    C_xy, C_yx = out
     assert np.abs(C_xy[0].numpy() - C).max() < 1e-10 * np.abs(C).max()
     assert np.abs(C_yx[0].numpy() - solve_fmap(by, bx, dy, dx, w_lap=1e-2)).max() < 1e-10 * np.abs(C).max()
 
@@ -134,8 +136,10 @@ def test_batched_equals_per_pair(setting):
         items.append(as_batch(bx, by))
     feats_x = torch.stack([torch.tensor(dx), torch.tensor(dx[:, ::-1].copy())])
     feats_y = torch.stack([torch.tensor(dy), torch.tensor(dy[:, ::-1].copy())])
-    bx = BasisBatch(*(torch.cat(t) for t in zip(items[0][0], items[1][0], strict=True)))
-    by = BasisBatch(*(torch.cat(t) for t in zip(items[0][1], items[1][1], strict=True)))
+    # unpadded batches of one (lengths None): stack their five tensor fields
+    bx = BasisBatch(*(torch.cat(t) for t in zip(items[0][0][:5], items[1][0][:5], strict=True)))
+    by = BasisBatch(*(torch.cat(t) for t in zip(items[0][1][:5], items[1][1][:5], strict=True)))
+    assert bx.lengths is None and bx.vertex_mask is None
     C_batch, _ = F.fmap_solve(feats_x, feats_y, bx, by)
     for b in range(2):
         C_one, _ = F.fmap_solve(feats_x[b : b + 1], feats_y[b : b + 1], items[b][0], items[b][1])
@@ -152,9 +156,13 @@ def test_padded_variable_size_batch_equals_unpadded(setting):
         arrays = {k: v.clone() for k, v in BasisModule(basis).state_dict().items()}
         return {**arrays, "wks": torch.tensor(feats)}
 
-    bx, fx, lengths = collate_shapes([item(eig[0], dx), item(bs, ds)])[:3]
-    by, fy, _ = collate_shapes([item(eig[1], dy), item(bs, ds)])[:3]
-    assert lengths.tolist() == [162, 42] and bx.values.shape == (2, 162, 7)
+    sx, sy = (
+        collate_shapes([item(eig[0], dx), item(bs, ds)]),
+        collate_shapes([item(eig[1], dy), item(bs, ds)]),
+    )
+    (bx, fx), (by, fy) = (sx.basis, sx.inputs), (sy.basis, sy.inputs)
+    assert sx.lengths.tolist() == bx.lengths.tolist() == [162, 42] and bx.values.shape == (2, 162, 7)
+    assert bx.vertex_mask.sum(dim=1).tolist() == [162, 42] and not bx.vertex_mask[1, 42:].any()
     C_pad, C_pad_yx = F.fmap_solve(fx, fy, bx, by)
     ref, _ = F.fmap_solve(torch.tensor(ds)[None], torch.tensor(ds)[None], *as_batch(bs, bs))
     assert torch.allclose(C_pad[1, :5, :5], ref[0], atol=1e-10)
@@ -178,7 +186,7 @@ def test_bad_inputs(setting):
     tx, ty = as_batch(*eig)
     fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
     with pytest.raises(ParameterError, match="batch sizes differ"):
-        F.fmap_solve(fx, fy, tx, BasisBatch(*(torch.cat([t, t]) for t in ty)))
+        F.fmap_solve(fx, fy, tx, BasisBatch(*(torch.cat([t, t]) for t in ty[:5])))
     with pytest.raises(ParameterError, match=r"features must be \(B, V, D\)"):
         F.fmap_solve(fx[:, :10], fy, tx, ty)
     bad = fx.clone()
@@ -223,6 +231,125 @@ def test_feature_net_and_unsupervised_loss_backward(setting):
     grads = [p.grad for p in net.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert set(terms) == {"bij", "orth", "lap", "couple", "total"}
+
+
+def test_data_checks_follow_the_switch_in_function_and_layer(setting):
+    """Data checks run by default on CPU tensors and are skipped with check=False, in the
+    function and in its layer alike; shape checks run either way."""
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
+    bad = fx.clone()
+    bad[0, 3, 1] = float("inf")
+    for solve in (
+        lambda **kw: F.fmap_solve(bad, fy, tx, ty, **kw),
+        lambda **kw: RegularizedFMSolver(**kw)(bad, fy, tx, ty),
+    ):
+        with pytest.raises(ParameterError, match="NaN or inf"):
+            solve()
+        with pytest.raises(ParameterError, match="NaN or inf"):
+            solve(check=True)
+        assert not torch.isfinite(solve(check=False).C_xy).all()  # unchecked: non-finite, no error
+        with pytest.raises(ParameterError, match=r"features must be \(B, V, D\)"):
+            F.fmap_solve(fx[:, :10], fy, tx, ty, check=False)
+    with pytest.raises(ParameterError, match="check must be"):
+        F.fmap_solve(fx, fy, tx, ty, check="yes")
+    # singular systems (no descriptor information, w_lap = 0): the LU's info is read under check
+    zeros, mask = torch.zeros(1, 4, 3, dtype=torch.float64), torch.ones(1, 4, 4, dtype=torch.float64)
+    with pytest.raises(ParameterError, match="singular"):
+        solve_rowwise(zeros, zeros, mask, 1.0, 0.0)
+    solve_rowwise(zeros, zeros, mask, 1.0, 0.0, check=False)  # unchecked: no error
+    with pytest.raises(ParameterError, match="NaN or inf"):
+        FeatureNet(5, 4).double()(bad, tx)
+    assert FeatureNet(5, 4, check=False).double()(bad, tx).shape == (1, x.n_vertices, 4)
+
+
+class _NoHostReads:
+    """Tensor methods that copy a value to the host (a sync on an accelerator) raise inside."""
+
+    NAMES = ("__bool__", "__int__", "__float__", "__index__", "item", "tolist", "numpy")
+
+    def __enter__(self):
+        self.saved = {name: getattr(torch.Tensor, name) for name in self.NAMES}
+
+        def refuse(*args, **kwargs):
+            raise AssertionError("a tensor value was read on the host")
+
+        for name in self.NAMES:
+            setattr(torch.Tensor, name, refuse)
+        self.bincount, torch.bincount = torch.bincount, refuse
+        return self
+
+    def __exit__(self, *exc):
+        for name, method in self.saved.items():
+            setattr(torch.Tensor, name, method)
+        torch.bincount = self.bincount
+        return False
+
+
+def test_unchecked_training_step_reads_no_tensor_value_on_the_host():
+    """With check=False a whole step (DiffusionNet with gradient features on a padded batch,
+    both maps, the loss with sampled coupling, backward) never reads a tensor value on the host:
+    no bool()/int()/.item() on tensors, so no host sync on an accelerator. With the default
+    (check=None on CPU) the data checks do read values."""
+    from torchfmap.nn import DiffusionNet
+    from torchfmap.nn.data import precompute_shape, shape_item
+    from torchfmap.nn.networks import features
+
+    items = [
+        shape_item(precompute_shape(bumpy_blob(n), 6, 6, 20, k_net=8), dtype=torch.float64) for n in (1, 2)
+    ]
+    x = collate_shapes(items)
+    y = collate_shapes(items[::-1])
+    assert x.basis.lengths.tolist() == [42, 162]
+
+    def step(check):
+        torch.manual_seed(0)
+        net = DiffusionNet(6, 5, width=8, n_blocks=2, dropout=0.0, check=check).double()
+        solver = RegularizedFMSolver(check=check)
+        loss = UnsupervisedFMLoss(n_samples=30, check=check)
+        gen = torch.Generator().manual_seed(0)
+        fx, fy = features(net, x), features(net, y)
+        C_xy, C_yx = solver(fx, fy, x.basis, y.basis)
+        total = loss(C_xy, C_yx, fx, fy, x.basis, y.basis, generator=gen)["total"]
+        total.backward()
+        return total.detach()
+
+    with _NoHostReads():
+        unchecked = step(False)
+    with pytest.raises(AssertionError, match="host"), _NoHostReads():
+        step(None)
+    assert torch.equal(unchecked, step(None))  # the checks change nothing but the errors
+
+
+def test_random_draws_come_from_the_given_generator(setting):
+    """The loss's vertex samples, the augmentation and the recipe's initial weights are drawn from
+    given or seeded generators; torch's global RNG state is left untouched."""
+    from torchfmap.nn.config import TrainConfig, build_model
+    from torchfmap.nn.train import random_rigid
+
+    x, y, dx, dy, eig, stack = setting
+    tx, ty = as_batch(*eig)
+    fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
+    C_xy, C_yx = RegularizedFMSolver()(fx, fy, tx, ty)
+    loss = UnsupervisedFMLoss(n_samples=50)
+    with pytest.raises(ParameterError, match="needs a generator"):
+        loss(C_xy, C_yx, fx, fy, tx, ty)
+    state = torch.random.get_rng_state()
+    totals = [
+        float(loss(C_xy, C_yx, fx, fy, tx, ty, generator=torch.Generator().manual_seed(seed))["total"])
+        for seed in (1, 1, 2)
+    ]
+    assert totals[0] == totals[1] != totals[2]
+    xyz = torch.tensor(x.vertices)[None].repeat(2, 1, 1)
+    moved = random_rigid(xyz, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(moved, random_rigid(xyz, torch.Generator().manual_seed(0)), rtol=0, atol=0)
+    T = torch.linalg.lstsq(xyz, moved).solution  # (2, 3, 3): scale * rotation
+    assert (torch.linalg.det(T) > 0).all() and not torch.allclose(T[0], T[1])
+    config = TrainConfig(n_wks=6, width=8, c_out=8, n_blocks=1)
+    a, b = build_model(config)[0], build_model(config)[0]
+    assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters(), strict=True))
+    assert torch.equal(torch.random.get_rng_state(), state)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

@@ -27,15 +27,25 @@ def test_soft_point_map_rows_padding_and_module_equals_functional():
     g = torch.Generator().manual_seed(0)
     fx = torch.randn(2, 9, 4, dtype=torch.float64, generator=g)
     fy = torch.randn(2, 6, 4, dtype=torch.float64, generator=g)
-    mass = torch.ones(2, 9, dtype=torch.float64)
-    mass[1, 6:] = 0  # padded vertices of the second item
+    lengths = torch.tensor([9, 6])  # the second item has 3 padded vertices
     for iters in (0, 5):
         layer = SoftPointMap(tau=0.2, sinkhorn_iters=iters)
-        pi = layer(fx, fy, mass)
+        pi = layer(fx, fy, lengths)
         assert pi.shape == (2, 6, 9)
         torch.testing.assert_close(pi.sum(-1), torch.ones(2, 6, dtype=torch.float64), rtol=1e-12, atol=1e-12)
         assert pi[1, :, 6:].abs().max() == 0
-        torch.testing.assert_close(pi, F.soft_map(fx, fy, tau=0.2, mass_x=mass, sinkhorn_iters=iters))
+        torch.testing.assert_close(pi, F.soft_map(fx, fy, tau=0.2, lengths_x=lengths, sinkhorn_iters=iters))
+        # padding is read from lengths only: the same map as the unpadded second item
+        torch.testing.assert_close(pi[1:, :, :6], layer(fx[1:, :6], fy[1:]), rtol=1e-12, atol=1e-14)
+    # function and layer refuse the same vertex counts (a data check: on for CPU inputs)
+    for bad in (torch.tensor([9, 10]), torch.tensor([0, 6])):
+        with pytest.raises(ParameterError, match="vertex counts"):
+            SoftPointMap()(fx, fy, bad)
+        with pytest.raises(ParameterError, match="vertex counts"):
+            F.soft_map(fx, fy, lengths_x=bad)
+        SoftPointMap(check=False)(fx, fy, bad)  # unchecked: no error (and no host sync)
+    with pytest.raises(ParameterError, match="integer vertex counts"):  # a shape check: always
+        SoftPointMap(check=False)(fx, fy, torch.ones(2, 9))
 
 
 def test_soft_maps_both_directions_equal_two_soft_map_calls():
@@ -44,17 +54,16 @@ def test_soft_maps_both_directions_equal_two_soft_map_calls():
     g = torch.Generator().manual_seed(3)
     fx = torch.randn(2, 9, 4, dtype=torch.float64, generator=g)
     fy = torch.randn(2, 7, 4, dtype=torch.float64, generator=g)
-    mass_x, mass_y = torch.ones(2, 9, dtype=torch.float64), torch.ones(2, 7, dtype=torch.float64)
-    mass_x[1, 6:] = 0
-    mass_y[0, 5:] = 0
+    lengths_x, lengths_y = torch.tensor([9, 6]), torch.tensor([5, 7])
     for iters in (0, 4):
         layer = SoftPointMap(tau=0.2, sinkhorn_iters=iters)
-        pi_yx, pi_xy = layer.both(fx, fy, mass_x, mass_y)
-        torch.testing.assert_close(pi_yx, layer(fx, fy, mass_x), rtol=1e-12, atol=1e-14)
-        torch.testing.assert_close(pi_xy, layer(fy, fx, mass_y), rtol=1e-12, atol=1e-14)
+        pi_yx, pi_xy = layer.both(fx, fy, lengths_x, lengths_y)
+        torch.testing.assert_close(pi_yx, layer(fx, fy, lengths_x), rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(pi_xy, layer(fy, fx, lengths_y), rtol=1e-12, atol=1e-14)
         assert pi_xy[0, :, 5:].abs().max() == 0 and pi_yx[1, :, 6:].abs().max() == 0
-        direct = F.soft_maps(fx, fy, tau=0.2, mass_x=mass_x, mass_y=mass_y, sinkhorn_iters=iters)
-        torch.testing.assert_close(direct, (pi_yx, pi_xy), rtol=0, atol=0)
+        direct = F.soft_maps(fx, fy, tau=0.2, lengths_x=lengths_x, lengths_y=lengths_y, sinkhorn_iters=iters)
+        assert isinstance(direct, F.SoftMaps) and direct.pi_yx is direct[0]
+        torch.testing.assert_close(tuple(direct), (pi_yx, pi_xy), rtol=0, atol=0)
 
 
 def test_soft_point_map_small_tau_is_nearest_neighbour():
@@ -75,27 +84,27 @@ def test_soft_point_map_gradcheck():
     g = torch.Generator().manual_seed(2)
     fx = torch.randn(1, 5, 3, dtype=torch.float64, generator=g, requires_grad=True)
     fy = torch.randn(1, 4, 3, dtype=torch.float64, generator=g, requires_grad=True)
-    mass = torch.tensor([[1.0, 1.0, 1.0, 1.0, 0.0]], dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda a, b: SoftPointMap(tau=0.3)(a, b, mass), (fx, fy))
+    lengths = torch.tensor([4])
+    assert torch.autograd.gradcheck(lambda a, b: SoftPointMap(tau=0.3)(a, b, lengths), (fx, fy))
     sinkhorn = SoftPointMap(tau=0.3, sinkhorn_iters=3)
     assert torch.autograd.gradcheck(lambda a, b: sinkhorn(a, b), (fx, fy))
 
 
 def test_soft_point_map_sinkhorn_gradients_finite_with_padding():
-    """A padded vertex (mass 0) gets no weight and changes nothing: the padded Sinkhorn map equals
+    """A padded vertex (beyond lengths) gets no weight and changes nothing: the padded Sinkhorn map equals
     the unpadded one on the real vertices (round-off), with finite, correct gradients (its
     all -inf column used to give NaN gradients)."""
     g = torch.Generator().manual_seed(2)
     fx = torch.randn(1, 5, 3, dtype=torch.float64, generator=g, requires_grad=True)
     fy = torch.randn(1, 4, 3, dtype=torch.float64, generator=g, requires_grad=True)
-    mass = torch.tensor([[1.0, 1.0, 1.0, 1.0, 0.0]], dtype=torch.float64)
+    lengths = torch.tensor([4])
     layer = SoftPointMap(tau=0.3, sinkhorn_iters=3)
-    pi = layer(fx, fy, mass)
+    pi = layer(fx, fy, lengths)
     grads = torch.autograd.grad(pi[..., 0].sum(), (fx, fy))
     assert all(torch.isfinite(gr).all() for gr in grads)
     assert pi[..., 4].abs().max() == 0
     torch.testing.assert_close(pi[..., :4], layer(fx[:, :4], fy), rtol=1e-12, atol=1e-14)
-    assert torch.autograd.gradcheck(lambda a, b: layer(a, b, mass), (fx, fy))
+    assert torch.autograd.gradcheck(lambda a, b: layer(a, b, lengths), (fx, fy))
     for tau in (0.0, -1.0, float("nan")):
         with pytest.raises(ParameterError, match="tau must be finite"):
             SoftPointMap(tau=tau)(fx, fy)
@@ -185,17 +194,18 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
     batch = collate_pairs(items)
     assert batch["names"] == [("big0", "small"), ("small", "big1")]
     for side, col in (("x", 0), ("y", 1)):
-        basis, feats, lengths = batch[side][:3]
+        basis, feats = batch[side].basis, batch[side].inputs
         assert basis.values.shape == (2, 642, 8) and feats.shape == (2, 642, 6)
+        assert batch[side].net_basis is basis  # no network basis in these items: the solver's
         for b in range(2):
             v, k = items[b][col]["values"].shape
-            assert lengths[b] == v
+            assert basis.lengths[b] == batch[side].lengths[b] == v
             assert not basis.mass[b, v:].any() and not basis.values[b, v:].any()
             assert not basis.values[b, :, k:].any()
             assert basis.valid[b].tolist() == [1.0] * k + [0.0] * (8 - k)
             torch.testing.assert_close(basis.U[b, k:, k:], torch.eye(8 - k, dtype=torch.float64))
             assert not basis.lam[b, k:].any()
-    C_xy, C_yx = F.fmap_solve(batch["x"][1], batch["y"][1], batch["x"][0], batch["y"][0])
+    C_xy, C_yx = F.fmap_solve(batch["x"].inputs, batch["y"].inputs, batch["x"].basis, batch["y"].basis)
     for b, (ix, iy) in enumerate(items):
         bx = F.BasisBatch(
             *(ix[n][None] for n in ("values", "mass", "lam", "U")),

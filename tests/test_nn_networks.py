@@ -3,14 +3,28 @@ plug-in protocol, and the ``train`` / ``match --checkpoint`` commands on tiny me
 
 from __future__ import annotations
 
+import inspect
+import io
+from dataclasses import asdict, replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
 
 from torchfmap import Mesh, save_mesh
+from torchfmap._files import save_checked_bytes
 from torchfmap.cli import main
+from torchfmap.errors import ParameterError
 from torchfmap.nn import functional as F
+from torchfmap.nn.checkpoints import (
+    load_checkpoint,
+    load_network,
+    network_record,
+    read_checkpoint,
+    save_checkpoint,
+)
+from torchfmap.nn.config import TrainConfig, build_model
 from torchfmap.nn.data import (
     PairDataset,
     ShapeBatch,
@@ -22,8 +36,15 @@ from torchfmap.nn.data import (
 )
 from torchfmap.nn.geometry import gradient_operator
 from torchfmap.nn.modules import SpectralDiffusion, UnsupervisedFMLoss
-from torchfmap.nn.networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
-from torchfmap.nn.train import features, read_checkpoint, train
+from torchfmap.nn.networks import (
+    DiffusionNet,
+    FeatureNet,
+    FeatureNetwork,
+    SpatialGradientFeatures,
+    check_network,
+    features,
+)
+from torchfmap.nn.train import train
 from torchfmap.operators.laplacian import normalize_area
 
 from .conftest import bend, bumpy_blob, random_rotation
@@ -52,7 +73,9 @@ def test_gradient_is_exact_for_linear_functions_on_a_plane():
         *(torch.as_tensor(ops[k])[None] for k in ("grad_rows", "grad_cols", "grad_x", "grad_y"))
     )
     f = torch.as_tensor(mesh.vertices @ np.array([0.7, -2.0, 5.0]))[None, :, None]
-    gx, gy = F.spatial_gradient(f, grad)
+    out = F.spatial_gradient(f, grad)
+    assert isinstance(out, F.TangentGradient) and out.x is out[0]
+    gx, gy = out
     torch.testing.assert_close(gx, torch.full_like(gx, 0.7), rtol=0, atol=1e-12)
     torch.testing.assert_close(gy, torch.full_like(gy, -2.0), rtol=0, atol=1e-12)
 
@@ -91,6 +114,18 @@ def test_spatial_gradient_in_any_edge_order_and_padded_batches_equals_the_sparse
         sx, sy = F.spatial_gradient(fb_t, shuffled)
         torch.testing.assert_close(sx[0], gx[b, :n].detach(), rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(sy[0], gy[b, :n].detach(), rtol=1e-12, atol=1e-12)
+        # the same edges shuffled but claimed sorted (order_t given): the data check sorts them
+        claimed = shuffled._replace(order_t=torch.as_tensor(ops["grad_order_t"])[None])
+        torch.testing.assert_close(F.spatial_gradient(fb_t, claimed).x[0], sx[0], rtol=1e-12, atol=1e-12)
+    # operators indexing vertices the features do not have: refused by the function and the layer
+    # (a data check, on by default for CPU inputs); shapes that do not fit: refused always
+    short = f[:, :30].detach()
+    with pytest.raises(ParameterError, match=r"outside \[0, 30\)"):
+        F.spatial_gradient(short, batch.grad)
+    with pytest.raises(ParameterError, match=r"outside \[0, 30\)"):
+        SpatialGradientFeatures(3).double()(short, batch.grad)
+    with pytest.raises(ParameterError, match="must all be"):
+        F.spatial_gradient(f, batch.grad._replace(cols=batch.grad.cols[:, :-1]), check=False)
 
 
 def test_gradient_features_gradcheck():
@@ -138,17 +173,79 @@ def test_diffusion_net_with_wks_is_invariant_to_rigid_motions():
 
 
 class TinyNet(torch.nn.Module):
-    """A user-written network: a linear lift and one learned diffusion (ignores gradients)."""
+    """A user-written network: a linear lift and one learned diffusion (ignores gradients). Its
+    constructor arguments are in ``init_kwargs``, so checkpoints can rebuild it."""
 
     def __init__(self, c_in: int, c_out: int = 8) -> None:
         super().__init__()
+        self.init_kwargs = {"c_in": c_in, "c_out": c_out}
         self.lift, self.diffuse = torch.nn.Linear(c_in, c_out), SpectralDiffusion(c_out)
 
     def forward(self, inputs, basis, grad):
         return self.diffuse(self.lift(inputs), basis)
 
 
-def test_user_network_plugs_in(tmp_path):
+def _padded_batch():
+    """Two shapes of 42 and 36 vertices (vertex padding), K = 6, K_net = 8, float64."""
+    items = [
+        shape_item(precompute_shape(m, 6, 6, 20, k_net=8), dtype=torch.float64)
+        for m in (bumpy_blob(1), _grid(6))
+    ]
+    return collate_shapes(items)
+
+
+NETWORKS = {
+    "DiffusionNet": lambda: DiffusionNet(6, 5, width=8, n_blocks=1),
+    "FeatureNet": lambda: FeatureNet(6, 5, width=8, n_blocks=1),
+    "TinyNet": lambda: TinyNet(6, 5),
+}
+
+
+@pytest.mark.parametrize("name", sorted(NETWORKS))
+def test_networks_follow_the_protocol(name):
+    """Called with the protocol's arguments ``(inputs, basis, grad)`` on a padded batch of two
+    shapes, every network returns ``(B, V, C)`` in the inputs' dtype; the static protocol type
+    names the same call."""
+    batch = _padded_batch()
+    assert batch.lengths.tolist() == [42, 36]
+    assert list(inspect.signature(FeatureNetwork.__call__).parameters) == ["self", "inputs", "basis", "grad"]
+    for dtype in (torch.float64, torch.float32):
+        torch.manual_seed(0)
+        net = NETWORKS[name]().to(dtype).eval()  # eval: no dropout draws
+        check_network(net)
+        shape = batch.to(dtype)
+        out = net(shape.inputs, shape.net_basis, shape.grad)
+        assert out.shape == (2, 42, 5) and out.dtype == dtype
+        torch.testing.assert_close(features(net, shape), out, rtol=0, atol=0)
+
+
+class TwoArguments(torch.nn.Module):
+    def forward(self, inputs, basis):
+        return inputs
+
+
+class WrongDtype(TinyNet):
+    def forward(self, inputs, basis, grad):
+        return super().forward(inputs, basis, grad).float()
+
+
+def test_code_that_takes_networks_refuses_non_conforming_ones():
+    """``len`` passed the old ``isinstance(net, FeatureNetwork)`` check; now a non-module, a
+    forward without ``grad`` and an output in another dtype are refused, by the functions that
+    take networks (train, features)."""
+    for bad in (len, lambda inputs, basis, grad: inputs):
+        with pytest.raises(ParameterError, match="must be a torch.nn.Module"):
+            check_network(bad)
+    with pytest.raises(ParameterError, match=r"forward must take \(inputs, basis, grad\)"):
+        check_network(TwoArguments())
+    opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    with pytest.raises(ParameterError, match="must be a torch.nn.Module"):
+        train(len, None, UnsupervisedFMLoss(), opt, progress=False)
+    with pytest.raises(ParameterError, match="returned"):
+        features(WrongDtype(6, 5).double(), _padded_batch())
+
+
+def test_user_network_plugs_in_and_its_checkpoint_rebuilds_it(tmp_path):
     folder = tmp_path / "meshes"
     folder.mkdir()
     base = bumpy_blob(2)
@@ -156,12 +253,78 @@ def test_user_network_plugs_in(tmp_path):
         save_mesh(base.copy(bend(base.vertices, s)), folder / f"blob{i}.off")
     shapes = ShapeDataset(folder, False, k=8, n_wks=6, k_net=12, dtype=torch.float64, progress=False)
     net = TinyNet(6).double()
-    assert isinstance(net, FeatureNetwork)
     before = [p.detach().clone() for p in net.parameters()]
     opt = torch.optim.Adam(net.parameters(), lr=1e-2)
-    state = train(net, PairDataset(shapes), UnsupervisedFMLoss(), opt, max_steps=3, progress=False)
+    loss = UnsupervisedFMLoss(n_samples=100)  # sampled coupling: draws from train's generator
+    ckpt = tmp_path / "tiny.ckpt"
+    state = train(net, PairDataset(shapes), loss, opt, max_steps=3, checkpoint=ckpt, progress=False)
     assert state.step == 3 and all(np.isfinite(t["total"]) for t in state.losses)
     assert any(not torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
+    # the checkpoint records the class and its arguments: load_checkpoint rebuilds a TinyNet
+    record = read_checkpoint(ckpt)["network"]
+    assert record == {"class": f"{TinyNet.__module__}:TinyNet", "kwargs": {"c_in": 6, "c_out": 8}}
+    loaded, config, _ = load_checkpoint(ckpt)
+    assert type(loaded) is TinyNet and config == TrainConfig() and not loaded.training
+    for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True):
+        assert a.dtype == b.dtype and torch.equal(a, b)
+    batch = collate_shapes([shapes[0]])
+    with torch.no_grad():
+        torch.testing.assert_close(features(loaded, batch), features(net.eval(), batch), rtol=0, atol=0)
+    # the same training twice gives the same losses: every draw comes from seeded generators
+    again = TinyNet(6).double()
+    again.load_state_dict(dict(zip(again.state_dict(), before, strict=True)))
+    opt = torch.optim.Adam(again.parameters(), lr=1e-2)
+    repeat = train(
+        again, PairDataset(shapes), UnsupervisedFMLoss(n_samples=100), opt, max_steps=3, progress=False
+    )
+    assert [t["total"] for t in repeat.losses] == [t["total"] for t in state.losses]
+
+
+def test_checkpoints_refuse_networks_they_cannot_rebuild_and_load_old_files(tmp_path):
+    class Local(TinyNet):  # defined in a function: not importable
+        pass
+
+    path = save_checkpoint(tmp_path / "local.ckpt", Local(6), {})
+    with pytest.raises(ParameterError, match="cannot be imported"):
+        load_checkpoint(path)
+    path = save_checkpoint(tmp_path / "nowhere.ckpt", TinyNet(6), {})
+    ckpt = read_checkpoint(path)
+    ckpt["network"]["class"] = "torchfmap.nowhere:TinyNet"
+    with pytest.raises(ParameterError, match="cannot import"):
+        load_network(ckpt)
+    ckpt["network"]["class"] = "torchfmap.errors:ParameterError"
+    with pytest.raises(ParameterError, match="not a torch.nn.Module"):
+        load_network(ckpt)
+    plain = torch.nn.Linear(3, 2)  # no init_kwargs: the record has the class only
+    assert network_record(plain) == {"class": "torch.nn.modules.linear:Linear", "kwargs": None}
+    with pytest.raises(ParameterError, match="not its constructor arguments"):
+        load_checkpoint(save_checkpoint(tmp_path / "linear.ckpt", plain, {}))
+    back = load_checkpoint(
+        save_checkpoint(tmp_path / "args.ckpt", plain, {}, net_kwargs={"in_features": 3, "out_features": 2})
+    )[0]
+    assert torch.equal(back.weight, plain.weight)
+    with pytest.raises(ParameterError, match="plain values"):
+        save_checkpoint(tmp_path / "bad.ckpt", plain, {}, net_kwargs={"in_features": torch.ones(1)})
+    # a checkpoint written before the record: the recipe's DiffusionNet from its config
+    config = TrainConfig(k=8, n_wks=6, k_net=8, width=8, c_out=8, n_blocks=1)
+    net = build_model(config)[0]
+    buffer = io.BytesIO()
+    torch.save({"state_dict": net.state_dict(), "config": asdict(config)}, buffer)
+    old = save_checked_bytes(tmp_path / "old.ckpt", buffer.getvalue())
+    loaded, cfg, _ = load_checkpoint(old)
+    assert type(loaded) is DiffusionNet and cfg == config
+    for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    # in such old files 'stack' named the learned mix that is now 'eigen_diffusion'
+    buffer = io.BytesIO()
+    torch.save({"state_dict": net.state_dict(), "config": asdict(config) | {"basis": "stack"}}, buffer)
+    old = save_checked_bytes(tmp_path / "old_stack.ckpt", buffer.getvalue())
+    assert load_checkpoint(old)[1].basis == "eigen_diffusion"
+    # the recipe's network records itself and comes back the same
+    again = load_checkpoint(save_checkpoint(tmp_path / "new.ckpt", net, config))[0]
+    stacked = replace(config, basis="stack")  # a new checkpoint's 'stack' is the stack kind
+    assert load_checkpoint(save_checkpoint(tmp_path / "stack.ckpt", net, stacked))[1].basis == "stack"
+    assert type(again) is DiffusionNet and again.init_kwargs == net.init_kwargs
 
 
 @pytest.fixture

@@ -10,9 +10,13 @@ import pytest
 import torch
 
 from torchfmap import save_mesh
-from torchfmap.eval import gt_from_vts, read_vts
+from torchfmap.eval import gt_from_vts
+from torchfmap.io import read_vts
+from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.config import TrainConfig, build_model
 from torchfmap.nn.data import PairDataset, PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
-from torchfmap.nn.train import TrainConfig, build_model, ddp_worker, evaluate, load_checkpoint, train
+from torchfmap.nn.inference import evaluate
+from torchfmap.nn.train import ddp_worker, train
 
 from .conftest import bend, bumpy_blob, data_path
 
@@ -55,8 +59,9 @@ def test_cache_detects_corruption_and_rebuilds(tmp_path, blob_files):
 def test_collate_pairs(tmp_path, blob_files):
     shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
     batch = collate_pairs([(shapes[0], shapes[1]), (shapes[2], shapes[0])])
-    basis, feats, lengths = batch["x"][:3]
+    basis, feats = batch["x"].basis, batch["x"].inputs
     assert basis.values.shape == (2, 162, 8) and feats.shape == (2, 162, 8)
+    assert basis.lengths is None and batch["x"].lengths.tolist() == [162, 162]  # equal sizes: no padding
     assert batch["names"] == [("blob0", "blob1"), ("blob2", "blob0")]
 
 
@@ -97,6 +102,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_identical_weights(tmp_path, blob_files):
     config = TrainConfig(k=8, n_wks=8, k_net=8, epochs=1, width=16, c_out=16, n_blocks=1)
     torch.multiprocessing.spawn(
@@ -118,7 +124,7 @@ def test_predict_p2p_point_map_rules(tmp_path, blob_files):
     """Both point-map rules give valid maps; the orthogonal rule is the pull-back rule applied
     to the transpose (for an orthogonal C they coincide up to ties); unknown rules are refused."""
     from torchfmap.errors import ParameterError
-    from torchfmap.nn.train import predict_p2p
+    from torchfmap.nn.inference import predict_p2p
 
     shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
     config = TrainConfig(k=8, n_wks=8, width=8, c_out=8, n_blocks=1)
@@ -136,7 +142,7 @@ def test_refine_p2p_reuses_given_eigenbases_and_refuses_wrong_ones():
     size or without eigenvalues are refused."""
     from torchfmap import Mesh, harmonic_basis, laplacian_eigenbasis
     from torchfmap.errors import ParameterError
-    from torchfmap.nn.train import refine_p2p
+    from torchfmap.nn.inference import refine_p2p
 
     mesh_x = bumpy_blob(2)
     perm = np.random.default_rng(0).permutation(mesh_x.n_vertices)

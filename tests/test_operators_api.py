@@ -25,9 +25,9 @@ from torchfmap import (
     point_cloud_laplacian,
     validate_mesh,
 )
-from torchfmap.bases import fix_signs, heat_apply
 from torchfmap.data import icosphere
-from torchfmap.operators import check_vertex_indices
+from torchfmap.operators import check_vertex_indices, heat_apply
+from torchfmap.operators.eigen import fix_signs
 from torchfmap.seeds import check_seeds_cover_components, max_curvature_vertex
 
 from .conftest import bumpy_blob

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, SeedError
+from torchfmap.bases import KINDS
 from torchfmap.cli import main
 from torchfmap.eval import Correspondence, evaluate_map, gt_identity, landmarks_from_gt
 from torchfmap.pipeline import match
@@ -32,14 +33,15 @@ def pair():
         ("diffusion", None),
         ("stack", "zoomout"),
         ("stack", "icp"),
+        ("eigen_diffusion", None),
+        ("eigen_diffusion", "zoomout"),
     ],
 )
 def test_every_basis_gives_a_good_map(pair, basis, refine):
     x, y, gt = pair
-    landmarks = landmarks_from_gt(x, gt, 10)
-    result = match(
-        x, y, landmarks=landmarks if basis != "laplacian" else None, basis=basis, k=30, refine=refine
-    )
+    landmarks = landmarks_from_gt(x, gt, 10) if KINDS[basis].needs_landmarks else None
+    result = match(x, y, landmarks=landmarks, basis=basis, k=30, refine=refine)
+    assert result.kind == basis
     assert result.p2p_yx.shape == (y.n_vertices,)
     assert result.C_xy.shape[0] == result.C_xy.shape[1] or refine == "zoomout"
     report, _ = evaluate_map(x, y, result.p2p_yx, gt, max_points=300)
@@ -135,8 +137,9 @@ def test_identity_gt_on_self_match():
 def test_match_steps_one_by_one_equal_match(pair):
     """match() is the composition of its public steps: running them by hand gives the same map."""
     from torchfmap import MatchResult
-    from torchfmap.fmap import fmap_to_p2p, solve_fmap
-    from torchfmap.pipeline import W_LAP, match_bases, match_descriptors, prepare_shape, refine_map
+    from torchfmap.fmap import Refined, fmap_to_p2p, solve_fmap
+    from torchfmap.fmap.defaults import W_LAP
+    from torchfmap.pipeline import match_bases, match_descriptors, prepare_shape, refine_map
 
     x, y, gt = pair
     lm = landmarks_from_gt(x, gt, 6)
@@ -152,196 +155,8 @@ def test_match_steps_one_by_one_equal_match(pair):
     )
     p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx_initial)
-    C, p2p, *_ = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
+    refined = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
+    assert isinstance(refined, Refined) and refined.seeds is None
+    C, p2p = refined.C_xy, refined.p2p_yx
     np.testing.assert_array_equal(p2p, result.p2p_yx)
     np.testing.assert_array_equal(C, result.C_xy)
-
-
-def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_results(tmp_path, monkeypatch):
-    """``evaluate_pairs`` (behind ``torchfmap eval``) prepares every mesh once per process, and a
-    pool of 2 processes returns exactly the single-process maps' errors, in the pairs' order."""
-    import torchfmap.pipeline as pipeline
-    from torchfmap import save_mesh
-    from torchfmap.eval import discover_pairs
-
-    from .conftest import bend, bumpy_blob
-
-    x = bumpy_blob(2)
-    for i, amount in enumerate((0.05, 0.2, 0.35, 0.5)):  # same vertex ids: identity ground truth
-        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
-    pairs = list(discover_pairs(tmp_path))
-    assert len(pairs) == 3  # consecutive meshes: m0-m1, m1-m2, m2-m3
-    prepared = []
-    real = pipeline.prepare_shape
-    monkeypatch.setattr(pipeline, "prepare_shape", lambda mesh, n: prepared.append(mesh) or real(mesh, n))
-    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, threads=1)
-    assert len(prepared) == 4  # 4 meshes in 3 pairs
-    monkeypatch.undo()
-    # the same thread count per process: the pool's maps are the one-process maps, bit for bit
-    two = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, workers=2, threads=1)
-    assert [(r.source, r.target) for r in two] == [(a, b) for a, b, *_ in pairs]
-    for r1, r2 in zip(one, two, strict=True):
-        np.testing.assert_array_equal(r1.errors, r2.errors)
-    with pytest.raises(ParameterError, match="workers"):
-        pipeline.evaluate_pairs(pairs, workers=0)
-    with pytest.raises(ParameterError, match="threads"):
-        pipeline.evaluate_pairs(pairs, threads=0)
-
-
-def test_evaluate_pairs_runs_with_the_given_threads_and_restores_them(tmp_path, monkeypatch):
-    """``threads`` limits BLAS (threadpoolctl) and torch while the pairs run, and the caller's
-    settings come back afterwards, also when a pair raises."""
-    import torch
-    from threadpoolctl import threadpool_info
-
-    import torchfmap.pipeline as pipeline
-    from torchfmap import save_mesh
-    from torchfmap.eval import discover_pairs
-
-    from .conftest import bend, bumpy_blob
-
-    x = bumpy_blob(2)
-    for i, amount in enumerate((0.05, 0.3)):
-        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
-    pairs = list(discover_pairs(tmp_path))
-    seen = []
-    real = pipeline.match
-
-    def recording(*args, **kwargs):
-        blas = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-        seen.append((torch.get_num_threads(), blas))
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "match", recording)
-    torch_before = torch.get_num_threads()
-    blas_before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-    pipeline.evaluate_pairs(pairs, k=20, threads=1)
-    assert seen and all(t == 1 and all(b == 1 for b in blas) for t, blas in seen)
-    assert torch.get_num_threads() == torch_before
-    assert [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"] == blas_before
-
-    def failing(*args, **kwargs):
-        raise RuntimeError("pair failed")
-
-    monkeypatch.setattr(pipeline, "match", failing)
-    with pytest.raises(RuntimeError, match="pair failed"):
-        pipeline.evaluate_pairs(pairs, k=20, threads=1)
-    assert torch.get_num_threads() == torch_before
-
-
-def test_evaluate_pairs_solves_each_scoring_row_once_per_source(tmp_path, monkeypatch):
-    """Pairs listed by source share its ground-truth distance rows: three pairs from one source
-    with the same ground-truth points solve each row once; the chunks of a pool are cut where
-    the source changes."""
-    import torchfmap.operators.geodesic as geodesic
-    import torchfmap.pipeline as pipeline
-    from torchfmap import save_mesh
-
-    from .conftest import bend, bumpy_blob
-
-    x = bumpy_blob(2)
-    paths = []
-    for i, amount in enumerate((0.05, 0.2, 0.35, 0.5)):
-        paths.append(save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off"))
-    gt = gt_identity(x.n_vertices)
-    pairs = [("m0", f"m{i}", paths[0], paths[i], gt) for i in (1, 2, 3)]
-    solved = []
-    real = geodesic.GeodesicSolver.distances
-    counted = lambda self, s: solved.extend(s) or real(self, s)  # noqa: E731
-    monkeypatch.setattr(geodesic.GeodesicSolver, "distances", counted)
-    built = []
-    init = geodesic.GeodesicSolver.__init__
-    monkeypatch.setattr(
-        geodesic.GeodesicSolver, "__init__", lambda self, m, **kw: built.append(m) or init(self, m, **kw)
-    )
-    results = pipeline.evaluate_pairs(pairs, k=20)
-    assert len(results) == 3 and len(solved) == x.n_vertices  # every vertex is a gt point, once
-    assert len(built) == 1  # only the source's geodesic solver is factorised (targets: lazily never)
-    other = [("m1", "m2", paths[1], paths[2], gt)]
-    chunks = pipeline._source_chunks(pairs + other + pairs, 3)
-    assert [len(c) for c in chunks] == [3, 1, 3]
-
-
-def test_a_pool_worker_prepares_each_mesh_once_across_its_chunks(tmp_path, monkeypatch):
-    """A local pool's worker keeps the shapes it prepared for its next chunks (the pool's
-    initializer gives it the store); the calling process keeps nothing between calls."""
-    import torchfmap.pipeline as pipeline
-    from torchfmap import save_mesh
-    from torchfmap.eval import discover_pairs
-
-    from .conftest import bend, bumpy_blob
-
-    x = bumpy_blob(2)
-    for i, amount in enumerate((0.05, 0.3, 0.5)):
-        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
-    pairs = list(discover_pairs(tmp_path))  # m0-m1, m1-m2: m1 in both
-    prepared = []
-    real = pipeline.prepare_shape
-    monkeypatch.setattr(pipeline, "prepare_shape", lambda mesh, n: prepared.append(mesh) or real(mesh, n))
-    for chunk in ([pairs[0]], [pairs[1]]):  # in this process: each chunk prepares its own meshes
-        pipeline._evaluate_chunk(chunk, 0, 200, {"k": 20})
-    assert len(prepared) == 4 and pipeline._POOL_SHAPES is None
-    prepared.clear()
-    monkeypatch.setattr(pipeline, "_POOL_SHAPES", None)  # restored after the test
-    pipeline._init_pool_worker()  # as in a pool's worker process
-    for chunk in ([pairs[0]], [pairs[1]]):
-        pipeline._evaluate_chunk(chunk, 0, 200, {"k": 20})
-    assert len(prepared) == 3  # m1 prepared once
-
-
-def test_evaluate_pairs_pool_after_threaded_torch_work_in_the_parent_does_not_hang(tmp_path):
-    """A pool forked after the parent used torch's thread pool hung in the workers' first
-    torch.linalg.eigh; workers are spawned. Run in a subprocess with a deadline, so a
-    regression fails instead of hanging the suite."""
-    import subprocess
-    import sys
-
-    from torchfmap import save_mesh
-
-    from .conftest import bend, bumpy_blob
-
-    x = bumpy_blob(2)
-    for i, amount in enumerate((0.05, 0.3, 0.5)):
-        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
-    script = (
-        "import torch\n"
-        "from torchfmap.eval import discover_pairs\n"
-        "from torchfmap.pipeline import evaluate_pairs\n"
-        "torch.set_num_threads(2)\n"
-        "a = torch.randn(400, 400, dtype=torch.float64)\n"
-        "torch.linalg.eigh(a @ a.T)  # the parent's intra-op thread pool is up\n"
-        "for _ in range(3):\n"
-        "    a = a @ a / 400\n"
-        f"pairs = list(discover_pairs({str(tmp_path)!r}))\n"
-        "one = evaluate_pairs(pairs, k=60, threads=1)\n"
-        "two = evaluate_pairs(pairs, k=60, workers=2, threads=1)\n"
-        "assert all((p.errors == q.errors).all() for p, q in zip(one, two))\n"
-        "print('ok')\n"
-    )
-    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=180)
-    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr[-2000:]
-
-
-def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
-    """The same pairs through Dask distributed's executor (2 worker processes) give exactly the
-    single-process results, in order."""
-    distributed = pytest.importorskip("distributed")
-    import torchfmap.pipeline as pipeline
-    from torchfmap import save_mesh
-    from torchfmap.eval import discover_pairs
-
-    x = bumpy_blob(2)
-    for i, amount in enumerate((0.05, 0.3, 0.5)):
-        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
-    pairs = list(discover_pairs(tmp_path))
-    one = pipeline.evaluate_pairs(pairs, gt_landmarks=4, k=20, threads=1)
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
-    ) as cluster:
-        with distributed.Client(cluster) as client:
-            on_cluster = pipeline.evaluate_pairs(
-                pairs, gt_landmarks=4, k=20, threads=1, executor=client.get_executor()
-            )
-    assert [(r.source, r.target) for r in on_cluster] == [(r.source, r.target) for r in one]
-    for r1, r2 in zip(one, on_cluster, strict=True):
-        np.testing.assert_array_equal(r1.errors, r2.errors)

@@ -53,6 +53,7 @@ def workdir(tmp_path_factory):
     return work
 
 
+@pytest.mark.slow
 def test_readme_runs(workdir, monkeypatch):
     """All runnable blocks in order (python and shell share the working folder, so a file one
     writes, e.g. ``model.ckpt``, is there for the next)."""

@@ -37,26 +37,14 @@ def test_heat_tolerance_in_range_is_accepted(sphere):
     assert np.isfinite(K).all()
 
 
-def test_cli_basis_bad_tolerance_is_a_clear_error(tmp_path, sphere, capsys):
+def test_cli_basis_larger_than_the_mesh_is_a_clear_error(tmp_path, sphere, capsys):
     from torchfmap import save_mesh
 
     path = save_mesh(sphere, tmp_path / "s.off")
-    code = main(
-        [
-            "basis",
-            str(path),
-            "--seeds",
-            "4",
-            "--kind",
-            "diffusion",
-            "--tol",
-            "-1",
-            "--out",
-            str(tmp_path / "b.npz"),
-        ]
-    )
-    assert code != 0
-    assert "tol must be" in capsys.readouterr().err
+    out = str(tmp_path / "b.npz")
+    code = main(["basis", str(path), "--basis", "diffusion", "--k", str(sphere.n_vertices), "--out", out])
+    assert code == 2
+    assert f"--k {sphere.n_vertices} needs a mesh of more than" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("t", [0.0, -1.0, float("nan"), float("inf")])
@@ -148,7 +136,7 @@ def test_eigenpairs_are_scale_covariant(alpha):
     """Scaling a mesh by alpha scales L's eigenvalues by 1/alpha² and the B-orthonormal
     eigenvectors by 1/alpha (cotan L is scale-free, B scales with alpha²). The fixed absolute
     shift used to make cost and result depend on units (wrong maps from 1e8 on)."""
-    from torchfmap.bases import eigenpairs
+    from torchfmap.operators import eigenpairs
 
     from .conftest import bumpy_blob
 
@@ -210,7 +198,7 @@ def test_evaluation_refuses_invalid_maps(sphere):
 
 
 def test_zero_based_vts_is_refused(tmp_path):
-    from torchfmap.eval import read_vts
+    from torchfmap.io import read_vts
 
     path = tmp_path / "a.vts"
     np.savetxt(path, [0, 4, 7], fmt="%d")
@@ -330,7 +318,7 @@ def test_cli_landmark_files_give_clear_errors(tmp_path, sphere, capsys, content,
 
 
 def test_landmark_file_with_bom_and_comments_is_read(tmp_path):
-    from torchfmap.cli import read_landmark_pairs
+    from torchfmap.io import read_landmark_pairs
 
     lm = tmp_path / "lm.txt"
     lm.write_bytes("\ufeff# pairs\n1 2\n\n3 4  # a comment\n".encode())
@@ -349,8 +337,8 @@ def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere, capsys):
 @pytest.mark.parametrize(
     "argv",
     [
-        ["basis", "MESH", "--seeds", "3", "--times", "1e-3,abc", "--out", "OUT"],
-        ["basis", "MESH", "--seeds", "-2", "--out", "OUT"],
+        ["basis", "MESH", "--basis", "diffusion", "--times", "1e-3,abc", "--out", "OUT"],
+        ["basis", "MESH", "--k", "-2", "--out", "OUT"],
         ["match", "MESH", "MESH", "--k", "0", "--out", "OUT"],
         ["eval", "FOLDER", "--max-points", "-5"],
         ["eval", "FOLDER", "--max-pairs", "-1"],
@@ -389,7 +377,7 @@ def test_checkpoints_are_checksummed_and_load_no_code(tmp_path):
     import torch
 
     from torchfmap.errors import CorruptFileError
-    from torchfmap.nn.train import read_checkpoint, save_checkpoint
+    from torchfmap.nn.checkpoints import read_checkpoint, save_checkpoint
 
     net = torch.nn.Linear(3, 2)
     path = save_checkpoint(tmp_path / "m.ckpt", net, {"k": 5}, note="x")
@@ -445,6 +433,7 @@ def test_one_based_landmarks_are_flagged():
         match(a, b, landmarks=lm, k=20)
 
 
+@pytest.mark.slow
 def test_kill_during_save_leaves_a_valid_file_and_no_litter_after_the_next_save(tmp_path):
     """kill -9 at random moments while a process rewrites a basis: the path always holds a
     complete file (old or new, checksum verified), and the next save removes the dead

@@ -1,6 +1,7 @@
-"""Package structure: module-level imports form a DAG, no function-level imports of torchfmap
-modules (and of third-party ones only when optional), one home per shared check, errors in one
-module."""
+"""Package structure: module-level imports (``if TYPE_CHECKING:`` ones included) form a DAG, no
+function-level imports of torchfmap modules (and of third-party ones only when optional), seeds
+and descriptors import nothing from bases, modules stay short, one home per shared check, errors
+in one module."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ import torchfmap
 ROOT = Path(torchfmap.__file__).parent
 #: Third-party modules that may be imported inside functions: optional dependencies only.
 OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse", "distributed"}
+#: Most lines a module of torchfmap may have (ARCHITECTURE.md rule 7: split at ~400).
+MAX_MODULE_LINES = 450
 #: Shared checks and file helpers: the only module allowed to define each name.
 HOMES = {
     "check_vertex_indices": "torchfmap._checks",
@@ -31,6 +34,23 @@ HOMES = {
     "atomic_write": "torchfmap._files",
     "save_arrays": "torchfmap._files",
     "load_arrays": "torchfmap._files",
+    "resolve_check": "torchfmap._torch_checks",
+    "check_batched": "torchfmap._torch_checks",
+    "check_finite": "torchfmap._torch_checks",
+    "check_index_range": "torchfmap._torch_checks",
+    "check_lengths": "torchfmap._torch_checks",
+    "get_kind": "torchfmap.bases.kinds",
+    "kind_of": "torchfmap.bases.kinds",
+    "prepare_shape": "torchfmap.bases.prepared",
+    "seed_time": "torchfmap.bases.kinds.base",
+    "replace_seeds": "torchfmap.seeds",
+    "refine_map": "torchfmap.fmap.refine",
+    "zoomout": "torchfmap.fmap.refine",
+    "mesh_files": "torchfmap.io",
+    "split_suffix": "torchfmap.io",
+    "read_vts": "torchfmap.io",
+    "read_landmarks": "torchfmap.io",
+    "read_landmark_pairs": "torchfmap.io",
 }
 
 
@@ -62,17 +82,13 @@ def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def _is_type_checking(node: ast.If) -> bool:
-    test = node.test
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
-    )
-
-
-def _imports(module: str, path: Path, tree: ast.Module):
+def _imports(module: str, path: Path, tree: ast.Module, sources=None):
     """``(module-level, function-level)`` lists of ``(imported module, line)``; a ``from X import
-    y`` where ``X.y`` is a module counts as importing ``X.y`` too. ``if TYPE_CHECKING:`` blocks
-    never run and are skipped."""
+    y`` where ``X.y`` is a module (one of ``sources``, default :data:`SOURCES`) counts as
+    importing ``X.y`` too. Imports under ``if TYPE_CHECKING:`` count as module-level: they never
+    run, but a cycle through them is still a cycle of the design (and breaks at run time as
+    soon as someone turns the annotation into a real import)."""
+    sources = SOURCES if sources is None else sources
     top, inner = [], []
 
     def targets(node) -> list[str]:
@@ -81,15 +97,11 @@ def _imports(module: str, path: Path, tree: ast.Module):
         base = _resolve(module, _is_package(path), node)
         names = [base]
         for alias in node.names:
-            if f"{base}.{alias.name}" in SOURCES:
+            if f"{base}.{alias.name}" in sources:
                 names.append(f"{base}.{alias.name}")
         return names
 
     def visit(node, in_function: bool) -> None:
-        if isinstance(node, ast.If) and _is_type_checking(node):
-            for child in node.orelse:
-                visit(child, in_function)
-            return
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             for name in targets(node):
                 (inner if in_function else top).append((name, node.lineno))
@@ -109,25 +121,27 @@ def _ancestors(name: str) -> list[str]:
 
 
 def import_graph(
-    include_functions: bool = False,
+    include_functions: bool = False, sources=None
 ) -> tuple[dict[str, set[str]], dict[str, list[tuple[str, int]]]]:
-    """Module-level edges between torchfmap modules (with ``include_functions``, function-level
-    ones too), and all function-level imports per module.
+    """Module-level edges (``if TYPE_CHECKING:`` imports included) between torchfmap modules
+    (with ``include_functions``, function-level ones too), and all function-level imports per
+    module. ``sources``: ``{module: (path, tree)}``, default the package (:data:`SOURCES`).
 
     Importing ``a.b.c`` also runs the packages ``a`` and ``a.b``: those count as edges too,
     except packages that contain the importing module (they are already being imported).
     """
-    graph: dict[str, set[str]] = {name: set() for name in SOURCES}
+    sources = SOURCES if sources is None else sources
+    graph: dict[str, set[str]] = {name: set() for name in sources}
     inner_all: dict[str, list[tuple[str, int]]] = {}
-    for module, (path, tree) in SOURCES.items():
-        top, inner = _imports(module, path, tree)
+    for module, (path, tree) in sources.items():
+        top, inner = _imports(module, path, tree, sources)
         inner_all[module] = inner
         own = set(_ancestors(module)) | ({module} if _is_package(path) else set())
         for name, _ in top + (inner if include_functions else []):
             if not name.startswith("torchfmap"):
                 continue
             for target in [*_ancestors(name), name]:
-                if target in SOURCES and target not in own and target != module:
+                if target in sources and target not in own and target != module:
                     graph[module].add(target)
     return graph, inner_all
 
@@ -163,12 +177,63 @@ def test_walker_sees_every_module_and_resolves_relative_imports():
     assert {"torchfmap", "torchfmap._checks", "torchfmap.nn.data", "torchfmap.bases.basis"} <= set(graph)
     assert "torchfmap.errors" in graph["torchfmap.bases.basis"]  # from ..errors import ...
     assert "torchfmap.nn.functional" in graph["torchfmap.nn"]  # from . import functional
-    assert "torchfmap.bases" in graph["torchfmap.seeds"]  # parent package of bases.diffusion runs too
+    assert "torchfmap.operators" in graph["torchfmap.seeds"]  # parent package of operators.heat runs too
 
 
 def test_cycle_finder_reports_a_cycle():
     assert _find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert _find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def _synthetic(modules: dict[str, str]) -> dict[str, tuple[Path, ast.Module]]:
+    """``{module: (path, tree)}`` of source texts, laid out as files under ROOT (never read)."""
+    out = {}
+    for name, text in modules.items():
+        parts = name.split(".")[1:]
+        path = ROOT.joinpath(*parts).with_suffix(".py") if parts else ROOT / "__init__.py"
+        out[name] = (path, ast.parse(text))
+    return out
+
+
+def test_type_checking_imports_count_for_cycles():
+    """A cycle closed only by an ``if TYPE_CHECKING:`` import is reported (e.g. the old
+    ``bases.basis`` <-> ``bases.orthonormalize`` loop)."""
+    sources = _synthetic(
+        {
+            "torchfmap": "",
+            "torchfmap.a": "from .b import g\n",
+            "torchfmap.b": (
+                "from typing import TYPE_CHECKING\n"
+                "if TYPE_CHECKING:\n    from .a import f\n"
+                "if typing.TYPE_CHECKING:\n    import torchfmap.c\n"
+            ),
+            "torchfmap.c": "",
+        }
+    )
+    graph, inner = import_graph(sources=sources)
+    assert graph["torchfmap.b"] == {"torchfmap.a", "torchfmap.c"} and not inner["torchfmap.b"]
+    assert _find_cycle(graph) == ["torchfmap.a", "torchfmap.b", "torchfmap.a"]
+
+
+def test_seeds_and_descriptors_import_nothing_from_bases():
+    """Seeds and descriptors come before bases in the data flow: the heat kernels they use live
+    in ``operators.heat``."""
+    graph, _ = import_graph(include_functions=True)
+    for module in ("torchfmap.seeds", "torchfmap.descriptors"):
+        bad = sorted(t for t in graph[module] if t == "torchfmap.bases" or t.startswith("torchfmap.bases."))
+        assert not bad, f"{module} imports {bad}: import heat kernels from torchfmap.operators.heat"
+
+
+def test_modules_are_short():
+    long = {
+        module: n
+        for module, (path, _) in SOURCES.items()
+        if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, (
+        f"modules over {MAX_MODULE_LINES} lines (split them by concept, ARCHITECTURE.md rule 7): "
+        + ", ".join(f"{m} ({n})" for m, n in sorted(long.items()))
+    )
 
 
 def test_module_level_imports_form_a_dag():
@@ -184,8 +249,9 @@ def test_no_cycle_hidden_in_function_level_imports():
 
 
 #: The one lazy boundary: the command line imports the torch-based learning path only in the
-#: commands that use it, so that classical commands start without torch.
-LAZY_TORCH = {"torchfmap.cli": ("torch", "torchfmap.nn")}
+#: commands that use it (torchfmap.commands, run by torchfmap.cli), so that classical commands
+#: start without torch.
+LAZY_TORCH = {"torchfmap.commands": ("torch", "torchfmap.nn")}
 
 
 def test_no_function_level_import_of_torchfmap_modules():
@@ -310,3 +376,15 @@ def test_public_error_names_still_importable():
 
     assert CorruptFileError is Home and FromSolvers is NotPositiveDefiniteError
     assert lumped_diagonal is lumped_from_laplacian and check_vertex_indices.__module__ == "torchfmap._checks"
+
+
+def test_operator_numerics_live_in_operators_and_stay_importable_from_bases():
+    import torchfmap.bases as bases
+    import torchfmap.operators as operators
+    from torchfmap.operators import eigen, heat
+
+    for name in ("heat_kernels", "heat_apply", "eigenpairs"):
+        assert getattr(bases, name) is getattr(operators, name)
+    assert bases.cf_poles is heat.cf_poles and bases.fix_signs is eigen.fix_signs
+    assert heat.heat_kernels.__module__ == "torchfmap.operators.heat"
+    assert eigen.eigenpairs.__module__ == "torchfmap.operators.eigen"

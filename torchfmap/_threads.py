@@ -2,10 +2,11 @@
 
 Two thread pools share the CPUs: BLAS's (numpy, scipy: OpenBLAS pthreads, which spin for a
 while after each call) and torch's (OpenMP). A tiny torch operation right after numpy work,
-run with several torch threads, waits for cores that BLAS's spinning threads still hold: a
-50 x 50 ``torch.linalg.eigh`` went from 0.35 ms to ~20 ms on 2 cores, a batched 50-system LU
-from 1.2 ms to 14 ms. The classical path therefore runs its small torch work single-threaded
-(:func:`torch_threads`), and :func:`thread_limit` sets both pools for a whole computation.
+run with several torch threads, waits for cores that BLAS's spinning threads still hold, so it
+is slower than with one thread. The classical path therefore runs its small torch work
+single-threaded (:func:`torch_threads`), and :func:`thread_limit` sets both pools for a whole
+computation. ``bench/threads.py`` checks that no workload is slower with all threads than with
+one (``bench/results/threads.md``).
 """
 
 from __future__ import annotations

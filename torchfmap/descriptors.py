@@ -1,9 +1,8 @@
-"""Pointwise descriptors: HKS, WKS, landmark descriptors, normalisation, projection.
+"""Pointwise descriptors: HKS, WKS, landmark descriptors, normalisation, checks.
 
 HKS and WKS are spectral (they take eigenpairs ``evals (k,)``, ``evecs (V, k)`` of
 ``L φ = λ B φ``); landmark descriptors can also be computed spectrum-free as heat kernels
 centred at the landmarks. Every descriptor array is ``(V, D)``: one column per descriptor.
-Descriptors are projected onto *any* B-orthonormal basis by ``A = Φᵀ B F`` (``(K, D)``).
 """
 
 from __future__ import annotations
@@ -14,9 +13,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_vertex_indices
-from .bases.basis import Basis
-from .bases.diffusion import heat_kernels
 from .errors import ParameterError
+from .operators.heat import heat_kernels
+
+#: WKS energies and width factor (Aubry et al. 2011): ``sigma = WKS_SIGMA * (e_max - e_min) / E``.
+WKS_ENERGIES = 100
+WKS_SIGMA = 7.0
+#: Relative heat times of the landmark descriptors (two kernels per landmark).
+LANDMARK_TIMES = (1e-2, 3e-2)
 
 
 def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -67,7 +71,9 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.
     return w / np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
 
 
-def wks(eigenvalues, eigenvectors, n_energies: int = 100, sigma_factor: float = 7.0) -> np.ndarray:
+def wks(
+    eigenvalues, eigenvectors, n_energies: int = WKS_ENERGIES, sigma_factor: float = WKS_SIGMA
+) -> np.ndarray:
     """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``.
 
     Raises :class:`ParameterError` for ``n_energies < 1`` or a ``sigma_factor`` that is not
@@ -87,7 +93,7 @@ def landmark_descriptors(
     kind: Literal["heat", "wks"] = "heat",
     operators=None,
     area: float | None = None,
-    times=(1e-3, 1e-2),
+    times=LANDMARK_TIMES,
     evals=None,
     evecs=None,
     n_energies: int = 20,
@@ -111,7 +117,7 @@ def landmark_descriptors(
     if kind == "wks":
         evals, evecs = _check_spectrum(evals, evecs)
         lm = check_vertex_indices(landmarks, evecs.shape[0], "landmarks")
-        w = _wks_weights(evals, n_energies, 7.0)  # (k, E)
+        w = _wks_weights(evals, n_energies, WKS_SIGMA)  # (k, E)
         # column (l, e): sum_k w[k, e] phi_k(l) phi_k(x)
         coeffs = evecs[lm][:, :, None] * w[None]  # (L, k, E)
         return np.einsum("vk,lke->vle", evecs, coeffs).reshape(evecs.shape[0], -1)
@@ -126,13 +132,6 @@ def normalize_descriptors(F: np.ndarray, mass=None) -> np.ndarray:
     else:
         norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", F, sp.csr_matrix(mass) @ F), 0.0))
     return F / np.where(norms > 0, norms, 1.0)
-
-
-def subsample_descriptors(F: np.ndarray, step: int) -> np.ndarray:
-    """Every ``step``-th column."""
-    if step < 1:
-        raise ParameterError(f"step must be >= 1, got {step}.")
-    return np.asarray(F)[:, ::step]
 
 
 def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors") -> np.ndarray:
@@ -150,9 +149,3 @@ def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors")
             "(e.g. a WKS of a mesh with zero-area vertices)."
         )
     return F
-
-
-def project_descriptors(basis: Basis, F: np.ndarray) -> np.ndarray:
-    """Coefficients ``A = Φᵀ B F`` of descriptors ``F (V, D)`` in a B-orthonormal basis: ``(K, D)``."""
-    F = check_descriptors(F, basis.n_vertices)
-    return basis.project(F)

@@ -2,7 +2,8 @@
 
 Ground truth comes in the field's formats: the identity (same mesh connectivity, vertex ``i``
 matches ``i``), a 0-based map file (line ``v``: the source vertex of target vertex ``v``), or
-pairs of 1-based ``.vts`` files whose rows correspond. Every form is turned into a
+pairs of 1-based ``.vts`` files whose rows correspond (the files are read by
+:func:`torchfmap.io.read_map` and :func:`torchfmap.io.read_vts`). Every form is turned into a
 :class:`Correspondence` ``(idx_x, idx_y)``: the same order as landmark pairs ``(x, y)``.
 
 Errors are geodesic distances on the source ``x`` between the predicted and the true match,
@@ -20,32 +21,12 @@ from typing import NamedTuple
 import numpy as np
 
 from .errors import ParameterError
-from .io import SUPPORTED_FORMATS, read_arrays
+from .io import find_file, mesh_files, read_arrays, read_test_pairs, read_vts, shape_name
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver
 
 
 # -- ground truth ------------------------------------------------------------------------------
-def read_map(path: str | os.PathLike) -> np.ndarray:
-    """A 0-based vertex map, one integer per line."""
-    return np.atleast_1d(np.loadtxt(path, dtype=np.int64, ndmin=1))
-
-
-def read_vts(path: str | os.PathLike) -> np.ndarray:
-    """A ``.vts`` file (1-based vertex ids, first column) as 0-based indices.
-
-    Raises :class:`ParameterError` if the file holds a 0 or a negative id: it is not 1-based
-    (read as 1-based, a 0-based file would score the true map as a poor one).
-    """
-    data = np.loadtxt(path, dtype=np.int64, ndmin=2)
-    if data.size and data[:, 0].min() < 1:
-        raise ParameterError(
-            f"{str(path)!r} holds vertex id {int(data[:, 0].min())}: .vts files are 1-based. Fix: if this "
-            "file is 0-based, read it with np.loadtxt and add no offset (gt_from_vts takes 0-based arrays)."
-        )
-    return data[:, 0] - 1
-
-
 class Correspondence(NamedTuple):
     """Ground truth: ``idx_x[r]`` on the source corresponds to ``idx_y[r]`` on the target.
 
@@ -278,20 +259,21 @@ def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
 def discover_pairs(folder: str | os.PathLike):
     """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
 
-    ``corres/<name>.vts`` files give ``.vts`` ground truth (pairs from ``test_pairs.txt``, or
-    consecutive meshes); otherwise meshes with equal vertex counts get the identity.
+    Meshes are the folder's :func:`~torchfmap.io.mesh_files` (``.gz`` included), named by
+    :func:`~torchfmap.io.shape_name`. ``corres/<name>.vts`` files give ``.vts`` ground truth
+    (pairs from ``test_pairs.txt``, or consecutive meshes); otherwise meshes with equal vertex
+    counts get the identity. Every file may be gzip-compressed (``<name>.gz``).
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise ParameterError(f"{str(folder)!r} is not a folder. Fix: give the folder that holds the meshes.")
-    meshes = {
-        p.name.split(".")[0]: p for p in sorted(folder.iterdir()) if p.suffix.lower() in SUPPORTED_FORMATS
-    }
+    meshes = {shape_name(p): p for p in mesh_files(folder)}
     if len(meshes) < 2:
-        raise ParameterError(f"{folder} holds fewer than two meshes. Fix: point to a folder of meshes.")
-    pairs_file = folder / "test_pairs.txt"
-    if pairs_file.exists():
-        pairs = [tuple(ln.split()[:2]) for ln in pairs_file.read_text().splitlines() if ln.strip()]
+        raise ParameterError(
+            f"{folder} holds fewer than two meshes. Fix: point to a folder of meshes "
+            "(.off/.ply/.obj/.stl, optionally .gz)."
+        )
+    pairs_file = find_file(folder, "test_pairs.txt")
+    if pairs_file is not None:
+        pairs = read_test_pairs(pairs_file)
     else:
         names = list(meshes)
         pairs = list(zip(names[:-1], names[1:], strict=True))
@@ -304,10 +286,11 @@ def discover_pairs(folder: str | os.PathLike):
                 "remove the line."
             )
         if corres.exists():
-            absent = [corres / f"{n}.vts" for n in (a, b) if not (corres / f"{n}.vts").exists()]
+            vts = {n: find_file(corres, f"{n}.vts") for n in (a, b)}
+            absent = [str(corres / f"{n}.vts") for n, p in vts.items() if p is None]
             if absent:
-                raise ParameterError(f"no ground truth {[str(p) for p in absent]}. Fix: add the .vts files.")
-            gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+                raise ParameterError(f"no ground truth {absent}. Fix: add the .vts (or .vts.gz) files.")
+            gt = gt_from_vts(read_vts(vts[a]), read_vts(vts[b]))
         else:
             n_a, n_b = len(read_arrays(meshes[a])[0]), len(read_arrays(meshes[b])[0])
             if n_a != n_b:

@@ -1,10 +1,20 @@
-"""Reading and writing meshes without ever changing vertex order.
+"""Every file format torchfmap reads or writes: meshes, point maps, ``.vts`` ground truth,
+landmark files, landmark-pair files and test-pairs files.
 
-Ground-truth correspondences are vertex indices, so a loader that merges, sorts or drops
-vertices silently breaks them. :func:`load_mesh` goes through trimesh with ``process=False``
-and ``maintain_order=True``; the one exception is STL, a triangle soup with no shared vertices,
-where identical corners are merged **in order of first appearance** (the only vertex order an
-STL file defines).
+One suffix rule for all of them (:func:`split_suffix`): the format is the last suffix before
+an optional ``.gz``, and a ``.gz`` file is read and written gzip-compressed. Folder listings
+(:func:`mesh_files`) use the same rule through :func:`is_mesh_file`. Writers go through
+:func:`torchfmap._files.atomic_write`.
+
+Meshes never change vertex order. Ground-truth correspondences are vertex indices, so a loader
+that merges, sorts or drops vertices silently breaks them. :func:`load_mesh` goes through
+trimesh with ``process=False`` and ``maintain_order=True``; the one exception is STL, a
+triangle soup with no shared vertices, where identical corners are merged **in order of first
+appearance** (the only vertex order an STL file defines).
+
+Index files (maps, ``.vts``, landmarks, landmark pairs) are text with one row per line;
+``#`` comments, blank lines and a UTF-8 byte-order mark are ignored, and a malformed file
+raises :class:`~torchfmap.errors.TorchFmapError` naming the file, the line and the fix.
 """
 
 from __future__ import annotations
@@ -12,28 +22,91 @@ from __future__ import annotations
 import gzip
 import io as _io
 import os
+import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from ._files import atomic_write
-from .errors import MeshError
+from .errors import MeshError, ParameterError, TorchFmapError
 from .mesh import Mesh
 
-SUPPORTED_FORMATS = (".off", ".ply", ".obj", ".stl")
+#: Mesh formats (without the dot), each also readable and writable as ``<format>.gz``.
+MESH_FORMATS = ("off", "ply", "obj", "stl")
+SUPPORTED_FORMATS = tuple(f".{fmt}" for fmt in MESH_FORMATS)
+
+
+# -- the one suffix rule -----------------------------------------------------------------------
+def split_suffix(path: str | os.PathLike) -> tuple[str, bool]:
+    """``(format, gzipped)`` of a file name: the lower-case last suffix before an optional
+    ``.gz``, without its dot (``''`` if none). ``cat.off.gz`` -> ``('off', True)``,
+    ``map.TXT`` -> ``('txt', False)``, ``lion2cat`` -> ``('', False)``."""
+    suffixes = [s.lower() for s in Path(path).suffixes]
+    gz = bool(suffixes) and suffixes[-1] == ".gz"
+    if gz:
+        suffixes = suffixes[:-1]
+    return (suffixes[-1][1:] if suffixes else ""), gz
+
+
+def is_mesh_file(path: str | os.PathLike) -> bool:
+    """Whether the name is one :func:`load_mesh` reads (a :data:`MESH_FORMATS` suffix, optionally
+    followed by ``.gz``). Judges the name only."""
+    return split_suffix(path)[0] in MESH_FORMATS
+
+
+def mesh_files(folder: str | os.PathLike) -> list[Path]:
+    """The mesh files of a folder (:func:`is_mesh_file`, ``.gz`` included), sorted by name.
+
+    Raises :class:`ParameterError` if ``folder`` is not a folder.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ParameterError(f"{str(folder)!r} is not a folder. Fix: give the folder that holds the meshes.")
+    return sorted((f for f in folder.iterdir() if f.is_file() and is_mesh_file(f)), key=lambda f: f.name)
+
+
+def shape_name(path: str | os.PathLike) -> str:
+    """The name of the shape in a file: the file name up to its first dot (``cat0.off.gz`` -> ``cat0``)."""
+    return Path(path).name.split(".")[0]
+
+
+def find_file(folder: str | os.PathLike, name: str) -> Path | None:
+    """``folder/name`` or, if only that exists compressed, ``folder/name.gz``; None if neither."""
+    for candidate in (Path(folder) / name, Path(folder) / f"{name}.gz"):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def _format_of(path: Path) -> tuple[str, bool]:
-    suffixes = [s.lower() for s in path.suffixes]
-    gz = bool(suffixes) and suffixes[-1] == ".gz"
-    ext = suffixes[-2] if gz and len(suffixes) >= 2 else (suffixes[-1] if suffixes else "")
-    if ext not in SUPPORTED_FORMATS:
+    fmt, gz = split_suffix(path)
+    if fmt not in MESH_FORMATS:
         raise MeshError(
-            f"cannot read {path.name!r}: unsupported extension {ext or '(none)'!r}. Fix: use one of "
-            f"{', '.join(SUPPORTED_FORMATS)} (optionally .gz-compressed)."
+            f"cannot read {path.name!r}: unsupported extension {'.' + fmt if fmt else '(none)'!r}. Fix: use "
+            f"one of {', '.join(SUPPORTED_FORMATS)} (optionally .gz-compressed)."
         )
-    return ext[1:], gz
+    return fmt, gz
+
+
+def _read_bytes(path: str | os.PathLike, what: str, error: type[TorchFmapError] = TorchFmapError) -> bytes:
+    """The bytes of a file, gunzipped when its name ends in ``.gz``."""
+    try:
+        with gzip.open(path, "rb") if split_suffix(path)[1] else open(path, "rb") as fh:
+            return fh.read()
+    except (OSError, EOFError, zlib.error) as err:
+        raise error(
+            f"cannot read the {what} file {str(path)!r} ({err}). Fix: check the path (a .gz name must "
+            "hold gzip data)."
+        ) from err
+
+
+def _write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` atomically, gzip-compressed when the name ends in ``.gz``."""
+    if split_suffix(path)[1]:
+        data = gzip.compress(data, mtime=0)
+    return atomic_write(path, lambda fh: fh.write(data))
 
 
 def merge_soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,8 +179,7 @@ def read_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{str(path)!r} is a folder, not a mesh file. Fix: give the path of one mesh file.")
     fmt, gz = _format_of(path)
     try:
-        with gzip.open(path, "rb") if gz else open(path, "rb") as fh:
-            data = fh.read()
+        data = _read_bytes(path, "mesh", MeshError)
         if fmt in TEXT_FORMATS:
             data = _decode(data)
         if fmt == "off":
@@ -138,7 +210,7 @@ def load_mesh(path: str | os.PathLike, *, validate: bool = True, **flags) -> Mes
         a :class:`~torchfmap.Mesh` named after the file.
     """
     vertices, faces = read_arrays(path)
-    name = Path(path).name.split(".")[0]
+    name = shape_name(path)
     try:
         return Mesh(vertices, faces, validate=validate, name=name, **flags)
     except MeshError as err:
@@ -148,10 +220,135 @@ def load_mesh(path: str | os.PathLike, *, validate: bool = True, **flags) -> Mes
 def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     """Write a mesh (format from the extension, .gz allowed), atomically, vertex order kept."""
     path = Path(path)
-    fmt, gz = _format_of(path)
+    fmt, _ = _format_of(path)
     data = mesh.to_trimesh().export(file_type=fmt)
-    if isinstance(data, str):
-        data = data.encode()
-    if gz:
-        data = gzip.compress(data)
-    return atomic_write(path, lambda fh: fh.write(data))
+    return _write_bytes(path, data.encode() if isinstance(data, str) else data)
+
+
+# -- index files: point maps, .vts, landmarks, landmark pairs ----------------------------------
+def read_text(path: str | os.PathLike, what: str) -> str:
+    """The text of a UTF-8 file (``.gz`` allowed, a byte-order mark dropped); ``what`` names the
+    file in the :class:`TorchFmapError` raised when it cannot be read."""
+    data = _read_bytes(path, what)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise TorchFmapError(
+            f"the {what} file {str(path)!r} is not UTF-8 text ({err}). Fix: save it as text."
+        ) from err
+
+
+def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
+    """The careful parser: names the first bad line."""
+    rows, width = [], columns
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        width = len(fields) if width is None else width
+        if len(fields) != width:
+            raise TorchFmapError(
+                f"{path}:{number}: expected {width} integer column(s) per line ({what}), got "
+                f"{len(fields)}: {line.strip()!r}. Fix: one {what} entry per line."
+            )
+        try:
+            rows.append([int(f) for f in fields])
+        except ValueError as err:
+            raise TorchFmapError(f"{path}:{number}: {what} must be integer vertex indices ({err}).") from err
+    if not rows:
+        raise TorchFmapError(f"the {what} file {str(path)!r} holds no entries. Fix: one entry per line.")
+    try:
+        return np.array(rows, dtype=np.int64)
+    except OverflowError as err:
+        raise TorchFmapError(f"{path}: a {what} index does not fit in 64 bits. Fix: check the file.") from err
+
+
+def read_index_table(path: str | os.PathLike, columns: int | None, what: str) -> np.ndarray:
+    """``(N, columns)`` integer rows of a text file (``.gz`` allowed; ``#`` comments, blank lines
+    and a UTF-8 byte-order mark ignored); ``columns=None``: any number, the same on every line.
+
+    Raises :class:`TorchFmapError` naming the file, the line and the fix for a missing or
+    unreadable file, an empty one, a line with another number of columns (e.g. a pairs file
+    where single indices are expected, or a third column), and anything that is not an integer.
+    """
+    text = read_text(path, what)
+    try:  # fast path for well-formed files; the careful parser names the problem otherwise
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is reported below
+            data = np.loadtxt(_io.StringIO(text), dtype=np.int64, ndmin=2, comments="#")
+        if data.size and (columns is None or data.shape[1] == columns):
+            return data
+    except (ValueError, OverflowError):
+        pass
+    return _parse_rows(text, path, columns, what)
+
+
+def read_landmarks(path: str | os.PathLike) -> np.ndarray:
+    """``(L,)`` 0-based vertex indices, one per line (a landmark file)."""
+    return read_index_table(path, 1, "landmark")[:, 0]
+
+
+def read_landmark_pairs(path: str | os.PathLike) -> np.ndarray:
+    """``(L, 2)`` 0-based pairs ``source_vertex target_vertex`` (``x y``), one per line."""
+    return read_index_table(path, 2, "landmark pair")
+
+
+def read_map(path: str | os.PathLike) -> np.ndarray:
+    """``(V_y,)`` a 0-based point map, one integer per line: line ``v`` holds the source vertex of
+    target vertex ``v`` (the file :func:`write_map` and ``torchfmap match`` write)."""
+    return read_index_table(path, 1, "point map")[:, 0]
+
+
+def write_map(path: str | os.PathLike, p2p_yx: np.ndarray) -> Path:
+    """Write a point map atomically (line ``v``: the source vertex of target vertex ``v``;
+    gzip-compressed if the name ends in ``.gz``); returns the path. :func:`read_map` reads it."""
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.ndim != 1 or not np.issubdtype(p2p_yx.dtype, np.integer):
+        raise ParameterError(
+            f"a point map is a 1-D integer array, got shape {p2p_yx.shape} and dtype {p2p_yx.dtype}. "
+            "Fix: pass p2p_yx (one source vertex per target vertex)."
+        )
+    text = "".join(f"{int(v)}\n" for v in p2p_yx)
+    return _write_bytes(path, text.encode())
+
+
+def read_vts(path: str | os.PathLike) -> np.ndarray:
+    """A ``.vts`` file (1-based vertex ids, first column used) as ``(P,)`` 0-based indices.
+
+    Raises :class:`ParameterError` if the file holds a 0 or a negative id: it is not 1-based
+    (read as 1-based, a 0-based file would score the true map as a poor one).
+    """
+    ids = read_index_table(path, None, ".vts")[:, 0]
+    if ids.min() < 1:
+        raise ParameterError(
+            f"{str(path)!r} holds vertex id {int(ids.min())}: .vts files are 1-based. Fix: if this "
+            "file is 0-based, read it with read_index_table and add no offset (gt_from_vts takes "
+            "0-based arrays)."
+        )
+    return ids - 1
+
+
+# -- test-pairs files --------------------------------------------------------------------------
+def read_test_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """``[(name_x, name_y), ...]`` of a test-pairs file (e.g. ``test_pairs.txt``): the first two
+    whitespace-separated shape names of every line (``.gz`` allowed; ``#`` comments and blank
+    lines ignored), in file order.
+
+    Raises :class:`TorchFmapError` for an unreadable or empty file or a line with one name.
+    """
+    pairs = []
+    for number, line in enumerate(read_text(path, "test pairs").splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) < 2:
+            raise TorchFmapError(
+                f"{path}:{number}: a test pair needs two shape names, got {line.strip()!r}. Fix: write "
+                "'source target' on each line."
+            )
+        pairs.append((fields[0], fields[1]))
+    if not pairs:
+        raise TorchFmapError(
+            f"the test pairs file {str(path)!r} holds no pairs. Fix: one 'source target' per line."
+        )
+    return pairs

@@ -5,285 +5,38 @@ never reorders either: vertex ``i`` of the file is vertex ``i`` here, because gr
 correspondences are lists of vertex indices. Derived quantities (areas, normals, edges,
 boundary, components) are computed lazily and cached.
 
-Validation (:func:`validate_mesh`) raises :class:`~torchfmap.errors.MeshError` for inputs
-that would give silently wrong operators, with a message naming the problem and the fix,
-and reports (without failing) properties such as holes. :class:`Mesh` also orients every
-component consistently (:func:`orient_faces`), warns when it had to, and records it in
-``mesh.report.n_flipped_faces``: the orientation term of the functional-map solver reads the
-normals, and a shape with flipped faces would otherwise be matched as its mirror image.
+Validation (:func:`validate_mesh`, :class:`MeshReport`, :func:`orient_faces`; they live in
+:mod:`torchfmap.mesh_checks` and are importable from here) raises
+:class:`~torchfmap.errors.MeshError` for inputs that would give silently wrong operators, with a
+message naming the problem and the fix, and reports (without failing) properties such as
+holes. :class:`Mesh` also orients every component consistently (:func:`orient_faces`), warns
+when it had to, and records it in ``mesh.report.n_flipped_faces``: the orientation term of the
+functional-map solver reads the normals, and a shape with flipped faces would otherwise be
+matched as its mirror image.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import logging
 import warnings
-from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 import trimesh
-from scipy.sparse.csgraph import breadth_first_order, connected_components
+from scipy.sparse.csgraph import connected_components
 
-from .errors import MeshError, MeshWarning, _preview
+from .errors import MeshError, MeshWarning
+from .mesh_checks import (
+    MeshReport,
+    _as_arrays,
+    _edge_face_incidence,
+    _face_areas,
+    orient_faces,
+    validate_mesh,
+)
 
-log = logging.getLogger(__name__)
-
-#: Faces whose area is below ``DEGENERATE_RTOL * mean_edge_length**2`` count as degenerate.
-DEGENERATE_RTOL = 1e-12
-#: Components with at most this fraction of boundary edges count as closed for orientation.
-CLOSED_BOUNDARY_FRACTION = 0.02
-
-
-@dataclass(frozen=True)
-class MeshReport:
-    """What validation found. Fields are counts / index arrays; see :func:`validate_mesh`."""
-
-    n_vertices: int
-    n_faces: int
-    n_components: int
-    n_boundary_edges: int
-    n_boundary_loops: int
-    unreferenced: np.ndarray = field(repr=False)
-    euler_characteristic: int = 0
-    #: faces whose corner order :class:`Mesh` reversed to orient every component consistently
-    #: (and closed components outward); 0 when the file was already consistent.
-    n_flipped_faces: int = 0
-
-    @property
-    def is_closed(self) -> bool:
-        return self.n_boundary_edges == 0
-
-    def summary(self) -> str:
-        holes = "closed" if self.is_closed else f"{self.n_boundary_loops} boundary loop(s)"
-        flipped = f", {self.n_flipped_faces} faces re-oriented" if self.n_flipped_faces else ""
-        return (
-            f"{self.n_vertices} vertices, {self.n_faces} faces, {self.n_components} component(s), "
-            f"{holes}, Euler characteristic {self.euler_characteristic}{flipped}"
-        )
-
-
-def _as_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise MeshError(f"vertices must have shape (V, 3), got {v.shape}. Fix: pass xyz coordinates.")
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise MeshError(
-            f"faces must have shape (F, 3), got {f.shape}. Fix: triangulate the mesh first "
-            "(e.g. trimesh's `triangulate` or `load_mesh`, which triangulates polygons)."
-        )
-    if not np.issubdtype(v.dtype, np.number):
-        raise MeshError(f"vertices must be numeric, got dtype {v.dtype}.")
-    if f.size and not np.issubdtype(f.dtype, np.integer):
-        if np.issubdtype(f.dtype, np.floating) and np.all(np.mod(f, 1) == 0):
-            f = f.astype(np.int64)
-        else:
-            raise MeshError(f"faces must be integer vertex indices, got dtype {f.dtype}.")
-    return v.astype(np.float64, copy=False), f.astype(np.int64, copy=False)
-
-
-def _unit_coordinates(v: np.ndarray) -> np.ndarray:
-    """``v`` divided by its largest absolute coordinate (unchanged if that is 0 or not finite),
-    for scale-free tests that must not over- or underflow."""
-    extent = float(np.abs(v).max())
-    return v / extent if 0 < extent < np.inf else v
-
-
-def _face_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    return 0.5 * np.linalg.norm(cross, axis=1)
-
-
-def _edge_face_incidence(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unique undirected edges ``(E, 2)``, how many faces hold each, and face-edge ids ``(F, 3)``.
-
-    Half-edge ``c`` of face ``f`` is the edge opposite corner ``c``: ``(f[(c+1)%3], f[(c+2)%3])``.
-    """
-    he = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)
-    und = np.sort(he, axis=1)
-    n = int(f.max()) + 1 if f.size else 1
-    keys, inverse, counts = np.unique(und[:, 0] * n + und[:, 1], return_inverse=True, return_counts=True)
-    edges = np.stack([keys // n, keys % n], axis=1)
-    return edges, counts, inverse.reshape(-1, 3)
-
-
-def _count_boundary_loops(boundary_edges: np.ndarray, n_vertices: int) -> int:
-    if len(boundary_edges) == 0:
-        return 0
-    a = sp.coo_matrix(
-        (np.ones(len(boundary_edges)), (boundary_edges[:, 0], boundary_edges[:, 1])),
-        shape=(n_vertices, n_vertices),
-    )
-    n, labels = connected_components(a, directed=False)
-    on_boundary = np.unique(boundary_edges)
-    return len(np.unique(labels[on_boundary]))
-
-
-def validate_mesh(
-    vertices,
-    faces,
-    *,
-    allow_components: bool = False,
-    allow_unreferenced: bool = False,
-    allow_nonmanifold: bool = False,
-) -> MeshReport:
-    """Check a triangle mesh and return a :class:`MeshReport`.
-
-    Raises :class:`MeshError` (message names the problem and the fix) for: an empty mesh,
-    NaN/inf coordinates, face indices out of range, degenerate faces (a repeated index or
-    zero area), unreferenced vertices, non-manifold edges (shared by more than two faces) and
-    several connected components. The last three can be allowed by flag. Holes (boundary
-    loops) are reported, never an error: many scanned and TOSCA meshes have them.
-
-    Args:
-        vertices: ``(V, 3)`` coordinates.
-        faces: ``(F, 3)`` vertex indices.
-    """
-    v, f = _as_arrays(vertices, faces)
-    if len(v) == 0 or len(f) == 0:
-        raise MeshError(
-            f"empty mesh ({len(v)} vertices, {len(f)} faces). Fix: check the file path and "
-            "format; a point cloud needs `laplacian(points, kind='robust')` instead."
-        )
-    bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
-    if len(bad):
-        raise MeshError(
-            f"{len(bad)} vertices have NaN or infinite coordinates: vertices {_preview(bad)}. "
-            "Fix: repair or remove them (and the faces using them) before building operators."
-        )
-    bad = np.flatnonzero(((f < 0) | (f >= len(v))).any(axis=1))
-    if len(bad):
-        raise MeshError(
-            f"{len(bad)} faces index vertices outside [0, {len(v)}): faces {_preview(bad)}. "
-            "Fix: faces must be 0-based indices into the vertex array (subtract 1 if they come "
-            "from a 1-based format)."
-        )
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    # degeneracy is scale-free: judge it on coordinates scaled to unit size, so that a tiny or
-    # huge mesh is not called degenerate because its areas under- or overflow
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        unit = _unit_coordinates(v)
-        areas = _face_areas(unit, f)
-        mean_edge = float(np.mean(np.linalg.norm(unit[f[:, 1]] - unit[f[:, 0]], axis=1))) or 1.0
-    bad = np.flatnonzero(repeated | (areas <= DEGENERATE_RTOL * mean_edge**2))
-    if len(bad):
-        raise MeshError(
-            f"{len(bad)} degenerate faces (zero area or a repeated vertex): faces {_preview(bad)}. "
-            "Fix: remove them, e.g. `mesh.without_faces(idx)`, or collapse the short edges; "
-            "cotangent weights of a zero-area face are infinite."
-        )
-    unref = np.setdiff1d(np.arange(len(v)), np.unique(f))
-    if len(unref) and not allow_unreferenced:
-        raise MeshError(
-            f"{len(unref)} vertices are not used by any face: vertices {_preview(unref)}. "
-            "Fix: remove them (this changes vertex indices: remap your correspondences), or pass "
-            "allow_unreferenced=True to load the mesh as it is and work on `mesh.referenced()` "
-            "(operators refuse vertices that no face uses)."
-        )
-    edges, counts, _ = _edge_face_incidence(f)
-    bad = np.flatnonzero(counts > 2)
-    if len(bad) and not allow_nonmanifold:
-        raise MeshError(
-            f"{len(bad)} non-manifold edges are shared by more than two faces, e.g. edges "
-            f"{[tuple(int(x) for x in e) for e in edges[bad[:4]]]}. Fix: repair the mesh, or use "
-            "`laplacian(mesh, kind='robust')` (intrinsic tufted Laplacian) with "
-            "allow_nonmanifold=True."
-        )
-    adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))
-    n_comp, labels = connected_components(adj, directed=False)
-    n_comp_used = len(np.unique(labels[np.unique(f)]))
-    if n_comp_used > 1 and not allow_components:
-        sizes = np.bincount(labels)
-        raise MeshError(
-            f"the mesh has {n_comp_used} connected components (sizes "
-            f"{sorted(sizes[sizes > 1].tolist(), reverse=True)[:6]}). Fix: keep one with "
-            "`mesh.largest_component()`, or pass allow_components=True and give every component "
-            "a seed when building bases."
-        )
-    boundary = edges[counts == 1]
-    report = MeshReport(
-        n_vertices=len(v),
-        n_faces=len(f),
-        n_components=n_comp_used,
-        n_boundary_edges=len(boundary),
-        n_boundary_loops=_count_boundary_loops(boundary, len(v)),
-        unreferenced=unref,
-        euler_characteristic=int(len(v) - len(unref) - len(edges) + len(f)),
-    )
-    if not report.is_closed:
-        log.info("mesh has %d hole(s) (%d boundary edges)", report.n_boundary_loops, len(boundary))
-    return report
-
-
-def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
-    """Faces with a consistent orientation on every connected component: ``(faces (F, 3), n_flipped)``.
-
-    Two faces sharing an edge are consistent when they traverse it in opposite directions.
-    Each component is oriented like a breadth-first spanning tree of its faces (edges shared by
-    exactly two faces), keeping the orientation that most of its input faces already had; a
-    component that is closed or nearly so (at most :data:`CLOSED_BOUNDARY_FRACTION` of its edges
-    on a boundary: small holes) and encloses volume (``|signed volume| > 1 %`` of ``area^1.5``)
-    is then turned outward. Corner order changes,
-    vertex order never does. Non-orientable components (a Möbius band) keep a valid
-    orientation on the spanning tree and their remaining conflicts. ``n_flipped`` counts the
-    faces whose corner order was reversed.
-    """
-    v, f = _as_arrays(vertices, faces)
-    nf = len(f)
-    he = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)
-    owner = np.repeat(np.arange(nf), 3)
-    n = len(v)
-    key = np.minimum(he[:, 0], he[:, 1]) * n + np.maximum(he[:, 0], he[:, 1])
-    order = np.argsort(key, kind="stable")
-    k_sorted = key[order]
-    first = np.flatnonzero(np.r_[True, k_sorted[1:] != k_sorted[:-1]])
-    counts = np.diff(np.r_[first, len(k_sorted)])
-    pairs = first[counts == 2]  # manifold interior edges: half-edges order[p], order[p + 1]
-    h0, h1 = order[pairs], order[pairs + 1]
-    same_dir = he[h0, 0] == he[h1, 0]  # both faces traverse the edge the same way: inconsistent
-    flip = np.zeros(nf, dtype=bool)
-    if same_dir.any():
-        a, b = owner[h0], owner[h1]
-        graph = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(nf, nf)).tocsr()
-        graph = graph + graph.T
-        relative = sp.coo_matrix((same_dir.astype(np.int8) + 1, (a, b)), shape=(nf, nf)).tocsr()
-        relative = relative + relative.T  # 2: needs a flip relative to the neighbour, 1: does not
-        n_comp, labels = connected_components(graph, directed=False)
-        for c in range(n_comp):
-            root = int(np.flatnonzero(labels == c)[0])
-            bfs, pred = breadth_first_order(graph, root, directed=False, return_predecessors=True)
-            kids = bfs[1:]
-            needs = np.asarray(relative[kids, pred[kids]]).ravel() == 2
-            for face, parent, x in zip(kids.tolist(), pred[kids].tolist(), needs.tolist(), strict=True):
-                flip[face] = flip[parent] ^ x  # parents come before children in BFS order
-            members = labels == c
-            if flip[members].sum() * 2 > members.sum():  # keep the majority's orientation
-                flip[members] = ~flip[members]
-    out = f.copy()
-    out[flip] = out[flip][:, ::-1]
-    # closed (or nearly closed) components: outward normals (positive signed volume)
-    adj = sp.coo_matrix((np.ones(3 * nf), (he[:, 0], he[:, 1])), shape=(n, n))
-    _, vlabels = connected_components(adj, directed=False)
-    flabels = vlabels[out[:, 0]]
-    unit = _unit_coordinates(v)  # the sign test is scale-free: no overflow
-    x0, x1, x2 = unit[out[:, 0]], unit[out[:, 1]], unit[out[:, 2]]
-    centre = unit[np.unique(out)].mean(axis=0)
-    vol = np.einsum("ij,ij->i", x0 - centre, np.cross(x1 - centre, x2 - centre)) / 6.0
-    area = _face_areas(unit, out)
-    comp_vol = np.bincount(flabels, weights=vol)
-    comp_area = np.bincount(flabels, weights=area)
-    # "closed enough": at most CLOSED_BOUNDARY_FRACTION of the component's edges on a boundary
-    boundary_he = first[counts == 1]
-    comp_boundary = np.bincount(flabels[owner[order[boundary_he]]], minlength=len(comp_vol))
-    comp_edges = np.bincount(flabels, minlength=len(comp_vol)) * 1.5
-    closed = comp_boundary <= CLOSED_BOUNDARY_FRACTION * comp_edges
-    inward = closed & (comp_vol < -0.01 * comp_area**1.5)
-    turn = inward[flabels]
-    out[turn] = out[turn][:, ::-1]
-    flipped = flip ^ turn
-    return out, int(flipped.sum())
+__all__ = ["Mesh", "MeshReport", "orient_faces", "validate_mesh"]
 
 
 class Mesh:

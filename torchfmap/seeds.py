@@ -14,10 +14,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
-from .bases.diffusion import heat_kernels
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver
+from .operators.heat import heat_kernels
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
 __all__ = [
@@ -325,3 +325,31 @@ def coverage_seeds(
         seeds = np.append(seeds, nxt)
         mind = np.minimum(mind, np.maximum(solver.distance(nxt), 0.0))
         new = np.array([nxt])
+
+
+def replace_seeds(
+    distances_x: DistanceRows, distances_y: DistanceRows, seeds: np.ndarray, p2p_yx: np.ndarray, n_fixed: int
+) -> np.ndarray:
+    """Seed pairs ``(S, 2)`` with their ``y`` side moved to where the map ``p2p_yx`` ``(V_y,)``
+    sends them, within reason.
+
+    Each seed ``s`` after the first ``n_fixed`` (the landmarks) goes to the ``y`` vertex whose
+    image under ``p2p_yx`` is geodesically nearest to ``s``, but only if that moves it less
+    than the seeds' covering radius ``sqrt(1 / S)`` and keeps the seeds distinct; otherwise it
+    stays. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
+    ``sqrt(area)`` (``normalized=True``). The map, refined in the seeds' own basis, corrects the
+    small placement errors of trilateration; the radius keeps one wrong region of the map from
+    dragging seeds across the shape.
+    """
+    radius = np.sqrt(1.0 / len(seeds))
+    out = seeds.copy()
+    used = {int(v) for v in seeds[:n_fixed, 1]}
+    for i in range(n_fixed, len(seeds)):  # bounded: one pass over the seeds
+        s, old = int(seeds[i, 0]), int(seeds[i, 1])
+        order = np.argsort(distances_x(s)[p2p_yx], kind="stable")
+        new = next(int(v) for v in order if int(v) not in used)
+        if distances_y(old)[new] >= radius and old not in used:
+            new = old
+        out[i, 1] = new
+        used.add(new)
+    return out

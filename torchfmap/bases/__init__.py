@@ -1,16 +1,23 @@
 """Bases of functions on a mesh: harmonic, diffusion, Laplacian eigenbasis, orthonormal stacks."""
 
 from ..errors import CorruptFileError
+from ..operators.eigen import eigenpairs, fix_signs
+from ..operators.heat import cf_poles, heat_apply, heat_kernels
 from .basis import Basis, Column, support_fraction
-from .diffusion import DEFAULT_TIMES, cf_poles, diffusion_basis, heat_apply, heat_kernels
+from .diffusion import DEFAULT_TIMES, diffusion_basis
 from .harmonic import harmonic_basis, harmonic_functions
-from .laplacian import eigenpairs, fix_signs, laplacian_eigenbasis
+from .kinds import KINDS, BasisKind, get_kind, kind_of
+from .laplacian import laplacian_eigenbasis
 from .orthonormalize import cholqr, mgs, orthonormalize, orthonormalize_pair
+from .prepared import PreparedShape, prepare_shape
 from .stack import basis_stack, concatenate
 
 __all__ = [
     "DEFAULT_TIMES",
+    "KINDS",
     "Basis",
+    "BasisKind",
+    "PreparedShape",
     "Column",
     "CorruptFileError",
     "basis_stack",
@@ -20,6 +27,8 @@ __all__ = [
     "diffusion_basis",
     "eigenpairs",
     "fix_signs",
+    "get_kind",
+    "kind_of",
     "harmonic_basis",
     "harmonic_functions",
     "heat_apply",
@@ -28,5 +37,6 @@ __all__ = [
     "mgs",
     "orthonormalize",
     "orthonormalize_pair",
+    "prepare_shape",
     "support_fraction",
 ]

@@ -19,7 +19,6 @@ import scipy.sparse as sp
 from .._checks import check_count
 from .._files import load_arrays, save_arrays
 from ..errors import ParameterError
-from .orthonormalize import orthonormalize
 
 _FORMAT_VERSION = 1
 
@@ -178,10 +177,6 @@ class Basis:
             kept += c.kept
         eig = None if self.eigenvalues is None else self.eigenvalues[:k]
         return Basis(self.values[:, :k], self.mass, prov, self.orthonormal, self.stiffness, eig)
-
-    def orthonormalized(self, scheme: str = "mgs", tol: float | None = None) -> Basis:
-        """A B-orthonormal basis of the same span (dependent columns dropped, recorded)."""
-        return orthonormalize(self, scheme=scheme, tol=tol)
 
     def support(self, eps: float = 1e-3, weighted: bool = False) -> np.ndarray:
         """``(K,)`` support fraction of each column; see :func:`support_fraction`."""

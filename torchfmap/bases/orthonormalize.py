@@ -19,15 +19,12 @@ harmonic -> Laplacian keeps the earliest columns and drops later ones that add n
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ParameterError
-
-if TYPE_CHECKING:  # annotations only: basis.py imports this module (Basis.orthonormalized)
-    from .basis import Basis, Column
+from .basis import Basis, Column
 
 SCHEMES = ("mgs", "cholqr")
 #: Columns projected out together in :func:`mgs` (block-modified Gram-Schmidt: BLAS-2 speed,

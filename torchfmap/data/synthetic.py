@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from ..errors import ParameterError
-from ..io import load_mesh
+from ..io import load_mesh, read_map
 from ..mesh import Mesh
 
 #: Gaussian bumps (direction, height, width) that break the ellipsoid's symmetries.
@@ -81,7 +81,7 @@ def demo_pair_paths() -> tuple[Path, Path, Path]:
 def demo_pair() -> tuple[Mesh, Mesh, np.ndarray]:
     """Load the shipped demo pair: ``(blob_a, blob_b, gt_b_to_a)``."""
     pa, pb, pgt = demo_pair_paths()
-    return load_mesh(pa), load_mesh(pb), np.loadtxt(pgt, dtype=np.int64)
+    return load_mesh(pa), load_mesh(pb), read_map(pgt)
 
 
 def stretch_deform(mesh: Mesh, seed: int = 0, strength: float = 1.0) -> Mesh:

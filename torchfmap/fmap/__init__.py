@@ -1,21 +1,22 @@
 """Functional maps: the regularised solver (any basis), conversions and refinement."""
 
 from .convert import (
+    Neighbors,
     check_p2p,
     fmap_to_p2p,
     fmap_to_p2p_bijective,
     nearest_neighbor,
+    nearest_neighbor_distance,
     p2p_to_fmap,
     values_to_p2p,
 )
 from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
-from .refine import icp_refine, zoomout, zoomout_sequence
+from .refine import Refined, icp_refine, refine_map, zoomout, zoomout_sequence
 from .solver import (
     FmapProblem,
     build_problem,
     check_landmark_pairs,
     multiplication_operator,
-    orientation_operator,
     orientation_operators,
     solve_fmap,
 )
@@ -30,10 +31,13 @@ __all__ = [
     "icp_refine",
     "laplacian_mask",
     "multiplication_operator",
+    "Neighbors",
     "nearest_neighbor",
-    "orientation_operator",
+    "nearest_neighbor_distance",
     "orientation_operators",
     "p2p_to_fmap",
+    "Refined",
+    "refine_map",
     "rotate_and_solve",
     "solve_fmap",
     "solve_rowwise",

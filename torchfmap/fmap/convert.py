@@ -11,7 +11,7 @@ classical choice for (near-)orthogonal ``C`` in eigenbases.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,6 +26,13 @@ NN_BLOCK_BYTES = 128 * 2**20
 KDTREE_MAX_DIM = 12
 
 
+class Neighbors(NamedTuple):
+    """Result of :func:`nearest_neighbor_distance`: ``index (M,)`` int64, ``distance (M,)`` float64."""
+
+    index: np.ndarray
+    distance: np.ndarray
+
+
 def nearest_neighbor(
     query: np.ndarray,
     reference: np.ndarray,
@@ -33,9 +40,9 @@ def nearest_neighbor(
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "double",
     block_bytes: int = NN_BLOCK_BYTES,
-    return_distance: bool = False,
-):
-    """Index of the nearest row of ``reference (N, D)`` for every row of ``query (M, D)``.
+) -> np.ndarray:
+    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for every row of
+    ``query (M, D)``; :func:`nearest_neighbor_distance` also returns the distances.
 
     Brute force evaluates ``|r|² - 2 q·r`` for a block of queries at a time in one reused
     ``(block, N)`` buffer of at most ``block_bytes`` (memory is bounded whatever ``M`` and
@@ -44,8 +51,30 @@ def nearest_neighbor(
 
     ``precision='single'`` runs the brute-force products in float32 (faster: see
     ``bench/nn_speed.py``); rows whose nearest and second-nearest distances differ by less than float32
-    round-off may then resolve differently from float64. Distances are returned in float64.
+    round-off may then resolve differently from float64.
     """
+    return _nearest(query, reference, search, precision, block_bytes)[0]
+
+
+def nearest_neighbor_distance(
+    query: np.ndarray,
+    reference: np.ndarray,
+    *,
+    search: Literal["auto", "brute", "kdtree"] = "auto",
+    precision: Literal["double", "single"] = "double",
+    block_bytes: int = NN_BLOCK_BYTES,
+) -> Neighbors:
+    """:func:`nearest_neighbor` with the distances: ``Neighbors(index (M,), distance (M,))``,
+    the distances in float64 whatever ``precision``."""
+    idx, dist, query, reference = _nearest(query, reference, search, precision, block_bytes)
+    if dist is None:
+        diff = query - reference[idx]
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    return Neighbors(idx, dist)
+
+
+def _nearest(query, reference, search: str, precision: str, block_bytes: int):
+    """``(index, distance or None, query, reference)``: the search of :func:`nearest_neighbor`."""
     query = np.ascontiguousarray(query, dtype=np.float64)
     reference = np.ascontiguousarray(reference, dtype=np.float64)
     if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
@@ -60,7 +89,7 @@ def nearest_neighbor(
         search = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
     if search == "kdtree":
         dist, idx = cKDTree(reference).query(query, k=1)
-        return (idx.astype(np.int64), dist) if return_distance else idx.astype(np.int64)
+        return idx.astype(np.int64), dist, query, reference
     if search != "brute":
         raise ParameterError(f"unknown search {search!r}. Fix: 'auto', 'brute' or 'kdtree'.")
     dtype = np.float32 if precision == "single" else np.float64
@@ -80,10 +109,7 @@ def nearest_neighbor(
         d = buffer[:m]
         np.matmul(q_aug[:m], ref_aug.T, out=d)
         idx[start : start + m] = np.argmin(d, axis=1)
-    if not return_distance:
-        return idx
-    diff = query - reference[idx]
-    return idx, np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    return idx, None, query, reference
 
 
 def _check_fmap(C_xy: np.ndarray, k_x: int, k_y: int) -> np.ndarray:

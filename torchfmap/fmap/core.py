@@ -9,16 +9,21 @@ The regularised energy ``w_desc ‖C A_x - A_y‖² + w_lap ‖C W_x - W_y C‖�
 Laplacians) becomes a diagonal mask after rotating by the eigenvectors of ``W_x`` and ``W_y``
 (:func:`spectral_frame`): in that frame the problem splits into one ``K_x x K_x`` system per
 row of ``C`` (:func:`solve_rowwise`), exact in any B-orthonormal basis.
+
+Data checks (finite Gram matrices, singular systems) read tensor values, a host sync on an
+accelerator: they run under ``check`` (:func:`torchfmap._torch_checks.resolve_check`: by default
+on for CPU tensors, off elsewhere); shape and dtype checks always run.
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
 from .._lazy import torch
+from .._torch_checks import resolve_check
 from ..errors import ParameterError
 
 MaskKind = Literal["laplacian", "resolvent"]
@@ -31,7 +36,14 @@ def as_tensor(x, dtype: torch.dtype | None = None) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)).to(dtype or torch.float64)
 
 
-def spectral_frame(W: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+class SpectralFrame(NamedTuple):
+    """``W = U diag(lam) Uᵀ``: eigenvalues ``lam (..., K)`` ascending, orthogonal ``U (..., K, K)``."""
+
+    lam: torch.Tensor
+    U: torch.Tensor
+
+
+def spectral_frame(W: torch.Tensor) -> SpectralFrame:
     """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of projected Laplacians.
 
     Args:
@@ -39,11 +51,12 @@ def spectral_frame(W: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             non-symmetric ``L`` gives the frame of its symmetric part).
 
     Returns:
-        ``lam (..., K)`` ascending, ``U (..., K, K)`` orthogonal, in ``W``'s dtype and device.
+        :class:`SpectralFrame` ``(lam (..., K) ascending, U (..., K, K) orthogonal)``, in ``W``'s
+        dtype and device.
     """
     if W.shape[-1] != W.shape[-2]:
         raise ParameterError(f"W must be square (..., K, K), got {tuple(W.shape)}.")
-    return torch.linalg.eigh(0.5 * (W + W.transpose(-1, -2)))
+    return SpectralFrame(*torch.linalg.eigh(0.5 * (W + W.transpose(-1, -2))))
 
 
 def laplacian_mask(
@@ -98,6 +111,8 @@ def solve_rowwise(
     valid: torch.Tensor | None = None,
     prior: torch.Tensor | None = None,
     w_prior: float = 0.0,
+    *,
+    check: bool | None = None,
 ) -> torch.Tensor:
     """Minimise ``w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C_ij² + w_prior ‖C - P‖²`` exactly,
     one system per row.
@@ -110,19 +125,27 @@ def solve_rowwise(
             out 0 and the valid block equals the unpadded solution.
         prior, w_prior: optional ``(..., K_y, K_x)`` map ``P`` the solution is pulled towards
             (e.g. the identity between bases built at corresponding seeds), and its weight.
+        check: run the data checks (an overflowing Gram matrix, a singular system); None: on
+            CPU tensors only (see the module docstring). Unchecked, such inputs give non-finite
+            maps instead of an error.
 
     Returns:
         ``C (..., K_y, K_x)``. One batched LU over the ``(..., K_y, K_x, K_x)`` systems;
         differentiable (the backward reuses the LU factors).
+
+    Raises:
+        ParameterError: not float32/float64; with ``check``, an overflowing Gram matrix or a
+            singular system.
     """
     if A_x.dtype not in (torch.float32, torch.float64):
         raise ParameterError(
             f"the functional-map solve needs float32 or float64, got {A_x.dtype}. Fix: cast the "
             "features first, e.g. feats.float() (half precision has too few digits for the LU)."
         )
+    check = resolve_check(check, A_x)
     G = w_desc * (A_x @ A_x.transpose(-1, -2))  # (..., Kx, Kx)
     rhs = w_desc * (A_y @ A_x.transpose(-1, -2))  # (..., Ky, Kx)
-    if not bool(torch.isfinite(G).all() and torch.isfinite(rhs).all()):
+    if check and not bool(torch.isfinite(G).all() & torch.isfinite(rhs).all()):
         raise ParameterError(
             f"the descriptor Gram matrix overflows {A_x.dtype} (features too large). Fix: normalise "
             "the features (e.g. to unit norm per vertex) or solve in float64."
@@ -134,7 +157,7 @@ def solve_rowwise(
     if valid is not None:
         diag = diag + (1 - valid)
         rhs = rhs * valid
-    return _rowwise_solve().apply(G, diag, rhs)
+    return _rowwise_solve().apply(G, diag, rhs, check)
 
 
 @functools.cache
@@ -144,7 +167,8 @@ def _rowwise_solve():
 
     class _RowwiseSolve(torch.autograd.Function):
         """``c_i = (G + diag(d_i))⁻¹ r_i`` for every row ``i``; ``G (..., Kx, Kx)``,
-        ``d, r (..., Ky, Kx)`` -> ``c (..., Ky, Kx)``.
+        ``d, r (..., Ky, Kx)`` -> ``c (..., Ky, Kx)``; ``check``: refuse singular systems
+        (reads the LU's info, a host sync).
 
         Forward: one batched LU of the ``(..., Ky, Kx, Kx)`` systems. Backward reuses the LU
         factors (``u_i = S_i⁻ᵀ ∂c_i``) and returns ``∂G = -Σ_i u_i c_iᵀ``, ``∂d_i = -u_i ∘ c_i``,
@@ -154,7 +178,7 @@ def _rowwise_solve():
         """
 
         @staticmethod
-        def forward(ctx, G, diag, rhs):
+        def forward(ctx, G, diag, rhs, check):
             shape = (*G.shape[:-2], diag.shape[-2], *G.shape[-2:])
             systems = G.unsqueeze(-3).expand(shape).contiguous()
             systems.diagonal(dim1=-2, dim2=-1).add_(diag)
@@ -167,7 +191,7 @@ def _rowwise_solve():
             pivots = torch.empty(shape[:-1], dtype=torch.int32, device=G.device)
             info = torch.empty(shape[:-2], dtype=torch.int32, device=G.device)
             torch.linalg.lu_factor_ex(LU, out=(LU, pivots, info))
-            if bool((info > 0).any()):
+            if check and bool((info > 0).any()):
                 raise ParameterError(
                     "the functional-map systems are singular (descriptors span too little and w_lap = 0). "
                     "Fix: use w_lap > 0 or more descriptors."
@@ -185,7 +209,7 @@ def _rowwise_solve():
                 u = torch.linalg.solve(systems.transpose(-1, -2), grad_c[..., None])[..., 0]
             else:
                 u = torch.linalg.lu_solve(LU, pivots, grad_c[..., None])[..., 0]  # Sᵀ u = ∂c
-            return -(u.transpose(-1, -2) @ c), -(u * c), u
+            return -(u.transpose(-1, -2) @ c), -(u * c), u, None
 
     return _RowwiseSolve
 
@@ -204,14 +228,15 @@ def rotate_and_solve(
     valid: torch.Tensor | None = None,
     prior: torch.Tensor | None = None,
     w_prior: float = 0.0,
+    check: bool | None = None,
 ) -> torch.Tensor:
     """``C_xy (..., K_y, K_x)`` in any B-orthonormal basis from its spectral frames.
 
     Args:
         A_x, A_y: ``(..., K_x, D)``, ``(..., K_y, D)`` descriptor coefficients ``Φᵀ M F``.
         lam_x, U_x, lam_y, U_y: the frames ``W = U diag(lam) Uᵀ`` (:func:`spectral_frame`).
-        valid, prior, w_prior: see :func:`solve_rowwise` (``prior`` in the unrotated frame;
-            ``‖C - P‖`` is unchanged by the orthogonal rotations).
+        valid, prior, w_prior, check: see :func:`solve_rowwise` (``prior`` in the unrotated
+            frame; ``‖C - P‖`` is unchanged by the orthogonal rotations).
 
     Rotating ``A`` by ``U`` makes ``‖C W_x - W_y C‖²`` the diagonal mask ``(λ_x,j - λ_y,i)²``
     on ``C' = U_yᵀ C U_x``, so :func:`solve_rowwise` is exact; the result is rotated back.
@@ -220,5 +245,5 @@ def rotate_and_solve(
     A_yr = U_y.transpose(-1, -2) @ A_y
     Pr = None if prior is None else U_y.transpose(-1, -2) @ prior @ U_x
     weights = laplacian_mask(lam_x, lam_y, mask, valid=valid)
-    Cr = solve_rowwise(A_xr, A_yr, weights, w_desc, w_lap, valid, Pr, w_prior)
+    Cr = solve_rowwise(A_xr, A_yr, weights, w_desc, w_lap, valid, Pr, w_prior, check=check)
     return U_y @ Cr @ U_x.transpose(-1, -2)

@@ -1,39 +1,49 @@
 """One home for the default weights and rules of the functional-map solve, shared by
 :func:`~torchfmap.fmap.solve_fmap`, :func:`~torchfmap.fmap.fmap_to_p2p`,
-:func:`torchfmap.match` and :class:`torchfmap.nn.RegularizedFMSolver`.
+:func:`torchfmap.match`, the refinements and :class:`torchfmap.nn.RegularizedFMSolver`.
 
-A default that depends on the basis is read off the basis' provenance (:func:`basis_kind`),
-so the same call gives the same map whichever entry point makes it.
+A default that depends on the basis is read off the basis' kind in the registry
+(:data:`torchfmap.bases.KINDS`, recognised from the columns' provenance by
+:func:`~torchfmap.bases.kinds.kind_of`), so the same call gives the same map whichever entry
+point makes it.
 """
 
 from __future__ import annotations
 
 from ..bases.basis import Basis
+from ..bases.kinds import KINDS, kind_of
 
-#: Laplacian-commutativity weight per basis kind (the mask is normalised to mean 1), chosen
-#: by ``python bench/weight_sweep.py``. Projected Laplacians of small-t heat kernels have very
-#: large top eigenvalues, which dominate the mask's mean, so bases with diffusion columns need
-#: a larger weight than eigenbases.
-W_LAP = {"laplacian": 0.1, "harmonic": 0.1, "diffusion": 1.0, "stack": 1.0, "custom": 0.1}
+#: Laplacian-commutativity weight of bases of no registered kind: ``'diffusion_mix'`` for mixes
+#: holding heat kernels (whose projected Laplacians have very large top eigenvalues, which
+#: dominate the mask's mean), ``'custom'`` for the rest.
+W_LAP_OTHER = {"diffusion_mix": KINDS["diffusion"].w_lap, "custom": KINDS["laplacian"].w_lap}
+#: Laplacian-commutativity weight per basis kind (the mask is normalised to mean 1), chosen by
+#: ``python bench/weight_sweep.py``; read from the kinds' ``w_lap``.
+W_LAP = {name: kind.w_lap for name, kind in KINDS.items()} | W_LAP_OTHER
 #: Orientation-preservation weight when both meshes are given (tells left from right).
 W_ORIENT = 1e-2
 #: Pointwise landmark-preservation weight when landmarks are given.
 W_LMK = 1.0
+#: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
+#: seeds (relative to the descriptor term; ``inf``: ``C = I`` exactly, no descriptors needed).
+W_PRIOR = float("inf")
+#: ZoomOut adds ``max(1, k // ZOOMOUT_STEP_DIVISOR)`` eigenfunctions per iteration by default.
+ZOOMOUT_STEP_DIVISOR = 10
 
 
 def basis_kind(basis: Basis) -> str:
-    """``'laplacian'``, ``'harmonic'`` or ``'custom'`` when every kept column is of that kind,
-    ``'diffusion'`` when every column is a heat kernel, ``'stack'`` for diffusion mixed with
-    other kinds."""
-    kinds = {c.kind for c in basis.columns}
-    if len(kinds) == 1:
-        return kinds.pop()
-    return "stack" if "diffusion" in kinds else "custom"
+    """The registered kind of ``basis`` (:func:`~torchfmap.bases.kinds.kind_of`), else
+    ``'diffusion_mix'`` if it holds heat kernels, else ``'custom'``."""
+    kind = kind_of(basis)
+    if kind is not None:
+        return kind
+    return "diffusion_mix" if any(c.kind == "diffusion" for c in basis.columns) else "custom"
 
 
 def default_w_lap(basis_x: Basis, basis_y: Basis) -> float:
-    """:data:`W_LAP` of the pair's kind (the larger one if the two kinds differ)."""
-    return max(W_LAP.get(basis_kind(b), W_LAP["custom"]) for b in (basis_x, basis_y))
+    """The ``w_lap`` of the pair's kind (:data:`W_LAP`; the larger one if the kinds differ)."""
+    names = [basis_kind(b) for b in (basis_x, basis_y)]
+    return max(KINDS[n].w_lap if n in KINDS else W_LAP_OTHER[n] for n in names)
 
 
 def default_p2p_mode(basis_x: Basis, basis_y: Basis) -> str:
@@ -41,3 +51,8 @@ def default_p2p_mode(basis_x: Basis, basis_y: Basis) -> str:
     eigenbases, where maps of near-isometries are near-orthogonal; ``'pullback'`` otherwise."""
     eigen = all(basis_kind(b) == "laplacian" for b in (basis_x, basis_y))
     return "orthogonal" if eigen else "pullback"
+
+
+def zoomout_step(k: int) -> int:
+    """Default ZoomOut step for a start of ``k`` eigenfunctions."""
+    return max(1, k // ZOOMOUT_STEP_DIVISOR)

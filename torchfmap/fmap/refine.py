@@ -9,20 +9,25 @@ Which applies where:
   while the basis grows. It needs *nested* bases. For an eigenbasis, the first ``k``
   eigenfunctions with ``k`` increasing. For feature-aware bases, pass a sequence of bases with
   growing spans (:func:`zoomout_sequence`): more scales (large to small ``t``) or more seeds
-  (harmonic spans are nested in the seed set); :func:`torchfmap.pipeline.match` builds such
-  sequences from corresponding landmarks.
+  (harmonic spans are nested in the seed set); or iterate at a fixed size, then move the seeds
+  (:func:`refine_map`, the refinement of :func:`torchfmap.match`, which follows each basis
+  kind's ``refinement``).
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
 from ..bases.basis import Basis
+from ..bases.kinds import BasisKind, get_kind
+from ..bases.orthonormalize import orthonormalize_pair
+from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
+from ..seeds import farthest_point_sampling, replace_seeds
 from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
-from .defaults import default_p2p_mode
+from .defaults import default_p2p_mode, zoomout_step
 
 Mode = Literal["pullback", "orthogonal"]
 
@@ -93,7 +98,7 @@ def zoomout(
     basis_x: Basis,
     basis_y: Basis,
     k_final: int,
-    step: int = 1,
+    step: int | None = None,
     *,
     mode: Mode | None = None,
     subsample=None,
@@ -103,6 +108,8 @@ def zoomout(
     Meaningful when the first columns span nested, coarse-to-fine subspaces (eigenbases).
 
     Args:
+        step: eigenfunctions added per iteration (default
+            :func:`~torchfmap.fmap.defaults.zoomout_step` of the start size).
         mode: point-map conversion (default :func:`~torchfmap.fmap.defaults.default_p2p_mode`:
             ``'orthogonal'``, the classical choice, for eigenbases).
         subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
@@ -121,6 +128,7 @@ def zoomout(
         )
     if k_final > min(basis_x.k, basis_y.k):
         raise ParameterError(f"k_final={k_final} exceeds the bases' sizes {basis_x.k}, {basis_y.k}.")
+    step = zoomout_step(min(C.shape)) if step is None else step
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     samples = _check_samples(subsample, basis_x, basis_y)
@@ -171,3 +179,91 @@ def zoomout_sequence(
     if samples is not None:
         p2p = fmap_to_p2p(C, bases_x[-1], bases_y[-1], mode=mode)
     return C, p2p
+
+
+#: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
+FEATURE_REFINE_STEPS = 5
+#: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
+FEATURE_SEED_MOVES = 2
+#: Farthest-point samples per basis column for the iterations of feature-aware refinement (the
+#: least-squares map of ``K`` columns is fitted on ``25 K`` sample rows; only the last point map
+#: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
+#: (accuracy against every-vertex iterations: ``bench/feature_accuracy.py``).
+FEATURE_SAMPLES_PER_COLUMN = 25
+
+
+class Refined(NamedTuple):
+    """Result of :func:`refine_map`: the map, the bases it lives in and their seeds (or None)."""
+
+    C_xy: np.ndarray
+    p2p_yx: np.ndarray
+    basis_x: Basis
+    basis_y: Basis
+    seeds: np.ndarray | None
+
+
+def refine_map(
+    C_xy: np.ndarray,
+    p2p_yx: np.ndarray,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    basis_x: Basis,
+    basis_y: Basis,
+    method: str,
+    *,
+    kind: str | BasisKind,
+    k_final: int,
+    mode: Mode,
+    seeds: np.ndarray | None = None,
+    n_fixed: int = 0,
+    times=None,
+    zoomout_samples: int | None = None,
+) -> Refined:
+    """The map refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`torchfmap.match`).
+
+    ICP works in ``basis_x, basis_y``. ZoomOut follows the kind's ``refinement``
+    (:data:`torchfmap.bases.KINDS`): ``'grow'`` grows the prepared eigenbases up to ``k_final``
+    (:func:`zoomout`, on ``zoomout_samples`` farthest-point samples per shape if given);
+    otherwise it starts from the current map and alternates ``C`` and the point map
+    :data:`FEATURE_REFINE_STEPS` times at full size (on :data:`FEATURE_SAMPLES_PER_COLUMN`
+    ``x K`` farthest-point samples per shape, the last point map on every vertex); then, for
+    bases built at corresponding ``seeds`` (``(S, 2)``, the first ``n_fixed`` being landmarks)
+    of a ``'reseed'`` kind, :data:`FEATURE_SEED_MOVES` times it moves the seeds to where the map
+    puts them (:func:`~torchfmap.seeds.replace_seeds`), rebuilds the bases, restarts from
+    ``C = I`` in them and alternates again.
+
+    Raises:
+        ParameterError: an unknown method or kind.
+    """
+    kind = get_kind(kind)
+    if method == "icp":
+        return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=mode), basis_x, basis_y, seeds)
+    if method != "zoomout":
+        raise ParameterError(f"unknown refinement {method!r}. Fix: 'icp', 'zoomout' or None.")
+    if kind.refinement == "grow":
+        full_x, full_y = shape_x.eigenbasis, shape_y.eigenbasis
+        samples = None
+        if zoomout_samples is not None:
+            samples = tuple(
+                farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
+                for m in (shape_x.mesh, shape_y.mesh)
+            )
+        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=mode, subsample=samples)
+        return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
+    steps = FEATURE_REFINE_STEPS
+    bx, by = basis_x, basis_y
+    n_samples = min(FEATURE_SAMPLES_PER_COLUMN * bx.k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
+    samples = tuple(
+        farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y)
+    )
+    C, p2p = zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
+    if seeds is None or kind.refinement != "reseed":
+        return Refined(C, p2p, bx, by, seeds)
+    raw_x = kind.functions(shape_x, seeds[:, 0], times)  # x's seeds never move (kernels cached)
+    for _ in range(FEATURE_SEED_MOVES):
+        seeds = replace_seeds(shape_x.distances, shape_y.distances, seeds, p2p, n_fixed)
+        raw_y = kind.functions(shape_y, seeds[:, 1], times)
+        bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
+        p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=mode)
+        C, p2p = zoomout_sequence(p2p, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
+    return Refined(C, p2p, bx, by, seeds)

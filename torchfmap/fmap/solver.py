@@ -104,11 +104,6 @@ def orientation_operators(
     return [np.ascontiguousarray(ops[:, j, :]) for j in range(J)]
 
 
-def orientation_operator(mesh: Mesh, basis: Basis, f: np.ndarray) -> np.ndarray:
-    """``(K, K)`` operator of the vector field ``n × ∇f`` acting by ``g -> (n × ∇f)·∇g``."""
-    return orientation_operators(mesh, basis, np.asarray(f)[:, None])[0]
-
-
 @dataclass
 class FmapProblem:
     """Everything the solver needs, already rotated into the spectral frames of ``W_x, W_y``."""

@@ -2,7 +2,19 @@
 
 Functions (:mod:`torchfmap.nn.functional`) do the work; modules hold settings and buffers.
 Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass, ``(B, V, D)`` features,
-``(B, K_y, K_x)`` maps ``C_xy``.
+``(B, K_y, K_x)`` maps ``C_xy``. Padding of a batch is recorded once, in
+:class:`BasisBatch` (``lengths`` vertex counts, ``valid`` column mask).
+
+**The check switch.** Data checks (finite values, index ranges, sortedness, singular systems)
+read tensor values, a host sync on an accelerator. Every function that has them takes
+``check: bool | None = None`` and every layer the same setting: ``None`` runs them on CPU
+inputs and skips them elsewhere, ``True`` / ``False`` force it (:mod:`torchfmap._torch_checks`).
+Shape checks always run.
+
+Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
+:mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.data`,
+:mod:`~torchfmap.nn.config` (the reference recipe), :mod:`~torchfmap.nn.train` (the loop, DDP),
+:mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
 """
 
 from . import functional
@@ -16,17 +28,23 @@ from .data import (
     collate_shapes,
     precompute_shape,
 )
-from .functional import BasisBatch, GradientBatch
+from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
 from .modules import (
     BasisModule,
-    FeatureNet,
     RegularizedFMSolver,
     SoftPointMap,
     SpectralDiffusion,
     UnsupervisedFMLoss,
     basis_arrays,
 )
-from .networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures
+from .networks import (
+    DiffusionNet,
+    FeatureNet,
+    FeatureNetwork,
+    SpatialGradientFeatures,
+    check_network,
+    features,
+)
 
 __all__ = [
     "BasisBatch",
@@ -34,20 +52,25 @@ __all__ = [
     "DiffusionNet",
     "FeatureNet",
     "FeatureNetwork",
+    "FmapPair",
     "GradientBatch",
     "PairDataset",
     "PrecomputeCache",
     "RegularizedFMSolver",
     "ShapeBatch",
     "ShapeDataset",
+    "SoftMaps",
     "SoftPointMap",
     "SpatialGradientFeatures",
     "SpectralDiffusion",
+    "TangentGradient",
     "UnsupervisedFMLoss",
     "basis_arrays",
+    "check_network",
     "class_pairs",
     "collate_pairs",
     "collate_shapes",
+    "features",
     "functional",
     "precompute_shape",
 ]

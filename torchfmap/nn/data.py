@@ -21,15 +21,17 @@ import torch
 from tqdm import tqdm
 
 from .._files import load_arrays, save_arrays
-from ..bases import concatenate, diffusion_basis, laplacian_eigenbasis, orthonormalize
+from ..bases import laplacian_eigenbasis
 from ..bases.basis import Basis
+from ..bases.kinds import get_kind
+from ..bases.prepared import PreparedShape
 from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
-from ..io import load_mesh
+from ..io import load_mesh, mesh_files
 from ..mesh import Mesh
 from ..operators import laplacian
+from ..operators.geodesic import DistanceRows
 from ..operators.laplacian import normalize_area
-from ..seeds import farthest_point_sampling
 from .functional import BasisBatch, GradientBatch
 from .geometry import gradient_operator
 from .modules import basis_arrays
@@ -81,26 +83,16 @@ class PrecomputeCache:
         return arrays
 
 
-BASIS_KINDS = ("laplacian", "diffusion", "stack")
 #: Relative diffusion times of the feature-aware bases on the learned path.
 SEED_TIMES = (0.01, 0.03)
 
 
 def _solver_basis(unit: Mesh, eig: Basis, kind: str, k: int, ops) -> Basis:
-    """The functional-map basis of ``k`` functions: eigenbasis, FPS-seeded diffusion kernels, or
-    a stack (first ``k // 2`` eigenfunctions, then diffusion kernels), B-orthonormal."""
-    if kind == "laplacian":
-        return eig.truncated(k)
-    n_kernels = k if kind == "diffusion" else k - k // 2
-    seeds = farthest_point_sampling(unit, -(-n_kernels // len(SEED_TIMES)) + 1)
-    kernels = diffusion_basis(unit, seeds, SEED_TIMES, operators=ops)
-    parts = [kernels] if kind == "diffusion" else [eig.truncated(k // 2), kernels]
-    basis = orthonormalize(concatenate(parts))
-    if basis.k < k:
-        raise ParameterError(
-            f"the {kind} basis has only {basis.k} independent functions, {k} asked. Fix: lower k."
-        )
-    return basis.truncated(k)
+    """The functional-map basis of ``k`` functions of a registered kind
+    (:data:`torchfmap.bases.KINDS`), built on one shape by the kind's ``shape_basis``
+    (farthest-point seeds for seeded kinds, diffusion at :data:`SEED_TIMES`), B-orthonormal."""
+    shape = PreparedShape(unit, ops, eig, DistanceRows(unit, normalized=True))
+    return get_kind(kind).shape_basis(shape, k, times=SEED_TIMES)
 
 
 def precompute_shape(
@@ -121,8 +113,7 @@ def precompute_shape(
       (:func:`~torchfmap.nn.geometry.gradient_operator`);
     - the original ``vertices``, ``faces``.
     """
-    if basis not in BASIS_KINDS:
-        raise ParameterError(f"unknown basis kind {basis!r}. Fix: one of {', '.join(BASIS_KINDS)}.")
+    get_kind(basis)  # refuses an unknown kind before any work
     unit = normalize_area(mesh)
     ops = laplacian(unit)
     k_all = max(k, k_wks, k_net)
@@ -149,17 +140,6 @@ def default_cache_dir() -> Path:
     return Path(root) / "torchfmap"
 
 
-def mesh_files(folder: str | os.PathLike) -> list[Path]:
-    """The mesh files of a folder that :func:`~torchfmap.load_mesh` reads, sorted by name."""
-    files = [
-        f
-        for f in Path(folder).iterdir()
-        if f.is_file() and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES)
-    ]
-    return sorted(files, key=lambda f: f.name)
-
-
-MESH_SUFFIXES = tuple(s + gz for s in (".off", ".ply", ".obj", ".stl") for gz in ("", ".gz"))
 _ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
 
 
@@ -199,12 +179,11 @@ class ShapeDataset(torch.utils.data.Dataset):
             )
         if inputs not in ("wks", "xyz"):
             raise ParameterError(f"unknown inputs {inputs!r}. Fix: 'wks' or 'xyz'.")
-        if basis not in BASIS_KINDS:
-            raise ParameterError(f"unknown basis kind {basis!r}. Fix: one of {', '.join(BASIS_KINDS)}.")
+        get_kind(basis)  # refuses an unknown kind (torchfmap.bases.KINDS)
         self.files = [Path(f) for f in files]
         self.names = [f.name.split(".")[0] for f in self.files]
         self.cache = _open_cache(default_cache_dir() if cache_dir is None else cache_dir)
-        self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 3}
+        self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 4}
         self.inputs, self.dtype = inputs, dtype
         self.items: list[dict | None] = [None] * len(self.files)
         self.precompute(rank, world_size, progress)
@@ -298,27 +277,37 @@ class PairDataset(torch.utils.data.Dataset):
 class ShapeBatch(NamedTuple):
     """A padded batch of shapes (:func:`collate_shapes`).
 
-    ``basis`` the solver basis ``(B, V, K)``, ``inputs (B, V, C)``, ``lengths (B,)`` vertex
-    counts, ``net_basis`` the network's basis ``(B, V, K_net)`` (the solver basis when the items
-    have none), ``grad`` the gradient operators (None when the items have none), ``xyz (B, V, 3)``.
+    ``basis`` the solver basis ``(B, V, K)``, ``inputs (B, V, C)``, ``net_basis`` the network's
+    basis ``(B, V, K_net)`` (the solver basis when the items have none), ``grad`` the gradient
+    operators (None when the items have none), ``xyz (B, V, 3)`` (or None).
+
+    **Padding**: the one record is the bases' :class:`~torchfmap.nn.functional.BasisBatch`
+    fields: ``basis.lengths (B,)`` vertex counts (the real vertices come first; None when every
+    shape has ``V`` vertices), shared by ``net_basis``, and each basis' column mask ``valid``.
+    Padded rows of ``inputs`` and ``xyz`` are zero and padded gradient entries have weight 0.
     """
 
     basis: BasisBatch
     inputs: torch.Tensor
-    lengths: torch.Tensor
     net_basis: BasisBatch
     grad: GradientBatch | None
     xyz: torch.Tensor | None
 
+    @property
+    def lengths(self) -> torch.Tensor:
+        """``(B,)`` int64 vertex counts (``basis.lengths``, or ``V`` each when none is padded)."""
+        if self.basis.lengths is not None:
+            return self.basis.lengths
+        B, V = self.basis.values.shape[:2]
+        return torch.full((B,), V, dtype=torch.int64, device=self.basis.values.device)
+
     def to(self, *args, **kwargs) -> ShapeBatch:
         """Floats follow ``.to(dtype/device)``; lengths and indices only move device."""
         basis = self.basis.to(*args, **kwargs)
-        device = basis.values.device
         net = basis if self.net_basis is self.basis else self.net_basis.to(*args, **kwargs)
         return ShapeBatch(
             basis,
             self.inputs.to(*args, **kwargs),
-            self.lengths.to(device),
             net,
             None if self.grad is None else self.grad.to(*args, **kwargs),
             None if self.xyz is None else self.xyz.to(*args, **kwargs),
@@ -334,7 +323,7 @@ def _pad(tensors: list[torch.Tensor], fill: float = 0.0) -> torch.Tensor:
     return out
 
 
-def _basis_batch(items: list[dict], prefix: str) -> BasisBatch:
+def _basis_batch(items: list[dict], prefix: str, lengths: torch.Tensor | None) -> BasisBatch:
     values = _pad([it[f"{prefix}values"] for it in items])
     K = values.shape[-1]
     U = torch.eye(K, dtype=values.dtype).repeat(len(items), 1, 1)
@@ -344,26 +333,29 @@ def _basis_batch(items: list[dict], prefix: str) -> BasisBatch:
         U[b, :k, :k] = it[f"{prefix}U"]
         valid[b, :k] = 1
     mass = _pad([it["mass"] for it in items])
-    return BasisBatch(values, mass, _pad([it[f"{prefix}lam"] for it in items]), U, valid)
+    return BasisBatch(values, mass, _pad([it[f"{prefix}lam"] for it in items]), U, valid, lengths)
 
 
 def collate_shapes(items: list[dict]) -> ShapeBatch:
     """Pad shapes of different ``V`` and ``K`` into a :class:`ShapeBatch`.
 
-    Padded vertices get zero mass, zero basis values, zero inputs and no gradient entries;
-    padded columns zero values, ``lam = 0``, an identity block in ``U`` and ``valid = 0``.
+    The padding is recorded in ``basis.lengths`` (vertex counts; None when all shapes have the
+    same ``V``) and each basis' ``valid`` (column mask); padded entries are filled so that they
+    change nothing: zero mass, basis values and inputs, no gradient weight on padded vertices;
+    ``lam = 0`` and an identity block in ``U`` on padded columns.
     Items need ``values, mass, lam, U`` and ``inputs`` (or ``wks``); ``net_*``, ``grad_*`` and
     ``xyz`` are optional.
     """
-    basis = _basis_batch(items, "")
-    net = _basis_batch(items, "net_") if all("net_values" in it for it in items) else basis
+    counts = [it["values"].shape[0] for it in items]
+    lengths = None if len(set(counts)) == 1 else torch.tensor(counts, dtype=torch.int64)
+    basis = _basis_batch(items, "", lengths)
+    net = _basis_batch(items, "net_", lengths) if all("net_values" in it for it in items) else basis
     inputs = _pad([it["inputs"] if "inputs" in it else it["wks"] for it in items])
-    lengths = torch.tensor([it["values"].shape[0] for it in items], dtype=torch.long)
     grad = None
     if all("grad_rows" in it for it in items):
         # padded edges point at the last (padded) vertex with weight 0, so every shape's edges
         # stay sorted by (row, col) and by (col, row) through order_t
-        last = int(lengths.max()) - 1
+        last = max(counts) - 1
         order_t = None
         if all("grad_order_t" in it for it in items):
             E = max(len(it["grad_order_t"]) for it in items)
@@ -378,11 +370,12 @@ def collate_shapes(items: list[dict]) -> ShapeBatch:
             order_t,
         )
     xyz = _pad([it["xyz"] for it in items]) if all("xyz" in it for it in items) else None
-    return ShapeBatch(basis, inputs, lengths, net, grad, xyz)
+    return ShapeBatch(basis, inputs, net, grad, xyz)
 
 
 def collate_pairs(batch: list[tuple[dict, dict]]) -> dict:
-    """Collate ``(x, y)`` pairs into padded batches: ``{'x': (basis, feats, lengths), 'y': ..., 'names'}``."""
+    """Collate ``(x, y)`` pairs into padded batches: ``{'x': ShapeBatch, 'y': ShapeBatch, 'names': [(x name,
+    y name)], 'index': [(x index, y index)]}``."""
     xs, ys = zip(*batch, strict=True)
     return {
         "x": collate_shapes(list(xs)),

@@ -1,159 +1,120 @@
 """Differentiable functional-map operations on batches (torch).
 
 Shapes: ``B`` pairs, ``V`` vertices (padded), ``K`` basis functions (padded), ``D`` feature
-channels. A :class:`BasisBatch` holds ``values (B, V, K)``, ``mass (B, V)`` (lumped; 0 on
-padded vertices), the spectral frame of the projected Laplacian ``lam (B, K)``, ``U (B, K, K)``
-(identity on padded columns) and ``valid (B, K)`` (1 for real columns). The solve itself is
+channels. A :class:`BasisBatch` holds a padded batch of bases (``values (B, V, K)``, ``mass
+(B, V)``, the spectral frame ``lam (B, K)``, ``U (B, K, K)`` of the projected Laplacian, and the
+padding: ``valid (B, K)``, ``lengths (B,)``). The solve itself is
 :func:`torchfmap.fmap.core.rotate_and_solve`; the classical path runs the same core
 (:func:`~torchfmap.fmap.core.spectral_frame`, :func:`~torchfmap.fmap.core.solve_rowwise`).
+The tangent-frame gradient operations (:class:`GradientBatch`, :func:`spatial_gradient`,
+:func:`gradient_features`) live in :mod:`torchfmap.nn.gradients` and are re-exported here.
+
+**Checks** (:mod:`torchfmap._torch_checks`, the one home of the torch-side checks). Shape checks
+always run. Data checks read tensor values, which on an accelerator waits for the device (a
+host sync): finite features, index ranges of gradient operators and ground-truth rows,
+sortedness of the operators' edges, vertex counts, singular systems. Every function with one
+takes ``check: bool | None = None``: ``None`` runs them on CPU tensors and skips them on other
+devices, ``True`` / ``False`` force it. The layers (:mod:`~torchfmap.nn.modules`,
+:mod:`~torchfmap.nn.networks`) take the same ``check`` setting and pass it on, so a layer and
+its function refuse the same inputs. Unchecked, a bad input gives non-finite or wrong values
+instead of an error: pass ``check=True`` to debug on a GPU. Nothing global is read.
 """
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import torch
 
+from .._torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
 from ..errors import ParameterError
 from ..fmap import core
 from ..fmap.defaults import W_LAP
+from .gradients import GradientBatch, TangentGradient, gradient_features, spatial_gradient
+
+__all__ = [
+    "BasisBatch",
+    "FmapPair",
+    "GradientBatch",
+    "SoftMaps",
+    "TangentGradient",
+    "basis_like",
+    "bijectivity_loss",
+    "coupling_loss",
+    "fmap_solve",
+    "geodesic_loss",
+    "gradient_features",
+    "laplacian_commutativity_loss",
+    "orthogonality_loss",
+    "project",
+    "reconstruct",
+    "soft_map",
+    "soft_map_to_fmap",
+    "soft_maps",
+    "spatial_gradient",
+    "vertex_mask",
+]
+
+
+def vertex_mask(lengths: torch.Tensor | None, n_vertices: int) -> torch.Tensor | None:
+    """``(B, V)`` bool, True on the first ``lengths[b]`` (real) vertices; None for None."""
+    if lengths is None:
+        return None
+    return torch.arange(n_vertices, device=lengths.device) < lengths[:, None]
 
 
 class BasisBatch(NamedTuple):
-    """A padded batch of bases; see the module docstring for shapes."""
+    """A padded batch of bases (:func:`~torchfmap.nn.collate_shapes`,
+    :meth:`~torchfmap.nn.BasisModule.batch`).
+
+    ``values (B, V, K)``, lumped ``mass (B, V)``, the spectral frame ``lam (B, K)``, ``U (B, K,
+    K)`` of the projected Laplacian ``W = U diag(lam) Uᵀ``, ``valid (B, K)`` and ``lengths (B,)``
+    (int64, or None).
+
+    **Padding** is read from two fields only: shape ``b`` has ``lengths[b]`` real vertices, the
+    first ones (``lengths=None``: all ``V`` are real; :attr:`vertex_mask` derives the ``(B, V)``
+    mask), and its real basis columns are those with ``valid[b] == 1`` (the first ``K_b``; 0 on
+    padded columns). Padded entries are filled so that they change nothing: zero values, mass
+    and ``lam``, an identity block in ``U``; a padded batch gives exactly the maps of its
+    unpadded shapes.
+    """
 
     values: torch.Tensor
     mass: torch.Tensor
     lam: torch.Tensor
     U: torch.Tensor
     valid: torch.Tensor
+    lengths: torch.Tensor | None = None
 
     @property
     def W(self) -> torch.Tensor:
         """``(B, K, K)`` projected Laplacian ``U diag(lam) Uᵀ``."""
         return self.U @ (self.lam[..., None] * self.U.transpose(-1, -2))
 
+    @property
+    def vertex_mask(self) -> torch.Tensor | None:
+        """``(B, V)`` bool, True on real vertices (from :attr:`lengths`); None when none is padded."""
+        return vertex_mask(self.lengths, self.values.shape[1])
+
     def to(self, *args, **kwargs) -> BasisBatch:
-        return BasisBatch(*(t.to(*args, **kwargs) for t in self))
+        """Floats follow ``.to(dtype/device)``; ``lengths`` only moves device."""
+        floats = [t.to(*args, **kwargs) for t in self[:5]]
+        lengths = None if self.lengths is None else self.lengths.to(floats[0].device)
+        return BasisBatch(*floats, lengths)
 
 
-class GradientBatch(NamedTuple):
-    """Padded batch of vertex gradient operators (:func:`torchfmap.nn.geometry.gradient_operator`).
+class FmapPair(NamedTuple):
+    """Result of :func:`fmap_solve`: ``C_xy (B, K_y, K_x)`` and ``C_yx (B, K_x, K_y)`` (or None)."""
 
-    ``rows, cols (B, E)`` (int64) and ``weight_x, weight_y (B, E)``: ``(∇f)_v`` in the tangent
-    frame of ``v`` is ``Σ_{rows == v} weight · f[cols]``. Padded entries have weight 0.
-    ``order_t (B, E)`` (int64, optional): per shape, the permutation that sorts the edges by
-    ``(col, row)``. With edges sorted by ``(row, col)`` and ``order_t`` given (as
-    :func:`~torchfmap.nn.collate_shapes` builds them), :func:`spatial_gradient` sorts nothing;
-    otherwise it sorts on every call.
-    """
-
-    rows: torch.Tensor
-    cols: torch.Tensor
-    weight_x: torch.Tensor
-    weight_y: torch.Tensor
-    order_t: torch.Tensor | None = None
-
-    def to(self, *args, **kwargs) -> GradientBatch:
-        """Weights follow ``.to(dtype/device)``; indices only move device."""
-        moved = [t.to(*args, **kwargs) for t in (self.weight_x, self.weight_y)]
-        device = moved[0].device
-        order_t = None if self.order_t is None else self.order_t.to(device)
-        return GradientBatch(self.rows.to(device), self.cols.to(device), *moved, order_t)
+    C_xy: torch.Tensor
+    C_yx: torch.Tensor | None
 
 
-def _csr(crow: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n: int) -> torch.Tensor:
-    with warnings.catch_warnings():  # "sparse CSR support is in beta": the product used here is not
-        warnings.simplefilter("ignore", UserWarning)
-        return torch.sparse_csr_tensor(crow, cols, values, (n, n))
+class SoftMaps(NamedTuple):
+    """Result of :func:`soft_maps`: ``pi_yx (B, V_y, V_x)`` and ``pi_xy (B, V_x, V_y)``."""
 
-
-def _row_pointers(index: torch.Tensor, n: int) -> torch.Tensor:
-    crow = torch.zeros(n + 1, dtype=torch.int64, device=index.device)
-    crow[1:] = torch.cumsum(torch.bincount(index, minlength=n), 0)
-    return crow
-
-
-class _SparsePairProduct(torch.autograd.Function):
-    """``(Gx f, Gy f)`` for CSR ``Gx, Gy (N, N)`` and ``f (N, C)``; the backward applies the
-    prebuilt transposes, ``Gxᵀ ∂gx + Gyᵀ ∂gy`` (no gradient to the operators)."""
-
-    @staticmethod
-    def forward(ctx, f, Gx, Gy, GxT, GyT):
-        ctx.transposes = (GxT, GyT)
-        return Gx @ f, Gy @ f
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, dgx, dgy):
-        GxT, GyT = ctx.transposes
-        return GxT @ dgx + GyT @ dgy, None, None, None, None
-
-
-def spatial_gradient(f: torch.Tensor, grad: GradientBatch) -> tuple[torch.Tensor, torch.Tensor]:
-    """Tangent-frame gradient of per-vertex features: ``(B, V, C) -> ((B, V, C), (B, V, C))``.
-
-    One block-diagonal compressed-sparse-row product for the batch (forward ``G f``, backward
-    ``Gᵀ ∂``); the weights are cast to ``f``'s dtype and device. First derivatives only.
-    """
-    if f.dim() != 3 or grad.rows.shape[0] != f.shape[0]:
-        raise ParameterError(
-            f"features must be (B, V, C) with B={grad.rows.shape[0]} (the operators' batch), got "
-            f"{tuple(f.shape)}. Fix: collate features and operators of the same shapes."
-        )
-    if grad.rows.numel() and int(max(grad.rows.max(), grad.cols.max())) >= f.shape[1]:
-        raise ParameterError(
-            f"the gradient operator indexes vertex {int(max(grad.rows.max(), grad.cols.max()))} but "
-            f"the features have V={f.shape[1]}. Fix: use the operators precomputed for these meshes."
-        )
-    B, V, C = f.shape
-    N, E = B * V, grad.rows.shape[1]
-    offset = V * torch.arange(B, device=f.device)[:, None]  # shape b's vertices are rows bV..bV+V-1
-    rows = (grad.rows.to(f.device) + offset).reshape(-1)
-    cols = (grad.cols.to(f.device) + offset).reshape(-1)
-    wx = grad.weight_x.to(dtype=f.dtype, device=f.device).reshape(-1)
-    wy = grad.weight_y.to(dtype=f.dtype, device=f.device).reshape(-1)
-    order_t = None
-    if grad.order_t is not None:  # per-shape (col, row) orders; the blocks follow each other
-        order_t = (grad.order_t.to(f.device) + E * torch.arange(B, device=f.device)[:, None]).reshape(-1)
-    key = rows * N + cols
-    if key.numel() > 1 and not bool((key[1:] >= key[:-1]).all()):
-        by_row = torch.argsort(key)
-        rows, cols, wx, wy, order_t = rows[by_row], cols[by_row], wx[by_row], wy[by_row], None
-    if order_t is None:
-        order_t = torch.argsort(cols * N + rows)
-    crow, ccol = _row_pointers(rows, N), _row_pointers(cols, N)
-    rows_t = rows[order_t]
-    gx, gy = _SparsePairProduct.apply(
-        f.reshape(N, C),
-        _csr(crow, cols, wx, N),
-        _csr(crow, cols, wy, N),
-        _csr(ccol, rows_t, wx[order_t], N),
-        _csr(ccol, rows_t, wy[order_t], N),
-    )
-    return gx.reshape(B, V, C), gy.reshape(B, V, C)
-
-
-def gradient_features(
-    gx: torch.Tensor, gy: torch.Tensor, A_re: torch.Tensor, A_im: torch.Tensor
-) -> torch.Tensor:
-    """DiffusionNet's spatial gradient features: ``tanh(Re(conj(g) ⊙ (A g)))``, ``(B, V, C)``.
-
-    ``g = gx + i gy (B, V, C)`` are tangent-frame gradients and ``A = A_re + i A_im (C, C)`` a
-    complex channel mixing, so the result does not depend on the choice of tangent frame (a
-    frame rotation multiplies ``g`` by a unit complex number). The ``A_im`` part is the normal
-    component of cross products of gradients: it changes sign under a reflection of the
-    surface, which is what lets a network tell left from right.
-    """
-    if gx.shape != gy.shape or A_re.shape != A_im.shape or A_re.shape != (gx.shape[-1], gx.shape[-1]):
-        raise ParameterError(
-            f"gradients must have equal shapes (B, V, C) and A_re, A_im be (C, C); got {tuple(gx.shape)}, "
-            f"{tuple(gy.shape)}, {tuple(A_re.shape)}, {tuple(A_im.shape)}."
-        )
-    b_re = gx @ A_re.T - gy @ A_im.T
-    b_im = gy @ A_re.T + gx @ A_im.T
-    return torch.tanh(gx * b_re + gy * b_im)
+    pi_yx: torch.Tensor
+    pi_xy: torch.Tensor
 
 
 def basis_like(basis, f: torch.Tensor) -> BasisBatch:
@@ -182,7 +143,7 @@ def basis_like(basis, f: torch.Tensor) -> BasisBatch:
 def project(basis: BasisBatch, f: torch.Tensor) -> torch.Tensor:
     """``Φᵀ M f``: ``(B, V, D) -> (B, K, D)``, in ``f``'s dtype."""
     basis = basis_like(basis, f)
-    _check_batch(basis, f, "features")
+    check_batched(f, basis.values.shape[0], basis.values.shape[1], "features")
     return basis.values.transpose(-1, -2) @ (basis.mass[..., None] * f)
 
 
@@ -196,16 +157,6 @@ def reconstruct(basis: BasisBatch, coeffs: torch.Tensor) -> torch.Tensor:
     return basis.values @ coeffs
 
 
-def _check_batch(basis: BasisBatch, f: torch.Tensor, name: str, finite: bool = False) -> None:
-    if f.dim() != 3 or f.shape[0] != basis.values.shape[0] or f.shape[1] != basis.values.shape[1]:
-        raise ParameterError(
-            f"{name} must be (B, V, D) = ({basis.values.shape[0]}, {basis.values.shape[1]}, D), got "
-            f"{tuple(f.shape)}. Fix: one row per (padded) vertex, the same batch size as the basis."
-        )
-    if finite and not torch.isfinite(f).all():
-        raise ParameterError(f"{name} contain NaN or inf. Fix: check the network's inputs and outputs.")
-
-
 def fmap_solve(
     feat_x: torch.Tensor,
     feat_y: torch.Tensor,
@@ -216,12 +167,17 @@ def fmap_solve(
     w_lap: float = W_LAP["laplacian"],
     mask: str = "laplacian",
     both: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
+    check: bool | None = None,
+) -> FmapPair:
     """Regularised functional maps from features, differentiable and batched.
 
-    Returns ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)`` in the features' dtype.
-    Equal to :func:`torchfmap.fmap.solve_fmap` with the same weights (descriptor + Laplacian
-    terms).
+    Returns :class:`FmapPair` ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)`` in the
+    features' dtype. Equal to :func:`torchfmap.fmap.solve_fmap` with the same weights
+    (descriptor + Laplacian terms). Padded columns (``valid == 0``) come out 0.
+
+    Raises:
+        ParameterError: shapes that do not fit; with ``check`` (see the module docstring),
+            non-finite features or projections, or singular systems.
     """
     basis_x, basis_y = basis_like(basis_x, feat_x), basis_like(basis_y, feat_y)
     if basis_x.values.shape[0] != basis_y.values.shape[0]:
@@ -231,46 +187,27 @@ def fmap_solve(
         )
     if feat_x.shape[-1] != feat_y.shape[-1]:
         raise ParameterError(f"feature dimensions differ: {feat_x.shape[-1]} vs {feat_y.shape[-1]}.")
+    check = resolve_check(check, feat_x)
     A_x, A_y = project(basis_x, feat_x), project(basis_y, feat_y)
-    # a non-finite feature (even at a padded vertex: NaN * 0 = NaN) makes its projection
-    # non-finite, so checking the small (B, K, D) projections is enough and ~100x cheaper
-    for A, feat, basis in ((A_x, feat_x, basis_x), (A_y, feat_y, basis_y)):
-        if not bool(torch.isfinite(A).all()):
-            _check_batch(basis, feat, "features", finite=True)
-            raise ParameterError(
-                "the projected features overflow (finite features, non-finite Φᵀ M f). Fix: scale "
-                "the features down (e.g. normalise them)."
-            )
+    if check:
+        # a non-finite feature (even at a padded vertex: NaN * 0 = NaN) makes its projection
+        # non-finite, so checking the small (B, K, D) projections is enough and ~100x cheaper
+        for A, feat in ((A_x, feat_x), (A_y, feat_y)):
+            if not bool(torch.isfinite(A).all()):
+                check_finite(feat, "features", "check the network's inputs and outputs.")
+                raise ParameterError(
+                    "the projected features overflow (finite features, non-finite Φᵀ M f). Fix: scale "
+                    "the features down (e.g. normalise them)."
+                )
     valid_xy = basis_y.valid[..., :, None] * basis_x.valid[..., None, :]
-    if bool((valid_xy == 1).all()):
-        valid_xy = None  # no padding: skip the masking work
-    C_xy = core.rotate_and_solve(
-        A_x,
-        A_y,
-        basis_x.lam,
-        basis_x.U,
-        basis_y.lam,
-        basis_y.U,
-        w_desc=w_desc,
-        w_lap=w_lap,
-        mask=mask,
-        valid=valid_xy,
-    )
+    frames = (basis_x.lam, basis_x.U, basis_y.lam, basis_y.U)
+    options = dict(w_desc=w_desc, w_lap=w_lap, mask=mask, check=check)
+    C_xy = core.rotate_and_solve(A_x, A_y, *frames, valid=valid_xy, **options)
     C_yx = None
     if both:
-        C_yx = core.rotate_and_solve(
-            A_y,
-            A_x,
-            basis_y.lam,
-            basis_y.U,
-            basis_x.lam,
-            basis_x.U,
-            w_desc=w_desc,
-            w_lap=w_lap,
-            mask=mask,
-            valid=None if valid_xy is None else valid_xy.transpose(-1, -2),
-        )
-    return C_xy, C_yx
+        frames_yx = (basis_y.lam, basis_y.U, basis_x.lam, basis_x.U)
+        C_yx = core.rotate_and_solve(A_y, A_x, *frames_yx, valid=valid_xy.transpose(-1, -2), **options)
+    return FmapPair(C_xy, C_yx)
 
 
 def soft_map(
@@ -278,17 +215,21 @@ def soft_map(
     feat_y: torch.Tensor,
     *,
     tau: float = 0.07,
-    mass_x: torch.Tensor | None = None,
+    lengths_x: torch.Tensor | None = None,
     sinkhorn_iters: int = 0,
+    check: bool | None = None,
 ) -> torch.Tensor:
     """Soft point map ``Π_yx (B, V_y, V_x)``: row ``v`` is a distribution over vertices of ``x``.
 
-    Softmax of cosine similarity / ``tau``; padded vertices of ``x`` (``mass_x == 0``) get no
-    weight. ``sinkhorn_iters > 0`` alternates row and column normalisation (log domain).
+    Softmax of cosine similarity / ``tau``; padded vertices of ``x`` (beyond ``lengths_x (B,)``,
+    :attr:`BasisBatch.lengths`; None: none padded) get no weight. ``sinkhorn_iters > 0``
+    alternates row and column normalisation (log domain).
 
-    Raises :class:`ParameterError` unless ``tau`` is finite and > 0.
+    Raises :class:`ParameterError` unless ``tau`` is finite and > 0, for features of
+    mismatched shapes, and (with ``check``) for vertex counts outside ``[1, V_x]``.
     """
-    return _normalise_soft(_similarity(feat_x, feat_y, tau), mass_x, sinkhorn_iters)
+    _check_soft(feat_x, feat_y, lengths_x, None, check)
+    return _normalise_soft(_similarity(feat_x, feat_y, tau), lengths_x, sinkhorn_iters)
 
 
 def soft_maps(
@@ -296,20 +237,33 @@ def soft_maps(
     feat_y: torch.Tensor,
     *,
     tau: float = 0.07,
-    mass_x: torch.Tensor | None = None,
-    mass_y: torch.Tensor | None = None,
+    lengths_x: torch.Tensor | None = None,
+    lengths_y: torch.Tensor | None = None,
     sinkhorn_iters: int = 0,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both directions, ``(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))``, from one similarity
-    matrix: equal to two :func:`soft_map` calls at about half the cost of the products.
+    check: bool | None = None,
+) -> SoftMaps:
+    """Both directions, :class:`SoftMaps` ``(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))``, from one
+    similarity matrix: equal to two :func:`soft_map` calls at about half the cost of the products.
 
-    Raises :class:`ParameterError` unless ``tau`` is finite and > 0.
+    Raises :class:`ParameterError` as :func:`soft_map`.
     """
+    _check_soft(feat_x, feat_y, lengths_x, lengths_y, check)
     logits = _similarity(feat_x, feat_y, tau)
-    return (
-        _normalise_soft(logits, mass_x, sinkhorn_iters),
-        _normalise_soft(logits.transpose(-1, -2), mass_y, sinkhorn_iters),
+    return SoftMaps(
+        _normalise_soft(logits, lengths_x, sinkhorn_iters),
+        _normalise_soft(logits.transpose(-1, -2), lengths_y, sinkhorn_iters),
     )
+
+
+def _check_soft(feat_x, feat_y, lengths_x, lengths_y, check: bool | None) -> None:
+    if feat_x.dim() != 3 or feat_y.dim() != 3 or feat_x.shape[::2] != feat_y.shape[::2]:
+        raise ParameterError(
+            f"features must be (B, V_x, D) and (B, V_y, D), got {tuple(feat_x.shape)} and "
+            f"{tuple(feat_y.shape)}. Fix: the same batch size and channels on both sides."
+        )
+    check = resolve_check(check, feat_x)
+    check_lengths(lengths_x, feat_x.shape[0], feat_x.shape[1], "lengths_x", check)
+    check_lengths(lengths_y, feat_y.shape[0], feat_y.shape[1], "lengths_y", check)
 
 
 def _similarity(feat_x: torch.Tensor, feat_y: torch.Tensor, tau: float) -> torch.Tensor:
@@ -321,11 +275,12 @@ def _similarity(feat_x: torch.Tensor, feat_y: torch.Tensor, tau: float) -> torch
     return fy @ fx.transpose(-1, -2) / tau
 
 
-def _normalise_soft(logits: torch.Tensor, mass_x: torch.Tensor | None, sinkhorn_iters: int) -> torch.Tensor:
-    """Row softmax (then Sinkhorn) of ``logits (B, V_y, V_x)``, columns with ``mass_x <= 0`` excluded."""
-    padded = None if mass_x is None else (mass_x <= 0)[..., None, :]  # (B, 1, V_x)
-    if padded is not None and not bool(padded.any()):
-        padded = None  # nothing to mask: skip the (B, V_y, V_x) fill
+def _normalise_soft(
+    logits: torch.Tensor, lengths_x: torch.Tensor | None, sinkhorn_iters: int
+) -> torch.Tensor:
+    """Row softmax (then Sinkhorn) of ``logits (B, V_y, V_x)``, columns beyond ``lengths_x`` excluded."""
+    real = vertex_mask(lengths_x, logits.shape[-1])
+    padded = None if real is None else ~real[..., None, :]  # (B, 1, V_x)
     if padded is not None:
         logits = logits.masked_fill(padded, float("-inf"))
     log_p = torch.log_softmax(logits, dim=-1)
@@ -386,13 +341,24 @@ def coupling_loss(
     return ((C_xy - soft_map_to_fmap(pi_yx, basis_x, basis_y)) ** 2).sum(dim=(-2, -1)).mean()
 
 
-def geodesic_loss(pi_yx: torch.Tensor, idx_y: torch.Tensor, dist_rows: torch.Tensor) -> torch.Tensor:
+def geodesic_loss(
+    pi_yx: torch.Tensor, idx_y: torch.Tensor, dist_rows: torch.Tensor, *, check: bool | None = None
+) -> torch.Tensor:
     """Supervised: expected geodesic error ``mean Σ_x Π[idx_y, x] d_x(x, gt)``.
 
     Args:
         pi_yx: ``(B, V_y, V_x)`` soft map.
         idx_y: ``(B, P)`` target vertices with known ground truth.
         dist_rows: ``(B, P, V_x)`` geodesic distances on ``x`` from the true match of each.
+        check: data check (see the module docstring): ``idx_y`` in ``[0, V_y)``.
     """
-    rows = torch.gather(pi_yx, 1, idx_y[..., None].expand(-1, -1, pi_yx.shape[-1]))
+    B, V_y, V_x = pi_yx.shape
+    if idx_y.dim() != 2 or idx_y.shape[0] != B or dist_rows.shape != (B, idx_y.shape[1], V_x):
+        raise ParameterError(
+            f"idx_y must be (B, P) and dist_rows (B, P, V_x) for pi_yx {tuple(pi_yx.shape)}, got "
+            f"{tuple(idx_y.shape)} and {tuple(dist_rows.shape)}."
+        )
+    if resolve_check(check, pi_yx):
+        check_index_range(idx_y, V_y, "idx_y", "ground-truth vertices are 0-based vertices of y.")
+    rows = torch.gather(pi_yx, 1, idx_y[..., None].expand(-1, -1, V_x))
     return (rows * dist_rows).sum(dim=-1).mean()

@@ -1,5 +1,8 @@
 """``torch.nn.Module`` layers: thin wrappers that hold settings / buffers and call
-:mod:`torchfmap.nn.functional` (which calls the same solver code as the classical path)."""
+:mod:`torchfmap.nn.functional` (which calls the same solver code as the classical path).
+
+Layers whose functions have data checks take the same ``check`` setting (None: on for CPU
+inputs, off elsewhere; see :mod:`torchfmap.nn.functional`) and pass it on."""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ import torch
 from torch import nn
 
 from .._checks import check_lumped_mass
-from ..bases import basis_stack, laplacian_eigenbasis
+from ..bases import get_kind, prepare_shape
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from ..fmap import core
@@ -74,16 +77,17 @@ class BasisModule(nn.Module):
         return self.batch()
 
     @classmethod
-    def from_mesh(cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, **kwargs) -> BasisModule:
-        """Build with the classical bases: ``'laplacian'`` (k eigenfunctions) or ``'stack'``
-        (``seeds`` required; ``kwargs`` go to :func:`~torchfmap.basis_stack`)."""
-        if kind == "laplacian":
-            return cls(laplacian_eigenbasis(mesh, k))
-        if kind == "stack":
-            if seeds is None:
-                raise ParameterError("a stack basis needs seeds.")
-            return cls(basis_stack(mesh, seeds, n_eigen=k, **kwargs))
-        raise ParameterError(f"unknown basis kind {kind!r}. Fix: 'laplacian' or 'stack'.")
+    def from_mesh(
+        cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, times=None, dtype=torch.float64
+    ) -> BasisModule:
+        """A registered kind's basis of exactly ``k`` columns on ``mesh``
+        (``KINDS[kind].shape_basis``, :data:`torchfmap.bases.KINDS`): feature-aware kinds at
+        ``seeds`` first, farthest-point seeds after; ``times``: their relative diffusion times.
+
+        Raises:
+            ParameterError: an unknown kind, or fewer than ``k`` independent columns.
+        """
+        return cls(get_kind(kind).shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
 
     @property
     def k(self) -> int:
@@ -125,7 +129,8 @@ class RegularizedFMSolver(nn.Module):
     (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` is None with ``both=False``).
     The defaults are those of :func:`torchfmap.fmap.solve_fmap` for eigenbases (the same
     core solve gives the same map); for bases with diffusion columns pass
-    ``w_lap=torchfmap.fmap.defaults.W_LAP['diffusion']``.
+    ``w_lap=torchfmap.fmap.defaults.W_LAP['diffusion']``. ``check``: the data checks of
+    :func:`~torchfmap.nn.functional.fmap_solve` (None: on CPU inputs only).
     """
 
     def __init__(
@@ -134,14 +139,15 @@ class RegularizedFMSolver(nn.Module):
         w_lap: float = W_LAP["laplacian"],
         mask: str = "laplacian",
         both: bool = True,
+        check: bool | None = None,
     ):
         super().__init__()
         if w_desc <= 0 or w_lap < 0:
             raise ParameterError(f"weights must be w_desc > 0, w_lap >= 0; got {w_desc}, {w_lap}.")
-        self.w_desc, self.w_lap, self.mask, self.both = w_desc, w_lap, mask, both
+        self.w_desc, self.w_lap, self.mask, self.both, self.check = w_desc, w_lap, mask, both, check
 
-    def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch):
-        """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> (C_xy (B, K_y, K_x), C_yx)``;
+    def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch) -> F.FmapPair:
+        """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> FmapPair(C_xy (B, K_y, K_x), C_yx)``;
         bases may be :class:`BasisModule` s (cast to the features' dtype)."""
         return F.fmap_solve(
             feat_x,
@@ -152,55 +158,109 @@ class RegularizedFMSolver(nn.Module):
             w_lap=self.w_lap,
             mask=self.mask,
             both=self.both,
+            check=self.check,
         )
 
 
 class SoftPointMap(nn.Module):
-    """Soft map ``Π_yx (B, V_y, V_x)`` from features (softmax or Sinkhorn)."""
+    """Soft map ``Π_yx (B, V_y, V_x)`` from features (softmax or Sinkhorn); ``check`` as in
+    :func:`~torchfmap.nn.functional.soft_map`."""
 
-    def __init__(self, tau: float = 0.07, sinkhorn_iters: int = 0) -> None:
+    def __init__(self, tau: float = 0.07, sinkhorn_iters: int = 0, check: bool | None = None) -> None:
         super().__init__()
-        self.tau, self.sinkhorn_iters = tau, sinkhorn_iters
+        self.tau, self.sinkhorn_iters, self.check = tau, sinkhorn_iters, check
 
-    def forward(self, feat_x, feat_y, mass_x=None):
+    def forward(self, feat_x, feat_y, lengths_x=None):
         """``(feat_x (B, V_x, D), feat_y (B, V_y, D)) -> Π_yx (B, V_y, V_x)``, rows summing to 1
-        (``mass_x (B, V_x)`` weights the columns)."""
-        return F.soft_map(feat_x, feat_y, tau=self.tau, mass_x=mass_x, sinkhorn_iters=self.sinkhorn_iters)
+        (vertices of ``x`` beyond ``lengths_x (B,)`` get no weight)."""
+        return F.soft_map(
+            feat_x,
+            feat_y,
+            tau=self.tau,
+            lengths_x=lengths_x,
+            sinkhorn_iters=self.sinkhorn_iters,
+            check=self.check,
+        )
 
-    def both(self, feat_x, feat_y, mass_x=None, mass_y=None):
-        """``(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))`` from one similarity matrix
+    def both(self, feat_x, feat_y, lengths_x=None, lengths_y=None) -> F.SoftMaps:
+        """``SoftMaps(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))`` from one similarity matrix
         (:func:`~torchfmap.nn.functional.soft_maps`)."""
         return F.soft_maps(
-            feat_x, feat_y, tau=self.tau, mass_x=mass_x, mass_y=mass_y, sinkhorn_iters=self.sinkhorn_iters
+            feat_x,
+            feat_y,
+            tau=self.tau,
+            lengths_x=lengths_x,
+            lengths_y=lengths_y,
+            sinkhorn_iters=self.sinkhorn_iters,
+            check=self.check,
         )
 
 
 class UnsupervisedFMLoss(nn.Module):
-    """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``."""
+    """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``.
+
+    ``n_samples > 0``: the coupling term compares the maps on ``n_samples`` random vertices of
+    each shape (``(B, n, n)`` soft maps), drawn from the ``generator`` given to :meth:`forward`
+    (:func:`~torchfmap.nn.train.train` passes its own; nothing is drawn from the global RNG).
+    ``check`` as in :func:`~torchfmap.nn.functional.soft_maps`.
+    """
 
     def __init__(
-        self, w_bij=1.0, w_orth=1.0, w_lap=0.0, w_couple=1.0, tau: float = 0.07, n_samples: int = 0
+        self,
+        w_bij=1.0,
+        w_orth=1.0,
+        w_lap=0.0,
+        w_couple=1.0,
+        tau: float = 0.07,
+        n_samples: int = 0,
+        check: bool | None = None,
     ) -> None:
         super().__init__()
+        if n_samples < 0:
+            raise ParameterError(f"n_samples must be >= 0, got {n_samples}.")
         self.w = dict(bij=w_bij, orth=w_orth, lap=w_lap, couple=w_couple)
-        self.soft = SoftPointMap(tau)
-        self.n_samples = n_samples  # > 0: coupling between random vertex subsets (n x n soft maps)
+        self.soft = SoftPointMap(tau, check=check)
+        self.n_samples = n_samples
 
-    def _samples(self, basis: BasisBatch, feats: torch.Tensor) -> tuple[BasisBatch, torch.Tensor]:
-        """A random subset of vertices, its mass rescaled to the total (an unbiased integral)."""
+    def _samples(
+        self, basis: BasisBatch, feats: torch.Tensor, generator: torch.Generator | None
+    ) -> tuple[BasisBatch, torch.Tensor]:
+        """A random subset of vertices, its mass rescaled to the total (an unbiased integral).
+        The subset is sorted, so each shape's real vertices stay first (``lengths`` counts them)."""
         V = feats.shape[1]
         if not self.n_samples or V <= self.n_samples:
             return basis, feats
-        idx = torch.randperm(V, device=feats.device)[: self.n_samples]
+        if generator is None:
+            raise ParameterError(
+                f"the coupling term samples {self.n_samples} random vertices and needs a generator. Fix: "
+                "loss(..., generator=torch.Generator().manual_seed(0)) (train() passes its own), or "
+                "n_samples=0."
+            )
+        idx = torch.randperm(V, generator=generator, device=generator.device)[: self.n_samples]
+        idx = idx.to(feats.device).sort().values
         mass = basis.mass[:, idx]
         mass = mass * (basis.mass.sum(dim=1, keepdim=True) / mass.sum(dim=1, keepdim=True).clip(min=1e-30))
-        return BasisBatch(basis.values[:, idx], mass, basis.lam, basis.U, basis.valid), feats[:, idx]
+        lengths = None if basis.lengths is None else (idx < basis.lengths[:, None]).sum(dim=1)
+        return BasisBatch(basis.values[:, idx], mass, basis.lam, basis.U, basis.valid, lengths), feats[:, idx]
 
     def forward(
-        self, C_xy, C_yx, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch
+        self,
+        C_xy,
+        C_yx,
+        feat_x,
+        feat_y,
+        basis_x: BasisBatch,
+        basis_y: BasisBatch,
+        *,
+        generator: torch.Generator | None = None,
     ) -> dict[str, torch.Tensor]:
         """The weighted terms and their sum ``'total'``; the coupling term's soft maps are
-        ``(B, n, n)`` between ``n_samples`` random vertices of each shape (all when 0)."""
+        ``(B, n, n)`` between ``n_samples`` random vertices of each shape (all when 0), drawn
+        from ``generator`` (needed then).
+
+        Raises:
+            ParameterError: vertices to sample and no ``generator``.
+        """
         terms = {
             "bij": F.bijectivity_loss(C_xy, C_yx, basis_x.valid, basis_y.valid),
             "orth": F.orthogonality_loss(C_xy, basis_x.valid) + F.orthogonality_loss(C_yx, basis_y.valid),
@@ -208,9 +268,9 @@ class UnsupervisedFMLoss(nn.Module):
         if self.w["lap"]:
             terms["lap"] = F.laplacian_commutativity_loss(C_xy, basis_x, basis_y)
         if self.w["couple"]:
-            sub_x, rows_x = self._samples(basis_x, feat_x)
-            sub_y, rows_y = self._samples(basis_y, feat_y)
-            pi_yx, pi_xy = self.soft.both(rows_x, rows_y, sub_x.mass, sub_y.mass)
+            sub_x, rows_x = self._samples(basis_x, feat_x, generator)
+            sub_y, rows_y = self._samples(basis_y, feat_y, generator)
+            pi_yx, pi_xy = self.soft.both(rows_x, rows_y, sub_x.lengths, sub_y.lengths)
             terms["couple"] = F.coupling_loss(C_xy, pi_yx, sub_x, sub_y) + F.coupling_loss(
                 C_yx, pi_xy, sub_y, sub_x
             )
@@ -234,31 +294,3 @@ class SpectralDiffusion(nn.Module):
         coef = basis.U.transpose(-1, -2) @ F.project(basis, x)  # (B, K, C)
         decay = torch.exp(-basis.lam.clip(min=0)[..., None] * self.log_t.exp())  # (B, K, C)
         return F.reconstruct(basis, basis.U @ (decay * coef))
-
-
-class FeatureNet(nn.Module):
-    """Reference per-vertex feature network (DiffusionNet-like, in any basis).
-
-    ``input (B, V, C_in) -> features (B, V, C_out)``: a linear lift, ``n_blocks`` residual
-    blocks of [learned spectral diffusion, MLP on (x, diffused x)], a linear head.
-    """
-
-    def __init__(self, c_in: int, c_out: int = 64, width: int = 64, n_blocks: int = 3) -> None:
-        super().__init__()
-        self.lift = nn.Linear(c_in, width)
-        self.diffusions = nn.ModuleList(SpectralDiffusion(width) for _ in range(n_blocks))
-        self.mlps = nn.ModuleList(
-            nn.Sequential(nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, width))
-            for _ in range(n_blocks)
-        )
-        self.head = nn.Linear(width, c_out)
-
-    def forward(self, x: torch.Tensor, basis: BasisBatch) -> torch.Tensor:
-        """``x (B, V, C_in)`` -> features ``(B, V, C_out)`` in ``x``'s dtype."""
-        basis = F.basis_like(basis, x)
-        if not torch.isfinite(x).all():
-            raise ParameterError("FeatureNet input contains NaN or inf. Fix: check the precomputed inputs.")
-        h = self.lift(x)
-        for diffuse, mlp in zip(self.diffusions, self.mlps, strict=True):
-            h = h + mlp(torch.cat([h, diffuse(h, basis)], dim=-1))
-        return self.head(h)

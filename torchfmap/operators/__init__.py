@@ -1,8 +1,11 @@
-"""Operators on meshes: Laplace-Beltrami stiffness and mass, geodesics, sparse solvers."""
+"""Operators on meshes: Laplace-Beltrami stiffness and mass, geodesics, sparse solvers, the
+heat-kernel action and the generalised eigensolvers."""
 
 from .._checks import check_vertex_indices, lumped_diagonal
 from .convert import scipy_to_torch, torch_to_scipy
+from .eigen import eigenpairs
 from .geodesic import DistanceRows, GeodesicSolver, geodesic_distances
+from .heat import heat_apply, heat_kernels
 from .laplacian import (
     Operators,
     laplacian,
@@ -20,8 +23,11 @@ __all__ = [
     "Operators",
     "available_backends",
     "check_vertex_indices",
+    "eigenpairs",
     "factorize",
     "geodesic_distances",
+    "heat_apply",
+    "heat_kernels",
     "laplacian",
     "lumped_diagonal",
     "mass_matrix",

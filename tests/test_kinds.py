@@ -1,0 +1,133 @@
+"""The basis-kind registry: every kind builds what it promises, and the pipeline, the command
+line, the solver defaults and the datasets read the registry (a new kind needs no other edit)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, match
+from torchfmap.bases import KINDS, Basis, BasisKind, Column, get_kind, kind_of, prepare_shape
+from torchfmap.bases.kinds import SeededKind
+from torchfmap.cli import build_parser
+from torchfmap.eval import Correspondence, evaluate_map
+from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap
+
+from .conftest import bumpy_blob
+
+#: MGS with re-orthogonalisation: orthogonality to a few eps per column (``K`` columns).
+ORTHO_EPS = 100 * np.finfo(float).eps
+
+
+@pytest.fixture(scope="module")
+def blob():
+    return bumpy_blob(2)  # 162 vertices
+
+
+@pytest.mark.parametrize("name", list(KINDS))
+def test_every_kind_builds_exactly_k_b_orthonormal_columns_and_is_recognised(blob, name):
+    k = 16
+    basis = KINDS[name].shape_basis(prepare_shape(blob, 0), k)
+    assert basis.k == k and basis.n_vertices == blob.n_vertices
+    np.testing.assert_allclose(basis.gram(), np.eye(k), atol=ORTHO_EPS * k)
+    assert kind_of(basis) == name == basis_kind(basis)
+    assert default_w_lap(basis, basis) == KINDS[name].w_lap == W_LAP[name]
+    assert default_p2p_mode(basis, basis) == ("orthogonal" if name == "laplacian" else "pullback")
+
+
+@pytest.mark.parametrize("name", [n for n, kind in KINDS.items() if kind.needs_landmarks])
+def test_seeded_pair_bases_of_a_permuted_copy_are_the_same_functions(name):
+    """On an exact copy with permuted vertices, the seeds are placed exactly, so the two bases
+    hold the same functions: Φ_y = Φ_x[perm] to the kernels' solve tolerance."""
+    x = bumpy_blob(2)
+    perm = np.random.default_rng(1).permutation(x.n_vertices)
+    inverse = np.argsort(perm)
+    y = x.permuted(perm)
+    lm = np.array([[v, inverse[v]] for v in (3, 60, 120)])
+    bx, by, seeds = KINDS[name].pair_bases(prepare_shape(x, 0), prepare_shape(y, 0), 12, lm)
+    np.testing.assert_array_equal(seeds[:, 1], inverse[seeds[:, 0]])
+    # heat kernels are solved to a relative 1e-4 (SEED_HEAT_TOL), on each shape independently
+    np.testing.assert_allclose(by.values, bx.values[perm], atol=1e-3 * np.abs(bx.values).max())
+
+
+def test_unknown_kind_is_refused_with_the_choices():
+    with pytest.raises(ParameterError, match="unknown basis kind 'eigen'.*laplacian, diffusion"):
+        get_kind("eigen")
+    assert get_kind(KINDS["stack"]) is KINDS["stack"]
+    assert all(isinstance(kind, BasisKind) and KINDS[kind.name] is kind for kind in KINDS.values())
+    assert kind_of(Basis(np.ones((4, 1)), np.ones(4), [Column("custom")])) is None
+
+
+def test_every_kind_is_offered_by_the_commands_that_take_a_basis():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    for command, flag in (
+        ("match", "--basis"),
+        ("eval", "--basis"),
+        ("train", "--basis"),
+        ("basis", "--kind"),
+    ):
+        action = next(a for a in sub[command]._actions if flag in a.option_strings)
+        assert list(action.choices) == list(KINDS), command
+
+
+@dataclass(frozen=True, kw_only=True)
+class HatKind(SeededKind):
+    """A kind defined outside the package: one tent function per seed (1 at the seed, falling
+    linearly to 0 at the covering radius)."""
+
+    def columns_per_seed(self, times) -> int:
+        return 1
+
+    def functions(self, shape, seeds, times=None):
+        radius = 2.0 / np.sqrt(len(seeds))
+        values = np.stack([np.maximum(0.0, 1.0 - shape.distances(int(s)) / radius) for s in seeds], 1)
+        L, B = shape.operators
+        return Basis(values, B, [Column("hat", int(s)) for s in seeds], stiffness=L)
+
+
+def test_a_new_kind_is_one_class_and_one_registry_line(monkeypatch):
+    """Registering a kind is all ``match`` (raw and refined), its defaults and the datasets need."""
+    hat = HatKind(name="hat", summary="tent functions", w_lap=0.1, column_kinds=frozenset({"hat"}))
+    monkeypatch.setitem(KINDS, "hat", hat)
+    x = bumpy_blob(3)
+    perm = np.random.default_rng(3).permutation(x.n_vertices)
+    inverse = np.argsort(perm)
+    y = x.permuted(perm)
+    lm = np.array([[v, inverse[v]] for v in (3, 200, 450, 600)])
+    gt = Correspondence(idx_x=perm, idx_y=np.arange(y.n_vertices))
+    for refine in (None, "zoomout"):
+        result = match(x, y, landmarks=lm, basis="hat", k=30, refine=refine)
+        assert result.kind == "hat" and result.basis_x.k == 30
+        assert evaluate_map(x, y, result.p2p_yx, gt, max_points=300)[0].mean_error < 0.02
+    assert kind_of(result.basis_x) == "hat"
+    with pytest.raises(ParameterError, match="hat basis is built from corresponding landmarks"):
+        match(x, y, basis="hat")
+
+
+@pytest.mark.parametrize("name", list(KINDS))
+def test_shape_dataset_accepts_every_kind(tmp_path, blob, name):
+    from torchfmap import save_mesh
+    from torchfmap.nn.data import ShapeDataset
+
+    paths = [save_mesh(blob, tmp_path / "a.off"), save_mesh(blob.scaled(2.0), tmp_path / "b.off")]
+    data = ShapeDataset(paths, cache_dir=False, k=16, basis=name, progress=False)
+    item = data[0]
+    values, mass = np.asarray(item["values"], dtype=float), np.asarray(item["mass"], dtype=float)
+    assert values.shape == (blob.n_vertices, 16)
+    # float32 storage: the Gram matrix of the unit-area basis is I to single precision
+    np.testing.assert_allclose(values.T @ (mass[:, None] * values), np.eye(16), atol=1e-4)
+
+
+@pytest.mark.parametrize("name", list(KINDS))
+def test_basis_module_from_mesh_builds_every_kind(blob, name):
+    import torch
+
+    from torchfmap.nn import BasisModule
+
+    layer = BasisModule.from_mesh(blob, k=12, kind=name, seeds=[4, 90], dtype=torch.float32)
+    assert layer.k == 12 and layer.values.dtype == torch.float32
+    reference = KINDS[name].shape_basis(prepare_shape(blob, 0), 12, seeds=[4, 90])
+    np.testing.assert_allclose(layer.values.numpy(), reference.values, atol=1e-6)

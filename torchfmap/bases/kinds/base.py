@@ -1,0 +1,177 @@
+"""What every basis kind is: the settings the pipeline reads, and how it builds its functions.
+
+A kind is a small frozen object in the registry :data:`torchfmap.bases.KINDS`. The pipeline,
+the command line, the solver defaults and the datasets read it instead of comparing strings:
+
+- ``needs_landmarks``: a *pair* of bases of this kind is built at corresponding landmarks
+  (its columns then correspond one to one, and the map is pulled towards ``C = I``);
+- ``w_lap``: the Laplacian-commutativity weight of the solve (the mask is normalised to mean 1);
+- ``p2p_mode``: the functional map -> point map rule (``'orthogonal'`` or ``'pullback'``);
+- ``refinement``: what ZoomOut does in this kind (:func:`torchfmap.fmap.refine.refine_map`):
+  ``'grow'`` (nested eigenbases up to ``k_final``), ``'reseed'`` (fixed-size iterations, then
+  seeds moved to where the map puts them) or ``'fixed'`` (fixed-size iterations only);
+- ``column_kinds``: the :class:`~torchfmap.bases.Column` kinds its bases are made of, so a
+  saved or given basis is recognised (:func:`torchfmap.bases.kinds.kind_of`).
+
+Adding a kind: one module under ``bases/kinds/`` with a subclass of :class:`SeededKind` (or of
+:class:`BasisKind`) and one line in ``bases/kinds/__init__.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ParameterError
+from ...seeds import corresponding_seeds, farthest_point_sampling
+from ..basis import Basis
+from ..orthonormalize import orthonormalize, orthonormalize_pair
+from ..prepared import PreparedShape
+
+#: Bound on the passes that add seeds when orthonormalisation dropped dependent columns.
+MAX_SEED_PASSES = 8
+
+
+def seed_time(n_seeds: int) -> float:
+    """Relative heat time whose kernel width matches the covering radius of ``n_seeds`` seeds.
+
+    ``n`` seeds cover a surface of unit area with radius about ``sqrt(1 / n)``; the kernel
+    ``exp(-d² / 4t)`` falls to ``1/e`` at ``d = sqrt(4t)``, so ``t = 1 / (4 n)``: each point is
+    then told apart by the few kernels around it, without gaps between seeds.
+    """
+    return 1.0 / (4.0 * n_seeds)
+
+
+def relative_times(times, n_seeds: int) -> tuple[float, ...]:
+    """``times`` as a sorted tuple, or the default one time :func:`seed_time` of ``n_seeds``.
+
+    Raises:
+        ParameterError: an empty, non-finite or non-positive time list.
+    """
+    if times is None:
+        return (seed_time(n_seeds),)
+    out = tuple(sorted(float(t) for t in times))
+    if not out or not all(np.isfinite(t) and t > 0 for t in out):
+        raise ParameterError(
+            f"diffusion times must be finite and > 0, got {list(times)}. Fix: e.g. times=[0.01]."
+        )
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class BasisKind:
+    """A kind of basis (see the module docstring for the fields)."""
+
+    name: str
+    summary: str
+    needs_landmarks: bool
+    w_lap: float
+    p2p_mode: str
+    refinement: str
+    column_kinds: frozenset[str]
+
+    def n_eigen(self, k: int) -> int:
+        """Eigenpairs each prepared shape needs for a basis of ``k`` columns of this kind."""
+        return 0
+
+    def pair_bases(
+        self, shape_x: PreparedShape, shape_y: PreparedShape, k: int, landmarks=None, times=None
+    ) -> tuple[Basis, Basis, np.ndarray | None]:
+        """The two B-orthonormal bases of exactly ``k`` columns that :func:`~torchfmap.match`
+        solves in, and the seed pairs ``(S, 2)`` they are built at (None if none correspond)."""
+        raise NotImplementedError
+
+    def shape_basis(self, shape: PreparedShape, k: int, *, seeds=None, times=None) -> Basis:
+        """One shape's B-orthonormal basis of exactly ``k`` columns (datasets, ``torchfmap
+        basis``, :class:`~torchfmap.nn.BasisModule`); ``seeds`` are placed first, farthest-point
+        seeds fill the rest."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, kw_only=True)
+class SeededKind(BasisKind):
+    """A feature-aware kind: functions built at seed vertices (heat kernels, harmonic, ...).
+
+    Subclasses define :meth:`columns_per_seed` and :meth:`functions`; pairs of bases are built
+    at corresponding seeds (the landmarks, then farthest-point seeds placed on ``y`` by
+    :func:`~torchfmap.seeds.corresponding_seeds`), so column ``i`` is the same function (same
+    seed, same scale) on both shapes.
+    """
+
+    needs_landmarks: bool = True
+    p2p_mode: str = "pullback"
+    refinement: str = "reseed"
+
+    def columns_per_seed(self, times) -> int:
+        """Columns each seed contributes with relative ``times`` (None: the default one time)."""
+        raise NotImplementedError
+
+    def functions(self, shape: PreparedShape, seeds: np.ndarray, times=None) -> Basis:
+        """The raw (not orthonormalised) functions of ``shape`` at ``seeds`` ``(S,)``; ``times``
+        relative diffusion times (default: :func:`seed_time` of ``S``)."""
+        raise NotImplementedError
+
+    def seed_bases(
+        self, shape_x: PreparedShape, shape_y: PreparedShape, seeds: np.ndarray, times=None
+    ) -> tuple[Basis, Basis]:
+        """Corresponding bases at seed pairs ``(S, 2)``, orthonormalised together (every
+        column; :meth:`pair_bases` cuts them to ``k``)."""
+        raw_x = self.functions(shape_x, seeds[:, 0], times)
+        return orthonormalize_pair(raw_x, self.functions(shape_y, seeds[:, 1], times))
+
+    def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
+        """Bases at ``S = ceil(k / columns per seed)`` corresponding seeds (at least the
+        landmarks), orthonormalised together (landmark columns first) and cut to ``k``; if
+        dependent columns were dropped, seeds are added until ``k`` columns remain (bounded by
+        the vertex count).
+
+        Raises:
+            ParameterError: no landmarks, or fewer than ``k`` independent columns.
+        """
+        if landmarks is None:
+            raise ParameterError(
+                f"the {self.name} basis is built from corresponding landmarks on both shapes. Fix: pass "
+                "landmarks (pairs of vertices), or use basis='laplacian'."
+            )
+        top = min(shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
+        per_seed = self.columns_per_seed(times)
+        n_seeds = max(len(landmarks), -(-k // per_seed))
+        for _ in range(MAX_SEED_PASSES):  # bounded: each pass adds seeds for the missing columns
+            seeds = corresponding_seeds(
+                shape_x.mesh, shape_y.mesh, landmarks, min(n_seeds, top),
+                distances=(shape_x.distances, shape_y.distances),
+            )  # fmt: skip
+            bx, by = self.seed_bases(shape_x, shape_y, seeds, times)
+            if bx.k >= k or n_seeds >= top:
+                break
+            n_seeds += -(-(k - bx.k) // per_seed)
+        if bx.k < k:
+            raise ParameterError(
+                f"only {bx.k} independent {self.name} columns could be built (k={k}). Fix: lower k or "
+                "use more seeds."
+            )
+        return bx.truncated(k), by.truncated(k), seeds
+
+    def shape_basis(self, shape, k, *, seeds=None, times=None):
+        """``k`` columns at ``seeds`` then farthest-point seeds (one spare seed; more are added,
+        a bounded number of times, if orthonormalisation drops dependent columns).
+
+        Raises:
+            ParameterError: fewer than ``k`` independent columns on this mesh.
+        """
+        given = np.zeros(0, dtype=np.int64) if seeds is None else np.atleast_1d(np.asarray(seeds))
+        per_seed = self.columns_per_seed(times)
+        n = shape.mesh.n_vertices
+        n_seeds = min(max(len(given), -(-k // per_seed) + 1), n)
+        for _ in range(MAX_SEED_PASSES):
+            chosen = farthest_point_sampling(shape.mesh, n_seeds, landmarks=given if len(given) else None)
+            basis = orthonormalize(self.functions(shape, chosen, times))
+            if basis.k >= k or n_seeds >= n:
+                break
+            n_seeds = min(n, n_seeds + -(-(k - basis.k) // per_seed))
+        if basis.k < k:
+            raise ParameterError(
+                f"the {self.name} basis has only {basis.k} independent functions, {k} asked. Fix: lower k."
+            )
+        return basis.truncated(k)

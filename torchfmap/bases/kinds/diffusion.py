@@ -1,0 +1,31 @@
+"""The diffusion kind: heat kernels ``K_t(p_i, ·)`` at seeds, at one or more relative times."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..prepared import seed_kernels
+from .base import SeededKind, relative_times
+
+
+@dataclass(frozen=True, kw_only=True)
+class DiffusionKind(SeededKind):
+    """One heat kernel per seed and relative time (time-major columns), from the shape's kernel
+    cache (:func:`~torchfmap.bases.prepared.seed_kernels`)."""
+
+    def columns_per_seed(self, times) -> int:
+        return 1 if times is None else len(times)
+
+    def functions(self, shape, seeds, times=None):
+        return seed_kernels(shape, seeds, relative_times(times, len(seeds)))
+
+
+DIFFUSION = DiffusionKind(
+    name="diffusion",
+    summary="heat kernels at corresponding seeds (landmarks + farthest points)",
+    # Projected Laplacians of small-t heat kernels have very large top eigenvalues, which
+    # dominate the mask's mean: bases with diffusion columns need a larger weight than eigenbases
+    # (python bench/weight_sweep.py).
+    w_lap=1.0,
+    column_kinds=frozenset({"diffusion"}),
+)

@@ -1,0 +1,68 @@
+"""The eigen + diffusion kind: the first ``k // 2`` eigenfunctions, then heat kernels at
+farthest-point seeds of each shape (the learned path's mixed basis).
+
+Its seeds are sampled on each shape on its own, so columns do not correspond between shapes:
+the map is solved from descriptors, and ZoomOut iterates at fixed size (``'fixed'``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ParameterError
+from ...seeds import farthest_point_sampling
+from ..orthonormalize import orthonormalize
+from ..prepared import with_eigenpairs
+from ..stack import concatenate
+from .base import BasisKind
+from .diffusion import DIFFUSION
+
+
+@dataclass(frozen=True, kw_only=True)
+class EigenDiffusionKind(BasisKind):
+    """``k // 2`` eigenfunctions and ``k - k // 2`` diffusion columns, orthonormalised together."""
+
+    def n_eigen(self, k: int) -> int:
+        return k // 2
+
+    def shape_basis(self, shape, k, *, seeds=None, times=None):
+        """The eigenfunctions, then the kernels at ``seeds`` and farthest-point seeds (one
+        spare seed), orthonormalised in that order and cut to ``k``.
+
+        Raises:
+            ParameterError: fewer than ``k`` independent columns.
+        """
+        eig = with_eigenpairs(shape, k // 2).eigenbasis
+        given = None if seeds is None or not len(seeds) else np.atleast_1d(np.asarray(seeds))
+        n_kernels = k - k // 2
+        n_seeds = min(shape.mesh.n_vertices, -(-n_kernels // DIFFUSION.columns_per_seed(times)) + 1)
+        chosen = farthest_point_sampling(
+            shape.mesh, max(n_seeds, 0 if given is None else len(given)), landmarks=given
+        )
+        parts = ([eig.truncated(k // 2)] if k // 2 else []) + [DIFFUSION.functions(shape, chosen, times)]
+        basis = orthonormalize(concatenate(parts))
+        if basis.k < k:
+            raise ParameterError(
+                f"the {self.name} basis has only {basis.k} independent functions, {k} asked. Fix: lower k."
+            )
+        return basis.truncated(k)
+
+    def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
+        """Each shape's :meth:`shape_basis` (landmarks, if any, seeded first on each side); the
+        columns do not correspond, so no seed pairs are returned."""
+        lx, ly = (None, None) if landmarks is None else (landmarks[:, 0], landmarks[:, 1])
+        bx = self.shape_basis(shape_x, k, seeds=lx, times=times)
+        return bx, self.shape_basis(shape_y, k, seeds=ly, times=times), None
+
+
+EIGEN_DIFFUSION = EigenDiffusionKind(
+    name="eigen_diffusion",
+    summary="k/2 eigenfunctions + heat kernels at each shape's farthest points",
+    needs_landmarks=False,
+    w_lap=1.0,
+    p2p_mode="pullback",
+    refinement="fixed",
+    column_kinds=frozenset({"laplacian", "diffusion"}),
+)

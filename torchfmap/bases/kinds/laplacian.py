@@ -1,0 +1,44 @@
+"""The Laplacian eigenbasis kind: the first ``k`` Laplace-Beltrami eigenfunctions of each shape."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ...errors import ParameterError
+from ..prepared import with_eigenpairs
+from .base import BasisKind
+
+
+@dataclass(frozen=True, kw_only=True)
+class EigenKind(BasisKind):
+    """Eigenbases need no landmarks; their maps of near-isometries are near-orthogonal, so the
+    point map is ``'orthogonal'`` and ZoomOut grows them (``'grow'``)."""
+
+    def n_eigen(self, k: int) -> int:
+        return k
+
+    def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
+        """The first ``k`` eigenfunctions of each prepared shape (no seeds).
+
+        Raises:
+            ParameterError: a shape prepared with fewer than ``k`` eigenpairs.
+        """
+        if shape_x.n_eigen < k or shape_y.n_eigen < k:
+            raise ParameterError("the eigenbasis needs eigenpairs. Fix: prepare_shape(mesh, n_eigen >= k).")
+        return shape_x.eigenbasis.truncated(k), shape_y.eigenbasis.truncated(k), None
+
+    def shape_basis(self, shape, k, *, seeds=None, times=None):
+        """The first ``k`` eigenfunctions (computed on ``shape`` if it holds fewer); ``seeds`` and
+        ``times`` are not used."""
+        return with_eigenpairs(shape, k).eigenbasis.truncated(k)
+
+
+LAPLACIAN = EigenKind(
+    name="laplacian",
+    summary="first k Laplace-Beltrami eigenfunctions (no landmarks needed)",
+    needs_landmarks=False,
+    w_lap=0.1,
+    p2p_mode="orthogonal",
+    refinement="grow",
+    column_kinds=frozenset({"laplacian"}),
+)

@@ -1,0 +1,33 @@
+"""The stack kind: heat kernels (small to large time), then harmonic functions, at the same seeds.
+
+The paper's order (Sect. 4): orthonormalising diffusion before harmonic functions keeps the
+most local functions intact and drops later columns in the span of earlier ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..stack import concatenate
+from .base import SeededKind
+from .diffusion import DIFFUSION
+from .harmonic import HARMONIC
+
+
+@dataclass(frozen=True, kw_only=True)
+class StackKind(SeededKind):
+    """Diffusion columns (every relative time) then one harmonic function per seed."""
+
+    def columns_per_seed(self, times) -> int:
+        return DIFFUSION.columns_per_seed(times) + HARMONIC.columns_per_seed(times)
+
+    def functions(self, shape, seeds, times=None):
+        return concatenate([DIFFUSION.functions(shape, seeds, times), HARMONIC.functions(shape, seeds)])
+
+
+STACK = StackKind(
+    name="stack",
+    summary="heat kernels then harmonic functions at corresponding seeds",
+    w_lap=1.0,
+    column_kinds=frozenset({"diffusion", "harmonic"}),
+)

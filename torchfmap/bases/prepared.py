@@ -1,0 +1,120 @@
+"""Per-shape precomputation shared by every pair a shape takes part in, and its caches.
+
+A :class:`PreparedShape` holds what a shape needs once, whatever it is matched to: its
+operators, its first eigenpairs, its geodesic distance rows (solved on first use) and the heat
+kernels of seed bases (solved on first use, per ``(seed, relative time)``). Its lifetime is the
+caller's: nothing is kept between calls unless the caller keeps the object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._checks import check_count, check_seeds_cover_components, check_vertex_indices
+from ..errors import ParameterError
+from ..mesh import Mesh
+from ..operators.geodesic import DistanceRows
+from ..operators.heat import heat_kernels
+from ..operators.laplacian import Operators, laplacian
+from .basis import Basis, Column
+from .laplacian import laplacian_eigenbasis
+
+#: Relative accuracy of the heat kernels of seed bases: far below the seeds' placement error
+#: (a few percent of sqrt(area)), so a tighter tolerance changes no map, only the time.
+SEED_HEAT_TOL = 1e-4
+
+
+@dataclass
+class PreparedShape:
+    """One shape's precomputation.
+
+    ``mesh``; ``operators`` ``(L, B)`` (``(V, V)`` sparse stiffness and lumped mass);
+    ``eigenbasis``: the first ``n_eigen`` Laplacian eigenfunctions as a B-orthonormal
+    :class:`~torchfmap.Basis` (``(V, n_eigen)`` values, eigenvalues ascending; None when
+    ``n_eigen = 0``); ``distances``: geodesic distance rows in units of ``sqrt(area)``,
+    computed on first use; ``kernels``: heat kernels of seed bases,
+    ``(seed, relative time) -> (V,)``, computed on first use (a seed that refinement leaves in
+    place is not solved again).
+    """
+
+    mesh: Mesh
+    operators: Operators
+    eigenbasis: Basis | None
+    distances: DistanceRows
+    kernels: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_eigen(self) -> int:
+        """Eigenpairs held (0 without an eigenbasis)."""
+        return 0 if self.eigenbasis is None else self.eigenbasis.k
+
+
+def prepare_shape(mesh: Mesh, n_eigen: int, *, operators: Operators | None = None) -> PreparedShape:
+    """Operators (``operators`` if given, else :func:`~torchfmap.laplacian` of ``mesh``) and
+    ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`~torchfmap.match` does per shape).
+
+    Raises:
+        ParameterError: ``n_eigen`` negative or not below the vertex count.
+    """
+    n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
+    ops = operators if operators is not None else laplacian(mesh)
+    eig = laplacian_eigenbasis(mesh, n_eigen, operators=ops) if n_eigen else None
+    return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True))
+
+
+def with_eigenpairs(shape: PreparedShape, n_eigen: int) -> PreparedShape:
+    """``shape`` with at least ``n_eigen`` eigenpairs (extended in place when it has fewer)."""
+    if n_eigen and shape.n_eigen < n_eigen:
+        shape.eigenbasis = laplacian_eigenbasis(shape.mesh, n_eigen, operators=shape.operators)
+    return shape
+
+
+def check_prepared(shapes, meshes: tuple[Mesh, Mesh]) -> tuple[PreparedShape, PreparedShape]:
+    """``shapes`` checked to be prepared shapes of ``meshes``, in order.
+
+    Raises:
+        ParameterError: not a pair of :class:`PreparedShape` of these meshes.
+    """
+    try:
+        sx, sy = shapes
+    except (TypeError, ValueError) as err:
+        raise ParameterError(
+            "shapes must be a pair (prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))."
+        ) from err
+    for shape, mesh in ((sx, meshes[0]), (sy, meshes[1])):
+        if not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
+            raise ParameterError(
+                "shapes must be (prepare_shape(mesh_x, n), prepare_shape(mesh_y, n)) of these meshes, "
+                "in order."
+            )
+    return sx, sy
+
+
+def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
+    """Heat kernels at ``seeds`` ``(S,)`` for each relative time (absolute ``t·|M|``), not
+    orthonormalised: ``(V, T·S)`` values, time-major (small to large ``t``), provenance
+    ``('diffusion', seed, t)``.
+
+    Kernels are independent per seed: only the ``(seed, time)`` pairs missing from
+    ``shape.kernels`` are solved (to :data:`SEED_HEAT_TOL`) and stored there.
+
+    Raises:
+        ParameterError: invalid seeds, seeds missing a connected component, or times not > 0.
+    """
+    mesh = shape.mesh
+    seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
+    check_seeds_cover_components(mesh, seeds)
+    times = tuple(sorted(float(t) for t in rel_times))
+    if not times:
+        raise ParameterError("no diffusion times. Fix: give at least one relative time > 0.")
+    for t in times:
+        missing = np.unique([int(s) for s in seeds if (int(s), t) not in shape.kernels])
+        if len(missing):  # heat_kernels checks the time
+            K = heat_kernels(shape.operators, missing, [t * mesh.area], tol=SEED_HEAT_TOL, local=False)[0]
+            shape.kernels.update({(int(s), t): K[:, j] for j, s in enumerate(missing)})
+    values = np.stack([shape.kernels[int(s), t] for t in times for s in seeds], axis=1)
+    prov = [Column("diffusion", int(s), t) for t in times for s in seeds]
+    L, B = shape.operators
+    return Basis(values, B, prov, stiffness=L)

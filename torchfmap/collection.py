@@ -1,0 +1,196 @@
+"""Evaluating a collection of pairs: each mesh prepared once, pairs matched and scored against
+ground truth, in one process, a local process pool or any ``concurrent.futures`` executor.
+
+The pool's workers keep the shapes they prepared for their next chunks (a store set by the
+pool's initializer in the worker only, gone with the pool).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from typing import NamedTuple
+
+import numpy as np
+from tqdm import tqdm
+
+from ._checks import check_count
+from ._threads import thread_limit
+from .bases.prepared import prepare_shape
+from .eval import evaluate_map, landmarks_from_gt
+from .io import load_mesh
+from .operators.geodesic import DistanceRows
+from .pipeline import match
+
+
+class PairResult(NamedTuple):
+    """One evaluated pair of :func:`evaluate_pairs`: names, the report of
+    :func:`~torchfmap.eval.evaluate_map`, its per-point errors and the match time (s)."""
+
+    source: str
+    target: str
+    report: object
+    errors: np.ndarray
+    seconds: float
+
+
+#: Distance rows :func:`evaluate_pairs` keeps for the current source mesh (bytes).
+EVAL_ROWS_BYTES = 512 * 2**20
+#: Cost of a source's scoring rows in units of one pair's match, for balancing a pool's chunks
+#: (on 5K-vertex meshes, rows from every vertex cost several matches).
+SOURCE_COST = 5.0
+
+# The prepared shapes of a local pool's worker process, kept across the chunks it runs (so a
+# worker prepares each mesh once); set by the pool's initializer in the worker, never in the
+# calling process, and gone with the pool when evaluate_pairs returns.
+_POOL_SHAPES: dict | None = None
+
+
+def pool_threads(workers: int) -> int:
+    """Threads per worker of a local pool when none are given: the CPUs shared out."""
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
+def _init_pool_worker() -> None:
+    global _POOL_SHAPES
+    _POOL_SHAPES = {}
+
+
+def _evaluate_chunk(
+    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None, threads=None
+) -> list[PairResult]:
+    """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
+    :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
+    (``shapes``: path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after
+    each pair."""
+    if shapes is None:
+        shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
+    with thread_limit(threads):
+        out = []
+        rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
+        for a, b, pa, pb, gt in pairs:
+            for path in (pa, pb):
+                if path not in shapes:
+                    mesh = load_mesh(path)
+                    shapes[path] = (mesh, prepare_shape(mesh, 0))
+            (x, sx), (y, sy) = shapes[pa], shapes[pb]
+            landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
+            t0 = time.perf_counter()
+            result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
+            seconds = time.perf_counter() - t0
+            # errors are geodesic on x, from its ground-truth points: pairs with the same source
+            # reuse its prefactored solver and the rows already solved (kept for one source at a time)
+            if rows is None or rows.solver is not sx.distances.solver:
+                rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
+            report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
+            out.append(PairResult(a, b, report, errors, seconds))
+            if on_pair is not None:
+                on_pair()
+        return out
+
+
+def _chunk_costs(pairs: list) -> np.ndarray:
+    """Estimated cost of each pair in a run of ``pairs``: one match, plus :data:`SOURCE_COST`
+    where the source mesh changes (its scoring rows are solved there)."""
+    new_source = [i == 0 or pairs[i][2] != pairs[i - 1][2] for i in range(len(pairs))]
+    return 1.0 + SOURCE_COST * np.asarray(new_source, dtype=float)
+
+
+def _source_chunks(pairs: list, n_chunks: int) -> list[list]:
+    """``pairs`` cut into at most ``n_chunks`` contiguous chunks of similar estimated cost
+    (:func:`_chunk_costs`), cutting only where the source mesh changes (so a source's rows are
+    solved in one chunk) when possible."""
+    edges = [0] + [i for i in range(1, len(pairs)) if pairs[i][2] != pairs[i - 1][2]] + [len(pairs)]
+    cumulative = np.concatenate([[0.0], np.cumsum(_chunk_costs(pairs))])
+    target = np.linspace(0.0, cumulative[-1], n_chunks + 1)[1:-1]
+    cuts = sorted({min(edges, key=lambda e, t=t: abs(cumulative[e] - t)) for t in target} - {0, len(pairs)})
+    bounds = [0, *cuts, len(pairs)]
+    return [pairs[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
+
+
+def evaluate_pairs(
+    pairs,
+    *,
+    gt_landmarks: int = 0,
+    max_points: int | None = None,
+    workers: int = 1,
+    threads: int | None = None,
+    executor: Executor | None = None,
+    progress: bool = False,
+    **match_kwargs,
+) -> list[PairResult]:
+    """Match and score every pair ``(name_x, name_y, path_x, path_y, gt)`` (as yielded by
+    :func:`~torchfmap.eval.discover_pairs`), in the given order.
+
+    Each mesh is loaded and prepared (:func:`~torchfmap.bases.prepared.prepare_shape`:
+    operators, eigenpairs, geodesic rows, heat kernels) once per chunk of pairs and reused by
+    every pair it takes part in. With
+    ``workers > 1`` the pairs are split into contiguous chunks, cut where the source mesh
+    changes when possible (its scoring rows are then solved once), run by a local process
+    pool (spawned processes);
+    ``executor`` runs them on any :class:`concurrent.futures.Executor` instead (e.g.
+    ``dask.distributed.Client(...).get_executor()`` for a cluster).
+
+    Every chunk runs with ``threads`` BLAS / OpenMP / torch threads. The thread count fixes
+    the order of BLAS's and torch's parallel sums, and so the last bits of eigenvectors and
+    maps (near-tied points may then match differently). For the same ``threads``, the results
+    do not depend on ``workers`` or ``executor``: every map is computed from the same inputs
+    by the same deterministic steps.
+
+    Args:
+        gt_landmarks: use this many ground-truth pairs per pair as landmarks
+            (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
+        max_points: score at most this many points per pair.
+        workers: local worker processes (1: this process).
+        threads: threads per worker. ``None``: this process's threads as they are when
+            ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
+            (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
+            compare runs with different ``workers`` bit for bit.
+        match_kwargs: passed to :func:`~torchfmap.match` (``basis``, ``k``, ``refine``, ...).
+
+    Raises:
+        ParameterError: ``workers < 1`` or ``threads < 1``.
+    """
+    pairs = list(pairs)
+    workers = check_count(workers, 1, 4096, "workers")
+    if threads is not None:
+        threads = check_count(threads, 1, 4096, "threads")
+    elif executor is None and workers > 1:
+        threads = pool_threads(workers)
+    bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
+    if executor is None and workers == 1:
+        try:
+            return _evaluate_chunk(
+                pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update, threads=threads
+            )
+        finally:
+            bar.close()
+    own = executor is None
+    # a few chunks per worker, balanced as they complete; a local pool's worker keeps the
+    # meshes it prepared for its next chunks (an executor's chunks prepare them again)
+    chunks = _source_chunks(pairs, min(len(pairs), 4 * workers))
+    # spawned, not forked: a child forked after this process used torch's or BLAS's thread
+    # pool waits forever on that pool's locks (torch.linalg.eigh hung this way)
+    spawn = multiprocessing.get_context("spawn")
+    pool = (
+        ProcessPoolExecutor(max_workers=workers, mp_context=spawn, initializer=_init_pool_worker)
+        if own
+        else executor
+    )
+    # costliest chunks first (longest-processing-time order): the last ones to finish are short
+    order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
+    try:
+        args = (gt_landmarks, max_points, match_kwargs)
+        futures = {pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads): i for i in order}
+        done: dict[int, list[PairResult]] = {}
+        for future in as_completed(futures):
+            i = futures[future]
+            done[i] = future.result()
+            bar.update(len(chunks[i]))
+    finally:
+        bar.close()
+        if own:
+            pool.shutdown(cancel_futures=True)
+    return [r for i in range(len(chunks)) for r in done[i]]

@@ -1,0 +1,263 @@
+"""The ``torchfmap`` subcommands: one ``cmd_<name>(args) -> exit code`` per command of
+:func:`torchfmap.cli.build_parser` (which parses the flags and calls them).
+
+Files are read and written through :mod:`torchfmap.io`. The learning path (``match
+--checkpoint``, ``train``) imports torch and :mod:`torchfmap.nn` inside its command only, so the
+classical commands start without torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ._checks import is_symmetric
+from .bases import Basis, eigenpairs, get_kind, prepare_shape
+from .collection import evaluate_pairs
+from .data import demo_pair
+from .errors import TorchFmapError
+from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
+from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
+from .operators import GeodesicSolver, available_backends, laplacian
+from .pipeline import match
+from .viz import plot_color_transfer, plot_pck
+
+
+def _operator_summary(mesh, out) -> None:
+    rep = mesh.report
+    out(
+        f"{mesh.name or 'mesh'}: {rep.summary()}; area {mesh.area:.4g}, mean edge {mesh.mean_edge_length:.3g}"
+    )
+    for kind in ("cotan", "robust", "mean_value"):
+        t0 = time.perf_counter()
+        L, B = laplacian(mesh, kind=kind)
+        dt = time.perf_counter() - t0
+        sym = is_symmetric(L)
+        neg = int((L.data[L.indices != np.repeat(np.arange(L.shape[0]), np.diff(L.indptr))] > 0).sum())
+        out(
+            f"  L[{kind:<10}] nnz {L.nnz:>7}  symmetric {str(sym):<5}  positive off-diagonals "
+            f"(negative weights) {neg:>5}  mass sum {B.sum():.4g}  ({dt * 1e3:.1f} ms)"
+        )
+    L, B = laplacian(mesh)
+    vals = eigenpairs(L, B, min(6, mesh.n_vertices))[0]
+    out(
+        "  first eigenvalues of L phi = lambda B phi (x area): "
+        + ", ".join(f"{x:.3f}" for x in np.sort(vals) * mesh.area)
+    )
+    d = GeodesicSolver(mesh).distance(0)
+    out(
+        f"  largest geodesic distance from vertex 0: {d.max():.4g} "
+        f"({d.max() / np.sqrt(mesh.area):.3f} sqrt(area)); solver backends: {available_backends()}"
+    )
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    a, b, gt_ba = demo_pair()
+    print(f"torchfmap demo: match {b.name} to {a.name} (shipped pair, ground truth {len(gt_ba)} vertices)")
+    for mesh in (a, b):
+        _operator_summary(mesh, print)
+    gt = gt_from_map(gt_ba)
+    landmarks = landmarks_from_gt(a, gt, 8)
+    print(f"\n{'basis':<10} {'refine':<8} {'K':>4} {'mean err':>9} {'median':>8} {'AUC':>6} {'time [s]':>9}")
+    for basis, refine in (
+        ("laplacian", None),
+        ("laplacian", "zoomout"),
+        ("diffusion", None),
+        ("diffusion", "zoomout"),
+    ):
+        t0 = time.perf_counter()
+        lm = landmarks if basis != "laplacian" else None
+        result = match(a, b, landmarks=lm, basis=basis, k=40, refine=refine)
+        dt = time.perf_counter() - t0
+        report, _ = evaluate_map(a, b, result.p2p_yx, gt)
+        print(
+            f"{basis:<10} {refine or '-':<8} {result.basis_x.k:>4} {report.mean_error:>9.4f} "
+            f"{report.median_error:>8.4f} {report.auc:>6.3f} {dt:>9.2f}"
+        )
+    print(
+        "errors: geodesic distance to the true match / sqrt(area); 'diffusion' (the default with "
+        "landmarks) uses 8 landmarks and heat kernels at corresponding seeds"
+    )
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    mesh = load_mesh(args.mesh, allow_components=True)
+    _operator_summary(mesh, print)
+    return 0
+
+
+def cmd_basis(args: argparse.Namespace) -> int:
+    mesh = load_mesh(args.mesh, allow_components=True)
+    kind = get_kind(args.kind or ("diffusion" if args.landmarks else "laplacian"))
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
+    if landmarks is not None and kind.n_eigen(args.k) >= args.k:  # every column an eigenfunction
+        raise TorchFmapError(
+            f"--landmarks are seeds, and the {kind.name} basis has none. Fix: drop --landmarks, or "
+            "pick a feature-aware --basis (diffusion, harmonic, stack)."
+        )
+    if args.k >= mesh.n_vertices:
+        raise TorchFmapError(f"--k {args.k} needs a mesh of more than {args.k} vertices ({mesh.n_vertices}).")
+    with tqdm(total=2, desc="basis", unit="step", disable=args.quiet) as bar:
+        bar.set_postfix_str("operators")
+        shape = prepare_shape(mesh, 0, operators=laplacian(mesh, kind=args.laplacian))
+        bar.update()
+        bar.set_postfix_str(f"{kind.name}, k={args.k}")
+        basis = kind.shape_basis(shape, args.k, seeds=landmarks, times=args.times or None)
+        bar.update()
+        path = basis.save(args.out)
+    print(f"{kind.name} {basis} -> {path}")
+    return 0
+
+
+def cmd_match(args: argparse.Namespace) -> int:
+    src = load_mesh(args.source, allow_components=args.allow_components)
+    tgt = load_mesh(args.target, allow_components=args.allow_components)
+    t0 = time.perf_counter()
+    if args.checkpoint:
+        if args.landmarks:
+            raise TorchFmapError("--checkpoint matches without landmarks. Fix: drop --landmarks.")
+        from .nn.checkpoints import load_checkpoint  # torch: only for this path
+        from .nn.inference import match_with_network
+
+        net, config, _ = load_checkpoint(args.checkpoint)
+        p2p = match_with_network(
+            net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine is not None
+        )
+        how = f"with {args.checkpoint} (adapt {args.adapt} steps, refine {args.refine or '-'}"
+        return _write_map(args, src, tgt, p2p, f"{how}, {time.perf_counter() - t0:.2f} s)")
+    if args.adapt:
+        raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
+    landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
+    bases = tuple(Basis.load(path) for path in args.bases) if args.bases else None
+    result = match(
+        src,
+        tgt,
+        landmarks=landmarks,
+        basis=args.basis,
+        k=args.k,
+        refine=args.refine,
+        k_final=args.k_final,
+        w_lap=args.w_lap,
+        times=args.times,
+        p2p_mode=args.p2p_mode,
+        bases=bases,
+    )
+    how = f"(K={result.basis_x.k}, {sum(result.timings.values()):.2f} s)"
+    return _write_map(args, src, tgt, result.p2p_yx, how)
+
+
+def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
+    """Write the map file (:func:`~torchfmap.io.write_map`: atomic, line i: source vertex of
+    target vertex i, ``.gz`` compressed), report, and draw ``--png``."""
+    write_map(args.out, p2p)
+    print(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
+    if args.png:
+        print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    import torch  # the learning path; the classical commands never import torch
+
+    from .nn.checkpoints import load_checkpoint
+    from .nn.config import CosineByTime, TrainConfig, build_model
+    from .nn.data import PairDataset, ShapeDataset, class_pairs
+    from .nn.train import train, unsupervised_score
+
+    config = TrainConfig(
+        k=args.k,
+        basis=args.basis,
+        inputs=args.inputs,
+        epochs=args.epochs,
+        minutes=args.minutes,
+        seed=args.seed,
+    )
+    if args.resume and Path(args.out).exists():
+        saved = load_checkpoint(args.out)[1]
+        config = TrainConfig(**{**vars(saved), "epochs": args.epochs, "minutes": args.minutes})
+    cache = False if args.no_cache else args.cache
+    shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
+    pairs = class_pairs(shapes.names)
+    net, solver, loss_fn = build_model(config)
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+    scheduler = None
+    if args.minutes:
+        scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineByTime(args.minutes))
+    print(
+        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k})"
+    )
+    # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
+    picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+    validate = unsupervised_score(shapes, picked, solver, loss_fn) if args.validate_every else None
+    state = train(
+        net,
+        PairDataset(shapes, pairs),
+        loss_fn,
+        opt,
+        solver=solver,
+        scheduler=scheduler,
+        epochs=args.epochs,
+        minutes=args.minutes,
+        max_steps=args.max_steps,
+        augment=config.inputs == "xyz",
+        validate=validate,
+        validate_every=args.validate_every,
+        checkpoint=args.out,
+        config=config,
+        resume=args.resume,
+        seed=config.seed,
+        progress=not args.quiet,
+    )
+    last = state.losses[-1]["total"] if state.losses else float("nan")
+    best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
+    summary = f"{state.step} steps, {state.epoch} epochs, {state.seconds:.0f} s; last loss {last:.4g}"
+    print(f"{summary}{best} -> {args.out}")
+    return 0
+
+
+def _dask_executor(address: str):
+    """A ``concurrent.futures`` executor on the Dask cluster at ``address`` (the 'cluster' extra)."""
+    try:
+        from distributed import Client
+    except ImportError as err:
+        raise TorchFmapError("--dask needs Dask distributed. Fix: pip install 'torchfmap[cluster]'.") from err
+    return Client(address).get_executor()
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
+    results = evaluate_pairs(
+        pairs,
+        gt_landmarks=args.gt_landmarks,
+        max_points=args.max_points,
+        workers=args.workers,
+        threads=args.threads,
+        executor=_dask_executor(args.dask) if args.dask else None,
+        progress=not args.quiet,
+        basis=args.basis,
+        k=args.k,
+        refine=args.refine,
+    )
+    rows = [(r.source, r.target, r.report, r.seconds) for r in results]
+    curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
+    all_errors = [r.errors for r in results]
+    print(
+        "| source | target | mean err | median | AUC | coverage | time [s] |\n|---|---|---|---|---|---|---|"
+    )
+    for a, b, rep, dt in rows:
+        print(
+            f"| {a} | {b} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
+            f"{rep.coverage:.3f} | {dt:.2f} |"
+        )
+    errors = np.concatenate(all_errors)
+    print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
+    if args.png:
+        curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}
+        title = f"{args.basis or 'auto'} basis, k={args.k}"
+        print(f"PCK plot -> {plot_pck(curves, args.png, title=title)}")
+    return 0

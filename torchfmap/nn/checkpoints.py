@@ -1,0 +1,186 @@
+"""Checkpoints: atomic, checksummed files (:func:`~torchfmap._files.save_checked_bytes`) of the
+weights, the recipe, the network's record and any extras, read back without running code.
+
+The **network record** ``ckpt['network'] = {'class': 'module:qualname', 'kwargs': {...}}`` names
+the network's class and its constructor arguments (see :mod:`torchfmap.nn.networks` for how a
+network gives them), so :func:`load_checkpoint` rebuilds any importable ``torch.nn.Module``
+class, not only the reference :class:`~torchfmap.nn.networks.DiffusionNet`. Files are read with
+``torch.load(weights_only=True)``: tensors and plain containers only, never pickled objects;
+rebuilding imports the recorded module, code already installed, never code from the file.
+Checkpoints without a record (older files) rebuild the recipe's DiffusionNet from their config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import io
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from .._files import load_checked_bytes, save_checked_bytes
+from ..errors import ParameterError
+from .config import TrainConfig, build_model
+
+#: Types a network's recorded constructor arguments may hold (what ``weights_only`` loading reads).
+_PLAIN = (type(None), bool, int, float, str)
+
+
+def _check_plain(value, where: str) -> None:
+    if isinstance(value, _PLAIN):
+        return
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            _check_plain(item, where)
+        return
+    if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        for item in value.values():
+            _check_plain(item, where)
+        return
+    raise ParameterError(
+        f"{where} holds {type(value).__name__} {value!r}; a checkpoint records only plain values (numbers, "
+        "strings, bools, None, and lists, tuples or str-keyed dicts of those). Fix: record the "
+        "constructor arguments as such values."
+    )
+
+
+def _unwrap(net: torch.nn.Module) -> torch.nn.Module:
+    return net.module if isinstance(net, torch.nn.parallel.DistributedDataParallel) else net
+
+
+def network_record(net: torch.nn.Module, net_kwargs: dict | None = None) -> dict:
+    """``{'class': 'module:qualname', 'kwargs': constructor arguments or None}`` of ``net``
+    (unwrapped from DistributedDataParallel); the arguments are ``net_kwargs``, else the
+    network's ``init_kwargs`` attribute, else unknown (None: the file loads, but
+    :func:`load_network` then needs them).
+
+    Raises:
+        ParameterError: arguments that are not plain values.
+    """
+    net = _unwrap(net)
+    cls = type(net)
+    kwargs = net_kwargs if net_kwargs is not None else getattr(net, "init_kwargs", None)
+    if kwargs is not None:
+        if not isinstance(kwargs, dict):
+            raise ParameterError(
+                f"the network's constructor arguments must be a dict, got {type(kwargs).__name__}."
+            )
+        _check_plain(kwargs, f"the constructor arguments of {cls.__qualname__}")
+        kwargs = dict(kwargs)
+    return {"class": f"{cls.__module__}:{cls.__qualname__}", "kwargs": kwargs}
+
+
+def save_checkpoint(
+    path, net: torch.nn.Module, config: TrainConfig | dict, *, net_kwargs: dict | None = None, **extra
+) -> Path:
+    """Atomic, checksummed checkpoint: weights, config, the network record
+    (:func:`network_record`; ``net_kwargs`` overrides the network's ``init_kwargs``) and extras;
+    read it with :func:`read_checkpoint`, rebuild the network with :func:`load_checkpoint`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cfg = asdict(config) if isinstance(config, TrainConfig) else config
+    record = network_record(net, net_kwargs)
+    ckpt = {"state_dict": _unwrap(net).state_dict(), "config": cfg, "network": record, **extra}
+    buffer = io.BytesIO()
+    torch.save(ckpt, buffer)
+    return save_checked_bytes(path, buffer.getvalue())
+
+
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
+    and plain containers only: a file cannot run code). Raises
+    :class:`~torchfmap.errors.CorruptFileError` for a truncated or altered file."""
+    payload = load_checked_bytes(path, "checkpoint")
+    return torch.load(io.BytesIO(payload), map_location=map_location, weights_only=True)
+
+
+def _network_class(name: str) -> type:
+    module_name, _, qualname = str(name).partition(":")
+    fix = (
+        "Fix: define the class at module level of an importable module (on sys.path), or build the "
+        "network yourself and load ckpt['state_dict'] into it."
+    )
+    if not module_name or not qualname or "<locals>" in qualname:
+        raise ParameterError(f"the checkpoint's network class {name!r} cannot be imported. {fix}")
+    try:
+        obj = importlib.import_module(module_name)
+        for part in qualname.split("."):
+            obj = getattr(obj, part)
+    except (ImportError, AttributeError) as err:
+        raise ParameterError(
+            f"cannot import the checkpoint's network class {name!r} ({err}). {fix}"
+        ) from None
+    if not (isinstance(obj, type) and issubclass(obj, torch.nn.Module)):
+        raise ParameterError(
+            f"the checkpoint's network class {name!r} is not a torch.nn.Module subclass. Fix: record "
+            "a network class (save_checkpoint does)."
+        )
+    return obj
+
+
+def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
+    """The network of a checkpoint dict (:func:`read_checkpoint`), rebuilt from its record, in
+    the dtype of its weights and in eval mode; ``best``: the weights with the best validation
+    score when it has them. A checkpoint without a record rebuilds the recipe's DiffusionNet
+    from its config.
+
+    Raises:
+        ParameterError: a class that cannot be imported or is not a ``torch.nn.Module``, or a
+            record without constructor arguments.
+    """
+    record = ckpt.get("network")
+    if record is None:  # written before checkpoints recorded the network
+        net = build_model(_config(ckpt["config"], legacy=True))[0]
+    else:
+        cls = _network_class(record.get("class"))
+        kwargs = record.get("kwargs")
+        if kwargs is None:
+            raise ParameterError(
+                f"the checkpoint names the network class {record['class']!r} but not its constructor "
+                "arguments. Fix: give the network an init_kwargs dict (or pass net_kwargs to "
+                "save_checkpoint) when saving, or build it yourself and load ckpt['state_dict']."
+            )
+        net = cls(**kwargs)
+    state = ckpt.get("best_state_dict") if best and ckpt.get("best_state_dict") else ckpt["state_dict"]
+    dtypes = {t.dtype for t in state.values() if isinstance(t, torch.Tensor) and t.is_floating_point()}
+    if len(dtypes) == 1:  # weights saved in one dtype (e.g. a float64 network): load them in it
+        net = net.to(dtypes.pop())
+    net.load_state_dict(state)
+    return net.eval()
+
+
+#: Basis names of checkpoints written before the kinds registry: their ``'stack'`` was the
+#: learned path's mix of eigenfunctions and heat kernels, now called ``'eigen_diffusion'``
+#: (``'stack'`` is diffusion + harmonic functions everywhere).
+LEGACY_BASIS_NAMES = {"stack": "eigen_diffusion"}
+
+
+def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
+    """``cfg`` as a :class:`TrainConfig`; ``legacy``: a checkpoint without a network record,
+    whose basis names are read through :data:`LEGACY_BASIS_NAMES`."""
+    if legacy and cfg.get("basis") in LEGACY_BASIS_NAMES:
+        cfg = {**cfg, "basis": LEGACY_BASIS_NAMES[cfg["basis"]]}
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(cfg) - names)
+    if unknown:
+        raise ParameterError(
+            f"the checkpoint's config has keys {unknown} that TrainConfig does not know. Fix: read it "
+            "with read_checkpoint() and rebuild the network with load_network()."
+        )
+    return TrainConfig(**cfg)
+
+
+def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConfig, dict]:
+    """``(network in eval mode, config, the whole checkpoint dict)``: the network rebuilt by
+    :func:`load_network` (its recorded class, or the recipe's DiffusionNet for older files);
+    ``best``: the weights with the best validation score when the checkpoint has them.
+
+    Raises:
+        ParameterError: as :func:`load_network`, or a config that is not a :class:`TrainConfig`.
+        CorruptFileError: a truncated or altered file.
+    """
+    ckpt = read_checkpoint(path)
+    config = _config(ckpt["config"], legacy="network" not in ckpt)
+    return load_network(ckpt, best), config, ckpt

@@ -1,0 +1,180 @@
+"""Inference with a trained network: point maps of dataset items (:func:`predict_p2p`),
+unsupervised test-time adaptation (:func:`adapt`), evaluation with the classical metrics
+(:func:`evaluate`), ZoomOut refinement in the eigenbases (:func:`refine_p2p`) and matching two
+meshes without a dataset (:func:`match_with_network`)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from ..bases import Basis, laplacian_eigenbasis
+from ..errors import ParameterError
+from ..eval import geodesic_errors
+from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
+from ..fmap.refine import zoomout
+from ..mesh import Mesh
+from .config import TrainConfig, build_model
+from .data import ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
+from .modules import RegularizedFMSolver
+from .networks import check_network, features
+from .train import pair_loss
+
+
+def _single(item: dict, device) -> ShapeBatch:
+    return collate_pairs([(item, item)])["x"].to(device)
+
+
+@torch.no_grad()
+def predict_p2p(
+    net, solver, x: dict, y: dict, *, mode: str = "fmap", p2p_mode: str = "orthogonal", device="cpu"
+) -> np.ndarray:
+    """``p2p_yx`` of one pair of dataset items (:class:`~torchfmap.nn.data.ShapeDataset`).
+
+    ``mode='fmap'``: learned features -> ``C_xy`` -> point map by ``p2p_mode``:
+    ``'orthogonal'`` (default: nearest neighbour of each row of ``Φ_y`` among the rows of
+    ``Φ_x C_xyᵀ``; the recipe's orthogonality loss makes ``C_xy`` near-orthogonal, and this is
+    the rule :func:`torchfmap.fmap.fmap_to_p2p` uses for such maps) or ``'pullback'``
+    (rows of ``Φ_y C_xy`` among those of ``Φ_x``). ``mode='features'``: nearest neighbours in
+    the (normalised) feature space.
+    """
+    check_network(net)
+    net.eval()
+    sx, sy = _single(x, device), _single(y, device)
+    fx, fy = features(net, sx), features(net, sy)
+    if mode == "features":
+        a = torch.nn.functional.normalize(fy[0], dim=-1).double().cpu().numpy()
+        b = torch.nn.functional.normalize(fx[0], dim=-1).double().cpu().numpy()
+        return nearest_neighbor(a, b, precision="single")
+    if mode != "fmap":
+        raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
+    if p2p_mode not in ("orthogonal", "pullback"):
+        raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
+    C_xy, _ = solver(fx, fy, sx.basis, sy.basis)
+    C = C_xy[0].double().cpu().numpy()
+    return values_to_p2p(C, x["values"].double().numpy(), y["values"].double().numpy(), mode=p2p_mode)
+
+
+def adapt(
+    net,
+    solver,
+    loss_fn,
+    x: dict,
+    y: dict,
+    *,
+    steps: int = 10,
+    lr: float = 1e-4,
+    device="cpu",
+    generator: torch.Generator | None = None,
+):
+    """Unsupervised test-time adaptation: a copy of ``net`` after ``steps`` Adam steps of
+    ``loss_fn`` on the pair ``(x, y)`` itself (no ground truth). ``net`` is left unchanged.
+    The loss's random draws come from ``generator`` (None: a new one on ``device`` seeded 0, so
+    the same call gives the same network)."""
+    if steps < 0:
+        raise ParameterError(f"steps must be >= 0, got {steps}.")
+    check_network(net)
+    generator = torch.Generator(device=device).manual_seed(0) if generator is None else generator
+    tuned = copy.deepcopy(net).to(device).train()
+    opt = torch.optim.Adam(tuned.parameters(), lr=lr)
+    batch = collate_pairs([(x, y), (y, x)])
+    batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
+    for _ in range(steps):
+        terms = pair_loss(tuned, solver, loss_fn, batch, generator)
+        opt.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        opt.step()
+    return tuned.eval()
+
+
+def evaluate(
+    net, shapes: ShapeDataset, pairs, gts, solver=None, *, mode: str = "fmap", max_points=500, device="cpu"
+) -> float:
+    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``."""
+    solver = solver if solver is not None else RegularizedFMSolver()
+    errors = []
+    for (a, b), gt in zip(pairs, gts, strict=True):
+        x, y = shapes[a], shapes[b]
+        p2p = predict_p2p(net, solver, x, y, mode=mode, device=device)
+        mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
+        errors.append(geodesic_errors(mesh_x, p2p, gt, max_points=max_points).mean())
+    return float(np.mean(errors))
+
+
+def refine_p2p(
+    mesh_x: Mesh,
+    mesh_y: Mesh,
+    p2p_yx: np.ndarray,
+    k0: int = 50,
+    k_final: int = 200,
+    *,
+    bases: tuple[Basis, Basis] | None = None,
+) -> np.ndarray:
+    """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
+    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes.
+    Point maps are converted by the orthogonal rule (nearest neighbours of ``Φ_y`` in
+    ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`; the step
+    is :func:`~torchfmap.fmap.refine.zoomout`'s default (one eigenbasis ZoomOut for both paths).
+
+    ``bases``: the meshes' Laplacian eigenbases (:func:`~torchfmap.laplacian_eigenbasis`, at
+    least ``k_final`` columns each), to reuse them across pairs; computed here when None.
+
+    Raises:
+        ParameterError: ``bases`` that are not eigenbases of these meshes' sizes, or have fewer
+            than ``k_final`` columns.
+    """
+    k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
+    k0 = min(k0, k_final)
+    if bases is None:
+        bx, by = laplacian_eigenbasis(mesh_x, k_final), laplacian_eigenbasis(mesh_y, k_final)
+    else:
+        bx, by = bases
+        for name, basis, mesh in (("x", bx, mesh_x), ("y", by, mesh_y)):
+            if (
+                getattr(basis, "eigenvalues", None) is None
+                or basis.n_vertices != mesh.n_vertices
+                or basis.k < k_final
+            ):
+                raise ParameterError(
+                    f"bases[{name}] must be the Laplacian eigenbasis of mesh_{name} ({mesh.n_vertices} "
+                    f"vertices) with >= {k_final} columns. Fix: laplacian_eigenbasis(mesh_{name}, {k_final})."
+                )
+        bx, by = bx.truncated(k_final), by.truncated(k_final)
+    C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
+    return zoomout(C_xy, bx, by, k_final, mode="orthogonal")[1]
+
+
+def match_with_network(
+    net,
+    config: TrainConfig,
+    mesh_x: Mesh,
+    mesh_y: Mesh,
+    *,
+    adapt_steps: int = 0,
+    adapt_lr: float = 1e-4,
+    refine: bool = False,
+    mode: str = "fmap",
+    device="cpu",
+) -> np.ndarray:
+    """``p2p_yx`` of two meshes with a trained network: no dataset folder, no cache.
+
+    Precomputes both shapes as in training (:func:`~torchfmap.nn.data.precompute_shape`),
+    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`)
+    and optionally refines with ZoomOut (:func:`refine_p2p`).
+    """
+    items = [
+        shape_item(
+            precompute_shape(m, config.k, config.n_wks, k_net=config.k_net, basis=config.basis),
+            config.inputs,
+            name=m.name or "",
+            index=i,
+        )
+        for i, m in enumerate((mesh_x, mesh_y))
+    ]
+    _, solver, loss_fn = build_model(config)
+    if adapt_steps:
+        net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
+    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
+    return refine_p2p(mesh_x, mesh_y, p2p) if refine else p2p

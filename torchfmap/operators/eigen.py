@@ -1,0 +1,278 @@
+"""Generalised eigensolvers for ``L φ = λ B φ``, with a fixed sign convention.
+
+Pairs are B-orthonormal (``φᵀ B φ = I``), ``λ`` ascending. Eigenvectors are defined up to sign; we fix it
+so that the B-weighted third moment ``Σ_i B_ii φ_i³`` is positive (ties: the entry of largest
+magnitude is positive). Both rules are invariant under rigid motion and vertex permutation.
+Dense ``eigh`` on small meshes; beyond, ARPACK or block Lanczos (:func:`block_lanczos`) on the
+same shift-inverted factorisation. :func:`~torchfmap.bases.laplacian_eigenbasis` wraps the
+result as a :class:`~torchfmap.bases.Basis`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as ssla
+
+from .._checks import check_symmetric, lumped_diagonal
+from .._threads import blas_threads
+from ..errors import ConvergenceError, ParameterError
+from .solvers import factorize
+
+#: Below this many vertices the dense generalised eigensolver is used (exact and robust).
+DENSE_LIMIT = 1500
+#: ARPACK's relative accuracy of the Ritz values (``eigsh(tol=...)``; 0 means machine precision).
+ARPACK_TOL = 1e-10
+
+
+def fix_signs(phi: np.ndarray, mass) -> np.ndarray:
+    """Flip columns so the B-weighted third moment is positive (else the largest entry)."""
+    m = np.asarray(sp.csr_matrix(mass).sum(axis=1)).ravel()
+    cols = np.arange(phi.shape[1])
+    skew = m @ (phi * phi * phi)
+    idx = np.argmax(np.abs(phi), axis=0)
+    fallback = np.sign(phi[idx, cols])
+    scale = np.abs(phi[idx, cols])
+    sign = np.where(np.abs(skew) > 1e-8 * scale**3 * m.sum(), np.sign(skew), fallback)
+    return phi * np.where(sign == 0, 1.0, sign)
+
+
+def start_vector(n: int) -> np.ndarray:
+    """A fixed ARPACK start vector, so that repeated runs give the same basis.
+
+    ARPACK otherwise starts from a random vector: inside a degenerate eigenspace (symmetric
+    shapes) the returned eigenvectors, and even which copies of a cluster converge, would differ
+    from run to run.
+    """
+    return np.random.default_rng(0).standard_normal(n)
+
+
+#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``). Below,
+#: ARPACK's single-vector solves are cheap and the block method's Gram-Schmidt products
+#: cost more than they save (the crossover is measured by ``bench/eigenpairs.py``, results in
+#: ``bench/results/eigenpairs.md``).
+BLOCK_MIN_WORK = 3_000_000
+#: Below this many vertices block Lanczos runs with one BLAS thread. Its solves are
+#: single-threaded, and a second BLAS thread, spinning after each thin Gram-Schmidt product,
+#: takes the core they run on; on large meshes the products are large enough to gain from
+#: threads (``bench/eigenpairs.py --threads``, ``bench/results/eigenpairs.md``).
+BLOCK_ONE_THREAD_BELOW = 100_000
+#: Shift of the block Lanczos factorisation ``L + s B`` on a unit-area surface. The null
+#: space (``λ = 0``) then maps to ``1/s``: a modest shift keeps the dynamic range ``1 + λ_k/s``
+#: of the shift-inverted spectrum small enough (< 1e6 for ``λ_k`` up to 1e4) that the block
+#: Gram-Schmidt's round-off stays below ARPACK_TOL; ARPACK's near-zero shift would leave a
+#: residual floor.
+BLOCK_SHIFT = 1e-2
+#: Restart cycles of block Lanczos before :class:`ConvergenceError` (a generous cap: it
+#: usually needs a few).
+BLOCK_MAX_CYCLES = 60
+
+
+def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """First ``k`` generalised eigenpairs: ``(λ (k,), φ (V, k))``, B-orthonormal, signs fixed.
+
+    Dense ``scipy.linalg.eigh`` up to :data:`DENSE_LIMIT` vertices. Beyond, a shift-invert
+    iteration whose inverse is our :func:`~torchfmap.operators.factorize` (a sparse Cholesky
+    where one is installed):
+
+    - ``solver='block'``: block Lanczos with full reorthogonalisation and thick restarts
+      (:func:`block_lanczos`): blocks of right-hand sides per solve, Gram-Schmidt as matrix
+      products; the same convergence test as ARPACK (residual ``<= ARPACK_TOL · |θ|``);
+    - ``solver='arpack'``: ``scipy.sparse.linalg.eigsh`` (shift ``sigma``);
+    - ``solver='auto'``: block when ``V · k >= BLOCK_MIN_WORK`` (:func:`auto_solver`), else ARPACK.
+
+    The problem is solved in a scale-free frame: ``B`` is divided by its total (the area), so
+    the shift is relative to a unit-area surface and cost and accuracy do not depend on the
+    mesh's units; the eigenpairs are scaled back.
+
+    Raises:
+        ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, or an area that is not a
+            finite positive float64 (a mesh so large or small that it overflows).
+        ConvergenceError: block Lanczos did not converge in :data:`BLOCK_MAX_CYCLES` restarts
+            (``solver='arpack'`` is the alternative).
+    """
+    n = L.shape[0]
+    if not 1 <= k <= n:
+        raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
+    if solver not in ("auto", "block", "arpack"):
+        raise ParameterError(f"unknown eigensolver {solver!r}. Fix: 'auto', 'block' or 'arpack'.")
+    check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, kind='cotan') or kind='robust'")
+    area = float(B.sum())
+    if not np.isfinite(area) or area <= 0 or not np.isfinite(1.0 / area):
+        raise ParameterError(
+            f"the mass matrix sums to {area!r}: the mesh's scale over- or underflows float64. Fix: "
+            "rescale it first, e.g. mesh.normalized() or mesh.scaled(alpha)."
+        )
+    if solver == "auto":
+        solver = auto_solver(n, k)
+    lam, phi = _unit_area_eigenpairs(L, B / area, k, sigma, solver)
+    return lam / area, phi / np.sqrt(area)
+
+
+def auto_solver(n: int, k: int) -> str:
+    """The solver ``eigenpairs(..., solver='auto')`` uses for ``k`` pairs of ``n`` vertices."""
+    return "block" if k >= 20 and n * k >= BLOCK_MIN_WORK else "arpack"
+
+
+def _unit_area_eigenpairs(L, B, k: int, sigma: float, solver: str) -> tuple[np.ndarray, np.ndarray]:
+    n = L.shape[0]
+    block = _block_size(k)
+    if n <= DENSE_LIMIT or k >= n - 1:
+        lam, phi = sla.eigh(L.toarray(), B.toarray(), subset_by_index=(0, k - 1))
+    elif (
+        solver == "block"
+        and _block_dimension(k, block) + block <= n
+        and (d := lumped_diagonal(B)) is not None
+    ):
+        lam, phi = _block_eigenpairs(L, B, k, block, d)  # (a consistent mass goes to ARPACK)
+    else:
+        lam, phi = _arpack_eigenpairs(L, B, k, sigma)
+    lam = np.where(lam > -1e-10, np.maximum(lam, 0.0), lam)  # round-off below zero -> 0
+    return lam, fix_signs(phi, B)
+
+
+def _arpack_eigenpairs(L, B, k: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    n = L.shape[0]
+    L, B = sp.csc_matrix(L), sp.csc_matrix(B)
+    fac = factorize(L - sigma * B, spd=True)  # CHOLMOD / cholespy where installed
+    # ARPACK's restarts cost ~ V ncv^2: a Lanczos basis of 1.5k (scipy's default is 2k + 1)
+    # needs as many solves and restarts more cheaply
+    ncv = min(n, max(k + k // 2 + 1, k + 20))
+    d = lumped_diagonal(B)
+    if d is not None:
+        # lumped mass: the standard problem D^-1/2 L D^-1/2 ψ = λ ψ, φ = D^-1/2 ψ, spares
+        # ARPACK the B inner products (same eigenpairs, residuals at ARPACK_TOL)
+        s = np.sqrt(d)
+        A = sp.csc_matrix(sp.diags(1.0 / s) @ L @ sp.diags(1.0 / s))
+        op_inv = ssla.LinearOperator((n, n), matvec=lambda x: s * fac.solve(s * x), dtype=np.float64)
+        lam, psi = ssla.eigsh(
+            A, k=k, sigma=sigma, which="LM", OPinv=op_inv, v0=start_vector(n), ncv=ncv, tol=ARPACK_TOL
+        )
+        phi = psi / s[:, None]
+    else:
+        op_inv = ssla.LinearOperator((n, n), matvec=fac.solve, dtype=np.float64)
+        lam, phi = ssla.eigsh(
+            L, k=k, M=B, sigma=sigma, which="LM", OPinv=op_inv, v0=start_vector(n), ncv=ncv, tol=ARPACK_TOL
+        )
+    order = np.argsort(lam)
+    return lam[order], phi[:, order]
+
+
+def _block_size(k: int) -> int:
+    return int(min(16, max(4, k // 12)))
+
+
+def _block_dimension(k: int, block: int) -> int:
+    """Largest Lanczos basis of :func:`block_lanczos` for ``k`` pairs (a multiple of ``block``)."""
+    keep = -(-(k + block) // block) * block
+    return max(keep + 2 * block, -(-(2 * k + 2 * block) // block) * block)
+
+
+def _block_eigenpairs(L, B, k: int, block: int, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Block Lanczos on ``D^1/2 (L + s D)⁻¹ D^1/2`` (lumped mass ``D = diag(d)``, ``s`` =
+    :data:`BLOCK_SHIFT`): the standard form of the problem, ``φ = D^-1/2 ψ``."""
+    fac = factorize(sp.csc_matrix(L + BLOCK_SHIFT * B), spd=True)
+    s = np.sqrt(d)[:, None]
+    with blas_threads(1 if L.shape[0] < BLOCK_ONE_THREAD_BELOW else None):
+        theta, psi = block_lanczos(lambda X: s * fac.solve(s * X), L.shape[0], k, block)
+    lam = 1.0 / theta - BLOCK_SHIFT
+    order = np.argsort(lam)
+    return lam[order], (psi / s)[:, order]
+
+
+def _block_qr(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``W = Q R`` for a tall ``(n, b)`` block: Cholesky QR twice (two ``(b, b)`` Gram matrices
+    and triangular solves, cheaper than Householder at ``n >> b``: matrix products; orthonormal to
+    round-off while ``cond(W) < 1e6``), Householder when ``W`` is worse conditioned than that."""
+    R = np.eye(W.shape[1])
+    Q = W
+    for _ in range(2):
+        try:
+            c = np.linalg.cholesky(Q.T @ Q)
+        except np.linalg.LinAlgError:
+            return np.linalg.qr(W)
+        d = np.abs(np.diag(c))
+        if d.min() <= 1e-6 * d.max():
+            return np.linalg.qr(W)
+        Q = Q @ sla.solve_triangular(c, np.eye(len(c)), lower=True, check_finite=False).T
+        R = c.T @ R
+    return Q, R
+
+
+def block_lanczos(op, n: int, k: int, block: int, tol: float = ARPACK_TOL, seed: int = 0):
+    """The ``k`` largest eigenpairs of a symmetric positive semi-definite operator.
+
+    Args:
+        op: ``X (n, b) -> op(X) (n, b)``, symmetric (e.g. a shift-inverted Laplacian).
+        n: dimension; k: wanted pairs; block: columns per operator call.
+        tol: a pair is converged when its residual ``‖op(y) - θ y‖ <= tol · θ`` (ARPACK's rule).
+        seed: the fixed random start block (repeated runs give the same vectors).
+
+    Returns:
+        ``(θ (k,) descending, Y (n, k) orthonormal)``. Full reorthogonalisation (block
+        classical Gram-Schmidt: the local recurrence, then one pass against every vector); thick
+        restart keeps the ``k + block`` best Ritz vectors and the last
+        Lanczos block, so restarts need no new start vectors.
+
+    Raises:
+        ConvergenceError: not converged after :data:`BLOCK_MAX_CYCLES` restarts.
+    """
+    b = block
+    m = _block_dimension(k, b)
+    keep = -(-(k + b) // b) * b
+    if m + b > n:
+        raise ParameterError(f"block Lanczos needs n > {m + b} for k={k}, block={b}; got n={n}.")
+    Q = np.empty((n, m + b))
+    T = np.zeros((m + b, m + b))
+    Q[:, :b] = np.linalg.qr(np.random.default_rng(seed).standard_normal((n, b)))[0]
+    filled = b
+    restarted = 0  # the block whose operator product couples to all vectors before it
+    worst = np.inf
+    for _ in range(BLOCK_MAX_CYCLES):
+        while filled < m + b:  # extend by one block: op of the last block, orthogonalised
+            j0 = filled - b
+            W = op(Q[:, j0:filled])
+            Qa = Q[:, :filled]
+            # first pass against the blocks W couples to in exact arithmetic (the previous one,
+            # or after a restart all kept Ritz vectors), then one full pass: Lanczos with full
+            # reorthogonalisation at about half the traffic of two full passes
+            lo = 0 if j0 == restarted else max(0, j0 - b)
+            C = np.zeros((filled, b))
+            C[lo:] = Q[:, lo:filled].T @ W
+            W -= Q[:, lo:filled] @ C[lo:]
+            C2 = Qa.T @ W
+            W -= Qa @ C2
+            C += C2
+            T[:filled, j0:filled] = C
+            T[j0:filled, :filled] = C.T
+            Qn, R = _block_qr(W)
+            diag = np.abs(np.diag(R))
+            if diag.min() <= 1e-8 * max(diag.max(), 1e-300):  # (near) breakdown: new directions
+                Qn -= Qa @ (Qa.T @ Qn)
+                Qn, R2 = np.linalg.qr(Qn)
+                R = R2 @ R
+            Q[:, filled : filled + b] = Qn
+            T[filled : filled + b, j0:filled] = R
+            T[j0:filled, filled : filled + b] = R.T
+            filled += b
+        a = m  # Rayleigh-Ritz on the first m vectors; the last block carries the residuals
+        theta, U = np.linalg.eigh((T[:a, :a] + T[:a, :a].T) / 2)
+        theta, U = theta[::-1], U[:, ::-1]
+        coupling = T[a : a + b, :a] @ U[:, :keep]  # (b, keep): op(Y) - Y diag(θ) = Q_last coupling
+        residual = np.linalg.norm(coupling, axis=0)
+        worst = float(np.max(residual[:k] / np.abs(theta[:k])))
+        if worst <= tol:
+            return theta[:k], Q[:, :a] @ U[:, :k]
+        last = Q[:, a : a + b].copy()
+        Q[:, :keep] = Q[:, :a] @ U[:, :keep]
+        Q[:, keep : keep + b] = last
+        T[:] = 0.0
+        T[:keep, :keep] = np.diag(theta[:keep])
+        T[keep : keep + b, :keep] = coupling
+        T[:keep, keep : keep + b] = coupling.T
+        filled, restarted = keep + b, keep
+    raise ConvergenceError(
+        f"block Lanczos did not converge in {BLOCK_MAX_CYCLES} restarts (largest relative residual "
+        f"{worst:.1e}, tolerance {tol:.0e}). Fix: eigenpairs(..., solver='arpack')."
+    )

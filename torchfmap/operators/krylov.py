@@ -1,0 +1,160 @@
+"""Shift-and-invert Lanczos for the heat action ``exp(-t A) X``, ``A = B⁻¹ L``.
+
+The ``krylov`` method of :func:`~torchfmap.operators.heat.heat_apply`: Krylov spaces of
+``(B + γL)⁻¹ B`` (self-adjoint in the B inner product) built in lock-step for a block of
+columns, one sparse Cholesky of ``B + γL`` per group of times, reused by every column and
+every time in it; each column stops when every time has converged to ``tol`` (relative, in the
+B-norm).
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+
+from .._checks import lumped_diagonal
+from .._threads import blas_limiter
+from .solvers import factorize
+
+#: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
+KRYLOV_BLOCK_BYTES = 512 * 2**20
+#: Seeds per Krylov block: multi-column sparse solves cost less per column, but a block's work
+#: buffer is touched page by page (chosen by ``bench/bases.py``, ``bench/results/bases.md``).
+KRYLOV_BLOCK_COLUMNS = 8
+#: Lanczos vectors per column the work buffer starts with (it grows when more are needed).
+KRYLOV_STORE = 40
+#: Shift of the Krylov factorisation ``B + γL``, as a fraction of the smallest time it serves.
+KRYLOV_SHIFT = 0.3
+#: Times up to this factor above the smallest of a group share its Krylov space.
+KRYLOV_SPAN = 50.0
+#: The shift grows with the spread of a group's times: ``γ = KRYLOV_SHIFT · t_min · (t_max / t_min)^e``.
+KRYLOV_SHIFT_SPAN_EXP = 0.15
+
+
+def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None) -> tuple[np.ndarray, int]:
+    """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``.
+
+    ``S = (B + γL)⁻¹ B`` is self-adjoint in the B inner product, so the three-term recurrence
+    (re-orthogonalised once against the current vector) builds the Krylov basis at O(n) per
+    step; plain Lanczos' slow loss of global orthogonality only delays, not spoils,
+    convergence for matrix functions (Druskin & Knizhnerman), and the stopping test compares
+    successive approximations. ``store`` is an optional ``(cap, n, >= s)`` work buffer,
+    reused across blocks (first-touch page faults of fresh memory cost as much as the
+    arithmetic here). ``small``: a context manager factory run around the tiny ``(s, k, k)``
+    eigenproblems (:func:`krylov_heat` passes one that limits BLAS to one thread there).
+    Returns ``((T, n, s) approximations, iterations)``.
+    """
+    small = small if small is not None else contextlib.nullcontext
+    n, s = X.shape
+    d = lumped_diagonal(B)
+
+    def bmul(v: np.ndarray, out: np.ndarray) -> None:  # out = B v, in place when B is lumped
+        if d is not None:
+            np.multiply(v, d[:, None], out=out)
+        else:
+            out[...] = B @ v
+
+    if store is None or store.shape[1] != n or store.shape[2] < s:
+        store = np.empty((min(max_iter, KRYLOV_STORE) + 1, n, s))  # store[m]: the m-th Lanczos vectors
+    store = store[:, :, :s]
+    Bq = np.empty((n, s))  # B times the current vectors
+    tmp = np.empty((n, s))  # preallocated: fresh large temporaries cost page faults
+    bmul(X, Bq)
+    beta0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", X, Bq), 0.0))
+    beta0[beta0 == 0] = 1.0
+    q = store[0]
+    np.divide(X, beta0, out=q)
+    Bq /= beta0
+    alpha = np.zeros((s, max_iter))
+    beta = np.zeros((s, max_iter))
+    prev = None
+    times = np.asarray(times, dtype=np.float64)
+    # each column keeps the coefficients of the iteration where it converged, so a kernel
+    # does not depend on the columns it was solved with (nor on their number)
+    final = np.zeros((len(times), s, max_iter))
+    done = np.zeros(s, dtype=bool)
+    for m in range(max_iter):
+        if m + 2 > store.shape[0]:
+            grow = min(store.shape[0], max_iter + 1 - store.shape[0])
+            store = np.concatenate([store, np.empty((grow, n, s))], axis=0)
+            q = store[m]
+        w = fac.solve(Bq)  # (n, s)
+        if m > 0:
+            w -= np.multiply(store[m - 1], beta[:, m - 1], out=tmp)
+        a = np.einsum("ij,ij->j", w, Bq)
+        w -= np.multiply(q, a, out=tmp)
+        a2 = np.einsum("ij,ij->j", w, Bq)  # one cheap re-orthogonalisation against q_m
+        w -= np.multiply(q, a2, out=tmp)
+        alpha[:, m] = a + a2
+        bmul(w, Bq)
+        nb = np.sqrt(np.maximum(np.einsum("ij,ij->j", w, Bq), 0.0))
+        beta[:, m] = nb
+        safe = np.where(nb > 0, nb, 1.0)
+        q = store[m + 1]
+        np.divide(w, safe, out=q)
+        Bq /= safe
+        k = m + 1
+        T = np.zeros((s, k, k))
+        idx = np.arange(k)
+        T[:, idx, idx] = alpha[:, :k]
+        T[:, idx[1:], idx[:-1]] = beta[:, : k - 1]
+        T[:, idx[:-1], idx[1:]] = beta[:, : k - 1]
+        with small():  # k x k: threads only add synchronisation (and wait for busy cores)
+            theta, U = np.linalg.eigh(T)  # eigenvalues of (I + gamma A)^{-1}: in (0, 1]
+        theta = np.clip(theta, 1e-300, 1.0)
+        lam = (1.0 / theta - 1.0) / gamma  # (s, k) Ritz values of A
+        f = np.exp(-times[:, None, None] * lam[None])  # (T, s, k)
+        y = np.einsum("sij,tsj,sj->tsi", U, f, U[:, 0, :])  # (T, s, k) small-space coefficients
+        if prev is not None:
+            diff = y.copy()
+            diff[:, :, :m] -= prev
+            err = np.linalg.norm(diff, axis=2) / np.maximum(np.linalg.norm(y, axis=2), 1e-300)
+            # successive change, with margin; an exhausted Krylov space (beta = 0) is exact
+            new = ~done & ((err.max(axis=0) < 0.2 * tol) | (nb < 1e-14))
+            final[:, new, : m + 1] = y[:, new]
+            done |= new
+            if done.all():
+                break
+        prev = y
+    k = y.shape[2]
+    final[:, ~done, :k] = y[:, ~done]  # max_iter reached: the last approximation
+    coef = (final[:, :, :k] * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
+    out = np.empty((len(times), n, s))
+    for r0 in range(0, n, 4096):  # row chunks: cache-friendly transposes, then batched GEMM
+        chunk = np.ascontiguousarray(store[:k, r0 : r0 + 4096].transpose(2, 1, 0))  # (s, r, k)
+        out[:, r0 : r0 + 4096] = np.matmul(chunk, coef).transpose(2, 1, 0)
+    return out, k
+
+
+def krylov_heat(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None) -> np.ndarray:
+    """Times within a factor :data:`KRYLOV_SPAN` share one Krylov space per column and one
+    factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group)."""
+    times = np.asarray(times, dtype=np.float64)
+    n, s_total = X.shape
+    order = np.argsort(times)
+    groups: list[list[int]] = []
+    for i in order:
+        if groups and times[i] <= KRYLOV_SPAN * times[groups[-1][0]]:
+            groups[-1].append(int(i))
+        else:
+            groups.append([int(i)])
+    # KRYLOV_STORE Lanczos vectors per column of a block fit in the budget (seeds are solved in
+    # blocks: multi-column sparse solves cost less per column); one buffer serves all blocks
+    cap = min(max_iter, KRYLOV_STORE) + 1
+    block = max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
+    store = np.empty((cap, n, block))
+    out = np.empty((len(times),) + X.shape)
+    one_thread = blas_limiter(1)  # BLAS threads for the tiny eigenproblems only
+
+    for group in groups:
+        t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
+        gamma = KRYLOV_SHIFT * t_lo * (t_hi / t_lo) ** KRYLOV_SHIFT_SPAN_EXP
+        gamma = float(shift) if shift is not None else gamma
+        fac = factorize(B + gamma * L, spd=True)
+        for start in range(0, s_total, block):
+            cols = slice(start, min(start + block, s_total))
+            out[group, :, cols], _ = krylov_block(
+                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store, one_thread
+            )
+    return out
