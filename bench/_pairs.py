@@ -1,7 +1,8 @@
 """Real pairs, landmarks, errors and result rows shared by ``accuracy.py``, ``landmark_sweep.py``
 and ``weight_sweep.py``.
 
-Pairs: ``A-B`` is ``tosca5k_dev/A.off`` (source x) and ``B.off`` (target y), ground truth the
+Pairs: ``faust:A-B`` is ``faust_r_train/tr_reg_A.off`` (x) and ``tr_reg_B.off`` (y) with their
+``corres/*.vts`` rows; ``A-B`` is ``tosca5k_dev/A.off`` (source x) and ``B.off`` (target y), ground truth the
 rows of ``corres/A.vts`` and ``corres/B.vts``; ``A~B`` is the same with ``B`` deformed
 non-isometrically by ``torchfmap.data.stretch_deform(B, seed=crc32(name of B), strength=1)``
 (vertex ids kept, so the same ground truth); ``cat-lion`` is ``pyfm_cat_lion`` with x = cat-00,
@@ -58,7 +59,15 @@ class Pair:
 
     def __init__(self, spec: str) -> None:
         self.name = spec
-        if spec == "cat-lion":
+        if spec.startswith("faust:"):  # faust:A-B: FAUST_r training meshes tr_reg_A (x), tr_reg_B (y)
+            a, b = (f"tr_reg_{n}" for n in spec.split(":", 1)[1].split("-"))
+            folder = require_data("faust_r_train")
+            self.x = torchfmap.load_mesh(folder / f"{a}.off")
+            self.y = torchfmap.load_mesh(folder / f"{b}.off")
+            corres = folder / "corres"
+            self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+            self.fixed = None
+        elif spec == "cat-lion":
             folder = require_data("pyfm_cat_lion")
             self.x = torchfmap.load_mesh(folder / "cat-00.off")
             self.y = torchfmap.load_mesh(folder / "lion-00.off")

@@ -62,6 +62,7 @@ def run_pyfm(
     subsample_step: int = 1,
     zoomout_step: int | None = None,
     zoomout_samples: int = 2000,
+    fit: dict | None = None,
 ) -> PyfmRun:
     """pyFM's whole pipeline: ``TriMesh`` -> ``preprocess`` (WKS) -> ``fit`` -> ``get_p2p`` [-> refine].
 
@@ -76,6 +77,7 @@ def run_pyfm(
         subsample_step: keep every n-th descriptor column (pyFM's option).
         zoomout_samples: FPS samples per shape of the ``'zoomout-sub'`` refinement
             (``zoomout_refine(subsample=...)``).
+        fit: energy weights of ``fit`` (default :data:`PYFM_FIT`).
     """
     from pyFM.functional import FunctionalMapping
     from pyFM.mesh import TriMesh
@@ -99,7 +101,7 @@ def run_pyfm(
             k_descr=k_descr,
         )
         t1 = time.perf_counter()
-        model.fit(K=(k, k), **PYFM_FIT)
+        model.fit(K=(k, k), **(PYFM_FIT if fit is None else fit))
         t2 = time.perf_counter()
         run.p2p[None] = np.asarray(model.get_p2p(), dtype=np.int64)
         t3 = time.perf_counter()

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from _common import RESULTS_DIR, Report, load_note, log, require_data
 
-from torchfmap.bases import laplacian_eigenbasis
+from torchfmap.bases import prepare_shape
 from torchfmap.eval import Correspondence, gt_from_vts
 from torchfmap.io import read_test_pairs, read_vts
 from torchfmap.mesh import Mesh
@@ -117,7 +117,7 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
 
     def eigenbasis(i: int, mesh: Mesh):
         if i not in eigen:
-            eigen[i] = laplacian_eigenbasis(mesh, min(200, mesh.n_vertices - 1))
+            eigen[i] = prepare_shape(mesh, min(200, mesh.n_vertices - 1)).eigenbasis
         return eigen[i]
 
     for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):

@@ -34,7 +34,7 @@ def recorded_core(monkeypatch):
 def test_match_and_layers_call_the_same_core(blob, recorded_core):
     """Patching the core is seen by match() (classical, numpy) and by the layer (torch)."""
     y = blob.copy(blob.vertices * np.array([1.0, 1.1, 0.9]))
-    torchfmap.match(blob, y, k=12, k_descriptors=20, w_orient=0.0)
+    torchfmap.match(blob, y, k=12, k_descriptors=20, w_orient=0.0, w_dcomm=0.0)  # the row-wise solve
     # two frames (one per shape) and one row-wise solve per map
     assert recorded_core.count("spectral_frame") == 2 and recorded_core.count("solve_rowwise") == 1
     recorded_core.clear()

@@ -112,3 +112,26 @@ def test_conversion_errors(bases):
         icp_refine(np.ones((4, 5)), bx, by)
     with pytest.raises(ParameterError, match="k_final"):
         zoomout(np.eye(10), bx, by, 100)
+
+
+def test_zoomout_never_returns_a_map_worse_than_its_start_by_its_own_energy(bases):
+    """From bad starts (random maps), the guarded ZoomOut's result has at most the start's
+    energy (Σ_k ‖C_kᵀC_k - I‖²/k over its sizes), and it is the unguarded result whenever that
+    one is no worse; from the exact map it stays exact."""
+    from torchfmap.fmap import fmap_to_p2p
+    from torchfmap.fmap.refine import zoomout_energy
+
+    x, y, perm, bx, by = bases
+    sizes = list(range(10, 40, 5)) + [40]
+    for seed in range(4):
+        C0 = np.random.default_rng(seed).normal(size=(10, 10))
+        start = fmap_to_p2p(C0, bx, by, mode="orthogonal")
+        e_start = zoomout_energy(start, bx, by, sizes)
+        C, p2p = zoomout(C0, bx, by, 40, step=5, mode="orthogonal")
+        _, free = zoomout(C0, bx, by, 40, step=5, mode="orthogonal", guard=False)
+        assert zoomout_energy(p2p, bx, by, sizes) <= e_start + 1e-12
+        assert C.shape == (40, 40)
+        if zoomout_energy(free, bx, by, sizes) <= e_start:
+            assert zoomout_energy(p2p, bx, by, sizes) <= zoomout_energy(free, bx, by, sizes)
+    exact = p2p_to_fmap(perm, bx, by, 10, 10)
+    np.testing.assert_array_equal(zoomout(exact, bx, by, 40, step=5, mode="orthogonal")[1], perm)

@@ -13,7 +13,7 @@ from torchfmap.bases import KINDS, Basis, BasisKind, Column, get_kind, kind_of, 
 from torchfmap.bases.kinds import SeededKind
 from torchfmap.cli import build_parser
 from torchfmap.eval import Correspondence, evaluate_map
-from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap
+from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap, default_w_orient
 
 from .conftest import bumpy_blob
 
@@ -34,6 +34,7 @@ def test_every_kind_builds_exactly_k_b_orthonormal_columns_and_is_recognised(blo
     np.testing.assert_allclose(basis.gram(), np.eye(k), atol=ORTHO_EPS * k)
     assert kind_of(basis) == name == basis_kind(basis)
     assert default_w_lap(basis, basis) == KINDS[name].w_lap == W_LAP[name]
+    assert default_w_orient(basis, basis) == KINDS[name].w_orient
     assert default_p2p_mode(basis, basis) == ("orthogonal" if name == "laplacian" else "pullback")
 
 

@@ -138,7 +138,7 @@ def test_match_steps_one_by_one_equal_match(pair):
     """match() is the composition of its public steps: running them by hand gives the same map."""
     from torchfmap import MatchResult
     from torchfmap.fmap import Refined, fmap_to_p2p, solve_fmap
-    from torchfmap.fmap.defaults import W_LAP
+    from torchfmap.fmap.defaults import W_DCOMM, W_LAP, W_ORIENT
     from torchfmap.pipeline import match_bases, match_descriptors, prepare_shape, refine_map
 
     x, y, gt = pair
@@ -151,7 +151,16 @@ def test_match_steps_one_by_one_equal_match(pair):
     assert bx.k == by.k == 20 and bx.stiffness is not None
     dx, dy = match_descriptors(sx, sy, lm, k_descriptors=40)
     C = solve_fmap(
-        bx, by, dx, dy, w_lap=W_LAP["laplacian"], w_orient=1e-2, meshes=(x, y), landmarks=lm, w_lmk=1.0
+        bx,
+        by,
+        dx,
+        dy,
+        w_lap=W_LAP["laplacian"],
+        w_orient=W_ORIENT,
+        w_dcomm=W_DCOMM,
+        meshes=(x, y),
+        landmarks=lm,
+        w_lmk=1.0,
     )
     p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx_initial)

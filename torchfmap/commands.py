@@ -104,7 +104,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
         raise TorchFmapError(f"--k {args.k} needs a mesh of more than {args.k} vertices ({mesh.n_vertices}).")
     with tqdm(total=2, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
-        shape = prepare_shape(mesh, 0, operators=laplacian(mesh, kind=args.laplacian))
+        shape = prepare_shape(mesh, 0, laplacian_kind=args.laplacian)  # the unit-area frame
         bar.update()
         bar.set_postfix_str(f"{kind.name}, k={args.k}")
         basis = kind.shape_basis(shape, args.k, seeds=landmarks, times=args.times or None)

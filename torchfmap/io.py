@@ -22,6 +22,7 @@ from __future__ import annotations
 import gzip
 import io as _io
 import os
+import re
 import warnings
 import zlib
 from pathlib import Path
@@ -263,6 +264,10 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
         raise TorchFmapError(f"{path}: a {what} index does not fit in 64 bits. Fix: check the file.") from err
 
 
+#: Characters that cannot appear in a table of integers (outside comments).
+_NOT_INTEGER_TEXT = re.compile(r"[^0-9\s+\-\ufeff]")
+
+
 def read_index_table(path: str | os.PathLike, columns: int | None, what: str) -> np.ndarray:
     """``(N, columns)`` integer rows of a text file (``.gz`` allowed; ``#`` comments, blank lines
     and a UTF-8 byte-order mark ignored); ``columns=None``: any number, the same on every line.
@@ -272,6 +277,9 @@ def read_index_table(path: str | os.PathLike, columns: int | None, what: str) ->
     where single indices are expected, or a third column), and anything that is not an integer.
     """
     text = read_text(path, what)
+    body = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
+    if _NOT_INTEGER_TEXT.search(body):  # e.g. '1.5': some numpy versions' loadtxt truncates it
+        return _parse_rows(text, path, columns, what)
     try:  # fast path for well-formed files; the careful parser names the problem otherwise
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an empty file is reported below

@@ -25,7 +25,7 @@ from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descripto
 from .errors import ParameterError
 from .eval import shape_distance
 from .fmap import check_landmark_pairs, fmap_to_p2p, solve_fmap
-from .fmap.defaults import W_LMK, W_ORIENT, W_PRIOR
+from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .fmap.refine import refine_map
 from .mesh import Mesh
 
@@ -52,7 +52,8 @@ __all__ = [
 class MatchResult:
     """Output of :func:`match`: ``p2p_yx (V_y,)``, ``C_xy (K_y, K_x)``, the bases and timings;
     ``seeds`` ``(S, 2)`` are the corresponding seed pairs of feature-aware bases (else None);
-    ``kind`` the name of the basis kind that ran."""
+    ``kind`` the name of the basis kind that ran. The bases are B-orthonormal in each mesh's
+    unit-area frame (their ``mass`` is that of ``mesh.scaled(1 / sqrt(area))``), unless given."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -158,8 +159,8 @@ def match(
     n_descriptors: int = 20,
     k_descriptors: int = 100,
     w_lap: float | None = None,
-    w_orient: float = W_ORIENT,
-    w_dcomm: float = 0.0,
+    w_orient: float | None = None,
+    w_dcomm: float = W_DCOMM,
     w_lmk: float = W_LMK,
     w_prior: float | None = None,
     times=None,
@@ -196,8 +197,9 @@ def match(
         w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
             the kind's ``w_lap``), orientation preservation (tells left from right,
             which WKS alone cannot), descriptor commutativity and pointwise landmark
-            preservation (see :func:`~torchfmap.fmap.solve_fmap`). With the last three at 0
-            the solve is the exact row-wise one; otherwise preconditioned CG.
+            preservation (see :func:`~torchfmap.fmap.solve_fmap`; defaults: the kind's
+            ``w_orient``, :data:`~torchfmap.fmap.defaults.W_DCOMM`, ``W_LMK``). With the last
+            three at 0 the solve is the exact row-wise one; otherwise preconditioned CG.
         w_prior: proximity-to-identity weight for feature-aware bases (see above).
         times: relative diffusion times of feature-aware bases (default: one time,
             :func:`~torchfmap.bases.kinds.seed_time` of the seed count).
@@ -279,7 +281,7 @@ def match(
             desc_x,
             desc_y,
             w_lap=kind.w_lap if w_lap is None else w_lap,
-            w_orient=w_orient,
+            w_orient=kind.w_orient if w_orient is None else w_orient,
             w_dcomm=w_dcomm,
             meshes=(mesh_x, mesh_y),
             landmarks=pairs,

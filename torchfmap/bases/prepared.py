@@ -4,6 +4,11 @@ A :class:`PreparedShape` holds what a shape needs once, whatever it is matched t
 operators, its first eigenpairs, its geodesic distance rows (solved on first use) and the heat
 kernels of seed bases (solved on first use, per ``(seed, relative time)``). Its lifetime is the
 caller's: nothing is kept between calls unless the caller keeps the object.
+
+Everything is computed in the shape's **unit-area frame** (its coordinates times
+``scale = 1 / sqrt(area)``), so two shapes of different sizes get comparable eigenvalues,
+descriptors and basis values, and a match does not depend on the units of either mesh. Vertex
+indices are the caller's; distances are in units of ``sqrt(area)``.
 """
 
 from __future__ import annotations
@@ -36,7 +41,9 @@ class PreparedShape:
     ``n_eigen = 0``); ``distances``: geodesic distance rows in units of ``sqrt(area)``,
     computed on first use; ``kernels``: heat kernels of seed bases,
     ``(seed, relative time) -> (V,)``, computed on first use (a seed that refinement leaves in
-    place is not solved again).
+    place is not solved again); ``scale``: the frame's coordinates are ``scale`` times the
+    mesh's (``1 / sqrt(area)``: the unit-area frame; 1 for operators given by the caller), in
+    which ``operators``, ``eigenbasis`` and ``kernels`` live.
     """
 
     mesh: Mesh
@@ -44,6 +51,12 @@ class PreparedShape:
     eigenbasis: Basis | None
     distances: DistanceRows
     kernels: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)
+    scale: float = 1.0
+
+    @property
+    def area(self) -> float:
+        """Surface area in the frame of the operators (the mass's total; 1 in the unit-area frame)."""
+        return float(self.operators[1].sum())
 
     @property
     def n_eigen(self) -> int:
@@ -51,22 +64,28 @@ class PreparedShape:
         return 0 if self.eigenbasis is None else self.eigenbasis.k
 
 
-def prepare_shape(mesh: Mesh, n_eigen: int, *, operators: Operators | None = None) -> PreparedShape:
-    """Operators (``operators`` if given, else :func:`~torchfmap.laplacian` of ``mesh``) and
-    ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`~torchfmap.match` does per shape).
+def prepare_shape(
+    mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian_kind: str = "cotan"
+) -> PreparedShape:
+    """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`~torchfmap.match` does
+    per shape), in its unit-area frame: :func:`~torchfmap.laplacian` (``kind=laplacian_kind``)
+    of ``mesh.scaled(1 / sqrt(area))``. Given ``operators`` ``(L, B)`` are used as they are
+    (the caller's frame, ``scale = 1``).
 
     Raises:
         ParameterError: ``n_eigen`` negative or not below the vertex count.
     """
     n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
-    ops = operators if operators is not None else laplacian(mesh)
-    eig = laplacian_eigenbasis(mesh, n_eigen, operators=ops) if n_eigen else None
-    return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True))
+    scale = 1.0 / np.sqrt(mesh.area) if operators is None else 1.0
+    frame = mesh.scaled(scale) if operators is None else mesh
+    ops = operators if operators is not None else laplacian(frame, kind=laplacian_kind)
+    eig = laplacian_eigenbasis(frame, n_eigen, operators=ops) if n_eigen else None
+    return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True), scale=scale)
 
 
 def with_eigenpairs(shape: PreparedShape, n_eigen: int) -> PreparedShape:
     """``shape`` with at least ``n_eigen`` eigenpairs (extended in place when it has fewer)."""
-    if n_eigen and shape.n_eigen < n_eigen:
+    if n_eigen and shape.n_eigen < n_eigen:  # the operators carry the frame
         shape.eigenbasis = laplacian_eigenbasis(shape.mesh, n_eigen, operators=shape.operators)
     return shape
 
@@ -112,7 +131,7 @@ def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
     for t in times:
         missing = np.unique([int(s) for s in seeds if (int(s), t) not in shape.kernels])
         if len(missing):  # heat_kernels checks the time
-            K = heat_kernels(shape.operators, missing, [t * mesh.area], tol=SEED_HEAT_TOL, local=False)[0]
+            K = heat_kernels(shape.operators, missing, [t * shape.area], tol=SEED_HEAT_TOL, local=False)[0]
             shape.kernels.update({(int(s), t): K[:, j] for j, s in enumerate(missing)})
     values = np.stack([shape.kernels[int(s), t] for t in times for s in seeds], axis=1)
     prov = [Column("diffusion", int(s), t) for t in times for s in seeds]

@@ -20,8 +20,18 @@ W_LAP_OTHER = {"diffusion_mix": KINDS["diffusion"].w_lap, "custom": KINDS["lapla
 #: Laplacian-commutativity weight per basis kind (the mask is normalised to mean 1), chosen by
 #: ``python bench/weight_sweep.py``; read from the kinds' ``w_lap``.
 W_LAP = {name: kind.w_lap for name, kind in KINDS.items()} | W_LAP_OTHER
-#: Orientation-preservation weight when both meshes are given (tells left from right).
-W_ORIENT = 1e-2
+#: Orientation-preservation weight when both meshes are given (tells left from right), for
+#: bases of no registered kind; a kind's own is its ``w_orient``. Each operator pair is scaled
+#: to unit norm (``fmap.solver``), so at 1 the 16 orientation pairs together weigh like several
+#: times the descriptor term: on humans, whose limbs WKS cannot tell apart, weaker settings mix
+#: up left and right (``python3 bench/faust.py``).
+W_ORIENT = KINDS["laplacian"].w_orient
+#: Descriptor-commutativity weight of :func:`torchfmap.match` (multiplication operators,
+#: Nogneng & Ovsjanikov 2017): it asks ``C`` to carry each descriptor's product structure,
+#: which the descriptor term alone does not constrain (``python3 bench/faust.py``).
+#: :func:`~torchfmap.fmap.solve_fmap` and the torch layers default to 0 (the layers have no such
+#: term).
+W_DCOMM = 0.3
 #: Pointwise landmark-preservation weight when landmarks are given.
 W_LMK = 1.0
 #: Weight of the proximity-to-identity prior for feature-aware bases built at corresponding
@@ -44,6 +54,13 @@ def default_w_lap(basis_x: Basis, basis_y: Basis) -> float:
     """The ``w_lap`` of the pair's kind (:data:`W_LAP`; the larger one if the kinds differ)."""
     names = [basis_kind(b) for b in (basis_x, basis_y)]
     return max(KINDS[n].w_lap if n in KINDS else W_LAP_OTHER[n] for n in names)
+
+
+def default_w_orient(basis_x: Basis, basis_y: Basis) -> float:
+    """The ``w_orient`` of the pair's kind (the smaller one if the kinds differ; :data:`W_ORIENT`
+    for bases of no registered kind)."""
+    names = [basis_kind(b) for b in (basis_x, basis_y)]
+    return min(KINDS[n].w_orient if n in KINDS else W_ORIENT for n in names)
 
 
 def default_p2p_mode(basis_x: Basis, basis_y: Basis) -> str:

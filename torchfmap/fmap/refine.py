@@ -102,10 +102,16 @@ def zoomout(
     *,
     mode: Mode | None = None,
     subsample=None,
+    guard: bool = True,
 ):
     """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
 
     Meaningful when the first columns span nested, coarse-to-fine subspaces (eigenbases).
+
+    ``guard``: ZoomOut never returns a map worse than its start by its own energy
+    (:func:`zoomout_energy`, the orthogonality defect of the map's prefixes, Melzi et al. 2019
+    Eq. 2): the point map of every iteration (with ``subsample``: the start and the end) is
+    scored at ``k_final`` and the best one is returned, with its ``C`` of size ``k_final``.
 
     Args:
         step: eigenfunctions added per iteration (default
@@ -134,17 +140,50 @@ def zoomout(
     samples = _check_samples(subsample, basis_x, basis_y)
     mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     k = min(C.shape)
+    sizes = list(range(k, k_final, step)) + [k_final]
+    best = None  # (energy, p2p) of the best point map so far (guard)
+
+    def keep(p2p: np.ndarray) -> None:
+        nonlocal best
+        if guard:
+            energy = zoomout_energy(p2p, basis_x, basis_y, sizes)
+            if best is None or energy < best[0]:
+                best = (energy, p2p)
+
     if samples is None:
         p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+        keep(p2p)
         while k < k_final:
             k = min(k + step, k_final)
             C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
             p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
-        return C, p2p
-    while k < k_final:
-        k = min(k + step, k_final)
-        C = _sample_step(C, basis_x, basis_y, k, k, samples, mode)
-    return C, fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+            keep(p2p)
+    else:
+        if guard:
+            keep(fmap_to_p2p(C, basis_x, basis_y, mode=mode))
+        while k < k_final:
+            k = min(k + step, k_final)
+            C = _sample_step(C, basis_x, basis_y, k, k, samples, mode)
+        p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+        keep(p2p)
+    if best is not None and best[1] is not p2p:
+        p2p = best[1]
+        C = p2p_to_fmap(p2p, basis_x, basis_y, k_final, k_final)
+    return C, p2p
+
+
+def zoomout_energy(p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, sizes) -> float:
+    """ZoomOut's energy of a point map (Melzi et al. 2019, Eq. 2): ``Σ_k ‖C_kᵀ C_k - I‖² / k``
+    over the prefix sizes ``k`` in ``sizes``, ``C_k`` the ``(k, k)`` prefix of the map's
+    ``C = Φ_yᵀ B_y Φ_x[p2p]`` at the largest size. Small for maps whose functional maps are
+    orthogonal at every scale (near-isometries); a map mixing up parts raises it."""
+    kf = max(sizes)
+    C = p2p_to_fmap(p2p_yx, basis_x, basis_y, kf, kf)
+    total = 0.0
+    for k in sizes:
+        Ck = C[:k, :k]
+        total += float(np.sum((Ck.T @ Ck - np.eye(k)) ** 2)) / k
+    return total
 
 
 def zoomout_sequence(

@@ -39,7 +39,7 @@ from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from . import core
-from .defaults import W_LAP, W_LMK, W_ORIENT, default_w_lap
+from .defaults import W_LAP, W_LMK, default_w_lap, default_w_orient
 
 MaskKind = Literal["laplacian", "resolvent"]
 #: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
@@ -358,7 +358,8 @@ def solve_fmap(
             ``mask='laplacian'`` or ``'resolvent'``.
         w_dcomm: descriptor commutativity weight (multiplication operators).
         w_orient: orientation term weight, needs ``meshes=(mesh_x, mesh_y)`` (default:
-            ``W_ORIENT`` when meshes are given, else 0); ``orient_reversing=True`` for mirror maps.
+            ``default_w_orient`` of the bases' kind when meshes are given, else 0);
+            ``orient_reversing=True`` for mirror maps.
         landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk`` (default:
             ``W_LMK`` when landmarks are given).
         prior, w_prior: a ``(K_y, K_x)`` map the solution is pulled towards, ``w_prior ‖C - P‖²``
@@ -378,7 +379,9 @@ def solve_fmap(
         w_lap=default_w_lap(basis_x, basis_y) if w_lap is None else w_lap,
         mask=mask,
         w_dcomm=w_dcomm,
-        w_orient=(W_ORIENT if meshes is not None else 0.0) if w_orient is None else w_orient,
+        w_orient=(default_w_orient(basis_x, basis_y) if meshes is not None else 0.0)
+        if w_orient is None
+        else w_orient,
         orient_reversing=orient_reversing,
         meshes=meshes,
         landmarks=landmarks if has_landmarks else None,

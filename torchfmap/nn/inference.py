@@ -10,7 +10,8 @@ import copy
 import numpy as np
 import torch
 
-from ..bases import Basis, laplacian_eigenbasis
+from ..bases import Basis
+from ..bases.prepared import prepare_shape
 from ..errors import ParameterError
 from ..eval import geodesic_errors
 from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
@@ -118,8 +119,9 @@ def refine_p2p(
     ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`; the step
     is :func:`~torchfmap.fmap.refine.zoomout`'s default (one eigenbasis ZoomOut for both paths).
 
-    ``bases``: the meshes' Laplacian eigenbases (:func:`~torchfmap.laplacian_eigenbasis`, at
-    least ``k_final`` columns each), to reuse them across pairs; computed here when None.
+    ``bases``: the meshes' Laplacian eigenbases (e.g.
+    ``prepare_shape(mesh, k_final).eigenbasis``, in the unit-area frame, at least ``k_final``
+    columns each), to reuse them across pairs; computed here (unit-area frames) when None.
 
     Raises:
         ParameterError: ``bases`` that are not eigenbases of these meshes' sizes, or have fewer
@@ -128,7 +130,8 @@ def refine_p2p(
     k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
     k0 = min(k0, k_final)
     if bases is None:
-        bx, by = laplacian_eigenbasis(mesh_x, k_final), laplacian_eigenbasis(mesh_y, k_final)
+        # in each mesh's unit-area frame, so meshes at different scales refine alike
+        bx, by = (prepare_shape(m, k_final).eigenbasis for m in (mesh_x, mesh_y))
     else:
         bx, by = bases
         for name, basis, mesh in (("x", bx, mesh_x), ("y", by, mesh_y)):
@@ -139,7 +142,8 @@ def refine_p2p(
             ):
                 raise ParameterError(
                     f"bases[{name}] must be the Laplacian eigenbasis of mesh_{name} ({mesh.n_vertices} "
-                    f"vertices) with >= {k_final} columns. Fix: laplacian_eigenbasis(mesh_{name}, {k_final})."
+                    f"vertices) with >= {k_final} columns. Fix: "
+                    f"prepare_shape(mesh_{name}, {k_final}).eigenbasis."
                 )
         bx, by = bx.truncated(k_final), by.truncated(k_final)
     C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)

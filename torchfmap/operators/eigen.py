@@ -128,6 +128,13 @@ def _unit_area_eigenpairs(L, B, k: int, sigma: float, solver: str) -> tuple[np.n
         lam, phi = _block_eigenpairs(L, B, k, block, d)  # (a consistent mass goes to ARPACK)
     else:
         lam, phi = _arpack_eigenpairs(L, B, k, sigma)
+    if not (n <= DENSE_LIMIT or k >= n - 1):
+        # the Rayleigh quotients of the returned vectors: exact for them (W = Φᵀ L Φ is then
+        # diag(λ) to round-off), and their error is the square of the residual, not the
+        # Ritz value's error, which depends on the ARPACK build
+        lam = np.einsum("vk,vk->k", phi, L @ phi) / np.einsum("vk,vk->k", phi, B @ phi)
+        order = np.argsort(lam, kind="stable")
+        lam, phi = lam[order], phi[:, order]
     lam = np.where(lam > -1e-10, np.maximum(lam, 0.0), lam)  # round-off below zero -> 0
     return lam, fix_signs(phi, B)
 

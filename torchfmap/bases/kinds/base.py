@@ -6,6 +6,7 @@ the command line, the solver defaults and the datasets read it instead of compar
 - ``needs_landmarks``: a *pair* of bases of this kind is built at corresponding landmarks
   (its columns then correspond one to one, and the map is pulled towards ``C = I``);
 - ``w_lap``: the Laplacian-commutativity weight of the solve (the mask is normalised to mean 1);
+- ``w_orient``: the orientation-preservation weight of the solve when it uses descriptors;
 - ``p2p_mode``: the functional map -> point map rule (``'orthogonal'`` or ``'pullback'``);
 - ``refinement``: what ZoomOut does in this kind (:func:`torchfmap.fmap.refine.refine_map`):
   ``'grow'`` (nested eigenbases up to ``k_final``), ``'reseed'`` (fixed-size iterations, then
@@ -70,6 +71,7 @@ class BasisKind:
     p2p_mode: str
     refinement: str
     column_kinds: frozenset[str]
+    w_orient: float = 1.0
 
     def n_eigen(self, k: int) -> int:
         """Eigenpairs each prepared shape needs for a basis of ``k`` columns of this kind."""

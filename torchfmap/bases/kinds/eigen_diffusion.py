@@ -65,4 +65,7 @@ EIGEN_DIFFUSION = EigenDiffusionKind(
     p2p_mode="pullback",
     refinement="fixed",
     column_kinds=frozenset({"laplacian", "diffusion"}),
+    # in a basis whose columns do not correspond, a strong orientation term (minimised by C = 0)
+    # shrinks the map until the point map collapses onto a few vertices: keep it weak
+    w_orient=1e-2,
 )
