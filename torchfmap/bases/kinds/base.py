@@ -60,6 +60,17 @@ def relative_times(times, n_seeds: int) -> tuple[float, ...]:
     return out
 
 
+def seeds_for(shape: PreparedShape, n_columns: int, per_seed: int, seeds=None, n_seeds: int | None = None):
+    """``seeds`` ``(S_0,)`` then farthest-point seeds of ``shape``: ``n_seeds`` in all (default:
+    enough for ``n_columns`` columns of ``per_seed`` each plus one spare), at least the given
+    ones and at most the vertex count. Returns ``(S,)`` vertex indices."""
+    given = np.zeros(0, dtype=np.int64) if seeds is None else np.atleast_1d(np.asarray(seeds))
+    if n_seeds is None:
+        n_seeds = -(-n_columns // per_seed) + 1
+    n_seeds = min(max(len(given), n_seeds), shape.mesh.n_vertices)
+    return farthest_point_sampling(shape.mesh, n_seeds, landmarks=given if len(given) else None)
+
+
 @dataclass(frozen=True, kw_only=True)
 class BasisKind:
     """A kind of basis (see the module docstring for the fields)."""
@@ -162,16 +173,14 @@ class SeededKind(BasisKind):
         Raises:
             ParameterError: fewer than ``k`` independent columns on this mesh.
         """
-        given = np.zeros(0, dtype=np.int64) if seeds is None else np.atleast_1d(np.asarray(seeds))
         per_seed = self.columns_per_seed(times)
         n = shape.mesh.n_vertices
-        n_seeds = min(max(len(given), -(-k // per_seed) + 1), n)
+        chosen = seeds_for(shape, k, per_seed, seeds)
         for _ in range(MAX_SEED_PASSES):
-            chosen = farthest_point_sampling(shape.mesh, n_seeds, landmarks=given if len(given) else None)
             basis = orthonormalize(self.functions(shape, chosen, times))
-            if basis.k >= k or n_seeds >= n:
+            if basis.k >= k or len(chosen) >= n:
                 break
-            n_seeds = min(n, n_seeds + -(-(k - basis.k) // per_seed))
+            chosen = seeds_for(shape, k, per_seed, seeds, len(chosen) + -(-(k - basis.k) // per_seed))
         if basis.k < k:
             raise ParameterError(
                 f"the {self.name} basis has only {basis.k} independent functions, {k} asked. Fix: lower k."

@@ -9,14 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from ...errors import ParameterError
-from ...seeds import farthest_point_sampling
 from ..orthonormalize import orthonormalize
 from ..prepared import with_eigenpairs
 from ..stack import concatenate
-from .base import BasisKind
+from .base import BasisKind, seeds_for
 from .diffusion import DIFFUSION
 
 
@@ -35,12 +32,7 @@ class EigenDiffusionKind(BasisKind):
             ParameterError: fewer than ``k`` independent columns.
         """
         eig = with_eigenpairs(shape, k // 2).eigenbasis
-        given = None if seeds is None or not len(seeds) else np.atleast_1d(np.asarray(seeds))
-        n_kernels = k - k // 2
-        n_seeds = min(shape.mesh.n_vertices, -(-n_kernels // DIFFUSION.columns_per_seed(times)) + 1)
-        chosen = farthest_point_sampling(
-            shape.mesh, max(n_seeds, 0 if given is None else len(given)), landmarks=given
-        )
+        chosen = seeds_for(shape, k - k // 2, DIFFUSION.columns_per_seed(times), seeds)
         parts = ([eig.truncated(k // 2)] if k // 2 else []) + [DIFFUSION.functions(shape, chosen, times)]
         basis = orthonormalize(concatenate(parts))
         if basis.k < k:
