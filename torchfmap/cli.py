@@ -173,6 +173,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--k", type=positive_int, default=50, help="functional-map basis size")
     p.add_argument("--inputs", choices=["wks", "xyz"], default="wks", help="per-vertex network inputs")
+    p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default 32)")
+    p.add_argument(
+        "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default 96)"
+    )
+    p.add_argument(
+        "--clip-grad", type=float, default=None, help="gradient-norm clipping per step (default 0: none)"
+    )
+    p.add_argument("--width", type=positive_int, default=None, help="network width (default 48)")
+    p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default 64)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")

@@ -176,6 +176,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         epochs=args.epochs,
         minutes=args.minutes,
         seed=args.seed,
+        **{
+            name: getattr(args, name)
+            for name in ("n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
+            if getattr(args, name, None) is not None
+        },
     )
     if args.resume and Path(args.out).exists():
         saved = load_checkpoint(args.out)[1]
@@ -204,6 +209,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         epochs=args.epochs,
         minutes=args.minutes,
         max_steps=args.max_steps,
+        clip_grad=config.clip_grad,
         augment=config.inputs == "xyz",
         validate=validate,
         validate_every=args.validate_every,

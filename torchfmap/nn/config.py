@@ -31,6 +31,7 @@ class TrainConfig:
     dropout: float = 0.0
     gradients: bool = True
     lr: float = 1e-3
+    clip_grad: float = 0.0
     epochs: int = 5
     minutes: float = 0.0
     batch_size: int = 1

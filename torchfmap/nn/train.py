@@ -122,6 +122,7 @@ def train(
     minutes: float = 0.0,
     max_steps: int = 0,
     batch_size: int = 1,
+    clip_grad: float = 0.0,
     augment: bool = False,
     validate=None,
     validate_every: int = 0,
@@ -143,6 +144,7 @@ def train(
     Stops after ``epochs`` epochs, ``minutes`` of training (0: no limit; a resumed run counts
     the time of the earlier runs) or ``max_steps`` steps (0: no limit), whichever comes first.
     ``net`` is moved to ``device`` and every batch with it.
+    ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
     ``augment``: random rigid motion and scaling of XYZ inputs. ``validate(net) -> score``
     (lower is better) runs every ``validate_every`` steps and at the end; the best weights are
     kept in the checkpoint as ``best_state_dict``. ``checkpoint`` is written atomically at each
@@ -236,6 +238,8 @@ def train(
             terms = pair_loss(model, solver, loss_fn, batch, draws)
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
+            if clip_grad > 0:
+                torch.nn.utils.clip_grad_norm_(net.parameters(), clip_grad)
             optimizer.step()
             if scheduler is not None:
                 scheduler.step()
