@@ -7,7 +7,8 @@ Run by hand from the repository root, after ``torchfmap train`` (see README, "Le
     python3 bench/learned.py --checkpoints dev=/tmp/learn/dev.ckpt --adapt 10 --adapt-pairs 12
     python3 bench/learned.py --checkpoints eigen=a.ckpt,stack=b.ckpt --pairs all --name bases
 
-Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``). Errors: mean
+Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``) or 40 FAUST_r
+validation pairs among tr_reg_070..079 (``--pairs faust_val``). Errors: mean
 normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
 process), the trained network's map from the functional map (``fmap``: orthogonal point-map rule, and
@@ -40,9 +41,23 @@ from torchfmap.nn.inference import adapt, predict_p2p, refine_p2p
 from torchfmap.operators import GeodesicSolver
 
 
+#: FAUST_r validation meshes (never trained on by the shipped model: it trains on 000-069).
+FAUST_VAL = [f"tr_reg_{i:03d}" for i in range(70, 80)]
+
+
+def faust_val_pairs(n: int = 40) -> list[tuple[str, str]]:
+    """``n`` ordered pairs drawn with seed 0 among :data:`FAUST_VAL`."""
+    every = [(a, b) for a in FAUST_VAL for b in FAUST_VAL if a != b]
+    pick = np.random.default_rng(0).choice(len(every), n, replace=False)
+    return [every[i] for i in pick]
+
+
 def test_pairs(folder, names, which: str):
-    rows = read_test_pairs(folder / "test_pairs.txt")
-    rows = [r for r in rows if which == "all" or r[0].startswith(which)]
+    if which == "faust_val":
+        rows = faust_val_pairs()
+    else:
+        rows = read_test_pairs(folder / "test_pairs.txt")
+    rows = [r for r in rows if which in ("all", "faust_val") or r[0].startswith(which)]
     pairs = [(names.index(a), names.index(b)) for a, b in rows]
     gts = [
         gt_from_vts(read_vts(folder / "corres" / f"{a}.vts"), read_vts(folder / "corres" / f"{b}.vts"))
@@ -99,7 +114,8 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
     net, config, ckpt = load_checkpoint(path)
     state = ckpt.get("train_state", {})
     curves[label] = state.get("losses", [])
-    shapes = ShapeDataset(folder, args.cache, **config.dataset_kwargs(), progress=False)
+    files = [folder / f"{n}.off" for n in FAUST_VAL] if args.pairs == "faust_val" else folder
+    shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
     pairs, gts = test_pairs(folder, shapes.names, args.pairs)
     solver, loss_fn = build_model(config)[1:]
     untrained = build_model(config)[0].eval()
@@ -164,7 +180,12 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoints", required=True, help="label=path,label=path")
-    parser.add_argument("--pairs", default="all", choices=["all", "cat", "wolf"])
+    parser.add_argument(
+        "--pairs",
+        default="all",
+        choices=["all", "cat", "wolf", "faust_val"],
+        help="tosca5k_dev test pairs, or faust_val: 40 pairs among FAUST_r tr_reg_070..079",
+    )
     parser.add_argument("--name", default="dev")
     parser.add_argument("--adapt", type=int, default=0)
     parser.add_argument("--adapt-lr", type=float, default=1e-4)
@@ -173,9 +194,10 @@ def main() -> None:
     parser.add_argument("--no-refine", action="store_true")
     parser.add_argument("--cache", default=None)
     args = parser.parse_args()
-    folder = require_data("tosca5k_dev")
+    data = "faust_r_train" if args.pairs == "faust_val" else "tosca5k_dev"
+    folder = require_data(data)
     report = Report(f"learned_{args.name}")
-    report.add(f"# Learned path on tosca5k_dev ({args.pairs} test pairs; {load_note()} at start)")
+    report.add(f"# Learned path on {data} ({args.pairs} pairs; {load_note()} at start)")
     rows, curves = [], {}
     for spec in args.checkpoints.split(","):
         run_checkpoint(spec, args, folder, report, rows, curves)

@@ -31,11 +31,14 @@ def test_every_kind_builds_exactly_k_b_orthonormal_columns_and_is_recognised(blo
     k = 16
     basis = KINDS[name].shape_basis(prepare_shape(blob, 0), k)
     assert basis.k == k and basis.n_vertices == blob.n_vertices
-    np.testing.assert_allclose(basis.gram(), np.eye(k), atol=ORTHO_EPS * k)
+    blocks = KINDS[name].block_bases(basis)
+    assert sum(b.k for b in blocks) == k
+    for block in blocks:  # B-orthonormal (block by block for a block kind such as 'hybrid')
+        np.testing.assert_allclose(block.gram(), np.eye(block.k), atol=ORTHO_EPS * block.k)
     assert kind_of(basis) == name == basis_kind(basis)
     assert default_w_lap(basis, basis) == KINDS[name].w_lap == W_LAP[name]
     assert default_w_orient(basis, basis) == KINDS[name].w_orient
-    assert default_p2p_mode(basis, basis) == ("orthogonal" if name == "laplacian" else "pullback")
+    assert default_p2p_mode(basis, basis) == KINDS[name].p2p_mode
 
 
 @pytest.mark.parametrize("name", [n for n, kind in KINDS.items() if kind.needs_landmarks])
@@ -49,12 +52,18 @@ def test_seeded_pair_bases_of_a_permuted_copy_are_the_same_functions(name):
     lm = np.array([[v, inverse[v]] for v in (3, 60, 120)])
     bx, by, seeds = KINDS[name].pair_bases(prepare_shape(x, 0), prepare_shape(y, 0), 12, lm)
     np.testing.assert_array_equal(seeds[:, 1], inverse[seeds[:, 0]])
-    # heat kernels are solved to a relative 1e-4 (SEED_HEAT_TOL), on each shape independently
-    np.testing.assert_allclose(by.values, bx.values[perm], atol=1e-3 * np.abs(bx.values).max())
+    kind = KINDS[name]
+    for block_x, block_y in zip(kind.block_bases(bx), kind.block_bases(by), strict=True):
+        vx, vy = block_x.values[perm], block_y.values
+        if set(block_x.kinds()) == {"laplacian"}:  # eigenfunctions: each up to its sign
+            vy = vy * np.sign(np.sum(vx * vy, axis=0))
+        # heat kernels are solved to a relative 1e-4 (SEED_HEAT_TOL), eigenvectors to ARPACK_TOL,
+        # on each shape independently
+        np.testing.assert_allclose(vy, vx, atol=1e-3 * np.abs(vx).max())
 
 
 def test_unknown_kind_is_refused_with_the_choices():
-    with pytest.raises(ParameterError, match="unknown basis kind 'eigen'.*laplacian, diffusion"):
+    with pytest.raises(ParameterError, match="unknown basis kind 'eigen'.*laplacian, hybrid, diffusion"):
         get_kind("eigen")
     assert get_kind(KINDS["stack"]) is KINDS["stack"]
     assert all(isinstance(kind, BasisKind) and KINDS[kind.name] is kind for kind in KINDS.values())
@@ -71,7 +80,8 @@ def test_every_kind_is_offered_by_the_commands_that_take_a_basis():
         ("basis", "--kind"),
     ):
         action = next(a for a in sub[command]._actions if flag in a.option_strings)
-        assert list(action.choices) == list(KINDS), command
+        offered = [n for n, kind in KINDS.items() if kind.learned or command != "train"]
+        assert list(action.choices) == offered, command
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,7 +118,10 @@ def test_a_new_kind_is_one_class_and_one_registry_line(monkeypatch):
         match(x, y, basis="hat")
 
 
-@pytest.mark.parametrize("name", list(KINDS))
+LEARNED = [name for name, kind in KINDS.items() if kind.learned]
+
+
+@pytest.mark.parametrize("name", LEARNED)
 def test_shape_dataset_accepts_every_kind(tmp_path, blob, name):
     from torchfmap import save_mesh
     from torchfmap.nn.data import ShapeDataset
@@ -122,7 +135,21 @@ def test_shape_dataset_accepts_every_kind(tmp_path, blob, name):
     np.testing.assert_allclose(values.T @ (mass[:, None] * values), np.eye(16), atol=1e-4)
 
 
-@pytest.mark.parametrize("name", list(KINDS))
+def test_the_learned_path_refuses_a_classical_only_kind_by_name(tmp_path, blob):
+    from torchfmap import save_mesh
+    from torchfmap.nn import BasisModule
+    from torchfmap.nn.data import ShapeDataset
+
+    classical = [name for name, kind in KINDS.items() if not kind.learned]
+    assert classical == ["hybrid"]
+    path = save_mesh(blob, tmp_path / "a.off")
+    with pytest.raises(ParameterError, match="hybrid basis is solved block-wise.*Fix: one of laplacian"):
+        ShapeDataset([path], cache_dir=False, k=16, basis="hybrid", progress=False)
+    with pytest.raises(ParameterError, match="hybrid basis is solved block-wise"):
+        BasisModule.from_mesh(blob, k=12, kind="hybrid")
+
+
+@pytest.mark.parametrize("name", LEARNED)
 def test_basis_module_from_mesh_builds_every_kind(blob, name):
     import torch
 
@@ -132,3 +159,32 @@ def test_basis_module_from_mesh_builds_every_kind(blob, name):
     assert layer.k == 12 and layer.values.dtype == torch.float32
     reference = KINDS[name].shape_basis(prepare_shape(blob, 0), 12, seeds=[4, 90])
     np.testing.assert_allclose(layer.values.numpy(), reference.values, atol=1e-6)
+
+
+def test_hybrid_map_is_block_diagonal_and_zoomout_grows_only_the_eigen_block():
+    from torchfmap.bases.kinds.hybrid import split_blocks
+
+    from .conftest import bend
+
+    x = bumpy_blob(2)
+    y = x.copy(bend(x.vertices, 0.3))  # same connectivity: the true map is the identity
+    lm = np.array([[v, v] for v in (3, 60, 120)])
+    kind = KINDS["hybrid"]
+    k_e, k_f = kind.blocks(20)
+    raw = match(x, y, landmarks=lm, basis="hybrid", k=20)
+    assert raw.kind == "hybrid" and raw.C_xy.shape == (20, 20)
+    np.testing.assert_array_equal(raw.C_xy[:k_e, k_e:], 0.0)
+    np.testing.assert_array_equal(raw.C_xy[k_e:, :k_e], 0.0)
+    np.testing.assert_array_equal(raw.C_xy[k_e:, k_e:], np.eye(k_f))  # same kernels at the same seeds
+    refined = match(x, y, landmarks=lm, basis="hybrid", k=20, refine="zoomout", k_final=30)
+    eigen, feature = split_blocks(refined.basis_x)
+    assert (eigen.k, feature.k) == (30 - k_f, k_f)
+    gt = Correspondence(np.arange(x.n_vertices), np.arange(y.n_vertices))
+    errors = [evaluate_map(x, y, r.p2p_yx, gt)[0].mean_error for r in (raw, refined)]
+    eigen_map = match(x, y, landmarks=lm, basis="laplacian", k=20, refine="zoomout", k_final=30).p2p_yx
+    lap = evaluate_map(x, y, eigen_map, gt)[0].mean_error
+    # a near-isometric bend: the hybrid map is as good as the eigenbasis's (within a vertex spacing)
+    spacing = np.sqrt(x.area / x.n_vertices) / np.sqrt(x.area)
+    assert errors[1] <= lap + spacing
+    with pytest.raises(ParameterError, match="k >= 2"):
+        kind.blocks(1)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -17,7 +18,7 @@ import numpy as np
 
 from . import __version__
 from .bases.kinds import KINDS
-from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match, cmd_train
+from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match, cmd_models, cmd_train
 from .errors import TorchFmapError
 
 DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
@@ -34,6 +35,7 @@ indices), --k the basis size, --out the output file. Run 'torchfmap COMMAND --he
 
 #: Every basis kind of the registry (torchfmap.bases.KINDS), for the commands that take one.
 BASES = list(KINDS)
+LEARNED_BASES = [name for name, kind in KINDS.items() if kind.learned]
 
 
 def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
@@ -50,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = _sub(sub, "demo", "run on the demo pair shipped in the package")
     p.set_defaults(func=cmd_demo)
+    p = _sub(sub, "models", "list the pretrained models shipped in the package, with their provenance")
+    p.set_defaults(func=cmd_models)
     p = _sub(sub, "info", "validate a mesh and summarise its operators")
     p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
     p.set_defaults(func=cmd_info)
@@ -165,11 +169,18 @@ def build_parser() -> argparse.ArgumentParser:
         "folder", help="meshes (.off/.ply/.obj/.stl, .gz); pairs within classes sharing a name prefix"
     )
     p.add_argument("--out", required=True, help="checkpoint (written atomically during training)")
-    p.add_argument("--minutes", type=float, default=0.0, help="time budget (0: --epochs only)")
-    p.add_argument("--epochs", type=positive_int, default=1000, help="epochs (upper bound)")
-    p.add_argument("--max-steps", type=count, default=0, help="steps (0: no limit)")
     p.add_argument(
-        "--basis", choices=BASES, default="laplacian", help="basis kind of the learned map"
+        "--minutes", type=positive_float, default=0.0, help="time budget of the whole run (default: none)"
+    )
+    p.add_argument(
+        "--epochs",
+        type=positive_int,
+        default=None,
+        help="epochs of all ordered pairs (default: 5 when no other budget is given)",
+    )
+    p.add_argument("--max-steps", type=count, default=0, help="optimiser steps (default 0: no limit)")
+    p.add_argument(
+        "--basis", choices=LEARNED_BASES, default="laplacian", help="basis kind of the learned map"
     )
     p.add_argument("--k", type=positive_int, default=50, help="functional-map basis size")
     p.add_argument("--inputs", choices=["wks", "xyz"], default="wks", help="per-vertex network inputs")
@@ -202,6 +213,17 @@ def positive_int(text: str) -> int:
         value = 0
     if value < 1 or str(value) != text.strip().lstrip("+"):
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
     return value
 
 

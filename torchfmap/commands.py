@@ -161,21 +161,41 @@ def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) ->
     return 0
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    from .nn.checkpoints import read_checkpoint  # torch: only for this command
+    from .nn.shipped import shipped_models
+
+    models = shipped_models()
+    if not models:
+        print("no models shipped in this installation")
+    for name, path in models.items():
+        ckpt = read_checkpoint(path)
+        cfg = ckpt.get("config", {})
+        print(f"{name}  ({path.stat().st_size / 1e6:.1f} MB, {cfg.get('basis')} basis K={cfg.get('k')})")
+        for key, value in ckpt.get("provenance", {}).items():
+            print(f"  {key}: {value}")
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     import torch  # the learning path; the classical commands never import torch
 
     from .nn.checkpoints import load_checkpoint
-    from .nn.config import CosineByTime, TrainConfig, build_model
+    from .nn.config import CosineBudget, TrainConfig, build_model
     from .nn.data import PairDataset, ShapeDataset, class_pairs
-    from .nn.train import train, unsupervised_score
+    from .nn.train import total_steps, train, unsupervised_score
 
+    budget = {
+        name: value
+        for name, value in (("epochs", args.epochs), ("minutes", args.minutes), ("max_steps", args.max_steps))
+        if value
+    }
     config = TrainConfig(
         k=args.k,
         basis=args.basis,
         inputs=args.inputs,
-        epochs=args.epochs,
-        minutes=args.minutes,
         seed=args.seed,
+        **budget,
         **{
             name: getattr(args, name)
             for name in ("n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
@@ -183,18 +203,26 @@ def cmd_train(args: argparse.Namespace) -> int:
         },
     )
     if args.resume and Path(args.out).exists():
-        saved = load_checkpoint(args.out)[1]
-        config = TrainConfig(**{**vars(saved), "epochs": args.epochs, "minutes": args.minutes})
+        saved = vars(load_checkpoint(args.out)[1])
+        if budget:  # a budget given now replaces the saved one (it is the whole run's)
+            saved.update(epochs=None, minutes=0.0, max_steps=0)
+        config = TrainConfig(**{**saved, **budget})
+    # the budget: what was given (epochs unbounded then unless given), else the recipe's epochs
+    epochs = config.epochs if (args.epochs or not (config.minutes or config.max_steps)) else None
+    config.epochs = epochs  # recorded as it runs (None: bounded by time or steps only)
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
     pairs = class_pairs(shapes.names)
     net, solver, loss_fn = build_model(config)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr)
-    scheduler = None
-    if args.minutes:
-        scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineByTime(args.minutes))
+    steps = total_steps(-(-len(pairs) // config.batch_size), epochs, config.max_steps) or 0
+    # cosine to a floor over the whole budget: the step bound and/or the time budget
+    scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineBudget(minutes=config.minutes, steps=steps))
+    limits = [f"{epochs} epochs" if epochs else "", f"{steps} steps" if steps else ""]
+    limits.append(f"{config.minutes:g} minutes" if config.minutes else "")
     print(
-        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k})"
+        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k}); "
+        f"budget: {', '.join(x for x in limits if x)} (whichever comes first; cosine learning rate over it)"
     )
     # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
     picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
@@ -206,9 +234,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         opt,
         solver=solver,
         scheduler=scheduler,
-        epochs=args.epochs,
-        minutes=args.minutes,
-        max_steps=args.max_steps,
+        epochs=epochs,
+        minutes=config.minutes,
+        max_steps=config.max_steps,
+        batch_size=config.batch_size,
         clip_grad=config.clip_grad,
         augment=config.inputs == "xyz",
         validate=validate,
@@ -221,7 +250,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     last = state.losses[-1]["total"] if state.losses else float("nan")
     best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
-    summary = f"{state.step} steps, {state.epoch} epochs, {state.seconds:.0f} s; last loss {last:.4g}"
+    summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
     print(f"{summary}{best} -> {args.out}")
     return 0
 

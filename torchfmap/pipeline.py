@@ -24,9 +24,9 @@ from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_e
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
 from .errors import ParameterError
 from .eval import shape_distance
-from .fmap import check_landmark_pairs, fmap_to_p2p, solve_fmap
+from .fmap import check_landmark_pairs, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
-from .fmap.refine import refine_map
+from .fmap.refine import map_to_p2p, refine_map
 from .mesh import Mesh
 
 RefineKind = Literal["icp", "zoomout"]
@@ -243,13 +243,13 @@ def match(
     n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
     k = check_count(k, 1, n_max, "k (basis size)")
     k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
-    grow = refine == "zoomout" and kind.refinement == "grow"
+    grow = refine == "zoomout" and kind.refinement in ("grow", "hybrid")
     k_final = k_final if k_final is not None else (2 * k if grow else k)
     if grow and k_final < k:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
     prior = kind.needs_landmarks and bases is None  # given bases: columns need not correspond
     w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
-    need_desc = not (prior and np.isinf(w_prior))
+    need_desc = kind.uses_descriptors(w_prior)
     n_eigen = max(kind.n_eigen(k), k_final if grow else 0, k_descriptors if need_desc else 0)
     if shapes is None:
         shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
@@ -274,10 +274,11 @@ def match(
     timings["descriptors"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    if need_desc:
-        C = solve_fmap(
-            bx,
-            by,
+
+    def solve_block(block_x: Basis, block_y: Basis, prior) -> np.ndarray:
+        return solve_fmap(
+            block_x,
+            block_y,
             desc_x,
             desc_y,
             w_lap=kind.w_lap if w_lap is None else w_lap,
@@ -286,13 +287,13 @@ def match(
             meshes=(mesh_x, mesh_y),
             landmarks=pairs,
             w_lmk=w_lmk if pairs is not None else 0.0,
-            prior=np.eye(by.k, bx.k) if prior else None,
-            w_prior=w_prior,
+            prior=prior,
+            w_prior=w_prior if prior is not None else 0.0,
         )
-    else:
-        C = np.eye(by.k, bx.k)
+
+    C = kind.solve_map(bx, by, solve_block, w_prior)
     mode = p2p_mode or kind.p2p_mode
-    p2p = fmap_to_p2p(C, bx, by, mode=mode)
+    p2p = map_to_p2p(C, bx, by, kind, mode)
     timings["fmap+p2p"] = time.perf_counter() - t0
     initial = p2p
 
@@ -353,6 +354,3 @@ def shape_distance_matrix(
         W_x, W_y = result.basis_x.projected_laplacian(), result.basis_y.projected_laplacian()
         D[i, j] = shape_distance(result.C_xy, W_x, W_y, kind=kind)
     return 0.5 * (D + D.T)
-
-
-

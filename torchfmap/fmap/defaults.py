@@ -64,10 +64,12 @@ def default_w_orient(basis_x: Basis, basis_y: Basis) -> float:
 
 
 def default_p2p_mode(basis_x: Basis, basis_y: Basis) -> str:
-    """``'orthogonal'`` (nearest neighbours of ``Φ_y`` in ``Φ_x Cᵀ``) when both bases are
-    eigenbases, where maps of near-isometries are near-orthogonal; ``'pullback'`` otherwise."""
-    eigen = all(basis_kind(b) == "laplacian" for b in (basis_x, basis_y))
-    return "orthogonal" if eigen else "pullback"
+    """The ``p2p_mode`` of the bases' kind when both are of one registered kind
+    (``'orthogonal'``, nearest neighbours of ``Φ_y`` in ``Φ_x Cᵀ``, for eigenbases, where maps
+    of near-isometries are near-orthogonal); ``'pullback'`` otherwise."""
+    names = {basis_kind(b) for b in (basis_x, basis_y)}
+    name = names.pop() if len(names) == 1 else None
+    return KINDS[name].p2p_mode if name in KINDS else "pullback"
 
 
 def zoomout_step(k: int) -> int:

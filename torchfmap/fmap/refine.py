@@ -22,6 +22,7 @@ import numpy as np
 
 from ..bases.basis import Basis
 from ..bases.kinds import BasisKind, get_kind
+from ..bases.kinds.hybrid import join_blocks, split_blocks
 from ..bases.orthonormalize import orthonormalize_pair
 from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
@@ -220,6 +221,60 @@ def zoomout_sequence(
     return C, p2p
 
 
+def map_to_p2p(
+    C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, kind: str | BasisKind, mode: Mode
+) -> np.ndarray:
+    """``p2p_yx (V_y,)`` of ``C_xy`` in a pair of ``kind``'s bases: nearest neighbours of the
+    kind's embeddings (:meth:`~torchfmap.bases.kinds.BasisKind.embeddings`) when it defines
+    them, else :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``."""
+    pair = get_kind(kind).embeddings(C_xy, basis_x, basis_y)
+    if pair is None:
+        return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode)
+    return nearest_neighbor(pair[1], pair[0], precision="single")
+
+
+def hybrid_zoomout(
+    p2p_yx: np.ndarray,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    basis_x: Basis,
+    basis_y: Basis,
+    kind: BasisKind,
+    k_final: int,
+    step: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
+    """ZoomOut of a hybrid pair of bases (:mod:`torchfmap.bases.kinds.hybrid`): the eigen block
+    grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
+    :func:`~torchfmap.fmap.defaults.zoomout_step` of its size) while the feature block keeps its
+    ``k_f`` columns; at each size both blocks are refitted from the point map
+    (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
+    Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
+
+    Raises:
+        ParameterError: ``k_final`` not above the feature block, or too few eigenpairs.
+    """
+    (ex, fx), (_, fy) = split_blocks(basis_x), split_blocks(basis_y)
+    k_e, k_f = ex.k, fx.k
+    k_end = k_final - k_f
+    if k_end < k_e:
+        raise ParameterError(f"k_final={k_final} leaves fewer eigenfunctions than the start ({k_e}).")
+    if shape_x.n_eigen < k_end or shape_y.n_eigen < k_end:
+        raise ParameterError(f"hybrid ZoomOut needs {k_end} eigenpairs. Fix: prepare_shape(mesh, {k_end}).")
+    step = zoomout_step(k_e) if step is None else step
+    if step < 1:
+        raise ParameterError(f"step must be >= 1, got {step}.")
+    p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
+    sizes = list(range(k_e, k_end, step)) + [k_end]
+    for size in sizes:  # bounded: one pass per size
+        bx = join_blocks(shape_x.eigenbasis.truncated(size), fx)
+        by = join_blocks(shape_y.eigenbasis.truncated(size), fy)
+        C = np.zeros((by.k, bx.k))
+        C[:size, :size] = p2p_to_fmap(p2p, shape_x.eigenbasis, shape_y.eigenbasis, size, size)
+        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
+        p2p = map_to_p2p(C, bx, by, kind, "orthogonal")
+    return C, p2p, bx, by
+
+
 #: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
 FEATURE_REFINE_STEPS = 5
 #: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
@@ -289,6 +344,9 @@ def refine_map(
             )
         C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=mode, subsample=samples)
         return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
+    if kind.refinement == "hybrid":
+        C, p2p, bx, by = hybrid_zoomout(p2p_yx, shape_x, shape_y, basis_x, basis_y, kind, k_final)
+        return Refined(C, p2p, bx, by, seeds)
     steps = FEATURE_REFINE_STEPS
     bx, by = basis_x, basis_y
     n_samples = min(FEATURE_SAMPLES_PER_COLUMN * bx.k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)

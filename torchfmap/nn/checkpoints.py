@@ -23,6 +23,7 @@ import torch
 from .._files import load_checked_bytes, save_checked_bytes
 from ..errors import ParameterError
 from .config import TrainConfig, build_model
+from .shipped import resolve_checkpoint
 
 #: Types a network's recorded constructor arguments may hold (what ``weights_only`` loading reads).
 _PLAIN = (type(None), bool, int, float, str)
@@ -91,8 +92,9 @@ def save_checkpoint(
 def read_checkpoint(path, map_location="cpu") -> dict:
     """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
     and plain containers only: a file cannot run code). Raises
-    :class:`~torchfmap.errors.CorruptFileError` for a truncated or altered file."""
-    payload = load_checked_bytes(path, "checkpoint")
+    :class:`~torchfmap.errors.CorruptFileError` for a truncated or altered file. ``path`` may
+    be a shipped model's name (:func:`~torchfmap.nn.shipped.resolve_checkpoint`)."""
+    payload = load_checked_bytes(resolve_checkpoint(path), "checkpoint")
     return torch.load(io.BytesIO(payload), map_location=map_location, weights_only=True)
 
 

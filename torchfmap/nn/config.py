@@ -1,6 +1,6 @@
 """The reference training recipe: its settings (:class:`TrainConfig`, saved in checkpoints), the
-model it builds (:func:`build_model`) and its time-budget learning-rate schedule
-(:class:`CosineByTime`)."""
+model it builds (:func:`build_model`) and its learning-rate schedule over the budget
+(:class:`CosineBudget`)."""
 
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ class TrainConfig:
     clip_grad: float = 0.0
     epochs: int = 5
     minutes: float = 0.0
+    max_steps: int = 0
     batch_size: int = 1
     w_lap: float = 1e-3
     seed: int = 0
@@ -59,24 +60,55 @@ def build_model(config: TrainConfig) -> tuple[DiffusionNet, RegularizedFMSolver,
     return net, RegularizedFMSolver(w_lap=config.w_lap), UnsupervisedFMLoss(**config.loss_weights)
 
 
-class CosineByTime:
-    """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over a time budget.
+class CosineBudget:
+    """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over the training budget.
 
-    Counts the time between its calls in this process; ``LambdaLR.state_dict`` saves the time
-    counted so far, and after ``load_state_dict`` in another process the clock continues from
-    there (the gap between the runs is not counted).
+    The budget is ``steps`` optimiser steps and/or ``minutes`` of training (0: not bounded by
+    it; at least one must be set); the schedule follows whichever is further spent,
+    ``frac = max(step / steps, seconds / (60 minutes))``, so it reaches ``floor`` exactly when
+    training stops. Time is counted between its calls in this process; ``LambdaLR.state_dict``
+    saves the time counted so far, and after ``load_state_dict`` in another process the clock
+    continues from there (the gap between the runs is not counted); the step comes from the
+    scheduler, which is saved with it.
+
+    Raises:
+        ParameterError: no budget, or a negative or non-finite one.
     """
 
-    def __init__(self, minutes: float, floor: float = 0.02) -> None:
-        if minutes <= 0:
-            raise ParameterError(f"the time budget must be positive, got {minutes} minutes.")
-        self.seconds, self.floor = 60.0 * minutes, floor
+    def __init__(self, minutes: float = 0.0, steps: int = 0, floor: float = 0.02) -> None:
+        if not (math.isfinite(minutes) and minutes >= 0) or steps < 0:
+            raise ParameterError(f"the budget must be finite and >= 0, got {minutes} minutes, {steps} steps.")
+        if not minutes and not steps:
+            raise ParameterError("the schedule needs a budget. Fix: minutes > 0 and/or steps > 0.")
+        if not 0 <= floor <= 1:
+            raise ParameterError(f"floor must be in [0, 1], got {floor}.")
+        self.seconds, self.steps, self.floor = 60.0 * minutes, int(steps), floor
         self.counted, self.last, self.pid = 0.0, None, os.getpid()
+
+    @property
+    def budget(self) -> tuple[float, int, float]:
+        """``(seconds, steps, floor)``: the budget (settable, e.g. after ``load_state_dict``)."""
+        return self.seconds, self.steps, self.floor
+
+    @budget.setter
+    def budget(self, value: tuple[float, int, float]) -> None:
+        self.seconds, self.steps, self.floor = value
+
+    def fraction(self, step: int) -> float:
+        """The part of the budget spent at ``step`` (and the time counted), in ``[0, 1]``."""
+        by_time = self.counted / self.seconds if self.seconds else 0.0
+        by_steps = step / self.steps if self.steps else 0.0
+        return min(max(by_time, by_steps), 1.0)
 
     def __call__(self, step: int) -> float:
         now = time.perf_counter()
         if self.last is not None and self.pid == os.getpid():
             self.counted += now - self.last
         self.last, self.pid = now, os.getpid()
-        frac = min(self.counted / self.seconds, 1.0)
+        frac = self.fraction(step)
         return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * frac))
+
+
+def CosineByTime(minutes: float, floor: float = 0.02) -> CosineBudget:
+    """:class:`CosineBudget` over a time budget only (the name of earlier releases)."""
+    return CosineBudget(minutes=minutes, floor=floor)

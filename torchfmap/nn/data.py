@@ -23,7 +23,7 @@ from tqdm import tqdm
 from .._files import load_arrays, save_arrays
 from ..bases import laplacian_eigenbasis
 from ..bases.basis import Basis
-from ..bases.kinds import get_kind
+from ..bases.kinds import get_kind, learned_kind
 from ..bases.prepared import PreparedShape
 from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
@@ -113,7 +113,7 @@ def precompute_shape(
       (:func:`~torchfmap.nn.geometry.gradient_operator`);
     - the original ``vertices``, ``faces``.
     """
-    get_kind(basis)  # refuses an unknown kind before any work
+    learned_kind(basis)  # refuses an unknown or classical-only kind before any work
     unit = normalize_area(mesh)
     ops = laplacian(unit)
     k_all = max(k, k_wks, k_net)
@@ -179,7 +179,7 @@ class ShapeDataset(torch.utils.data.Dataset):
             )
         if inputs not in ("wks", "xyz"):
             raise ParameterError(f"unknown inputs {inputs!r}. Fix: 'wks' or 'xyz'.")
-        get_kind(basis)  # refuses an unknown kind (torchfmap.bases.KINDS)
+        learned_kind(basis)  # refuses an unknown or classical-only kind (torchfmap.bases.KINDS)
         self.files = [Path(f) for f in files]
         self.names = [f.name.split(".")[0] for f in self.files]
         self.cache = _open_cache(default_cache_dir() if cache_dir is None else cache_dir)

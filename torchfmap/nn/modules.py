@@ -12,8 +12,9 @@ import torch
 from torch import nn
 
 from .._checks import check_lumped_mass
-from ..bases import get_kind, prepare_shape
+from ..bases import prepare_shape
 from ..bases.basis import Basis
+from ..bases.kinds import learned_kind
 from ..errors import ParameterError
 from ..fmap import core
 from ..fmap.defaults import W_LAP
@@ -87,7 +88,7 @@ class BasisModule(nn.Module):
         Raises:
             ParameterError: an unknown kind, or fewer than ``k`` independent columns.
         """
-        return cls(get_kind(kind).shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
+        return cls(learned_kind(kind).shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
 
     @property
     def k(self) -> int:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from ..errors import ParameterError
 from .checkpoints import read_checkpoint, save_checkpoint
-from .config import TrainConfig, build_model
+from .config import CosineBudget, TrainConfig, build_model
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import check_network, features
@@ -118,7 +118,7 @@ def train(
     solver: torch.nn.Module | None = None,
     scheduler=None,
     device: str | torch.device = "cpu",
-    epochs: int = 1,
+    epochs: int | None = 1,
     minutes: float = 0.0,
     max_steps: int = 0,
     batch_size: int = 1,
@@ -141,8 +141,12 @@ def train(
     ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=...)`` and returns a
     dict of terms with ``'total'`` (as :class:`~torchfmap.nn.UnsupervisedFMLoss`).
 
-    Stops after ``epochs`` epochs, ``minutes`` of training (0: no limit; a resumed run counts
-    the time of the earlier runs) or ``max_steps`` steps (0: no limit), whichever comes first.
+    Stops after ``epochs`` epochs (None: not bounded by epochs), ``minutes`` of training (0: no
+    limit) or ``max_steps`` steps (0: no limit), whichever comes first; the budget is the whole
+    run's, so a resumed run counts the steps and time of the earlier ones. The progress bar
+    counts steps up to the step bound (``min(max_steps, epochs x batches)``), or, with a time
+    budget and no step bound, seconds up to ``60 minutes``. :func:`total_steps` gives the step
+    bound for a schedule (:class:`~torchfmap.nn.config.CosineBudget`).
     ``net`` is moved to ``device`` and every batch with it.
     ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
     ``augment``: random rigid motion and scaling of XYZ inputs. ``validate(net) -> score``
@@ -161,6 +165,10 @@ def train(
     initialisation still use it).
     """
     check_network(net)
+    if epochs is None and not minutes and not max_steps:
+        raise ParameterError("training needs a budget. Fix: epochs, minutes and/or max_steps.")
+    if not (math.isfinite(minutes) and minutes >= 0):
+        raise ParameterError(f"minutes must be finite and >= 0, got {minutes}.")
     device = torch.device(device)
     solver = solver if solver is not None else RegularizedFMSolver()
     net.to(device)
@@ -171,7 +179,13 @@ def train(
         net.load_state_dict(ckpt["state_dict"])
         optimizer.load_state_dict(ckpt["optimizer"])
         if scheduler is not None and ckpt.get("scheduler") is not None:
+            # the clock and step continue; the budget is this run's (LambdaLR restores both)
+            budgets = [
+                (f, f.budget) for f in getattr(scheduler, "lr_lambdas", []) if isinstance(f, CosineBudget)
+            ]
             scheduler.load_state_dict(ckpt["scheduler"])
+            for f, budget in budgets:
+                f.budget = budget
         state = TrainState(**ckpt["train_state"])
         best_state = ckpt.get("best_state_dict")
     model = net
@@ -224,8 +238,16 @@ def train(
 
     net.train()
     stop = out_of_budget()
-    bar = tqdm(total=None if minutes else epochs * len(loader), disable=not progress or not main, unit="step")
-    while state.epoch < epochs and not stop:
+    step_bound = total_steps(len(loader), epochs, max_steps)
+    by_time = minutes > 0 and step_bound is None
+    bar = tqdm(
+        total=round(60 * minutes) if by_time else step_bound,
+        initial=min(round(state.seconds), round(60 * minutes)) if by_time else state.step,
+        disable=not progress or not main,
+        unit="s" if by_time else "step",
+    )
+    last_tick = state.seconds
+    while (epochs is None or state.epoch < epochs) and not stop:
         if sampler is not None:
             sampler.set_epoch(state.epoch)
         t_epoch = time.perf_counter()
@@ -246,8 +268,13 @@ def train(
             state.step += 1
             values = torch.stack([v.detach() for v in terms.values()]).tolist()  # one host sync a step
             state.losses.append(dict(zip(terms, values, strict=True)))
-            bar.update()
-            bar.set_postfix(epoch=state.epoch + 1, loss=f"{state.losses[-1]['total']:.3f}")
+            if by_time:
+                now = time.perf_counter() - t_start
+                bar.update(min(round(now), bar.total) - min(round(last_tick), bar.total))
+                last_tick = now
+            else:
+                bar.update()
+            bar.set_postfix(step=state.step, epoch=state.epoch + 1, loss=f"{state.losses[-1]['total']:.3f}")
             if validate_every and state.step % validate_every == 0:
                 run_validation()
                 save()
@@ -265,6 +292,13 @@ def train(
     state.seconds = time.perf_counter() - t_start
     save()
     return state
+
+
+def total_steps(batches_per_epoch: int, epochs: int | None, max_steps: int = 0) -> int | None:
+    """The step bound of a budget: ``min(max_steps, epochs x batches_per_epoch)`` over the bounds
+    that are set (``max_steps=0`` and ``epochs=None`` are unset); None when neither is."""
+    bounds = [b for b in (max_steps or None, None if epochs is None else epochs * batches_per_epoch) if b]
+    return min(bounds) if bounds else None
 
 
 def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_dict: dict, out_path) -> None:

@@ -11,6 +11,8 @@ the command line, the solver defaults and the datasets read it instead of compar
 - ``refinement``: what ZoomOut does in this kind (:func:`torchfmap.fmap.refine.refine_map`):
   ``'grow'`` (nested eigenbases up to ``k_final``), ``'reseed'`` (fixed-size iterations, then
   seeds moved to where the map puts them) or ``'fixed'`` (fixed-size iterations only);
+- ``learned``: whether the torch layers (:mod:`torchfmap.nn`, one regularised solve per pair)
+  train and predict in it;
 - ``column_kinds``: the :class:`~torchfmap.bases.Column` kinds its bases are made of, so a
   saved or given basis is recognised (:func:`torchfmap.bases.kinds.kind_of`).
 
@@ -83,6 +85,7 @@ class BasisKind:
     refinement: str
     column_kinds: frozenset[str]
     w_orient: float = 1.0
+    learned: bool = True
 
     def n_eigen(self, k: int) -> int:
         """Eigenpairs each prepared shape needs for a basis of ``k`` columns of this kind."""
@@ -91,8 +94,9 @@ class BasisKind:
     def pair_bases(
         self, shape_x: PreparedShape, shape_y: PreparedShape, k: int, landmarks=None, times=None
     ) -> tuple[Basis, Basis, np.ndarray | None]:
-        """The two B-orthonormal bases of exactly ``k`` columns that :func:`~torchfmap.match`
-        solves in, and the seed pairs ``(S, 2)`` they are built at (None if none correspond)."""
+        """The two bases of exactly ``k`` columns that :func:`~torchfmap.match` solves in
+        (B-orthonormal block by block, :meth:`block_bases`), and the seed pairs ``(S, 2)``
+        they are built at (None if none correspond)."""
         raise NotImplementedError
 
     def shape_basis(self, shape: PreparedShape, k: int, *, seeds=None, times=None) -> Basis:
@@ -100,6 +104,37 @@ class BasisKind:
         basis``, :class:`~torchfmap.nn.BasisModule`); ``seeds`` are placed first, farthest-point
         seeds fill the rest."""
         raise NotImplementedError
+
+    def block_bases(self, basis: Basis) -> list[Basis]:
+        """The blocks of a basis of this kind that are each B-orthonormal (the basis itself for
+        every kind but a block kind such as ``'hybrid'``)."""
+        return [basis]
+
+    def recognises(self, basis: Basis) -> bool:
+        """Whether ``basis`` is of this kind (:func:`~torchfmap.bases.kinds.kind_of`): its kept
+        columns' kinds are exactly :attr:`column_kinds`."""
+        return self.column_kinds == frozenset(c.kind for c in basis.columns)
+
+    def uses_descriptors(self, w_prior: float) -> bool:
+        """Whether :func:`torchfmap.match` solves this kind's map from descriptors: always for
+        bases whose columns do not correspond; for corresponding ones unless the pull to the
+        identity is infinite (then ``C = I``)."""
+        return not (self.needs_landmarks and np.isinf(w_prior))
+
+    def solve_map(self, basis_x: Basis, basis_y: Basis, solve_block, w_prior: float) -> np.ndarray:
+        """``C_xy (K_y, K_x)`` in a pair of this kind's bases. ``solve_block(bx, by, prior)``
+        solves one pair of B-orthonormal bases from the descriptors (``prior``: the map pulled
+        towards, or None). Corresponding bases: ``I`` at ``w_prior = inf``, else solved with
+        the identity as prior; others (and ``w_prior = 0``): solved without prior."""
+        if not self.needs_landmarks or w_prior == 0:
+            return solve_block(basis_x, basis_y, None)
+        eye = np.eye(basis_y.k, basis_x.k)
+        return eye if np.isinf(w_prior) else solve_block(basis_x, basis_y, eye)
+
+    def embeddings(self, C_xy: np.ndarray, basis_x: Basis, basis_y: Basis):
+        """``(E_x (V_x, D), E_y (V_y, D))`` whose nearest neighbours give the point map, or None
+        for the classical conversion (:func:`~torchfmap.fmap.fmap_to_p2p` by ``p2p_mode``)."""
+        return None
 
 
 @dataclass(frozen=True, kw_only=True)

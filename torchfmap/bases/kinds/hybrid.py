@@ -1,0 +1,172 @@
+"""The hybrid kind: an eigenbasis block and a feature-aware block, solved block-diagonally.
+
+After Hybrid Functional Maps (Bastian et al., CVPR 2024), with the paper's second basis replaced
+by the feature-aware one: each shape's basis is the first ``k_e`` Laplace-Beltrami
+eigenfunctions followed by ``k_f`` heat kernels at corresponding seeds (the landmarks, then
+farthest points placed on ``y`` through the landmarks). Each block is B-orthonormal on its own;
+the two are not orthogonalised against each other. The map is block-diagonal,
+``C = diag(C_e, C_f)``:
+
+- ``C_e`` is solved from descriptors in the eigen block, as the eigenbasis kind does
+  (descriptor, Laplacian-commutativity, orientation and landmark terms);
+- ``C_f`` is the identity (column ``i`` is the same kernel on both shapes);
+- the point map is the nearest neighbour in the concatenated embedding
+  ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` against ``[Φ_e, w Φ_f]`` with ``w = feature_weight``.
+
+Why it helps: on near-isometric pairs the eigen block carries the isometry exactly (an isometry
+preserves eigenfunctions), and the kernel block, which is identical by construction at
+corresponding seeds, tells apart what the eigenbasis confuses (symmetric limbs, left and right).
+On non-isometric pairs the kernels stay correct near the seeds where eigenfunctions drift.
+
+ZoomOut (``refinement='hybrid'``, :func:`torchfmap.fmap.refine.hybrid_zoomout`) grows the
+eigen block and refits both blocks from the point map at each step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ParameterError
+from ..basis import Basis
+from ..prepared import with_eigenpairs
+from ..stack import concatenate
+from .base import BasisKind, seeds_for
+from .diffusion import DIFFUSION
+
+
+def join_blocks(eigen: Basis, feature: Basis) -> Basis:
+    """One basis ``(V, k_e + k_f)``: the eigen block's columns, then the feature block's (same
+    mesh; :func:`~torchfmap.bases.stack.concatenate`); each block B-orthonormal, the whole not
+    (``orthonormal=False``)."""
+    return concatenate([eigen, feature])
+
+
+def split_blocks(basis: Basis) -> tuple[Basis, Basis]:
+    """``(eigen block, feature block)`` of a hybrid basis: its leading eigenfunction columns,
+    then the rest.
+
+    Raises:
+        ParameterError: a basis without leading eigenfunctions or without other columns.
+    """
+    kinds = basis.kinds()
+    k_e = int(np.argmax(kinds != "laplacian")) if (kinds != "laplacian").any() else len(kinds)
+    if k_e == 0 or k_e == len(kinds) or (kinds[k_e:] == "laplacian").any():
+        raise ParameterError(
+            "a hybrid basis is eigenfunctions followed by feature-aware columns. Fix: build it with "
+            "KINDS['hybrid'].pair_bases or shape_basis."
+        )
+    cols = basis.columns
+
+    def block(sl: slice) -> Basis:
+        return Basis(basis.values[:, sl], basis.mass, cols[sl], True, basis.stiffness)
+
+    return block(slice(0, k_e)), block(slice(k_e, None))
+
+
+@dataclass(frozen=True, kw_only=True)
+class HybridKind(BasisKind):
+    """Eigen block + feature-aware block (see the module docstring).
+
+    ``feature_share``: the fraction of the ``k`` columns in the feature block (at least one,
+    and at least one eigenfunction); ``feature_weight``: the feature block's weight ``w`` in
+    the point-map embedding.
+    """
+
+    feature_share: float = 0.3
+    feature_weight: float = 1.0
+    seeding: str = "spread"
+    landmark_times: tuple = (0.005, 0.02, 0.08)
+    refit: bool = True
+
+    def blocks(self, k: int) -> tuple[int, int]:
+        """``(k_e, k_f)`` of a basis of ``k`` columns.
+
+        Raises:
+            ParameterError: ``k < 2`` (each block needs a column).
+        """
+        if k < 2:
+            raise ParameterError(f"a hybrid basis needs k >= 2 (one column per block), got {k}.")
+        k_f = min(max(1, round(self.feature_share * k)), k - 1)
+        return k - k_f, k_f
+
+    def n_eigen(self, k: int) -> int:
+        return self.blocks(k)[0]
+
+    def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
+        """The eigen blocks (first ``k_e`` eigenfunctions of each shape) and the diffusion
+        kind's bases of ``k_f`` columns at corresponding seeds, joined (:func:`join_blocks`).
+
+        Eigenpairs are computed (in place) for shapes prepared with fewer than ``k_e``.
+
+        Raises:
+            ParameterError: no landmarks, or ``k < 2``.
+        """
+        k_e, k_f = self.blocks(k)
+        if landmarks is None:
+            raise ParameterError(
+                "the hybrid basis builds its feature block at corresponding landmarks. Fix: pass "
+                "landmarks (pairs of vertices), or use basis='laplacian'."
+            )
+        if self.seeding == "landmarks":
+            lm = np.asarray(landmarks)
+            fx, fy = DIFFUSION.seed_bases(shape_x, shape_y, lm, self.landmark_times)
+            k_f = min(fx.k, fy.k, k - 1)
+            fx, fy, seeds = fx.truncated(k_f), fy.truncated(k_f), lm
+            k_e = k - k_f
+        else:
+            fx, fy, seeds = DIFFUSION.pair_bases(shape_x, shape_y, k_f, landmarks, times)
+        ex, ey = (with_eigenpairs(s, k_e).eigenbasis.truncated(k_e) for s in (shape_x, shape_y))
+        return join_blocks(ex, fx), join_blocks(ey, fy), seeds
+
+    def shape_basis(self, shape, k, *, seeds=None, times=None):
+        """``k_e`` eigenfunctions then ``k_f`` heat kernels at ``seeds`` and farthest points."""
+        k_e, k_f = self.blocks(k)
+        eigen = with_eigenpairs(shape, k_e).eigenbasis.truncated(k_e)
+        chosen = seeds_for(shape, k_f, DIFFUSION.columns_per_seed(times), seeds)
+        return join_blocks(eigen, DIFFUSION.shape_basis(shape, k_f, seeds=chosen, times=times))
+
+    def block_bases(self, basis: Basis) -> list[Basis]:
+        return list(split_blocks(basis))
+
+    def recognises(self, basis: Basis) -> bool:
+        """Eigenfunctions and heat kernels, blocks not orthogonalised together (a jointly
+        B-orthonormal mix is ``eigen_diffusion``)."""
+        return super().recognises(basis) and not basis.orthonormal
+
+    def uses_descriptors(self, w_prior: float) -> bool:
+        return True  # the eigen block is always solved from descriptors
+
+    def solve_map(self, basis_x, basis_y, solve_block, w_prior: float) -> np.ndarray:
+        """``diag(C_e, I)``: ``C_e = solve_block(eigen_x, eigen_y, None)``."""
+        (ex, fx), (ey, fy) = split_blocks(basis_x), split_blocks(basis_y)
+        C = np.zeros((basis_y.k, basis_x.k))
+        C[: ey.k, : ex.k] = solve_block(ex, ey, None)
+        C[ey.k :, ex.k :] = np.eye(fy.k, fx.k)
+        return C
+
+    def embeddings(self, C_xy, basis_x, basis_y) -> tuple[np.ndarray, np.ndarray]:
+        """``(Φ_x-side (V_x, K_y), Φ_y-side (V_y, K_y))`` embeddings of the point map:
+        ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` and ``[Φ_e, w Φ_f]`` (the off-diagonal blocks of ``C_xy`` are
+        not used)."""
+        (ex, fx), (ey, fy) = split_blocks(basis_x), split_blocks(basis_y)
+        w = self.feature_weight
+        C_e, C_f = C_xy[: ey.k, : ex.k], C_xy[ey.k :, ex.k :]
+        side_x = np.hstack([ex.values @ C_e.T, w * (fx.values @ C_f.T)])
+        return side_x, np.hstack([ey.values, w * fy.values])
+
+
+HYBRID = HybridKind(
+    name="hybrid",
+    summary="eigenfunctions + heat kernels at corresponding seeds, block-diagonal map",
+    needs_landmarks=True,
+    # the eigen block is solved as the eigenbasis kind solves it (same weights)
+    w_lap=0.1,
+    w_orient=1.0,
+    p2p_mode="orthogonal",
+    refinement="hybrid",
+    column_kinds=frozenset({"laplacian", "diffusion"}),
+    # the torch solver is one regularised solve, not block-diagonal (classical path only)
+    learned=False,
+)
