@@ -40,7 +40,6 @@ from torchfmap.nn.data import ShapeDataset
 from torchfmap.nn.inference import adapt, predict_p2p, refine_p2p
 from torchfmap.operators import GeodesicSolver
 
-
 #: FAUST_r validation meshes (never trained on by the shipped model: it trains on 000-069).
 FAUST_VAL = [f"tr_reg_{i:03d}" for i in range(70, 80)]
 
