@@ -32,7 +32,7 @@ from ...errors import ParameterError
 from ..basis import Basis
 from ..prepared import with_eigenpairs
 from ..stack import concatenate
-from .base import BasisKind, seeds_for
+from .base import BasisKind
 from .diffusion import DIFFUSION
 
 
@@ -124,8 +124,7 @@ class HybridKind(BasisKind):
         """``k_e`` eigenfunctions then ``k_f`` heat kernels at ``seeds`` and farthest points."""
         k_e, k_f = self.blocks(k)
         eigen = with_eigenpairs(shape, k_e).eigenbasis.truncated(k_e)
-        chosen = seeds_for(shape, k_f, DIFFUSION.columns_per_seed(times), seeds)
-        return join_blocks(eigen, DIFFUSION.shape_basis(shape, k_f, seeds=chosen, times=times))
+        return join_blocks(eigen, DIFFUSION.shape_basis(shape, k_f, seeds=seeds, times=times))
 
     def block_bases(self, basis: Basis) -> list[Basis]:
         return list(split_blocks(basis))
