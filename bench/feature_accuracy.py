@@ -13,13 +13,14 @@ pairs of both classes, and non-isometric ones: cat-lion and ``A~B`` (``B`` defor
 ``torchfmap.data.stretch_deform``, ids kept). Methods, the same landmarks for all:
 
 - ``laplacian``: ``match(basis='laplacian', k=60)`` raw / ICP / ZoomOut (60 -> 120);
-- ``default``: ``match(landmarks, k=60)`` with its defaults (the feature-aware basis), raw and
-  ``refine='zoomout'`` (its refinement);
+- ``diffusion``: ``match(landmarks, basis='diffusion', k=60)`` (the feature-aware basis; the
+  landmark default until the eigenbasis measured better), raw and ``refine='zoomout'`` (its
+  refinement); ``--also hybrid`` adds other kinds the same way;
 - ``pyFM``: raw / ICP / ZoomOut (``bench/_pyfm.py``).
 
-Targets (the issue): at L = 7 and 15 the default <= 0.8x the eigenbasis at the same stage (raw vs
-raw, refined vs eigenbasis ZoomOut) on iso and non-iso pairs separately; at L = 3 no worse; below
-pyFM at every L; no slower. The summary prints the ratios.
+Targets (the issue, for the feature-aware basis): at L = 7 and 15 <= 0.8x the eigenbasis at the
+same stage (raw vs raw, refined vs eigenbasis ZoomOut) on iso and non-iso pairs separately; at
+L = 3 no worse; below pyFM at every L; no slower. The summary prints the ratios.
 """
 
 from __future__ import annotations
@@ -42,11 +43,12 @@ def landmarks(pair: Pair, n: int) -> np.ndarray:
     return pair.fixed[:n] if pair.fixed is not None else pair.landmarks(n, use_fixed=False)
 
 
-def run_pair(pair: Pair, n: int, use_pyfm: bool, rows: list[dict]) -> None:
+def run_pair(pair: Pair, n: int, use_pyfm: bool, rows: list[dict], also: tuple[str, ...] = ()) -> None:
     lmk = landmarks(pair, n)
     for method, basis, refines in (
         ("laplacian", "laplacian", ("icp", "zoomout")),
-        ("default", None, ("zoomout",)),
+        ("diffusion", "diffusion", ("zoomout",)),
+        *((b, b, ("zoomout",)) for b in also),
     ):
         for refine in refines:
             try:
@@ -74,7 +76,7 @@ def mean_of(rows, names, method, refine, n, key="mean"):
     return float(np.mean(vals)) * (100 if key == "mean" else 1) if len(vals) == len(names) else float("nan")
 
 
-def summary(rows, sets, Ls, use_pyfm) -> list[dict]:
+def summary(rows, sets, Ls, use_pyfm, also=()) -> list[dict]:
     out = []
     for n in Ls:
         for set_name, names in sets.items():
@@ -83,16 +85,17 @@ def summary(rows, sets, Ls, use_pyfm) -> list[dict]:
                 ("laplacian", "none"),
                 ("laplacian", "icp"),
                 ("laplacian", "zoomout"),
-                ("default", "none"),
-                ("default", "zoomout"),
+                ("diffusion", "none"),
+                ("diffusion", "zoomout"),
+                *((b, r) for b in also for r in ("none", "zoomout")),
             ):
                 row[f"{method} {refine}"] = mean_of(rows, names, method, refine, n)
             if use_pyfm:
                 for refine in ("none", "icp", "zoomout"):
                     row[f"pyFM {refine}"] = mean_of(rows, names, "pyFM", refine, n)
-            row["raw / lap raw"] = row["default none"] / row["laplacian none"]
-            row["refined / lap ZO"] = row["default zoomout"] / row["laplacian zoomout"]
-            row["t default / t lap ZO"] = mean_of(rows, names, "default", "zoomout", n, "time") / mean_of(
+            row["raw / lap raw"] = row["diffusion none"] / row["laplacian none"]
+            row["refined / lap ZO"] = row["diffusion zoomout"] / row["laplacian zoomout"]
+            row["t diffusion / t lap ZO"] = mean_of(rows, names, "diffusion", "zoomout", n, "time") / mean_of(
                 rows, names, "laplacian", "zoomout", n, "time"
             )
             out.append({k: fmt(v, 3) if isinstance(v, float) else v for k, v in row.items()})
@@ -110,8 +113,8 @@ def per_pair(rows, Ls) -> list[dict]:
                 ("laplacian", "zoomout"),
                 ("pyFM", "none"),
                 ("pyFM", "zoomout"),
-                ("default", "none"),
-                ("default", "zoomout"),
+                ("diffusion", "none"),
+                ("diffusion", "zoomout"),
             ):
                 v = mean_of(rows, [name], method, refine, n)
                 cells.append("-" if np.isnan(v) else f"{v:.2f}")
@@ -120,7 +123,7 @@ def per_pair(rows, Ls) -> list[dict]:
     return out
 
 
-def sweep_png(rows, sets, Ls, path) -> None:
+def sweep_png(rows, sets, Ls, path, also=()) -> None:
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -130,10 +133,15 @@ def sweep_png(rows, sets, Ls, path) -> None:
     curves = (
         ("laplacian", "none", "eigenbasis raw", "C0--"),
         ("laplacian", "zoomout", "eigenbasis ZoomOut", "C0-"),
-        ("default", "none", "feature-aware raw", "C3--"),
-        ("default", "zoomout", "feature-aware refined", "C3-"),
+        ("diffusion", "none", "feature-aware raw", "C3--"),
+        ("diffusion", "zoomout", "feature-aware refined", "C3-"),
         ("pyFM", "none", "pyFM raw", "C2--"),
         ("pyFM", "zoomout", "pyFM ZoomOut", "C2-"),
+        *(
+            (b, r, f"{b} {label}", f"C{4 + i}{style}")
+            for i, b in enumerate(also)
+            for r, label, style in (("none", "raw", "--"), ("zoomout", "refined", "-"))
+        ),
     )
     for ax, (set_name, names) in zip(axes[0], sets.items(), strict=True):
         for method, refine, label, style in curves:
@@ -156,7 +164,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--noniso", default=NONISO, help="comma-separated non-isometric pairs")
     parser.add_argument("--L", default="3,7,15", help="numbers of landmarks")
     parser.add_argument("--no-pyfm", action="store_true", help="skip pyFM")
+    parser.add_argument("--also", default="", help="more bases to run, e.g. hybrid (raw and refined)")
+    parser.add_argument(
+        "--name", default="feature_accuracy", help="results: bench/results/NAME.md, .csv, .png"
+    )
     args = parser.parse_args(argv)
+    also = tuple(filter(None, (b.strip() for b in args.also.split(","))))
     sets = {"iso": str_list(args.iso), "non-iso": str_list(args.noniso)}
     Ls = int_list(args.L)
     rows: list[dict] = []
@@ -167,19 +180,19 @@ def main(argv: list[str] | None = None) -> None:
             pair = Pair(name)
             for n in Ls:
                 log(f"{name} L={n}")
-                run_pair(pair, n, not args.no_pyfm, rows)
-                save_csv(rows, RESULTS_DIR / "feature_accuracy.csv")
-    report = Report("feature_accuracy")
+                run_pair(pair, n, not args.no_pyfm, rows, also)
+                save_csv(rows, RESULTS_DIR / f"{args.name}.csv")
+    report = Report(args.name)
     report.add(f"k={K}; mean geodesic error x100; {time.perf_counter() - t0:.0f} s in all.")
     report.table(
-        "Means per set and L (ratios: the issue's targets)", summary(rows, sets, Ls, not args.no_pyfm)
+        "Means per set and L (ratios: the issue's targets)", summary(rows, sets, Ls, not args.no_pyfm, also)
     )
     report.table(
-        "Per pair: lap raw / lap ZoomOut / pyFM raw / pyFM ZoomOut / default raw / default refined",
+        "Per pair: lap raw / lap ZoomOut / pyFM raw / pyFM ZoomOut / diffusion raw / diffusion refined",
         per_pair(rows, Ls),
     )
-    sweep_png(rows, sets, Ls, RESULTS_DIR / "feature_accuracy.png")
-    print(f"results -> {report.save()}, {RESULTS_DIR / 'feature_accuracy.png'}")
+    sweep_png(rows, sets, Ls, RESULTS_DIR / f"{args.name}.png", also)
+    print(f"results -> {report.save()}, {RESULTS_DIR / f'{args.name}.png'}")
 
 
 if __name__ == "__main__":

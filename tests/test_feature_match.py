@@ -50,7 +50,7 @@ def test_exact_seeds_on_a_permuted_copy_give_the_identity_map(permuted_pair):
     """With an exact copy, trilateration places every seed exactly, the bases correspond
     exactly, C = I and the point map is the permutation, raw and refined."""
     x, y, perm, lm = permuted_pair
-    result = match(x, y, landmarks=lm, k=30, refine="zoomout")
+    result = match(x, y, landmarks=lm, basis="diffusion", k=30, refine="zoomout")
     inverse = np.argsort(perm)
     np.testing.assert_array_equal(result.seeds[:, 1], inverse[result.seeds[:, 0]])
     np.testing.assert_array_equal(result.p2p_yx_initial, perm)

@@ -394,6 +394,63 @@ def test_match_command_with_checkpoint(tiny_folder, tmp_path, capsys):
     assert all(line.strip().isdigit() for line in out.read_text().splitlines())
 
 
+def test_eval_command_with_checkpoint_prepares_each_mesh_once_and_pools_agree(
+    tiny_folder, tmp_path, capsys, monkeypatch
+):
+    """``torchfmap eval --checkpoint``: each mesh is precomputed once per process, the maps are
+    those of ``match_with_network`` pair by pair, a pool of 2 gives the same table, and settings
+    the network path would ignore are refused."""
+    import torchfmap.nn.inference as inference
+    from torchfmap.collection import evaluate_pairs
+    from torchfmap.eval import discover_pairs, evaluate_map
+    from torchfmap.io import load_mesh
+    from torchfmap.nn.checkpoints import load_checkpoint
+
+    ckpt = tmp_path / "model.ckpt"
+    train = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
+    assert main([*train, "--max-steps", "2"]) == 0
+    capsys.readouterr()
+    pairs = list(discover_pairs(tiny_folder))
+    assert len(pairs) >= 2
+    made = []
+    real = inference._shape_item
+    matcher = inference.CheckpointMatcher(ckpt)
+    monkeypatch.setattr(
+        inference, "_shape_item", lambda m, config, index=0: made.append(m) or real(m, config, index)
+    )
+    results = evaluate_pairs(pairs, threads=1, matcher=matcher)
+    monkeypatch.undo()
+    assert len(made) == len({p for pair in pairs for p in pair[2:4]})  # once per mesh
+    net, config, _ = load_checkpoint(ckpt)
+    for (_, _, pa, pb, gt), result in zip(pairs, results, strict=True):
+        x, y = load_mesh(pa), load_mesh(pb)
+        p2p = inference.match_with_network(net, config, x, y)
+        np.testing.assert_array_equal(result.errors, evaluate_map(x, y, p2p, gt)[1])
+
+    def table(*extra):
+        assert (
+            main(["eval", str(tiny_folder), "--checkpoint", str(ckpt), "--threads", "1", "--quiet", *extra])
+            == 0
+        )
+        lines = capsys.readouterr().out.splitlines()
+        return [line.rsplit("|", 2)[0] for line in lines if line.startswith("| ")]  # without the time
+
+    one = table()
+    assert len(one) == len(pairs) + 2 and table("--workers", "2") == one
+    assert len(table("--refine", "zoomout", "--adapt", "1")) == len(pairs) + 2
+    for bad, message in (
+        (["--gt-landmarks", "3"], "without landmarks"),
+        (["--basis", "laplacian"], "own basis"),
+        (["--refine", "icp"], "ZoomOut only"),
+    ):
+        assert main(["eval", str(tiny_folder), "--checkpoint", str(ckpt), *bad]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["eval", str(tiny_folder), "--adapt", "2"]) == 2
+    assert "--adapt tunes a trained network" in capsys.readouterr().err
+    with pytest.raises(ParameterError, match="a matcher matches pairs by itself, so gt_landmarks, k"):
+        evaluate_pairs(pairs, matcher=matcher, gt_landmarks=2, k=8)
+
+
 def test_class_pairs_and_shape_batch_to():
     names = ["cat0", "cat1", "wolf_0", "wolf_1", "dog"]
     assert class_pairs(names) == [(0, 1), (1, 0), (2, 3), (3, 2)]

@@ -292,8 +292,9 @@ def _definitions() -> dict[str, list[str]]:
 
 
 def test_classical_commands_and_import_do_not_import_torch():
-    """``import torchfmap``, the CLI module and a classical match run without importing torch
-    (it costs about a second); the learning path imports it."""
+    """``import torchfmap``, the CLI module and a feature-aware match (C = I, no solve) run
+    without importing torch (it costs about two seconds); the functional-map solve shares its
+    torch core with ``torchfmap.nn`` (one implementation), and the learning path imports it."""
     import subprocess
     import sys
 
@@ -302,7 +303,7 @@ def test_classical_commands_and_import_do_not_import_torch():
         "from torchfmap.data import demo_pair\n"
         "from torchfmap.eval import gt_from_map, landmarks_from_gt\n"
         "x, y, g = demo_pair()\n"
-        "torchfmap.match(x, y, landmarks=landmarks_from_gt(x, gt_from_map(g), 6), k=20)\n"
+        "torchfmap.match(x, y, landmarks=landmarks_from_gt(x, gt_from_map(g), 6), basis='diffusion', k=20)\n"
         "assert 'torch' not in sys.modules, 'torch was imported'\n"
         "import torchfmap.nn\n"
         "assert 'torch' in sys.modules\n"

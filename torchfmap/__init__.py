@@ -17,10 +17,21 @@ from .bases import (
     orthonormalize_pair,
     support_fraction,
 )
-from .errors import ConvergenceError, MeshError, MeshWarning, ParameterError, SeedError, TorchFmapError
+from .errors import (
+    ConvergenceError,
+    CorruptFileError,
+    FileReadError,
+    FileWriteError,
+    MapWarning,
+    MeshError,
+    MeshWarning,
+    ParameterError,
+    SeedError,
+    TorchFmapError,
+)
 from .eval import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
-from .io import load_mesh, save_mesh
+from .io import load_mesh, load_points, save_mesh
 from .mesh import Mesh, MeshReport, validate_mesh
 from .operators import (
     Factorization,
@@ -72,6 +83,10 @@ __all__ = [
     "MeshError",
     "MeshReport",
     "MeshWarning",
+    "MapWarning",
+    "FileReadError",
+    "FileWriteError",
+    "CorruptFileError",
     "Operators",
     "ParameterError",
     "ConvergenceError",
@@ -83,6 +98,7 @@ __all__ = [
     "geodesic_distances",
     "laplacian",
     "load_mesh",
+    "load_points",
     "mass_matrix",
     "normalize_area",
     "point_cloud_laplacian",

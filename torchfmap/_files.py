@@ -23,7 +23,7 @@ from typing import IO
 
 import numpy as np
 
-from .errors import CorruptFileError, ParameterError
+from .errors import CorruptFileError, ParameterError, file_read_error, file_write_error
 
 #: Key of the checksum array in files written by :meth:`torchfmap.bases.Basis.save`.
 CHECKSUM_KEY = "checksum"
@@ -83,9 +83,9 @@ def atomic_write(
     (:func:`remove_stale_temps`).
 
     Raises:
-        OSError (same subclass and errno): the write or the rename failed (full disk, no
-            permission, read-only folder); the message names ``path`` and says that any
-            previous file there is unchanged.
+        FileWriteError (also the original OSError subclass, same errno): the write or the
+            rename failed (full disk, no permission, read-only folder); the message names
+            ``path`` and says that any previous file there is unchanged.
         CorruptFileError: ``verify`` refused the written file (nothing was replaced).
     """
     path = Path(path)
@@ -104,7 +104,7 @@ def atomic_write(
             f"could not write {path} ({err.strerror or err}); any previous file there is unchanged. "
             "Fix: free disk space, check write permission, or choose another folder."
         )
-        raise (type(err)(err.errno, message) if err.errno is not None else type(err)(message)) from err
+        raise file_write_error(err, message) from err
     finally:
         if tmp.exists():  # the write, the check or the rename failed
             tmp.unlink()
@@ -131,7 +131,7 @@ def load_arrays(
     """The arrays of a file written by :func:`save_arrays`, checksum verified (and removed).
 
     Raises:
-        FileNotFoundError: no such file.
+        FileReadError: no such file, a folder, no permission (also ``FileNotFoundError``, ...).
         CorruptFileError: unreadable (e.g. truncated), no checksum, or a checksum mismatch.
     """
     path = Path(path)
@@ -139,8 +139,8 @@ def load_arrays(
         # the file is opened here, not by np.load: a corrupt file then never leaks its handle
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except FileNotFoundError:
-        raise
+    except OSError as err:  # missing, a folder, no permission: not corrupt
+        raise file_read_error(err, path, what) from None
     except Exception as err:  # truncated zip, bad header, a pickled array...
         raise CorruptFileError(f"{path} is not a readable {what} ({err}). Fix: rebuild it.") from err
     stored = str(arrays.pop(checksum_key, ""))
@@ -166,9 +166,13 @@ def save_checked_bytes(path: str | os.PathLike, payload: bytes) -> Path:
 def load_checked_bytes(path: str | os.PathLike, what: str = "file") -> bytes:
     """The payload of a file written by :func:`save_checked_bytes`, its checksum verified.
 
-    Raises :class:`CorruptFileError` for a missing header, a truncated or altered payload.
+    Raises :class:`CorruptFileError` for a missing header, a truncated or altered payload, and
+    :class:`FileReadError` for a file that cannot be read.
     """
-    data = Path(path).read_bytes()
+    try:
+        data = Path(path).read_bytes()
+    except OSError as err:
+        raise file_read_error(err, path, what) from None
     head = len(CHECKED_MAGIC)
     if not data.startswith(CHECKED_MAGIC) or len(data) < head + 65 or data[head + 64 : head + 65] != b"\n":
         raise CorruptFileError(

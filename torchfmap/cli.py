@@ -38,10 +38,40 @@ BASES = list(KINDS)
 LEARNED_BASES = [name for name, kind in KINDS.items() if kind.learned]
 
 
-def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
-    return sub.add_parser(
-        name, help=help_text, description=help_text, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+class _DefaultsFormatter(argparse.HelpFormatter):
+    """Appends ``(default: X)`` to an option's help only where it says something: not when the
+    help already states its default, the option is required or a flag, or the default is None
+    (each option's help then says what None means)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        silent = (
+            "default" in text
+            or action.required
+            or action.default is None
+            or action.default is False
+            or action.default == argparse.SUPPRESS
+            or not action.option_strings
+        )
+        return text if silent else f"{text} (default: %(default)s)"
+
+
+def _refine_flags(p: argparse.ArgumentParser) -> None:
+    """The refinement and solver flags ``match`` and ``eval`` share."""
+    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    p.add_argument(
+        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default 2k)"
     )
+    p.add_argument(
+        "--w-lap",
+        type=nonnegative_float,
+        default=None,
+        help="Laplacian-commutativity weight (default: per basis)",
+    )
+
+
+def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_DefaultsFormatter)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,8 +88,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
     p.set_defaults(func=cmd_info)
 
-    p = _sub(sub, "basis", "compute a basis of one mesh and save it as .npz (Basis.load reads it)")
-    p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
+    p = _sub(
+        sub,
+        "basis",
+        "compute the basis of one mesh, or the corresponding bases of a pair (as match builds them), "
+        "and save them as .npz (Basis.load reads them; match --bases solves in a pair)",
+    )
+    p.add_argument(
+        "mesh",
+        nargs="+",
+        metavar="MESH",
+        help="one mesh file (.off/.ply/.obj/.stl, optionally .gz), or SOURCE TARGET for a pair",
+    )
     p.add_argument(
         "--basis",
         "--kind",
@@ -72,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--landmarks",
         metavar="FILE",
-        help="0-based vertex indices, one per line: seeds of feature-aware kinds, placed first "
-        "(farthest points fill the rest)",
+        help="with one mesh: 0-based vertex indices, one per line (seeds of feature-aware kinds, "
+        "placed first; farthest points fill the rest); with a pair: 0-based pairs 'source_vertex "
+        "target_vertex', as for match (corresponding seeds on both meshes)",
     )
     p.add_argument(
         "--times",
@@ -82,7 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="relative diffusion times of feature-aware kinds (default: one, matched to the seed count)",
     )
     p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan", help="operator")
-    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument(
+        "--out", required=True, nargs="+", metavar="OUT.npz", help="output .npz file, one per mesh"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_basis)
 
@@ -96,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--basis",
         choices=BASES,
         default=None,
-        help="basis kind (default: diffusion with landmarks, else laplacian)",
+        help="basis kind (default: laplacian, with or without landmarks)",
     )
     p.add_argument(
         "--bases", nargs=2, metavar=("SRC.npz", "TGT.npz"), help="solve in saved bases ('torchfmap basis')"
@@ -104,14 +147,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--k", type=positive_int, default=50, help="basis size (every basis has exactly k columns)"
     )
-    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    _refine_flags(p)
     p.add_argument(
-        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default 2k)"
+        "--times",
+        type=time_list,
+        default=None,
+        help="relative diffusion times of feature bases, e.g. 0.01,0.03 (default: one time matched to "
+        "the seed count)",
     )
-    p.add_argument(
-        "--w-lap", type=float, default=None, help="Laplacian-commutativity weight (default: per basis)"
-    )
-    p.add_argument("--times", type=time_list, default=None, help="relative diffusion times of feature bases")
     p.add_argument(
         "--p2p-mode",
         choices=["pullback", "orthogonal"],
@@ -126,13 +169,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--up", choices=["x", "y", "z"], default="z", help="the meshes' vertical axis in --png")
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
+    p.add_argument(
+        "--quiet", action="store_true", help="print nothing on success (errors still go to stderr)"
+    )
     p.set_defaults(func=cmd_match)
 
     p = _sub(sub, "eval", "match every pair of a folder with ground truth; table + PCK plot")
     p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
     p.add_argument("--basis", choices=BASES, default=None, help="basis kind (default as in match)")
     p.add_argument("--k", type=positive_int, default=50, help="basis size")
-    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    _refine_flags(p)
+    p.add_argument(
+        "--maps",
+        metavar="DIR",
+        help="score saved maps instead of matching: DIR/<source>-<target>.txt as written by "
+        "'torchfmap match --out'",
+    )
     p.add_argument(
         "--gt-landmarks",
         type=count,
@@ -161,6 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
         "identical results with any --workers",
     )
     p.add_argument("--dask", metavar="ADDRESS", help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
+    p.add_argument(
+        "--checkpoint",
+        help="match with a network trained by 'torchfmap train' (a path or a shipped name, see "
+        "'torchfmap models') instead of the classical pipeline; each mesh precomputed once per worker",
+    )
+    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -189,11 +247,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default 96)"
     )
     p.add_argument(
-        "--clip-grad", type=float, default=None, help="gradient-norm clipping per step (default 0: none)"
+        "--clip-grad",
+        type=nonnegative_float,
+        default=None,
+        help="gradient-norm clipping per step (default 0: none)",
     )
     p.add_argument("--width", type=positive_int, default=None, help="network width (default 48)")
     p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default 64)")
-    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-3)")
+    p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
@@ -216,6 +277,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:
@@ -233,9 +305,11 @@ def count(text: str) -> int:
 
 
 def time_list(text: str) -> list[float]:
-    """argparse type: comma-separated finite times > 0 (empty: none)."""
+    """argparse type: comma-separated finite times > 0 (an empty list is refused)."""
     if not text.strip():
-        return []
+        raise argparse.ArgumentTypeError(
+            "times must not be empty. Fix: omit --times for the default, or give e.g. 0.01,0.03"
+        )
     try:
         times = [float(t) for t in text.split(",")]
     except ValueError as err:
@@ -245,13 +319,15 @@ def time_list(text: str) -> list[float]:
     return times
 
 
+def _as_list(value) -> list:
+    return [] if not value else list(value) if isinstance(value, (list, tuple)) else [value]
+
+
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, output paths that cannot be written: a missing or read-only
     folder, an existing folder as the file; ``--png`` without matplotlib installed."""
-    for flag in ("out", "png"):
-        value = getattr(args, flag, None)
-        if not value:
-            continue
+    values = [(flag, v) for flag in ("out", "png") for v in _as_list(getattr(args, flag, None))]
+    for flag, value in values:
         path = os.path.abspath(value)
         folder = os.path.dirname(path)
         if os.path.isdir(path):
@@ -266,14 +342,37 @@ def check_outputs(args: argparse.Namespace) -> None:
         raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
 
 
+def _error_line(err: BaseException) -> str:
+    """``torchfmap: error: ...``, naming the error class where it says more than 'error'."""
+    name = type(err).__name__
+    text = err.strerror if isinstance(err, OSError) and err.strerror else str(err)  # no "[Errno 2]"
+    plain = name in ("TorchFmapError", "FileWriteError", "FileReadError")
+    return f"torchfmap: error: {text}" if plain else f"torchfmap: error ({name}): {text}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``torchfmap`` command. Exit status: 0 done, 1 a file could not be read or written
+    (the message says which and why), 2 bad input (named, with its fix), 130 interrupted
+    (Ctrl-C), 141 the output pipe was closed (e.g. ``| head``). No traceback for any of these."""
     args = build_parser().parse_args(argv)
     try:
         check_outputs(args)
         return args.func(args)
     except TorchFmapError as err:
-        print(f"torchfmap: error: {type(err).__name__}: {err}", file=sys.stderr)
-        return 2
+        print(_error_line(err), file=sys.stderr)
+        return 1 if isinstance(err, OSError) else 2
+    except BrokenPipeError:
+        # the reader went away (``| head``): stop quietly; point stdout at /dev/null so the
+        # interpreter's final flush does not raise again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
+    except OSError as err:  # reading: a missing file, a folder given as a file, no permission...
+        print(f"torchfmap: error: {err}. Fix: check the path and its permissions.", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("torchfmap: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

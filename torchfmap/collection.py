@@ -11,6 +11,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -19,8 +20,9 @@ from tqdm import tqdm
 from ._checks import check_count
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
+from .errors import ParameterError
 from .eval import evaluate_map, landmarks_from_gt
-from .io import load_mesh
+from .io import find_file, load_mesh, read_map, shape_name
 from .operators.geodesic import DistanceRows
 from .pipeline import match
 
@@ -48,6 +50,41 @@ SOURCE_COST = 5.0
 _POOL_SHAPES: dict | None = None
 
 
+class MapFiles:
+    """A matcher for :func:`evaluate_pairs` that reads saved maps instead of matching: the map of
+    ``(x, y)`` is ``folder/<name_x>-<name_y>.txt`` (or ``.txt.gz``), as ``torchfmap match --out``
+    writes it (line i: the source vertex of target vertex i; :func:`~torchfmap.io.read_map`).
+    Picklable (it holds the folder only).
+
+    Raises (when called):
+        ParameterError: no map file for a pair (the expected name is given), or a map that does
+            not fit the meshes (:func:`~torchfmap.io.read_map` and the evaluation's checks).
+    """
+
+    def __init__(self, folder) -> None:
+        self.folder = Path(folder).resolve()
+        if not self.folder.is_dir():
+            raise ParameterError(
+                f"--maps {str(folder)!r} is not a folder. Fix: the folder of the saved maps."
+            )
+
+    def __call__(self, mesh_x, mesh_y, path_x, path_y) -> np.ndarray:
+        name = f"{shape_name(path_x)}-{shape_name(path_y)}.txt"
+        path = find_file(self.folder, name)
+        if path is None:
+            raise ParameterError(
+                f"no saved map {name} (or {name}.gz) in {self.folder}. Fix: write it with `torchfmap "
+                f"match SOURCE TARGET --out {self.folder / name}`, or drop --maps to match here."
+            )
+        p2p = read_map(path)
+        if len(p2p) != mesh_y.n_vertices:
+            raise ParameterError(
+                f"{path.name} has {len(p2p)} lines but {shape_name(path_y)} has {mesh_y.n_vertices} "
+                "vertices. Fix: one line per target vertex (the map target -> source)."
+            )
+        return p2p
+
+
 def pool_threads(workers: int) -> int:
     """Threads per worker of a local pool when none are given: the CPUs shared out."""
     return max(1, (os.cpu_count() or 1) // workers)
@@ -59,12 +96,19 @@ def _init_pool_worker() -> None:
 
 
 def _evaluate_chunk(
-    pairs, gt_landmarks: int, max_points, match_kwargs: dict, shapes=None, on_pair=None, threads=None
+    pairs,
+    gt_landmarks: int,
+    max_points,
+    match_kwargs: dict,
+    shapes=None,
+    on_pair=None,
+    threads=None,
+    matcher=None,
 ) -> list[PairResult]:
     """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
     :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
     (``shapes``: path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after
-    each pair."""
+    each pair. ``matcher(x, y, path_x, path_y) -> p2p_yx`` replaces :func:`~torchfmap.match`."""
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
     with thread_limit(threads):
@@ -78,13 +122,16 @@ def _evaluate_chunk(
             (x, sx), (y, sy) = shapes[pa], shapes[pb]
             landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
             t0 = time.perf_counter()
-            result = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs)
+            if matcher is None:
+                p2p = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs).p2p_yx
+            else:
+                p2p = matcher(x, y, pa, pb)
             seconds = time.perf_counter() - t0
             # errors are geodesic on x, from its ground-truth points: pairs with the same source
             # reuse its prefactored solver and the rows already solved (kept for one source at a time)
             if rows is None or rows.solver is not sx.distances.solver:
                 rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
-            report, errors = evaluate_map(x, y, result.p2p_yx, gt, max_points=max_points, solver=rows)
+            report, errors = evaluate_map(x, y, p2p, gt, max_points=max_points, solver=rows)
             out.append(PairResult(a, b, report, errors, seconds))
             if on_pair is not None:
                 on_pair()
@@ -119,6 +166,7 @@ def evaluate_pairs(
     threads: int | None = None,
     executor: Executor | None = None,
     progress: bool = False,
+    matcher=None,
     **match_kwargs,
 ) -> list[PairResult]:
     """Match and score every pair ``(name_x, name_y, path_x, path_y, gt)`` (as yielded by
@@ -148,12 +196,23 @@ def evaluate_pairs(
             ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
             (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
             compare runs with different ``workers`` bit for bit.
+        matcher: ``matcher(mesh_x, mesh_y, path_x, path_y) -> p2p_yx`` matches each pair instead
+            of :func:`~torchfmap.match` (e.g. a trained network:
+            :class:`torchfmap.nn.inference.CheckpointMatcher`); with workers or an executor it
+            must pickle. Takes no landmarks and no ``match_kwargs``.
         match_kwargs: passed to :func:`~torchfmap.match` (``basis``, ``k``, ``refine``, ...).
 
     Raises:
-        ParameterError: ``workers < 1`` or ``threads < 1``.
+        ParameterError: ``workers < 1`` or ``threads < 1``; a ``matcher`` with ``gt_landmarks``
+            or ``match_kwargs``.
     """
     pairs = list(pairs)
+    if matcher is not None and (gt_landmarks or match_kwargs):
+        extra = ", ".join((["gt_landmarks"] if gt_landmarks else []) + sorted(match_kwargs))
+        raise ParameterError(
+            f"a matcher matches pairs by itself, so {extra} would be ignored. Fix: drop them, or "
+            "drop the matcher (for match() settings)."
+        )
     workers = check_count(workers, 1, 4096, "workers")
     if threads is not None:
         threads = check_count(threads, 1, 4096, "threads")
@@ -163,7 +222,13 @@ def evaluate_pairs(
     if executor is None and workers == 1:
         try:
             return _evaluate_chunk(
-                pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update, threads=threads
+                pairs,
+                gt_landmarks,
+                max_points,
+                match_kwargs,
+                on_pair=bar.update,
+                threads=threads,
+                matcher=matcher,
             )
         finally:
             bar.close()
@@ -183,7 +248,9 @@ def evaluate_pairs(
     order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
     try:
         args = (gt_landmarks, max_points, match_kwargs)
-        futures = {pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads): i for i in order}
+        futures = {
+            pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads, matcher=matcher): i for i in order
+        }
         done: dict[int, list[PairResult]] = {}
         for future in as_completed(futures):
             i = futures[future]

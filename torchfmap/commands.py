@@ -9,6 +9,7 @@ classical commands start without torch.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -17,13 +18,13 @@ from tqdm import tqdm
 
 from ._checks import is_symmetric
 from .bases import Basis, eigenpairs, get_kind, prepare_shape
-from .collection import evaluate_pairs
+from .collection import MapFiles, evaluate_pairs
 from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .operators import GeodesicSolver, available_backends, laplacian
-from .pipeline import match
+from .pipeline import match, match_bases
 from .viz import plot_color_transfer, plot_pck
 
 
@@ -79,8 +80,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             f"{report.median_error:>8.4f} {report.auc:>6.3f} {dt:>9.2f}"
         )
     print(
-        "errors: geodesic distance to the true match / sqrt(area); 'diffusion' (the default with "
-        "landmarks) uses 8 landmarks and heat kernels at corresponding seeds"
+        "errors: geodesic distance to the true match / sqrt(area); 'diffusion' (feature-aware: "
+        "basis='diffusion') uses 8 landmarks and heat kernels at corresponding seeds"
     )
     return 0
 
@@ -92,25 +93,49 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_basis(args: argparse.Namespace) -> int:
-    mesh = load_mesh(args.mesh, allow_components=True)
+    meshes, outs = args.mesh, args.out
+    if len(meshes) > 2:
+        raise TorchFmapError(f"basis takes one mesh or a pair, got {len(meshes)} meshes. Fix: one or two.")
+    if len(outs) != len(meshes):
+        raise TorchFmapError(
+            f"{len(meshes)} mesh{'es' if len(meshes) > 1 else ''} and {len(outs)} --out files. Fix: one "
+            "--out file per mesh (--out src.npz tgt.npz for a pair)."
+        )
+    bad = [o for o in outs if not o.endswith(".npz")]
+    if bad:
+        raise TorchFmapError(
+            f"--out {bad[0]!r}: a basis file is .npz (it would be written as {bad[0]}.npz). Fix: name "
+            "it *.npz."
+        )
+    loaded = [load_mesh(m, allow_components=True) for m in meshes]
     kind = get_kind(args.kind or ("diffusion" if args.landmarks else "laplacian"))
-    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
+    pair = len(loaded) == 2
+    if pair:
+        landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
+    else:
+        landmarks = read_landmarks(args.landmarks) if args.landmarks else None
     if landmarks is not None and kind.n_eigen(args.k) >= args.k:  # every column an eigenfunction
         raise TorchFmapError(
             f"--landmarks are seeds, and the {kind.name} basis has none. Fix: drop --landmarks, or "
-            "pick a feature-aware --basis (diffusion, harmonic, stack)."
+            "pick a feature-aware --basis (diffusion, harmonic, stack, hybrid)."
         )
-    if args.k >= mesh.n_vertices:
-        raise TorchFmapError(f"--k {args.k} needs a mesh of more than {args.k} vertices ({mesh.n_vertices}).")
+    small = min(m.n_vertices for m in loaded)
+    if args.k >= small:
+        what = "meshes" if pair else "a mesh"
+        raise TorchFmapError(f"--k {args.k} needs {what} of more than {args.k} vertices ({small}).")
     with tqdm(total=2, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
-        shape = prepare_shape(mesh, 0, laplacian_kind=args.laplacian)  # the unit-area frame
+        shapes = [prepare_shape(m, 0, laplacian_kind=args.laplacian) for m in loaded]  # unit-area frames
         bar.update()
         bar.set_postfix_str(f"{kind.name}, k={args.k}")
-        basis = kind.shape_basis(shape, args.k, seeds=landmarks, times=args.times or None)
+        if pair:
+            bases = list(match_bases(shapes[0], shapes[1], kind, args.k, landmarks, args.times)[:2])
+        else:
+            bases = [kind.shape_basis(shapes[0], args.k, seeds=landmarks, times=args.times)]
         bar.update()
-        path = basis.save(args.out)
-    print(f"{kind.name} {basis} -> {path}")
+        paths = [b.save(o) for b, o in zip(bases, outs, strict=True)]
+    for b, path in zip(bases, paths, strict=True):
+        print(f"{kind.name} {b} -> {path}")
     return 0
 
 
@@ -147,7 +172,8 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p_mode=args.p2p_mode,
         bases=bases,
     )
-    how = f"(K={result.basis_x.k}, {sum(result.timings.values()):.2f} s)"
+    refined = f", refined by {args.refine}" if args.refine else ""
+    how = f"({result.kind} basis, K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
 
 
@@ -155,9 +181,10 @@ def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) ->
     """Write the map file (:func:`~torchfmap.io.write_map`: atomic, line i: source vertex of
     target vertex i, ``.gz`` compressed), report, and draw ``--png``."""
     write_map(args.out, p2p)
-    print(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
+    say = (lambda *_: None) if getattr(args, "quiet", False) else print
+    say(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
     if args.png:
-        print(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
+        say(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
     return 0
 
 
@@ -203,10 +230,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         },
     )
     if args.resume and Path(args.out).exists():
-        saved = vars(load_checkpoint(args.out)[1])
+        _, saved_config, ckpt = load_checkpoint(args.out)
+        saved = vars(saved_config)
         if budget:  # a budget given now replaces the saved one (it is the whole run's)
             saved.update(epochs=None, minutes=0.0, max_steps=0)
         config = TrainConfig(**{**saved, **budget})
+        _check_budget_left(config, ckpt.get("train_state") or {}, args.out)
     # the budget: what was given (epochs unbounded then unless given), else the recipe's epochs
     epochs = config.epochs if (args.epochs or not (config.minutes or config.max_steps)) else None
     config.epochs = epochs  # recorded as it runs (None: bounded by time or steps only)
@@ -227,7 +256,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
     picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
     validate = unsupervised_score(shapes, picked, solver, loss_fn) if args.validate_every else None
-    state = train(
+    state, interrupted = _train_or_interrupted(
+        train,
+        args.out,
         net,
         PairDataset(shapes, pairs),
         loss_fn,
@@ -248,11 +279,54 @@ def cmd_train(args: argparse.Namespace) -> int:
         seed=config.seed,
         progress=not args.quiet,
     )
+    if interrupted:
+        print(interrupted, file=sys.stderr)
+        return 130
     last = state.losses[-1]["total"] if state.losses else float("nan")
     best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
     print(f"{summary}{best} -> {args.out}")
     return 0
+
+
+def _check_budget_left(config, state: dict, out) -> None:
+    """Refuse a ``--resume`` whose budget (the whole run's) the saved run has already spent:
+    it would train nothing."""
+    step, seconds, epoch = state.get("step", 0), state.get("seconds", 0.0), state.get("epoch", 0)
+    spent = [
+        f"--max-steps {config.max_steps} (done: {step} steps)"
+        if config.max_steps and step >= config.max_steps
+        else "",
+        f"--minutes {config.minutes:g} (done: {seconds / 60:.1f} min)"
+        if config.minutes and seconds >= 60 * config.minutes
+        else "",
+        f"--epochs {config.epochs} (done: {epoch})" if config.epochs and epoch >= config.epochs else "",
+    ]
+    spent = [x for x in spent if x]
+    if spent:
+        raise TorchFmapError(
+            f"--resume: the run in {out} has already spent its budget {', '.join(spent)}; a budget "
+            "covers the whole run, across resumes, so this would train nothing. Fix: give a larger "
+            "budget (e.g. twice as many minutes or steps), or start a new --out."
+        )
+
+
+def _train_or_interrupted(train, out, *args, **kwargs):
+    """``(train(*args, **kwargs), None)``, or on Ctrl-C ``(None, message)`` saying which step the
+    checkpoint at ``out`` holds (it is written atomically, so it is always a whole one)."""
+    try:
+        return train(*args, **kwargs), None
+    except KeyboardInterrupt:
+        from .nn.checkpoints import read_checkpoint
+
+        try:
+            step = read_checkpoint(out)["train_state"]["step"]
+        except (TorchFmapError, OSError, KeyError, TypeError):
+            return None, "torchfmap: training interrupted before its first checkpoint; nothing saved."
+        return None, (
+            f"torchfmap: training interrupted; the checkpoint {out} holds step {step} (intact). "
+            "Fix: run the same command with --resume to continue from it."
+        )
 
 
 def _dask_executor(address: str):
@@ -264,19 +338,56 @@ def _dask_executor(address: str):
     return Client(address).get_executor()
 
 
+def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
+    """``evaluate_pairs`` settings of ``torchfmap eval`` and the plot's title: the classical
+    pipeline's, or a trained network's (``--checkpoint``)."""
+    if args.maps:
+        if args.checkpoint or args.gt_landmarks or args.basis or args.refine or args.adapt:
+            raise TorchFmapError(
+                "--maps scores saved maps, so it takes no matching options. Fix: drop --checkpoint, "
+                "--gt-landmarks, --basis, --refine and --adapt (or drop --maps to match here)."
+            )
+        return {"matcher": MapFiles(args.maps)}, f"saved maps in {args.maps}"
+    if not args.checkpoint:
+        if args.adapt:
+            raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
+        settings = dict(
+            gt_landmarks=args.gt_landmarks,
+            basis=args.basis,
+            k=args.k,
+            refine=args.refine,
+            k_final=args.k_final,
+            w_lap=args.w_lap,
+        )
+        lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
+        return settings, f"{args.basis or 'laplacian'} basis, k={args.k}, refine {args.refine or '-'}{lm}"
+    if args.gt_landmarks or args.basis or args.k_final or args.w_lap is not None:
+        raise TorchFmapError(
+            "--checkpoint matches with the network's own basis and without landmarks. Fix: drop "
+            "--gt-landmarks / --basis / --k-final / --w-lap (or drop --checkpoint for the classical "
+            "pipeline)."
+        )
+    if args.refine == "icp":
+        raise TorchFmapError("--checkpoint refines by ZoomOut only. Fix: --refine zoomout.")
+    from .nn.inference import CheckpointMatcher  # torch: only for this path
+
+    matcher = CheckpointMatcher(args.checkpoint, adapt_steps=args.adapt, refine=args.refine == "zoomout")
+    title = f"{args.checkpoint} (adapt {args.adapt}, refine {args.refine or '-'})"
+    return {"matcher": matcher}, title
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
-    pairs = list(discover_pairs(args.folder))[: args.max_pairs or None]
+    settings, title = _eval_method(args)
+    # absolute paths: workers of a cluster may run in another folder
+    pairs = list(discover_pairs(Path(args.folder).resolve()))[: args.max_pairs or None]
     results = evaluate_pairs(
         pairs,
-        gt_landmarks=args.gt_landmarks,
         max_points=args.max_points,
         workers=args.workers,
         threads=args.threads,
         executor=_dask_executor(args.dask) if args.dask else None,
         progress=not args.quiet,
-        basis=args.basis,
-        k=args.k,
-        refine=args.refine,
+        **settings,
     )
     rows = [(r.source, r.target, r.report, r.seconds) for r in results]
     curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
@@ -291,8 +402,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         )
     errors = np.concatenate(all_errors)
     print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
+    print(
+        f"\n{title}. Errors: geodesic distance on the source to the true match / sqrt(area); AUC: "
+        "area under the PCK curve up to 0.25; coverage: fraction of source vertices the map "
+        "reaches; time: matching only (preparing shapes and scoring excluded)."
+    )
     if args.png:
         curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}
-        title = f"{args.basis or 'auto'} basis, k={args.k}"
         print(f"PCK plot -> {plot_pck(curves, args.png, title=title)}")
     return 0

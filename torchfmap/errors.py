@@ -8,6 +8,8 @@ All errors derive from :class:`TorchFmapError` and from :class:`ValueError`, so
 
 from __future__ import annotations
 
+import functools
+
 
 class TorchFmapError(ValueError):
     """Base class of all torchfmap input errors."""
@@ -35,6 +37,52 @@ class NotPositiveDefiniteError(ParameterError):
 
 class CorruptFileError(TorchFmapError):
     """A saved file is truncated, altered or unreadable."""
+
+
+class FileWriteError(OSError, TorchFmapError):
+    """A file could not be written (full disk, no permission, file-size limit, folder gone).
+
+    Also an :class:`OSError` with the original ``errno``; raised as a subclass of the original
+    class too (e.g. ``PermissionError``) by :func:`file_write_error`, so ``except OSError`` and
+    ``except PermissionError`` keep working."""
+
+
+class FileReadError(OSError, TorchFmapError):
+    """A file could not be read (missing, a folder, no permission); also an :class:`OSError`
+    (and, by :func:`file_read_error`, the original subclass, e.g. ``FileNotFoundError``)."""
+
+
+@functools.cache
+def _read_error_class(base: type) -> type:
+    if base is OSError or issubclass(base, FileReadError):
+        return FileReadError if base is OSError else base
+    return type(base.__name__, (FileReadError, base), {"__module__": __name__})
+
+
+def file_read_error(err: OSError, path, what: str = "file") -> FileReadError:
+    """A :class:`FileReadError` (also an instance of ``type(err)``, same errno) naming ``path``."""
+    cls = _read_error_class(type(err))
+    reason = err.strerror or str(err)
+    message = f"cannot read the {what} {str(path)!r} ({reason}). Fix: check the path and its permissions."
+    return cls(err.errno, message) if err.errno is not None else cls(message)
+
+
+@functools.cache
+def _write_error_class(base: type) -> type:
+    """:class:`FileWriteError` joined with ``base`` (one class per OSError subclass)."""
+    if base is OSError or issubclass(base, FileWriteError):
+        return FileWriteError if base is OSError else base
+    return type(base.__name__, (FileWriteError, base), {"__module__": __name__})
+
+
+def file_write_error(err: OSError, message: str) -> FileWriteError:
+    """A :class:`FileWriteError` that is also an instance of ``type(err)``, with its errno."""
+    cls = _write_error_class(type(err))
+    return cls(err.errno, message) if err.errno is not None else cls(message)
+
+
+class MapWarning(UserWarning):
+    """A computed map that is valid but suspicious (e.g. collapsed onto a few vertices)."""
 
 
 class MeshWarning(UserWarning):

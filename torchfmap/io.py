@@ -165,19 +165,63 @@ def _check_off(text: str, name: str) -> None:
             f"{name!r} is truncated: its OFF header declares {n_v} vertices and {n_f} faces, the file "
             f"holds {have_v} vertex lines and {have_f} face lines. Fix: copy or export the file again."
         )
+    # a face line starts with its corner count: under 3 is no face (trimesh would drop it, and
+    # the mesh would load with a new hole)
+    lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    start = len(lines) - have_f
+    short = [
+        (start + i, ln)
+        for i, ln in enumerate(lines[start : start + n_f])
+        if not ln.split()[0].lstrip("-").isdigit() or int(ln.split()[0]) < 3
+    ]
+    if short:
+        where = ", ".join(f"{ln!r}" for _, ln in short[:3]) + (
+            f" ({len(short)} in all)" if len(short) > 3 else ""
+        )
+        raise MeshError(
+            f"{name!r} has face lines with fewer than 3 corners: {where}. An OFF face line is "
+            "'n i_1 ... i_n' with n >= 3. Fix: remove or complete those lines (and the face "
+            "count in the header)."
+        )
 
 
-def read_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def _existing_file(path, what: str) -> Path:
+    """``path`` as a Path, or :class:`MeshError` when it is missing or a folder."""
+    path = Path(path)
+    if not path.exists():
+        raise MeshError(f"{what} file {str(path)!r} does not exist. Fix: check the path.")
+    if path.is_dir():
+        raise MeshError(
+            f"{str(path)!r} is a folder, not a {what} file. Fix: give the path of one {what} file."
+        )
+    return path
+
+
+def _check_stl(data: bytes, name: str) -> None:
+    """Refuse bytes that are neither binary STL (80-byte header, a triangle count ``n`` and
+    ``50 n`` bytes) nor ASCII STL (``solid`` ... ``facet``)."""
+    if len(data) >= 84 and len(data) == 84 + 50 * int.from_bytes(data[80:84], "little"):
+        return
+    head = data[:1024].lstrip().lower()
+    if head.startswith(b"solid") and (b"facet" in data[:4096].lower() or len(data) < 4096):
+        return
+    raise MeshError(
+        f"{name!r} is not an STL file: not binary STL (84-byte header + 50 bytes per triangle; "
+        f"{len(data)} bytes here) and not ASCII STL (starting 'solid' with 'facet' lines). Fix: "
+        "check the file and its extension."
+    )
+
+
+def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(vertices (V, 3) float64, faces (F, 3) int64)`` of a mesh file, vertex order kept.
 
     Raises :class:`MeshError` for a missing path, a folder, an unsupported extension, an OFF
-    file shorter than its header says, and anything trimesh cannot parse.
+    file shorter than its header says or with face lines of under 3 corners, bytes that are not
+    STL in a ``.stl``, a point cloud (points and no faces: :func:`load_points` reads those;
+    ``points=True`` returns them with ``(0, 3)`` faces instead) and anything trimesh cannot parse.
     """
-    path = Path(path)
-    if not path.exists():
-        raise MeshError(f"mesh file {str(path)!r} does not exist. Fix: check the path.")
-    if path.is_dir():
-        raise MeshError(f"{str(path)!r} is a folder, not a mesh file. Fix: give the path of one mesh file.")
+    path = _existing_file(path, "mesh")
     fmt, gz = _format_of(path)
     try:
         data = _read_bytes(path, "mesh", MeshError)
@@ -185,6 +229,8 @@ def read_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             data = _decode(data)
         if fmt == "off":
             _check_off(data.decode("utf-8"), path.name)
+        if fmt == "stl":
+            _check_stl(data, path.name)
         loaded = trimesh.load(
             _io.BytesIO(data), file_type=fmt, process=False, maintain_order=True, force="mesh"
         )
@@ -196,7 +242,47 @@ def read_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     faces = np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3)
     if fmt == "stl" and len(faces):
         vertices, faces = merge_soup(vertices, faces)
+    if len(faces) == 0 and fmt in ("ply", "off", "obj"):
+        cloud = _read_points(data, fmt)
+        if points:
+            return cloud, np.zeros((0, 3), dtype=np.int64)
+        if n := len(cloud):
+            raise MeshError(
+                f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh. Fix: "
+                f"read it with torchfmap.io.load_points({path.name!r}) and build its operators with "
+                "laplacian(points, kind='robust')."
+            )
     return vertices, faces
+
+
+def _read_points(data: bytes, fmt: str) -> np.ndarray:
+    """The vertex coordinates of a mesh or point-cloud file's bytes, ``(V, 3)`` (faces ignored)."""
+    try:
+        loaded = trimesh.load(_io.BytesIO(data), file_type=fmt, process=False, maintain_order=True)
+    except Exception:  # the file was parsed as a mesh already; no points means none
+        return np.zeros((0, 3))
+    return np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+
+
+def load_points(path: str | os.PathLike) -> np.ndarray:
+    """The points of a point-cloud (or mesh) file (.ply/.off/.obj, optionally .gz), ``(V, 3)``
+    float64 in file order; faces, if any, are ignored. For point clouds pass them to
+    :func:`~torchfmap.operators.laplacian` with ``kind='robust'``.
+
+    Raises:
+        MeshError: a missing path, a folder, an unsupported format, no points, or non-finite ones.
+    """
+    path = _existing_file(path, "point")
+    fmt, _ = _format_of(path)
+    if fmt not in ("ply", "off", "obj"):
+        raise MeshError(f"{path.name!r}: point clouds are read from .ply/.off/.obj files. Fix: convert it.")
+    data = _read_bytes(path, "point", MeshError)
+    points = _read_points(_decode(data) if fmt in TEXT_FORMATS else data, fmt)
+    if len(points) == 0:
+        raise MeshError(f"{path.name!r} holds no points. Fix: check the file.")
+    if not np.isfinite(points).all():
+        raise MeshError(f"{path.name!r} has NaN or infinite coordinates. Fix: repair or remove those points.")
+    return points
 
 
 def load_mesh(path: str | os.PathLike, *, validate: bool = True, **flags) -> Mesh:

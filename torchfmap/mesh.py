@@ -26,12 +26,13 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.csgraph import connected_components
 
-from .errors import MeshError, MeshWarning
+from .errors import MeshError, MeshWarning, _preview
 from .mesh_checks import (
     MeshReport,
     _as_arrays,
     _edge_face_incidence,
     _face_areas,
+    duplicate_faces,
     orient_faces,
     validate_mesh,
 )
@@ -74,6 +75,16 @@ class Mesh:
         )
         self._report: MeshReport | None = None
         if validate:
+            twins = duplicate_faces(self.faces) if len(self.vertices) and len(self.faces) else []
+            if len(twins):  # counted twice by the cotangent weights and the mass otherwise
+                self.faces = np.ascontiguousarray(np.delete(self.faces, twins, axis=0))
+                warnings.warn(
+                    f"{name or 'mesh'}: dropped {len(twins)} duplicated faces (the same three vertices "
+                    f"as an earlier face): faces {_preview(twins)}; vertex order is unchanged. Fix: "
+                    "remove them from the file to silence this.",
+                    MeshWarning,
+                    stacklevel=2,
+                )
             report = validate_mesh(self.vertices, self.faces, **self._flags)
             faces, n_flipped = orient_faces(self.vertices, self.faces)
             if n_flipped:

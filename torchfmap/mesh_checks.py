@@ -111,6 +111,16 @@ def _count_boundary_loops(boundary_edges: np.ndarray, n_vertices: int) -> int:
     return len(np.unique(labels[on_boundary]))
 
 
+def duplicate_faces(faces) -> np.ndarray:
+    """Indices of faces that repeat an earlier face's vertex set (any corner order), sorted;
+    the first copy of each is kept. ``faces`` ``(F, 3)``."""
+    f = np.asarray(faces)
+    if len(f) == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    return np.setdiff1d(np.arange(len(f)), first)
+
+
 def validate_mesh(
     vertices,
     faces,

@@ -22,7 +22,7 @@ from .bases import Basis
 from .bases.kinds import BasisKind, get_kind
 from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
-from .errors import ParameterError
+from .errors import MapWarning, ParameterError
 from .eval import shape_distance
 from .fmap import check_landmark_pairs, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
@@ -138,13 +138,18 @@ def match_bases(
 ) -> tuple[Basis, Basis, np.ndarray | None]:
     """The pair of B-orthonormal bases :func:`match` solves in, with exactly ``k`` columns each,
     and the corresponding seed pairs ``(S, 2)`` they are built at (None when the columns do not
-    correspond): ``KINDS[kind].pair_bases`` (:data:`torchfmap.bases.KINDS`).
+    correspond): ``KINDS[kind].pair_bases`` (:data:`torchfmap.bases.KINDS`). The seed pairs are
+    also recorded on both bases (``Basis.pair_landmarks``, saved with them), so that
+    ``match(bases=...)`` can tell them from bases built apart.
 
     Raises:
         ParameterError: an unknown kind, a kind that needs landmarks without them, or ``k``
             outside its range.
     """
-    return get_kind(kind).pair_bases(shape_x, shape_y, k, landmarks, times)
+    bx, by, seeds = get_kind(kind).pair_bases(shape_x, shape_y, k, landmarks, times)
+    if seeds is not None:  # recorded (and saved with the bases): they were built together
+        bx.pair_landmarks = by.pair_landmarks = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
+    return bx, by, seeds
 
 
 def match(
@@ -176,19 +181,20 @@ def match(
     :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` ->
     :func:`refine_map`.
 
-    With landmarks the default is the feature-aware ``'diffusion'`` basis: ``k`` heat kernels
-    at corresponding seeds (see :func:`match_bases`), whose map is close to the identity; the
-    solve is then pulled to ``C = I`` with weight ``w_prior`` (default
-    :data:`~torchfmap.fmap.defaults.W_PRIOR`; at
-    ``inf`` the identity is the map and no descriptors are computed).
+    The default basis is the Laplacian eigenbasis, with or without landmarks (landmarks then
+    enter as descriptors and constraints). The feature-aware ``basis='diffusion'`` builds ``k``
+    heat kernels at corresponding seeds (see :func:`match_bases`), whose map is close to the
+    identity; its solve is pulled to ``C = I`` with weight ``w_prior`` (default
+    :data:`~torchfmap.fmap.defaults.W_PRIOR`; at ``inf`` the identity is the map and no
+    descriptors are computed).
 
     Args:
         mesh_x, mesh_y: source and target.
         landmarks: ``(L, 2)`` corresponding pairs ``(vertex on x, vertex on y)``; required by
             the feature-aware bases, used as descriptors and constraints by the eigenbasis.
         basis: a kind of :data:`torchfmap.bases.KINDS` (``'laplacian'``, ``'diffusion'``,
-            ``'harmonic'``, ``'stack'``, ``'eigen_diffusion'``; default: ``'diffusion'`` with
-            landmarks, ``'laplacian'`` without).
+            ``'harmonic'``, ``'stack'``, ``'hybrid'``, ``'eigen_diffusion'``; default
+            ``'laplacian'``).
         k: basis size; every basis has exactly ``k`` columns.
         refine: ``'icp'`` or ``'zoomout'`` (as the kind's ``refinement`` says: the eigenbasis
             grows up to ``k_final``, default ``2k``; feature-aware kinds iterate at a fixed
@@ -228,7 +234,9 @@ def match(
     pairs = None
     if landmarks is not None and len(np.atleast_1d(landmarks)):
         pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
-    name = basis or ("diffusion" if pairs is not None else "laplacian")
+    # the eigenbasis, with or without landmarks: on the dev benchmarks it is the best or tied
+    # default at 3-15 landmarks (bench/faust.py, bench/feature_accuracy.py; the issue notes)
+    name = basis or "laplacian"
     if bases is not None:
         given_x, given_y = _check_given_bases(bases, mesh_x, mesh_y)
         eigen_only = all(c.kind == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
@@ -316,7 +324,29 @@ def match(
             zoomout_samples=zoomout_samples,
         )
     timings["refine"] = time.perf_counter() - t0
+    warn_collapsed(p2p, mesh_x.n_vertices)
     return MatchResult(p2p, C, bx, by, initial, timings, seeds, kind.name)
+
+
+#: A point map reaching under this fraction of the vertices it could reach (``min(V_x, V_y)``)
+#: has collapsed (e.g. an extreme regulariser weight): :func:`match` warns.
+COLLAPSE_COVERAGE = 0.05
+
+
+def warn_collapsed(p2p_yx: np.ndarray, n_x: int, stacklevel: int = 3) -> None:
+    """Warn (:class:`~torchfmap.errors.MapWarning`) when ``p2p_yx`` reaches under
+    :data:`COLLAPSE_COVERAGE` of the ``min(V_x, V_y)`` source vertices it could reach."""
+    reachable = min(n_x, len(p2p_yx))
+    reached = len(np.unique(p2p_yx))
+    if reachable > 1 and reached < COLLAPSE_COVERAGE * reachable:
+        warnings.warn(
+            f"the point map sends {len(p2p_yx)} target vertices to only {reached} source vertices "
+            f"({100 * reached / reachable:.1f} % of the {reachable} it could reach): it has collapsed. "
+            "Fix: check the weights (w_lap, w_orient), the landmarks and the meshes' scale and "
+            "orientation; refine='zoomout' often spreads a collapsed start.",
+            MapWarning,
+            stacklevel=stacklevel,
+        )
 
 
 def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]:
@@ -332,6 +362,18 @@ def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]
                 f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
                 "pass the basis built on that mesh (bases in the order source, target)."
             )
+    seeded = any(c.seed >= 0 for b in (bx, by) for c in b.provenance)
+    px, py = bx.pair_landmarks, by.pair_landmarks
+    together = px is not None and py is not None and np.array_equal(px, py)
+    if seeded and not together:
+        warnings.warn(
+            "the given bases have seeded columns but were not built together from the same "
+            "landmark pairs, so their columns need not correspond and the map can be wrong. Fix: "
+            "build them as a pair (`torchfmap basis SRC TGT --landmarks pairs.txt --out a.npz b.npz`, "
+            "or match_bases()), or match with landmarks=... directly.",
+            MapWarning,
+            stacklevel=3,
+        )
     return bx, by
 
 

@@ -94,6 +94,10 @@ class Basis:
         self.orthonormal = orthonormal
         self.stiffness = None if stiffness is None else sp.csr_matrix(stiffness, dtype=np.float64)
         self.eigenvalues = None if eigenvalues is None else np.asarray(eigenvalues, dtype=np.float64)
+        #: ``(n, 2)`` landmark pairs ``(source, target)`` this basis was built from together with
+        #: its partner (``torchfmap basis SRC TGT --landmarks``), or None: saved and loaded with
+        #: the basis so that ``match --bases`` can tell corresponding bases from unrelated ones.
+        self.pair_landmarks: np.ndarray | None = None
 
     # -- sizes and provenance -----------------------------------------------------------------
     @property
@@ -213,6 +217,8 @@ class Basis:
             )
         if self.eigenvalues is not None:
             arrays["eigenvalues"] = self.eigenvalues
+        if self.pair_landmarks is not None:
+            arrays["pair_landmarks"] = np.asarray(self.pair_landmarks, dtype=np.int64).reshape(-1, 2)
         save_arrays(path, arrays)
         return path
 
@@ -238,9 +244,11 @@ class Basis:
                 strict=True,
             )
         ]
-        return cls(
+        basis = cls(
             arrays["values"], mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues")
         )
+        basis.pair_landmarks = arrays.get("pair_landmarks")
+        return basis
 
 
 def support_fraction(values: np.ndarray, eps: float = 1e-3, mass=None) -> np.ndarray:

@@ -242,12 +242,20 @@ def hybrid_zoomout(
     kind: BasisKind,
     k_final: int,
     step: int | None = None,
+    *,
+    guard: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
     """ZoomOut of a hybrid pair of bases (:mod:`torchfmap.bases.kinds.hybrid`): the eigen block
     grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
     :func:`~torchfmap.fmap.defaults.zoomout_step` of its size) while the feature block keeps its
     ``k_f`` columns; at each size both blocks are refitted from the point map
     (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
+
+    ``guard``: as :func:`zoomout`'s, scored by :func:`zoomout_energy` of the eigen block (the
+    feature block is not orthonormal, so it has no orthogonality energy): the start and every
+    iterate are scored over the eigen sizes and the lowest-energy point map is returned, with
+    both blocks refitted from it at the final size.
+
     Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
 
     Raises:
@@ -265,13 +273,27 @@ def hybrid_zoomout(
         raise ParameterError(f"step must be >= 1, got {step}.")
     p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
     sizes = list(range(k_e, k_end, step)) + [k_end]
-    for size in sizes:  # bounded: one pass per size
-        bx = join_blocks(shape_x.eigenbasis.truncated(size), fx)
-        by = join_blocks(shape_y.eigenbasis.truncated(size), fy)
-        C = np.zeros((by.k, bx.k))
-        C[:size, :size] = p2p_to_fmap(p2p, shape_x.eigenbasis, shape_y.eigenbasis, size, size)
+    eig_x, eig_y = shape_x.eigenbasis, shape_y.eigenbasis
+
+    def refit(p2p: np.ndarray, size: int) -> np.ndarray:
+        C = np.zeros((size + k_f, size + k_f))
+        C[:size, :size] = p2p_to_fmap(p2p, eig_x, eig_y, size, size)
         C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
+        return C
+
+    best = (zoomout_energy(p2p, eig_x, eig_y, sizes), p2p) if guard else None
+    for size in sizes:  # bounded: one pass per size
+        bx = join_blocks(eig_x.truncated(size), fx)
+        by = join_blocks(eig_y.truncated(size), fy)
+        C = refit(p2p, size)
         p2p = map_to_p2p(C, bx, by, kind, "orthogonal")
+        if guard:
+            energy = zoomout_energy(p2p, eig_x, eig_y, sizes)
+            if energy < best[0]:
+                best = (energy, p2p)
+    if guard and best[1] is not p2p:
+        p2p = best[1]
+        C = refit(p2p, k_end)
     return C, p2p, bx, by
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from .._files import load_checked_bytes, save_checked_bytes
-from ..errors import ParameterError
+from ..errors import CorruptFileError, ParameterError
 from .config import TrainConfig, build_model
 from .shipped import resolve_checkpoint
 
@@ -91,11 +91,34 @@ def save_checkpoint(
 
 def read_checkpoint(path, map_location="cpu") -> dict:
     """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
-    and plain containers only: a file cannot run code). Raises
-    :class:`~torchfmap.errors.CorruptFileError` for a truncated or altered file. ``path`` may
-    be a shipped model's name (:func:`~torchfmap.nn.shipped.resolve_checkpoint`)."""
-    payload = load_checked_bytes(resolve_checkpoint(path), "checkpoint")
-    return torch.load(io.BytesIO(payload), map_location=map_location, weights_only=True)
+    and plain containers only: a file cannot run code). ``path`` may be a shipped model's name
+    (:func:`~torchfmap.nn.shipped.resolve_checkpoint`).
+
+    Raises:
+        CorruptFileError: a truncated or altered file, a payload that is not a weights-only torch
+            file (a foreign or malicious pickle: refused, never run), or a dict without
+            ``state_dict`` and ``config``.
+        ParameterError: neither a file nor a shipped name.
+    """
+    file = resolve_checkpoint(path)
+    payload = load_checked_bytes(file, "checkpoint")
+    fix = "Fix: pass a file written by `torchfmap train` or save_checkpoint()."
+    try:
+        ckpt = torch.load(io.BytesIO(payload), map_location=map_location, weights_only=True)
+    except Exception as err:  # pickle.UnpicklingError (refused globals), RuntimeError, EOFError, ...
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CorruptFileError(
+            f"{file} holds no torchfmap checkpoint: its payload is not a weights-only torch file "
+            f"of tensors and plain values ({first}). Nothing in it was run. {fix}"
+        ) from None
+    missing = [key for key in ("state_dict", "config") if not isinstance(ckpt, dict) or key not in ckpt]
+    if missing:
+        what = f"a {type(ckpt).__name__}" if not isinstance(ckpt, dict) else f"keys {sorted(ckpt)}"
+        raise CorruptFileError(
+            f"{file} is not a torchfmap checkpoint: it has {what}, without {missing} (expected "
+            f"'state_dict', 'config' and optionally 'network', 'best_state_dict', 'train_state'). {fix}"
+        )
+    return ckpt
 
 
 def _network_class(name: str) -> type:
@@ -144,12 +167,31 @@ def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
                 "arguments. Fix: give the network an init_kwargs dict (or pass net_kwargs to "
                 "save_checkpoint) when saving, or build it yourself and load ckpt['state_dict']."
             )
-        net = cls(**kwargs)
+        try:
+            net = cls(**kwargs)
+        except (TypeError, ValueError) as err:
+            raise ParameterError(
+                f"the checkpoint's network {record['class']!r} cannot be built from its recorded "
+                f"arguments {kwargs} ({err}). Fix: use the torchfmap version that wrote it, or build "
+                "the network yourself and load ckpt['state_dict']."
+            ) from None
     state = ckpt.get("best_state_dict") if best and ckpt.get("best_state_dict") else ckpt["state_dict"]
+    if not isinstance(state, dict):
+        raise ParameterError(
+            f"the checkpoint's weights are a {type(state).__name__}, not a state dict. Fix: re-save it."
+        )
     dtypes = {t.dtype for t in state.values() if isinstance(t, torch.Tensor) and t.is_floating_point()}
     if len(dtypes) == 1:  # weights saved in one dtype (e.g. a float64 network): load them in it
         net = net.to(dtypes.pop())
-    net.load_state_dict(state)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as err:  # missing / unexpected keys, size mismatches
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()][1:4]
+        raise ParameterError(
+            f"the checkpoint's weights do not fit its network {type(net).__name__} as its config "
+            f"builds it: {'; '.join(lines)}. Fix: the config and the weights must come from the "
+            "same training run (do not edit one without the other)."
+        ) from None
     return net.eval()
 
 
@@ -164,6 +206,10 @@ def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
     whose basis names are read through :data:`LEGACY_BASIS_NAMES`."""
     if legacy and cfg.get("basis") in LEGACY_BASIS_NAMES:
         cfg = {**cfg, "basis": LEGACY_BASIS_NAMES[cfg["basis"]]}
+    if not isinstance(cfg, dict):
+        raise ParameterError(
+            f"the checkpoint's config is a {type(cfg).__name__}, not a dict. Fix: re-save it."
+        )
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(cfg) - names)
     if unknown:

@@ -76,10 +76,19 @@ class PrecomputeCache:
         save_arrays(self.path(key), arrays, CACHE_CHECKSUM_KEY)
 
     def get(self, key: str, compute) -> dict[str, np.ndarray]:
+        """The entry of ``key``, else ``compute()``, stored when the folder can take it: a write
+        that fails (full disk, folder removed, no permission) logs a warning and the computed
+        arrays are returned uncached."""
         arrays = self.load(key)
         if arrays is None:
             arrays = compute()
-            self.store(key, arrays)
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)
+                self.store(key, arrays)
+            except OSError as err:
+                log.warning(
+                    "cache folder %s cannot store %s (%s): computed without the cache", self.folder, key, err
+                )
         return arrays
 
 
@@ -262,9 +271,20 @@ class PairDataset(torch.utils.data.Dataset):
     """Pairs ``(x, y)`` of a :class:`ShapeDataset`: all ordered pairs, or the given index pairs."""
 
     def __init__(self, shapes: ShapeDataset, pairs=None) -> None:
+        """Raises :class:`ParameterError` when there is no pair (fewer than two shapes, or an
+        empty ``pairs``) or a pair indexes outside the shapes."""
         n = len(shapes)
         self.shapes = shapes
         self.pairs = [(i, j) for i in range(n) for j in range(n) if i != j] if pairs is None else list(pairs)
+        if not self.pairs:
+            raise ParameterError(
+                f"no pair of shapes to train on ({n} mesh{'es' if n != 1 else ''}"
+                f"{': ' + ', '.join(shapes.names) if 0 < n <= 3 else ''}). Fix: give a folder with "
+                "at least two meshes (pairs are formed within classes, e.g. cat0, cat1)."
+            )
+        bad = [p for p in self.pairs if len(p) != 2 or not all(0 <= int(i) < n for i in p)]
+        if bad:
+            raise ParameterError(f"pairs {bad[:3]} index outside the {n} shapes. Fix: indices in [0, {n}).")
 
     def __len__(self) -> int:
         return len(self.pairs)

@@ -22,6 +22,7 @@ instead of an error: pass ``check=True`` to debug on a GPU. Nothing global is re
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -157,6 +158,19 @@ def reconstruct(basis: BasisBatch, coeffs: torch.Tensor) -> torch.Tensor:
     return basis.values @ coeffs
 
 
+def check_solver_weights(w_desc: float, w_lap: float) -> None:
+    """The solver's weights: finite, ``w_desc > 0``, ``w_lap >= 0`` (else :class:`ParameterError`)."""
+    try:
+        ok = all(not isinstance(w, bool) and math.isfinite(float(w)) for w in (w_desc, w_lap))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or float(w_desc) <= 0 or float(w_lap) < 0:
+        raise ParameterError(
+            f"solver weights must be finite with w_desc > 0 and w_lap >= 0; got w_desc={w_desc!r}, "
+            f"w_lap={w_lap!r}. Fix: e.g. w_desc=1, w_lap=1e-3."
+        )
+
+
 def fmap_solve(
     feat_x: torch.Tensor,
     feat_y: torch.Tensor,
@@ -176,9 +190,11 @@ def fmap_solve(
     (descriptor + Laplacian terms). Padded columns (``valid == 0``) come out 0.
 
     Raises:
-        ParameterError: shapes that do not fit; with ``check`` (see the module docstring),
-            non-finite features or projections, or singular systems.
+        ParameterError: weights that are not finite with ``w_desc > 0``, ``w_lap >= 0``; shapes
+            that do not fit; with ``check`` (see the module docstring), non-finite features or
+            projections, or singular systems.
     """
+    check_solver_weights(w_desc, w_lap)
     basis_x, basis_y = basis_like(basis_x, feat_x), basis_like(basis_y, feat_y)
     if basis_x.values.shape[0] != basis_y.values.shape[0]:
         raise ParameterError(

@@ -17,6 +17,7 @@ from ..eval import geodesic_errors
 from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
 from ..fmap.refine import zoomout
 from ..mesh import Mesh
+from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_model
 from .data import ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
 from .modules import RegularizedFMSolver
@@ -150,6 +151,29 @@ def refine_p2p(
     return zoomout(C_xy, bx, by, k_final, mode="orthogonal")[1]
 
 
+def _shape_item(mesh: Mesh, config: TrainConfig, index: int = 0) -> dict:
+    """A dataset item of ``mesh`` precomputed as in training with ``config``."""
+    arrays = precompute_shape(mesh, config.k, config.n_wks, k_net=config.k_net, basis=config.basis)
+    return shape_item(arrays, config.inputs, name=mesh.name or "", index=index)
+
+
+def _network_p2p(
+    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, bases=None
+) -> np.ndarray:
+    """One pair's ``p2p_yx``: adapt (optional), predict, refine (optional)."""
+    if adapt_steps:
+        net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
+    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
+    return refine_p2p(meshes[0], meshes[1], p2p, bases=bases) if refine else p2p
+
+
+def _check_inference(adapt_steps: int, mode: str) -> None:
+    if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
+        raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
+    if mode not in ("fmap", "features"):
+        raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
+
+
 def match_with_network(
     net,
     config: TrainConfig,
@@ -167,18 +191,86 @@ def match_with_network(
     Precomputes both shapes as in training (:func:`~torchfmap.nn.data.precompute_shape`),
     optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`)
     and optionally refines with ZoomOut (:func:`refine_p2p`).
+
+    Raises:
+        ParameterError: ``adapt_steps < 0`` or an unknown ``mode``.
     """
-    items = [
-        shape_item(
-            precompute_shape(m, config.k, config.n_wks, k_net=config.k_net, basis=config.basis),
-            config.inputs,
-            name=m.name or "",
-            index=i,
-        )
-        for i, m in enumerate((mesh_x, mesh_y))
-    ]
+    _check_inference(adapt_steps, mode)
+    items = [_shape_item(m, config, i) for i, m in enumerate((mesh_x, mesh_y))]
     _, solver, loss_fn = build_model(config)
-    if adapt_steps:
-        net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
-    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
-    return refine_p2p(mesh_x, mesh_y, p2p) if refine else p2p
+    return _network_p2p(
+        net,
+        solver,
+        loss_fn,
+        items,
+        (mesh_x, mesh_y),
+        adapt_steps=adapt_steps,
+        adapt_lr=adapt_lr,
+        refine=refine,
+        mode=mode,
+        device=device,
+    )
+
+
+class CheckpointMatcher:
+    """Matches pairs of meshes with a trained network, for collections
+    (:func:`torchfmap.collection.evaluate_pairs` ``matcher=``; ``torchfmap eval --checkpoint``).
+
+    Calling ``matcher(mesh_x, mesh_y, key_x, key_y)`` returns ``p2p_yx (V_y,)`` as
+    :func:`match_with_network` would, but each mesh is precomputed once (and, with ``refine``,
+    its ZoomOut eigenbasis computed once) per process, keyed by ``key_*`` (e.g. its path). The
+    object pickles as its checkpoint name and settings only, so a process pool or a cluster
+    executor can take it: each process loads the network on its first call and keeps its own
+    shapes.
+
+    Args:
+        checkpoint: a path written by ``torchfmap train`` or a shipped model's name
+            (:func:`~torchfmap.nn.shipped.resolve_checkpoint`); read here, so a bad one raises now.
+        adapt_steps, adapt_lr, refine, mode: as :func:`match_with_network`.
+
+    Raises:
+        CorruptFileError, ParameterError: an unreadable checkpoint or an unknown name (as
+            :func:`~torchfmap.nn.checkpoints.load_checkpoint`), ``adapt_steps < 0`` or an
+            unknown ``mode``.
+    """
+
+    def __init__(
+        self, checkpoint, *, adapt_steps: int = 0, adapt_lr: float = 1e-4, refine: bool = False, mode="fmap"
+    ):
+        _check_inference(adapt_steps, mode)
+        self.checkpoint = checkpoint
+        self.adapt_steps, self.adapt_lr, self.refine, self.mode = adapt_steps, adapt_lr, refine, mode
+        self._model = load_checkpoint(checkpoint)[:2]
+        self._items: dict = {}
+        self._bases: dict = {}
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.update(_model=None, _items={}, _bases={})
+        return state
+
+    def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:
+        if self._model is None:
+            self._model = load_checkpoint(self.checkpoint)[:2]
+        net, config = self._model
+        for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
+            if key not in self._items:
+                self._items[key] = _shape_item(mesh, config)
+                if self.refine:
+                    k = min(200, mesh.n_vertices - 1)
+                    self._bases[key] = prepare_shape(mesh, k).eigenbasis
+        _, solver, loss_fn = build_model(config)
+        bases = (self._bases[key_x], self._bases[key_y]) if self.refine else None
+        return _network_p2p(
+            net,
+            solver,
+            loss_fn,
+            (self._items[key_x], self._items[key_y]),
+            (mesh_x, mesh_y),
+            adapt_steps=self.adapt_steps,
+            adapt_lr=self.adapt_lr,
+            refine=self.refine,
+            mode=self.mode,
+            device="cpu",
+            bases=bases,
+        )

@@ -143,8 +143,7 @@ class RegularizedFMSolver(nn.Module):
         check: bool | None = None,
     ):
         super().__init__()
-        if w_desc <= 0 or w_lap < 0:
-            raise ParameterError(f"weights must be w_desc > 0, w_lap >= 0; got {w_desc}, {w_lap}.")
+        F.check_solver_weights(w_desc, w_lap)  # the function's own check, early
         self.w_desc, self.w_lap, self.mask, self.both, self.check = w_desc, w_lap, mask, both, check
 
     def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch) -> F.FmapPair:

@@ -181,6 +181,7 @@ class DiffusionNet(nn.Module):
                 f"{c_in}, {c_out}, {width}, {n_blocks}, {dropout}."
             )
         self.lift = nn.Linear(c_in, width)
+        self.check = check
         self.blocks = nn.ModuleList(
             DiffusionNetBlock(width, dropout, gradients, check) for _ in range(n_blocks)
         )
@@ -188,7 +189,13 @@ class DiffusionNet(nn.Module):
 
     def forward(self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch) -> torch.Tensor:
         """``inputs (B, V, C_in)`` -> features ``(B, V, c_out)`` in ``inputs``' dtype; ``basis``
-        a :class:`BasisBatch` (or a module with ``.batch()``), cast to that dtype."""
+        a :class:`BasisBatch` (or a module with ``.batch()``), cast to that dtype.
+
+        Raises:
+            ParameterError: with the data check (``check``; None: CPU inputs), non-finite inputs.
+        """
+        if resolve_check(self.check, inputs):
+            check_finite(inputs, "DiffusionNet inputs", "check the precomputed inputs (WKS, XYZ).")
         basis = F.basis_like(basis, inputs)
         h = self.lift(inputs)
         for block in self.blocks:

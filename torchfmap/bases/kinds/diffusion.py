@@ -14,7 +14,7 @@ class DiffusionKind(SeededKind):
     cache (:func:`~torchfmap.bases.prepared.seed_kernels`)."""
 
     def columns_per_seed(self, times) -> int:
-        return 1 if times is None else len(times)
+        return len(relative_times(times, 1))  # checked here: an empty list is refused, not divided by
 
     def functions(self, shape, seeds, times=None):
         return seed_kernels(shape, seeds, relative_times(times, len(seeds)))
