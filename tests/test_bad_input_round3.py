@@ -430,3 +430,30 @@ def test_resume_with_a_spent_budget_is_refused(tmp_path, capsys):
     assert main([*args, "--max-steps", "2", "--resume"]) == 2
     err = _err(capsys)
     assert "already spent its budget --max-steps 2 (done: 2 steps)" in err and "larger budget" in err
+
+
+def test_eval_reads_landmark_pairs_per_pair_from_a_folder(tmp_path, capsys):
+    """``eval --landmarks DIR``: each pair's landmarks come from DIR/<source>-<target>.txt; the
+    result equals passing the same pairs to match() directly."""
+    from torchfmap import load_mesh
+    from torchfmap.collection import LandmarkFiles, evaluate_pairs
+    from torchfmap.eval import discover_pairs, evaluate_map
+
+    folder = _identity_folder(tmp_path)
+    lms = tmp_path / "lm"
+    lms.mkdir()
+    pairs = list(discover_pairs(folder))
+    for a, b, *_ in pairs:
+        (lms / f"{a}-{b}.txt").write_text("3 3\n60 60\n120 120\n")
+    results = evaluate_pairs(pairs, gt_landmarks=LandmarkFiles(lms), k=12, threads=1)
+    for (_, _, pa, pb, gt), r in zip(pairs, results, strict=True):
+        x, y = load_mesh(pa), load_mesh(pb)
+        p2p = match(x, y, landmarks=np.array([[3, 3], [60, 60], [120, 120]]), k=12).p2p_yx
+        np.testing.assert_array_equal(r.errors, evaluate_map(x, y, p2p, gt)[1])
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--k", "12", "--quiet"]) == 0
+    capsys.readouterr()
+    (lms / f"{pairs[0][0]}-{pairs[0][1]}.txt").unlink()
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--quiet"]) == 2
+    assert "no landmark file" in _err(capsys)
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--gt-landmarks", "3"]) == 2
+    assert "pass one of them" in _err(capsys)

@@ -166,7 +166,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
     p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
-    p.add_argument("--up", choices=["x", "y", "z"], default="z", help="the meshes' vertical axis in --png")
+    p.add_argument(
+        "--up",
+        choices=["x", "y", "z"],
+        default="z",
+        help="the meshes' vertical axis in --png (not detected: y for y-up meshes such as FAUST or TOSCA)",
+    )
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.add_argument(
@@ -179,6 +184,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--basis", choices=BASES, default=None, help="basis kind (default as in match)")
     p.add_argument("--k", type=positive_int, default=50, help="basis size")
     _refine_flags(p)
+    p.add_argument(
+        "--landmarks",
+        metavar="DIR",
+        help="landmark pairs per pair: DIR/<source>-<target>.txt, 'source_vertex target_vertex' per "
+        "line (instead of --gt-landmarks)",
+    )
     p.add_argument(
         "--maps",
         metavar="DIR",

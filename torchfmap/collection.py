@@ -22,7 +22,7 @@ from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import ParameterError
 from .eval import evaluate_map, landmarks_from_gt
-from .io import find_file, load_mesh, read_map, shape_name
+from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
 from .operators.geodesic import DistanceRows
 from .pipeline import match
 
@@ -85,6 +85,32 @@ class MapFiles:
         return p2p
 
 
+class LandmarkFiles:
+    """Landmarks of each pair read from a folder instead of the ground truth: the pairs of
+    ``(x, y)`` are ``folder/<name_x>-<name_y>.txt`` (or ``.gz``), one ``source_vertex
+    target_vertex`` pair per line, as ``torchfmap match --landmarks`` reads them. Pass it as
+    :func:`evaluate_pairs`'s ``gt_landmarks``. Picklable (it holds the folder only).
+
+    Raises (when called): ParameterError for a missing file (its expected name is given); the
+    file's own errors as :func:`~torchfmap.io.read_landmark_pairs`.
+    """
+
+    def __init__(self, folder) -> None:
+        self.folder = Path(folder).resolve()
+        if not self.folder.is_dir():
+            raise ParameterError(
+                f"landmarks folder {str(folder)!r} is not a folder. Fix: the folder of "
+                "<source>-<target>.txt files."
+            )
+
+    def __call__(self, path_x, path_y) -> np.ndarray:
+        name = f"{shape_name(path_x)}-{shape_name(path_y)}.txt"
+        path = find_file(self.folder, name)
+        if path is None:
+            raise ParameterError(f"no landmark file {name} (or {name}.gz) in {self.folder}. Fix: add it.")
+        return read_landmark_pairs(path)
+
+
 def pool_threads(workers: int) -> int:
     """Threads per worker of a local pool when none are given: the CPUs shared out."""
     return max(1, (os.cpu_count() or 1) // workers)
@@ -120,7 +146,10 @@ def _evaluate_chunk(
                     mesh = load_mesh(path)
                     shapes[path] = (mesh, prepare_shape(mesh, 0))
             (x, sx), (y, sy) = shapes[pa], shapes[pb]
-            landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
+            if isinstance(gt_landmarks, LandmarkFiles):
+                landmarks = gt_landmarks(pa, pb)
+            else:
+                landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
             t0 = time.perf_counter()
             if matcher is None:
                 p2p = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs).p2p_yx
@@ -188,7 +217,8 @@ def evaluate_pairs(
     by the same deterministic steps.
 
     Args:
-        gt_landmarks: use this many ground-truth pairs per pair as landmarks
+        gt_landmarks: use this many ground-truth pairs per pair as landmarks, or a
+            :class:`LandmarkFiles` to read each pair's landmarks from its file
             (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
         max_points: score at most this many points per pair.
         workers: local worker processes (1: this process).

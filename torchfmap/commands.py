@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from ._checks import is_symmetric
 from .bases import Basis, eigenpairs, get_kind, prepare_shape
-from .collection import MapFiles, evaluate_pairs
+from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
@@ -341,18 +341,20 @@ def _dask_executor(address: str):
 def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
     """``evaluate_pairs`` settings of ``torchfmap eval`` and the plot's title: the classical
     pipeline's, or a trained network's (``--checkpoint``)."""
+    if args.landmarks and args.gt_landmarks:
+        raise TorchFmapError("--landmarks and --gt-landmarks both give landmarks. Fix: pass one of them.")
     if args.maps:
-        if args.checkpoint or args.gt_landmarks or args.basis or args.refine or args.adapt:
+        if args.checkpoint or args.gt_landmarks or args.landmarks or args.basis or args.refine or args.adapt:
             raise TorchFmapError(
                 "--maps scores saved maps, so it takes no matching options. Fix: drop --checkpoint, "
-                "--gt-landmarks, --basis, --refine and --adapt (or drop --maps to match here)."
+                "--gt-landmarks, --landmarks, --basis, --refine and --adapt (or drop --maps to match here)."
             )
         return {"matcher": MapFiles(args.maps)}, f"saved maps in {args.maps}"
     if not args.checkpoint:
         if args.adapt:
             raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
         settings = dict(
-            gt_landmarks=args.gt_landmarks,
+            gt_landmarks=LandmarkFiles(args.landmarks) if args.landmarks else args.gt_landmarks,
             basis=args.basis,
             k=args.k,
             refine=args.refine,
@@ -360,8 +362,9 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
             w_lap=args.w_lap,
         )
         lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
+        lm += f", landmarks from {args.landmarks}" if args.landmarks else ""
         return settings, f"{args.basis or 'laplacian'} basis, k={args.k}, refine {args.refine or '-'}{lm}"
-    if args.gt_landmarks or args.basis or args.k_final or args.w_lap is not None:
+    if args.gt_landmarks or args.landmarks or args.basis or args.k_final or args.w_lap is not None:
         raise TorchFmapError(
             "--checkpoint matches with the network's own basis and without landmarks. Fix: drop "
             "--gt-landmarks / --basis / --k-final / --w-lap (or drop --checkpoint for the classical "
