@@ -238,8 +238,9 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
         raise
     except Exception as err:  # trimesh raises many types for malformed files
         raise MeshError(f"could not parse {path.name!r} as {fmt.upper()}: {err}") from err
-    vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    faces = np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3)
+    # older trimesh returns a PointCloud (no faces) for a file without faces, even with force="mesh"
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if fmt == "stl" and len(faces):
         vertices, faces = merge_soup(vertices, faces)
     if len(faces) == 0 and fmt in ("ply", "off", "obj"):
