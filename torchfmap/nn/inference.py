@@ -240,9 +240,14 @@ class CheckpointMatcher:
         _check_inference(adapt_steps, mode)
         self.checkpoint = checkpoint
         self.adapt_steps, self.adapt_lr, self.refine, self.mode = adapt_steps, adapt_lr, refine, mode
-        self._model = load_checkpoint(checkpoint)[:2]
+        self._model = self._load()
         self._items: dict = {}
         self._bases: dict = {}
+
+    def _load(self) -> tuple:
+        net, config, _ = load_checkpoint(self.checkpoint)
+        _, solver, loss_fn = build_model(config)
+        return net, config, solver, loss_fn
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -251,15 +256,14 @@ class CheckpointMatcher:
 
     def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:
         if self._model is None:
-            self._model = load_checkpoint(self.checkpoint)[:2]
-        net, config = self._model
+            self._model = self._load()
+        net, config, solver, loss_fn = self._model
         for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
             if key not in self._items:
                 self._items[key] = _shape_item(mesh, config)
                 if self.refine:
                     k = min(200, mesh.n_vertices - 1)
                     self._bases[key] = prepare_shape(mesh, k).eigenbasis
-        _, solver, loss_fn = build_model(config)
         bases = (self._bases[key_x], self._bases[key_y]) if self.refine else None
         return _network_p2p(
             net,
