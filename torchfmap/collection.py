@@ -50,7 +50,30 @@ SOURCE_COST = 5.0
 _POOL_SHAPES: dict | None = None
 
 
-class MapFiles:
+class _PairFiles:
+    """Files of a folder named per pair, ``folder/<name_x>-<name_y>.txt`` (or ``.gz``); holds the
+    folder only, so it pickles."""
+
+    what = "file"  # what each file is, for messages
+
+    def __init__(self, folder) -> None:
+        self.folder = Path(folder).resolve()
+        if not self.folder.is_dir():
+            raise ParameterError(
+                f"{self.what} folder {str(folder)!r} is not a folder. Fix: the folder of "
+                "<source>-<target>.txt files."
+            )
+
+    def path(self, path_x, path_y, fix: str) -> Path:
+        """The file of the pair, or :class:`ParameterError` naming the expected file and ``fix``."""
+        name = f"{shape_name(path_x)}-{shape_name(path_y)}.txt"
+        found = find_file(self.folder, name)
+        if found is None:
+            raise ParameterError(f"no {self.what} {name} (or {name}.gz) in {self.folder}. Fix: {fix}")
+        return found
+
+
+class MapFiles(_PairFiles):
     """A matcher for :func:`evaluate_pairs` that reads saved maps instead of matching: the map of
     ``(x, y)`` is ``folder/<name_x>-<name_y>.txt`` (or ``.txt.gz``), as ``torchfmap match --out``
     writes it (line i: the source vertex of target vertex i; :func:`~torchfmap.io.read_map`).
@@ -61,21 +84,14 @@ class MapFiles:
             not fit the meshes (:func:`~torchfmap.io.read_map` and the evaluation's checks).
     """
 
-    def __init__(self, folder) -> None:
-        self.folder = Path(folder).resolve()
-        if not self.folder.is_dir():
-            raise ParameterError(
-                f"--maps {str(folder)!r} is not a folder. Fix: the folder of the saved maps."
-            )
+    what = "saved map"
 
     def __call__(self, mesh_x, mesh_y, path_x, path_y) -> np.ndarray:
-        name = f"{shape_name(path_x)}-{shape_name(path_y)}.txt"
-        path = find_file(self.folder, name)
-        if path is None:
-            raise ParameterError(
-                f"no saved map {name} (or {name}.gz) in {self.folder}. Fix: write it with `torchfmap "
-                f"match SOURCE TARGET --out {self.folder / name}`, or drop --maps to match here."
-            )
+        path = self.path(
+            path_x,
+            path_y,
+            "write it with `torchfmap match SOURCE TARGET --out` there, or drop --maps to match here.",
+        )
         p2p = read_map(path)
         if len(p2p) != mesh_y.n_vertices:
             raise ParameterError(
@@ -85,7 +101,7 @@ class MapFiles:
         return p2p
 
 
-class LandmarkFiles:
+class LandmarkFiles(_PairFiles):
     """Landmarks of each pair read from a folder instead of the ground truth: the pairs of
     ``(x, y)`` are ``folder/<name_x>-<name_y>.txt`` (or ``.gz``), one ``source_vertex
     target_vertex`` pair per line, as ``torchfmap match --landmarks`` reads them. Pass it as
@@ -95,20 +111,10 @@ class LandmarkFiles:
     file's own errors as :func:`~torchfmap.io.read_landmark_pairs`.
     """
 
-    def __init__(self, folder) -> None:
-        self.folder = Path(folder).resolve()
-        if not self.folder.is_dir():
-            raise ParameterError(
-                f"landmarks folder {str(folder)!r} is not a folder. Fix: the folder of "
-                "<source>-<target>.txt files."
-            )
+    what = "landmark file"
 
     def __call__(self, path_x, path_y) -> np.ndarray:
-        name = f"{shape_name(path_x)}-{shape_name(path_y)}.txt"
-        path = find_file(self.folder, name)
-        if path is None:
-            raise ParameterError(f"no landmark file {name} (or {name}.gz) in {self.folder}. Fix: add it.")
-        return read_landmark_pairs(path)
+        return read_landmark_pairs(self.path(path_x, path_y, "add it."))
 
 
 def pool_threads(workers: int) -> int:

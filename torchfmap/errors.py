@@ -53,32 +53,29 @@ class FileReadError(OSError, TorchFmapError):
 
 
 @functools.cache
-def _read_error_class(base: type) -> type:
-    if base is OSError or issubclass(base, FileReadError):
-        return FileReadError if base is OSError else base
-    return type(base.__name__, (FileReadError, base), {"__module__": __name__})
+def _joined_class(kind: type, base: type) -> type:
+    """``kind`` (:class:`FileReadError` or :class:`FileWriteError`) joined with the OSError
+    subclass ``base``, one class per pair, so the error is an instance of both."""
+    if base is OSError or issubclass(base, kind):
+        return kind if base is OSError else base
+    return type(base.__name__, (kind, base), {"__module__": __name__})
+
+
+def _joined(kind: type, err: OSError, message: str):
+    cls = _joined_class(kind, type(err))
+    return cls(err.errno, message) if err.errno is not None else cls(message)
 
 
 def file_read_error(err: OSError, path, what: str = "file") -> FileReadError:
     """A :class:`FileReadError` (also an instance of ``type(err)``, same errno) naming ``path``."""
-    cls = _read_error_class(type(err))
     reason = err.strerror or str(err)
     message = f"cannot read the {what} {str(path)!r} ({reason}). Fix: check the path and its permissions."
-    return cls(err.errno, message) if err.errno is not None else cls(message)
-
-
-@functools.cache
-def _write_error_class(base: type) -> type:
-    """:class:`FileWriteError` joined with ``base`` (one class per OSError subclass)."""
-    if base is OSError or issubclass(base, FileWriteError):
-        return FileWriteError if base is OSError else base
-    return type(base.__name__, (FileWriteError, base), {"__module__": __name__})
+    return _joined(FileReadError, err, message)
 
 
 def file_write_error(err: OSError, message: str) -> FileWriteError:
     """A :class:`FileWriteError` that is also an instance of ``type(err)``, with its errno."""
-    cls = _write_error_class(type(err))
-    return cls(err.errno, message) if err.errno is not None else cls(message)
+    return _joined(FileWriteError, err, message)
 
 
 class MapWarning(UserWarning):
