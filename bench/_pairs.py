@@ -1,9 +1,11 @@
 """Real pairs, landmarks, errors and result rows shared by ``accuracy.py``, ``landmark_sweep.py``
 and ``weight_sweep.py``.
 
-Pairs: ``faust:A-B`` is ``faust_r_train/tr_reg_A.off`` (x) and ``tr_reg_B.off`` (y) with their
-``corres/*.vts`` rows; ``A-B`` is ``tosca5k_dev/A.off`` (source x) and ``B.off`` (target y), ground truth the
-rows of ``corres/A.vts`` and ``corres/B.vts``; ``A~B`` is the same with ``B`` deformed
+Pairs: ``smal:A+B`` is ``smal_r_train/A.off.gz`` (x) and ``B.off.gz`` (y) with their
+``corres/*.vts`` rows (SMAL template vertices); ``faust:A-B`` is ``faust_r_train/tr_reg_A.off``
+(x) and ``tr_reg_B.off`` (y) with their ``corres/*.vts`` rows; ``A-B`` is
+``tosca5k_dev/A.off`` (source x) and ``B.off`` (target y), ground truth the rows of
+``corres/A.vts`` and ``corres/B.vts``; ``A~B`` is the same with ``B`` deformed
 non-isometrically by ``torchfmap.data.stretch_deform(B, seed=crc32(name of B), strength=1)``
 (vertex ids kept, so the same ground truth); ``cat-lion`` is ``pyfm_cat_lion`` with x = cat-00,
 y = lion-00 and ground truth ``lion2cat`` (line i: the cat vertex of lion vertex i).
@@ -64,6 +66,14 @@ class Pair:
             folder = require_data("faust_r_train")
             self.x = torchfmap.load_mesh(folder / f"{a}.off")
             self.y = torchfmap.load_mesh(folder / f"{b}.off")
+            corres = folder / "corres"
+            self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+            self.fixed = None
+        elif spec.startswith("smal:"):  # smal:A+B: SMAL_r training animals A (x), B (y)
+            a, b = spec.split(":", 1)[1].split("+")
+            folder = require_data("smal_r_train")
+            self.x = torchfmap.load_mesh(folder / f"{a}.off.gz")
+            self.y = torchfmap.load_mesh(folder / f"{b}.off.gz")
             corres = folder / "corres"
             self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
             self.fixed = None

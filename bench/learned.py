@@ -7,7 +7,13 @@ Run by hand from the repository root, after ``torchfmap train`` (see README, "Le
     python3 bench/learned.py --checkpoints dev=/tmp/learn/dev.ckpt --adapt 10 --adapt-pairs 12
     python3 bench/learned.py --checkpoints eigen=a.ckpt,stack=b.ckpt --pairs all --name bases
 
-Pairs: ``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``) or 40 FAUST_r
+Every shipped model on every dev set, one table (``--checkpoints`` defaults to the shipped
+models; the remeshed sets come from ``bench/make_remeshed.py``)::
+
+    python3 bench/learned.py --sets faust_val,faust_a,scape_r,scape_a,tosca --name sets
+
+Pairs: ``--sets`` (see :func:`dev_set`), or the older ``--pairs``:
+``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``) or 40 FAUST_r
 validation pairs among tr_reg_070..079 (``--pairs faust_val``). Errors: mean
 normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
@@ -49,6 +55,52 @@ def faust_val_pairs(n: int = 40) -> list[tuple[str, str]]:
     every = [(a, b) for a in FAUST_VAL for b in FAUST_VAL if a != b]
     pick = np.random.default_rng(0).choice(len(every), n, replace=False)
     return [every[i] for i in pick]
+
+
+def val_pairs(names: list[str], n: int = 40, seed: int = 0) -> list[tuple[str, str]]:
+    """``n`` ordered pairs drawn with ``seed`` among ``names`` (all of them if fewer)."""
+    every = [(a, b) for a in names for b in names if a != b]
+    pick = np.random.default_rng(seed).choice(len(every), min(n, len(every)), replace=False)
+    return [every[i] for i in pick]
+
+
+#: Dev sets of ``--sets``: (folder, where (shared data or bench/data), meshes, pairs).
+SCAPE_VAL = [f"mesh{i:03d}" for i in range(41, 51)]
+
+
+def dev_set(name: str):
+    """``(files, names, pairs (index pairs), ground truths)`` of a dev set of ``--sets``:
+    ``faust_val`` (FAUST_r tr_reg_070..079), ``faust_a`` (the same shapes anisotropically
+    remeshed, ``bench/make_remeshed.py``), ``scape_r`` / ``scape_a`` (SCAPE poses 041..050 remeshed
+    isotropically / anisotropically; the F+S recipe trains on 000..040), each 40 ordered pairs
+    drawn with seed 0; ``tosca`` (``tosca5k_dev/test_pairs.txt``); ``smal_val`` (the SMAL_r
+    validation animals of the ``smal_r`` recipe, all ordered pairs)."""
+    from _common import BENCH_DIR, smal_split
+
+    local = BENCH_DIR / "data"
+    if name == "tosca":
+        folder = require_data("tosca5k_dev")
+        rows = read_test_pairs(folder / "test_pairs.txt")
+        names = sorted({n for r in rows for n in r})
+        suffix = ".off"
+    else:
+        folder, names, suffix = {
+            "faust_val": (require_data("faust_r_train"), FAUST_VAL, ".off"),
+            "faust_a": (local / "faust_a", FAUST_VAL, ".off"),
+            "scape_r": (local / "scape_r", SCAPE_VAL, ".off"),
+            "scape_a": (local / "scape_a", SCAPE_VAL, ".off"),
+            "smal_val": (require_data("smal_r_train"), smal_split()[1], ".off.gz"),
+        }[name]
+        if not folder.exists():
+            raise SystemExit(f"skipped: {folder} not found (python3 bench/make_remeshed.py makes it)")
+        rows = val_pairs(names, 40 if name != "smal_val" else 10**6)
+    files = [folder / f"{n}{suffix}" for n in names]
+    pairs = [(names.index(a), names.index(b)) for a, b in rows]
+    gts = [
+        gt_from_vts(read_vts(folder / "corres" / f"{a}.vts"), read_vts(folder / "corres" / f"{b}.vts"))
+        for a, b in rows
+    ]
+    return files, names, pairs, gts
 
 
 def test_pairs(folder, names, which: str):
@@ -97,6 +149,8 @@ def loss_png(curves: dict, path) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, losses in curves.items():
         total = np.array([t["total"] for t in losses])
+        if not len(total):  # a shipped model keeps no loss history
+            continue
         w = max(1, len(total) // 50)
         ax.plot(np.convolve(total, np.ones(w) / w, mode="valid"), label=f"{label} (mean of {w})")
     ax.set_yscale("log")
@@ -108,14 +162,23 @@ def loss_png(curves: dict, path) -> None:
     plt.close(fig)
 
 
-def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: dict) -> None:
+def run_checkpoint(
+    spec: str, args, data, report: Report, rows: list, curves: dict, set_name: str = ""
+) -> None:
+    """Rows of one checkpoint on one set: ``data`` is ``(files, pairs, gts)``, or a folder of the
+    old ``--pairs`` choices."""
     label, path = spec.split("=")
     net, config, ckpt = load_checkpoint(path)
     state = ckpt.get("train_state", {})
     curves[label] = state.get("losses", [])
-    files = [folder / f"{n}.off" for n in FAUST_VAL] if args.pairs == "faust_val" else folder
-    shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
-    pairs, gts = test_pairs(folder, shapes.names, args.pairs)
+    if isinstance(data, tuple):
+        files, pairs, gts = data
+        shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
+    else:
+        folder = data
+        files = [folder / f"{n}.off" for n in FAUST_VAL] if args.pairs == "faust_val" else folder
+        shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
+        pairs, gts = test_pairs(folder, shapes.names, args.pairs)
     solver, loss_fn = build_model(config)[1:]
     untrained = build_model(config)[0].eval()
     errors: dict[str, list[float]] = {}
@@ -140,10 +203,12 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
         pe = PairErrors(shapes, (a, b), gt, args.max_points)
         mx = pe.mesh_x
         my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
-        add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
+        if not args.quick:
+            add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
         base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pe)  # noqa: B023
-        add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
-        add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
+        if not args.quick:
+            add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
+            add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
         if not args.no_refine:
             bases = (eigenbasis(a, mx), eigenbasis(b, my))
             add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base, bases=bases), pe)  # noqa: B023
@@ -161,6 +226,7 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
         rows.append(
             {
                 "model": label,
+                **({"set": set_name} if set_name else {}),
                 "method": method,
                 "pairs": len(errs),
                 "mean error": float(np.mean(errs)),
@@ -168,6 +234,8 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
             }
         )
     secs = state.get("epoch_seconds", [])
+    if set_name and set_name != args.sets.split(",")[0]:
+        return  # the training summary once per checkpoint
     report.add(
         f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
         f"{state.get('step', '?')} steps, {state.get('epoch', '?')} full epochs, "
@@ -178,7 +246,15 @@ def run_checkpoint(spec: str, args, folder, report: Report, rows: list, curves: 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoints", required=True, help="label=path,label=path")
+    parser.add_argument(
+        "--checkpoints", default=None, help="label=path,label=path (default: every shipped model)"
+    )
+    parser.add_argument(
+        "--sets",
+        default=None,
+        help="comma list of dev sets (faust_val, faust_a, scape_r, scape_a, tosca, smal_val): one "
+        "table of every checkpoint on every set (replaces --pairs)",
+    )
     parser.add_argument(
         "--pairs",
         default="all",
@@ -191,15 +267,30 @@ def main() -> None:
     parser.add_argument("--adapt-pairs", type=int, default=12)
     parser.add_argument("--max-points", type=int, default=500)
     parser.add_argument("--no-refine", action="store_true")
+    parser.add_argument("--max-pairs", type=int, default=0, help="the first N pairs of each set (0: all)")
+    parser.add_argument(
+        "--quick", action="store_true", help="only the trained fmap and ZoomOut rows (no untrained, features)"
+    )
     parser.add_argument("--cache", default=None)
     args = parser.parse_args()
-    data = "faust_r_train" if args.pairs == "faust_val" else "tosca5k_dev"
-    folder = require_data(data)
+    if args.checkpoints is None:
+        from torchfmap.nn.shipped import shipped_models
+
+        args.checkpoints = ",".join(f"{name}={path}" for name, path in shipped_models().items())
     report = Report(f"learned_{args.name}")
-    report.add(f"# Learned path on {data} ({args.pairs} pairs; {load_note()} at start)")
     rows, curves = [], {}
-    for spec in args.checkpoints.split(","):
-        run_checkpoint(spec, args, folder, report, rows, curves)
+    if args.sets:
+        report.add(f"# Learned path on the dev sets {args.sets} ({load_note()} at start)")
+        for set_name in args.sets.split(","):
+            files, _, pairs, gts = dev_set(set_name)
+            pairs, gts = pairs[: args.max_pairs or None], gts[: args.max_pairs or None]
+            for spec in args.checkpoints.split(","):
+                run_checkpoint(spec, args, (files, pairs, gts), report, rows, curves, set_name)
+    else:
+        data = "faust_r_train" if args.pairs == "faust_val" else "tosca5k_dev"
+        report.add(f"# Learned path on {data} ({args.pairs} pairs; {load_note()} at start)")
+        for spec in args.checkpoints.split(","):
+            run_checkpoint(spec, args, require_data(data), report, rows, curves)
     report.table("Mean geodesic error (normalised by sqrt(area))", rows)
     png = RESULTS_DIR / f"learned_{args.name}_loss.png"
     loss_png(curves, png)

@@ -1,5 +1,7 @@
-"""Unsupervised training on TOSCA (dev split) with the training API: your network, loss,
-optimiser, scheduler and device (here the reference recipe), then errors on the test pairs.
+"""Unsupervised training on TOSCA (dev split) with the reference recipe
+(``torchfmap.nn.train_recipe``: everything from ``TrainConfig``, the same code as ``torchfmap
+train`` and each DDP rank), then errors on the test pairs. A network, loss or optimiser of your
+own goes through ``torchfmap.nn.train`` (README, "Learning").
 
 Trains on every mesh of ``../shared/data/tosca5k_dev`` (pairs within classes, no ground truth),
 keeps the weights with the best validation score (the mean unsupervised loss on the test
@@ -25,10 +27,10 @@ import torch
 from torchfmap.eval import gt_from_vts
 from torchfmap.io import mesh_files, read_test_pairs, read_vts
 from torchfmap.nn.checkpoints import save_checkpoint
-from torchfmap.nn.config import CosineByTime, TrainConfig, build_model
-from torchfmap.nn.data import PairDataset, ShapeDataset, class_pairs
+from torchfmap.nn.config import TrainConfig, build_model, build_solver
+from torchfmap.nn.data import ShapeDataset
 from torchfmap.nn.inference import evaluate
-from torchfmap.nn.train import ddp_worker, train, unsupervised_score
+from torchfmap.nn.train import ddp_worker, train_recipe, unsupervised_score
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tosca5k_dev"
 
@@ -48,7 +50,7 @@ def main() -> None:
     )
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--minutes", type=float, default=5.0)
-    parser.add_argument("--epochs", type=int, default=1000)
+    parser.add_argument("--epochs", type=int, default=None, help="default: the time budget alone")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--cache", type=Path, default=None, help="default: the per-user cache")
     parser.add_argument("--out", type=Path, default=Path("examples/out/fmnet.ckpt"))
@@ -73,26 +75,13 @@ def main() -> None:
         return
     shapes = ShapeDataset(args.data, args.cache, **config.dataset_kwargs())
     pairs, gts = test_pairs(shapes.names, args.data, args.eval_pairs)
-    net, solver, loss_fn = build_model(config)  # or your own FeatureNetwork, solver and loss
-    before = evaluate(net, shapes, pairs, gts, solver, device=args.device)
-    optimizer = torch.optim.Adam(net.parameters(), lr=config.lr)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, CosineByTime(args.minutes))
+    solver, loss_fn = build_solver(config)
+    untrained, _, _ = build_model(config)  # the recipe's network before training (same seed)
+    before = evaluate(untrained, shapes, pairs, gts, solver, device=args.device)
     validate = unsupervised_score(shapes, pairs, solver, loss_fn, device=args.device)  # no ground truth
     t0 = time.perf_counter()
-    state = train(
-        net,
-        PairDataset(shapes, class_pairs(shapes.names)),
-        loss_fn,
-        optimizer,
-        solver=solver,
-        scheduler=scheduler,
-        device=args.device,
-        epochs=args.epochs,
-        minutes=args.minutes,
-        validate=validate,
-        validate_every=100,
-        checkpoint=args.out,
-        config=config,
+    state, net = train_recipe(
+        config, shapes, out=args.out, validate=validate, validate_every=100, device=args.device
     )
     after = evaluate(net, shapes, pairs, gts, solver, device=args.device)
     save_checkpoint(args.out, net, config, train_state=asdict(state), error_before=before, error_after=after)

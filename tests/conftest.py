@@ -119,3 +119,21 @@ def planar_grid(n: int = 8, jitter: float = 0.2, seed: int = 0) -> Mesh:
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     return Mesh(v, faces)
+
+
+def make_bent_pair(strength: float = 0.3, seed: int = 2):
+    """``(x, y, gt)``: the bumpy blob ``x`` (642 vertices), ``y`` the same surface bent and its
+    vertices shuffled, and the ground truth ``Correspondence`` (vertex ``v`` of ``y`` is
+    ``gt.idx_x[v]`` of ``x``)."""
+    from torchfmap.eval import Correspondence
+
+    x = bumpy_blob(3)
+    perm = np.random.default_rng(seed).permutation(x.n_vertices)
+    y = x.copy(bend(x.vertices, strength)).permuted(perm)
+    return x, y, Correspondence(idx_x=perm, idx_y=np.arange(y.n_vertices))
+
+
+@pytest.fixture(scope="session")
+def bent_pair():
+    """:func:`make_bent_pair` with its defaults (shared by the tests of matching)."""
+    return make_bent_pair()

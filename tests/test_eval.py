@@ -90,7 +90,7 @@ def test_shape_distance_and_retrieval():
 
 def test_retrieval_on_two_synthetic_classes():
     """Bent blobs and ellipsoids: shape distances from maps separate the classes."""
-    from torchfmap.pipeline import shape_distance_matrix
+    from torchfmap.collection import shape_distance_matrix
 
     blob = bumpy_blob(2)
     sphere = icosphere(2)

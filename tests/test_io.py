@@ -219,3 +219,13 @@ def test_index_files_name_the_problem(tmp_path):
     (tmp_path / "latin.txt").write_bytes(b"1\n\xe9\n")
     with pytest.raises(TorchFmapError, match="not UTF-8"):
         read_text(tmp_path / "latin.txt", "landmark")
+
+
+def test_one_based_off_faces_are_named_as_such(tmp_path):
+    path = tmp_path / "one_based.off"
+    path.write_text("OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 1 2 3\n3 1 2 4\n3 1 3 4\n3 2 3 4\n")
+    with pytest.raises(MeshError, match=r"1-based face indices: every index is in 1\.\.4 and none is 0"):
+        load_mesh(path)
+    path.write_text("OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n3 0 1 9\n")
+    with pytest.raises(MeshError, match="face index 9, outside the 4 vertices"):
+        load_mesh(path)

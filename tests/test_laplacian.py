@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchfmap import Mesh, MeshError, ParameterError, laplacian, mass_matrix, normalize_area
+from torchfmap import Mesh, MeshError, ParameterError, laplacian, mass_matrix
 from torchfmap.data import icosphere
+from torchfmap.operators import normalize_area
 
 from .conftest import data_path, planar_grid, random_rotation, smallest_eigenvalues
 

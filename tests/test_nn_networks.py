@@ -413,10 +413,10 @@ def test_eval_command_with_checkpoint_prepares_each_mesh_once_and_pools_agree(
     pairs = list(discover_pairs(tiny_folder))
     assert len(pairs) >= 2
     made = []
-    real = inference._shape_item
+    real = inference._prepared
     matcher = inference.CheckpointMatcher(ckpt)
     monkeypatch.setattr(
-        inference, "_shape_item", lambda m, config, index=0: made.append(m) or real(m, config, index)
+        inference, "_prepared", lambda m, config, refine: made.append(m) or real(m, config, refine)
     )
     results = evaluate_pairs(pairs, threads=1, matcher=matcher)
     monkeypatch.undo()
@@ -460,3 +460,80 @@ def test_class_pairs_and_shape_batch_to():
     moved = shape.to(torch.float32)
     assert moved.basis.values.dtype == moved.inputs.dtype == moved.grad.weight_x.dtype == torch.float32
     assert moved.grad.rows.dtype == moved.lengths.dtype == torch.int64
+
+
+def test_checkpoint_match_with_zoomout_computes_one_laplacian_and_one_eigenbasis_per_shape(
+    tiny_folder, tmp_path, monkeypatch
+):
+    """``match --checkpoint M --refine zoomout``: the network's inputs, its bases and ZoomOut's
+    eigenbasis all come from one prepared shape per mesh."""
+    import torchfmap.bases.prepared as prepared
+    from torchfmap.io import load_mesh
+    from torchfmap.nn.checkpoints import load_checkpoint
+    from torchfmap.nn.inference import match_with_network
+
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
+    assert main([*args, "--max-steps", "1"]) == 0
+    net, config, _ = load_checkpoint(ckpt)
+    x, y = load_mesh(tiny_folder / "blob0.ply"), load_mesh(tiny_folder / "blob1.ply")
+    counts = {"laplacian": 0, "eigen": 0}
+    real_lap, real_eig = prepared.laplacian, prepared.laplacian_eigenbasis
+
+    def lap(*a, **kw):
+        counts["laplacian"] += 1
+        return real_lap(*a, **kw)
+
+    def eig(*a, **kw):
+        counts["eigen"] += 1
+        return real_eig(*a, **kw)
+
+    monkeypatch.setattr(prepared, "laplacian", lap)
+    monkeypatch.setattr(prepared, "laplacian_eigenbasis", eig)
+    refined = match_with_network(net, config, x, y, refine=True)
+    assert counts == {"laplacian": 2, "eigen": 2}
+    monkeypatch.undo()
+    assert refined.shape == (y.n_vertices,)
+    pair = [str(tiny_folder / "blob0.ply"), str(tiny_folder / "blob1.ply")]
+    out = str(tmp_path / "m.txt")
+    flags = ["--checkpoint", str(ckpt), "--refine", "zoomout", "--out", out, "--quiet"]
+    assert main(["match", *pair, *flags]) == 0
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "m.txt", dtype=np.int64), refined)
+
+
+def test_match_with_checkpoint_refuses_flags_it_would_ignore(tiny_folder, tmp_path, capsys):
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
+    assert main([*args, "--max-steps", "1"]) == 0
+    pair = [str(tiny_folder / "blob0.ply"), str(tiny_folder / "blob1.ply")]
+    base = ["match", *pair, "--checkpoint", str(ckpt), "--out", str(tmp_path / "m.txt")]
+    for extra, flag in (
+        (["--k", "10"], "--k"),
+        (["--basis", "laplacian"], "--basis"),
+        (["--k-final", "20"], "--k-final"),
+        (["--w-lap", "0.5"], "--w-lap"),
+        (["--times", "0.01"], "--times"),
+        (["--p2p-mode", "pullback"], "--p2p-mode"),
+    ):
+        capsys.readouterr()
+        assert main([*base, *extra]) == 2
+        assert f"{flag} would change nothing" in capsys.readouterr().err
+    assert main([*base, "--refine", "icp"]) == 2
+    assert "ZoomOut only" in capsys.readouterr().err
+
+
+def test_resume_refuses_another_recipe_and_save_refuses_a_wrong_config(tiny_folder, tmp_path, capsys):
+    from torchfmap.nn import TrainConfig, build_model, save_checkpoint
+
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
+    assert main([*args, "--max-steps", "1"]) == 0
+    capsys.readouterr()
+    bad = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "10", "--no-cache", "--quiet", "--resume"]
+    assert main([*bad, "--max-steps", "2"]) == 2
+    assert "--k 10 (checkpoint: 8)" in capsys.readouterr().err
+    assert main([*args, "--resume", "--max-steps", "2"]) == 0  # the same recipe continues
+    net = build_model(TrainConfig(width=48))[0]
+    with pytest.raises(ParameterError, match="width: config 32, network 48"):
+        save_checkpoint(tmp_path / "x.ckpt", net, TrainConfig(width=32))
+    assert not (tmp_path / "x.ckpt").exists()

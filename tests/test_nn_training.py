@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from dataclasses import asdict
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 from torchfmap import save_mesh
 from torchfmap.eval import gt_from_vts
 from torchfmap.io import read_vts
-from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
 from torchfmap.nn.config import TrainConfig, build_model
 from torchfmap.nn.data import PairDataset, PrecomputeCache, ShapeDataset, collate_pairs, mesh_key
 from torchfmap.nn.inference import evaluate
@@ -162,3 +163,36 @@ def test_refine_p2p_reuses_given_eigenbases_and_refuses_wrong_ones():
         refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(bases[0], laplacian_eigenbasis(mesh_y, 20)))
     with pytest.raises(ParameterError, match="eigenbasis"):
         refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(harmonic_basis(mesh_x, np.arange(40)), bases[1]))
+
+
+@pytest.mark.slow
+def test_ddp_follows_the_time_budget_and_schedule_of_one_process(tmp_path, blob_files):
+    """A DDP run reads its whole budget from the config (train_recipe): a time budget stops it
+    (the epochs alone would run far longer) and the cosine schedule reaches its floor there."""
+    budget_s = 4.0
+    config = TrainConfig(
+        k=8,
+        n_wks=8,
+        k_net=8,
+        epochs=None,
+        minutes=budget_s / 60,
+        width=16,
+        c_out=16,
+        n_blocks=1,
+        clip_grad=1.0,
+    )
+    t0 = time.perf_counter()
+    torch.multiprocessing.spawn(
+        ddp_worker,
+        args=(2, _free_port(), blob_files, tmp_path / "cache", asdict(config), tmp_path / "ddp.ckpt"),
+        nprocs=2,
+    )
+    assert time.perf_counter() - t0 < 120  # spawn and imports included; the epochs are unbounded
+    ckpt = read_checkpoint(tmp_path / "ddp.ckpt")
+    state = ckpt["train_state"]
+    # training stops at the first step boundary after the budget: within one step of it
+    steps = max(state["step"], 1)
+    assert budget_s <= state["seconds"] <= budget_s + 3 * state["seconds"] / steps + 1.0
+    assert ckpt["config"]["minutes"] == config.minutes and ckpt["config"]["clip_grad"] == 1.0
+    lr = ckpt["optimizer"]["param_groups"][0]["lr"]
+    assert lr == pytest.approx(config.lr * 0.02, rel=0.05)  # the cosine's floor at the budget's end

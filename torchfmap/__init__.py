@@ -6,6 +6,7 @@ as differentiable ``torch.nn.Module`` layers.
 """
 
 from .bases import (
+    KINDS,
     Basis,
     Column,
     basis_stack,
@@ -17,6 +18,7 @@ from .bases import (
     orthonormalize_pair,
     support_fraction,
 )
+from .bases.prepared import PreparedShape, prepare_shape
 from .errors import (
     ConvergenceError,
     CorruptFileError,
@@ -38,17 +40,16 @@ from .operators import (
     GeodesicSolver,
     Operators,
     available_backends,
+    eigenpairs,
     factorize,
     geodesic_distances,
     laplacian,
     mass_matrix,
-    normalize_area,
     point_cloud_laplacian,
-    scipy_to_torch,
-    torch_to_scipy,
     total_area,
 )
 from .pipeline import MatchResult, match
+from .quality import geodesic_distortion, orientation_agreement
 from .seeds import (
     coverage_seeds,
     curvature,
@@ -61,6 +62,7 @@ from .seeds import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "KINDS",
     "Basis",
     "Column",
     "basis_stack",
@@ -100,11 +102,13 @@ __all__ = [
     "load_mesh",
     "load_points",
     "mass_matrix",
-    "normalize_area",
+    "eigenpairs",
     "point_cloud_laplacian",
+    "prepare_shape",
+    "PreparedShape",
+    "geodesic_distortion",
+    "orientation_agreement",
     "save_mesh",
-    "scipy_to_torch",
-    "torch_to_scipy",
     "total_area",
     "validate_mesh",
     "evaluate_map",
@@ -114,3 +118,25 @@ __all__ = [
     "MatchResult",
     "match",
 ]
+
+
+#: Names that left the top level (internals), still importable from here with a warning.
+_MOVED = {
+    "normalize_area": "torchfmap.operators",
+    "scipy_to_torch": "torchfmap.operators",
+    "torch_to_scipy": "torchfmap.operators",
+}
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        import importlib
+        import warnings
+
+        warnings.warn(
+            f"torchfmap.{name} moved to {_MOVED[name]}.{name} (an internal helper); import it from there.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module 'torchfmap' has no attribute {name!r}")

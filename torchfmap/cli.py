@@ -11,7 +11,9 @@ import argparse
 import importlib.util
 import math
 import os
+import re
 import sys
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -137,15 +139,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--basis",
-        choices=BASES,
+        choices=["auto", *BASES],
         default=None,
-        help="basis kind (default: laplacian, with or without landmarks)",
+        help="basis kind (default: with --landmarks 'auto', the kind whose map distorts geodesic "
+        "distances least, eigenbasis preferred; without, laplacian)",
     )
     p.add_argument(
         "--bases", nargs=2, metavar=("SRC.npz", "TGT.npz"), help="solve in saved bases ('torchfmap basis')"
     )
     p.add_argument(
-        "--k", type=positive_int, default=50, help="basis size (every basis has exactly k columns)"
+        "--k",
+        type=positive_int,
+        default=None,
+        help="basis size, every basis has exactly k columns (default: 50; with --checkpoint the network's)",
     )
     _refine_flags(p)
     p.add_argument(
@@ -180,8 +186,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_match)
 
     p = _sub(sub, "eval", "match every pair of a folder with ground truth; table + PCK plot")
-    p.add_argument("folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or same-size meshes)")
-    p.add_argument("--basis", choices=BASES, default=None, help="basis kind (default as in match)")
+    p.add_argument(
+        "folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or meshes of one template)"
+    )
+    p.add_argument(
+        "--gt",
+        choices=["files", "identity"],
+        default=None,
+        help="ground truth: corres/*.vts files only, or identity (vertex i is vertex i) for meshes "
+        "of equal vertex counts (default: the files, else identity where the face lists agree)",
+    )
+    p.add_argument("--basis", choices=["auto", *BASES], default=None, help="basis kind (default as in match)")
     p.add_argument("--k", type=positive_int, default=50, help="basis size")
     _refine_flags(p)
     p.add_argument(
@@ -249,10 +264,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--max-steps", type=count, default=0, help="optimiser steps (default 0: no limit)")
     p.add_argument(
-        "--basis", choices=LEARNED_BASES, default="laplacian", help="basis kind of the learned map"
+        "--basis",
+        choices=LEARNED_BASES,
+        default=None,
+        help="basis kind of the learned map (default: laplacian)",
     )
-    p.add_argument("--k", type=positive_int, default=50, help="functional-map basis size")
-    p.add_argument("--inputs", choices=["wks", "xyz"], default="wks", help="per-vertex network inputs")
+    p.add_argument("--k", type=positive_int, default=None, help="functional-map basis size (default: 50)")
+    p.add_argument(
+        "--pairs",
+        choices=["classes", "all"],
+        default="classes",
+        help="training pairs: within classes of names (cat0, cat1; default) or all ordered pairs "
+        "(species, data sets)",
+    )
+    p.add_argument(
+        "--inputs", choices=["wks", "xyz"], default=None, help="per-vertex network inputs (default: wks)"
+    )
     p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default 32)")
     p.add_argument(
         "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default 96)"
@@ -352,12 +379,45 @@ def check_outputs(args: argparse.Namespace) -> None:
         raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
 
 
+#: The library's fixes in Python terms -> the same fix in the command line's terms.
+CLI_TERMS = (
+    (re.compile(r"`?allow_components=True`?"), "--allow-components"),
+    (re.compile(r"`?basis='(\w+)'`?"), r"--basis \1"),
+    (re.compile(r"`?refine='(\w+)'`?"), r"--refine \1"),
+    (re.compile(r"`?k_final( >=| =)"), r"--k-final\1"),
+    (re.compile(r"\bk_final=(\d+)"), r"--k-final \1"),
+    (re.compile(r"drop k_final"), "drop --k-final"),
+    (re.compile(r"drop times\b"), "drop --times"),
+    (re.compile(r"\btimes are the heat times"), "--times are the heat times"),
+    (re.compile(r"`?w_lap=([\w.]+)`?"), r"--w-lap \1"),
+    (re.compile(r"`?identity=True`? \(CLI: --gt identity\)"), "--gt identity"),
+    (re.compile(r"\(CLI: ([^)]*)\)"), r"(\1)"),
+    (re.compile(r"keep one with `mesh\.largest_component\(\)`, or"), "keep the largest component, or"),
+    (re.compile(r"\bk \(basis size\)"), "--k (basis size, default 50)"),
+)
+
+
+def in_cli_terms(text: str) -> str:
+    """A library message with its Python fixes (``basis='laplacian'``, ``allow_components=True``)
+    said as the flags that do the same (``--basis laplacian``, ``--allow-components``)."""
+    for pattern, flag in CLI_TERMS:
+        text = pattern.sub(flag, text)
+    return text
+
+
 def _error_line(err: BaseException) -> str:
     """``torchfmap: error: ...``, naming the error class where it says more than 'error'."""
     name = type(err).__name__
     text = err.strerror if isinstance(err, OSError) and err.strerror else str(err)  # no "[Errno 2]"
+    text = in_cli_terms(text)
     plain = name in ("TorchFmapError", "FileWriteError", "FileReadError")
     return f"torchfmap: error: {text}" if plain else f"torchfmap: error ({name}): {text}"
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` of the command line: ``torchfmap: warning: <message>`` on stderr,
+    without Python's source line, its fixes in the command line's terms."""
+    print(f"torchfmap: warning: {in_cli_terms(str(message))}", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -366,8 +426,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     (Ctrl-C), 141 the output pipe was closed (e.g. ``| head``). No traceback for any of these."""
     args = build_parser().parse_args(argv)
     try:
-        check_outputs(args)
-        return args.func(args)
+        with warnings.catch_warnings():  # one line per warning, in the command's terms
+            warnings.showwarning = _warning_line
+            check_outputs(args)
+            return args.func(args)
     except TorchFmapError as err:
         print(_error_line(err), file=sys.stderr)
         return 1 if isinstance(err, OSError) else 2

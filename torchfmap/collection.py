@@ -21,8 +21,9 @@ from ._checks import check_count
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import ParameterError
-from .eval import evaluate_map, landmarks_from_gt
+from .eval import evaluate_map, landmarks_from_gt, shape_distance
 from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
+from .mesh import Mesh
 from .operators.geodesic import DistanceRows
 from .pipeline import match
 
@@ -297,3 +298,24 @@ def evaluate_pairs(
         if own:
             pool.shutdown(cancel_futures=True)
     return [r for i in range(len(chunks)) for r in done[i]]
+
+
+def shape_distance_matrix(
+    meshes: list[Mesh], *, k: int = 20, kind: str = "area", progress: bool = False, **match_kwargs
+) -> np.ndarray:
+    """``(N, N)`` symmetric shape distances from the functional maps between all pairs.
+
+    Each ordered pair is matched (:func:`match`, eigenbasis by default) and the map's
+    shape difference is compared with the identity (:func:`~torchfmap.eval.shape_distance`);
+    the two directions are averaged. Feed the result to
+    :func:`~torchfmap.eval.retrieval_accuracy` with class labels.
+    """
+    n = len(meshes)
+    D = np.zeros((n, n))
+    pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
+    shapes = [prepare_shape(m, 0) for m in meshes]  # each shape's work done once, not per pair
+    for i, j in tqdm(pairs, desc="shape pairs", disable=not progress):
+        result = match(meshes[i], meshes[j], k=k, shapes=(shapes[i], shapes[j]), **match_kwargs)
+        W_x, W_y = result.basis_x.projected_laplacian(), result.basis_y.projected_laplacian()
+        D[i, j] = shape_distance(result.C_xy, W_x, W_y, kind=kind)
+    return 0.5 * (D + D.T)

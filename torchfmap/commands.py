@@ -146,6 +146,23 @@ def cmd_match(args: argparse.Namespace) -> int:
     if args.checkpoint:
         if args.landmarks:
             raise TorchFmapError("--checkpoint matches without landmarks. Fix: drop --landmarks.")
+        ignored = [
+            flag
+            for flag, value in (
+                ("--k", args.k), ("--basis", args.basis), ("--bases", args.bases),
+                ("--k-final", args.k_final), ("--w-lap", args.w_lap), ("--times", args.times),
+                ("--p2p-mode", args.p2p_mode),
+            )
+            if value is not None
+        ]  # fmt: skip
+        if ignored:
+            raise TorchFmapError(
+                f"--checkpoint matches in the network's own basis with its own settings, so "
+                f"{', '.join(ignored)} would change nothing. Fix: drop {' / '.join(ignored)} (or drop "
+                "--checkpoint for the classical pipeline)."
+            )
+        if args.refine == "icp":
+            raise TorchFmapError("--checkpoint refines by ZoomOut only. Fix: --refine zoomout.")
         from .nn.checkpoints import load_checkpoint  # torch: only for this path
         from .nn.inference import match_with_network
 
@@ -164,7 +181,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         tgt,
         landmarks=landmarks,
         basis=args.basis,
-        k=args.k,
+        k=50 if args.k is None else args.k,
         refine=args.refine,
         k_final=args.k_final,
         w_lap=args.w_lap,
@@ -172,8 +189,17 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p_mode=args.p2p_mode,
         bases=bases,
     )
-    refined = f", refined by {args.refine}" if args.refine else ""
-    how = f"({result.kind} basis, K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
+    refined = ""
+    if args.refine:
+        refined = (
+            f", refined by {args.refine}"
+            if result.refined
+            else f", {args.refine} dropped (it raised the distortion)"
+        )
+    chose = ""
+    if result.candidates:
+        chose = f"chosen by geodesic distortion ({result.scores()} sqrt(area)), "
+    how = f"({result.kind} basis, {chose}K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
 
 
@@ -205,33 +231,35 @@ def cmd_models(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    import torch  # the learning path; the classical commands never import torch
 
     from .nn.checkpoints import load_checkpoint
-    from .nn.config import CosineBudget, TrainConfig, build_model
-    from .nn.data import PairDataset, ShapeDataset, class_pairs
-    from .nn.train import total_steps, train, unsupervised_score
+    from .nn.config import TrainConfig, build_solver
+    from .nn.data import ShapeDataset, class_pairs
+    from .nn.train import total_steps, train_recipe, unsupervised_score
 
     budget = {
         name: value
         for name, value in (("epochs", args.epochs), ("minutes", args.minutes), ("max_steps", args.max_steps))
         if value
     }
-    config = TrainConfig(
-        k=args.k,
-        basis=args.basis,
-        inputs=args.inputs,
-        seed=args.seed,
-        **budget,
-        **{
-            name: getattr(args, name)
-            for name in ("n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
-            if getattr(args, name, None) is not None
-        },
-    )
+    recipe = {
+        name: getattr(args, name)
+        for name in ("k", "basis", "inputs", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
+        if getattr(args, name, None) is not None
+    }
+    config = TrainConfig(seed=args.seed, **budget, **recipe)
     if args.resume and Path(args.out).exists():
         _, saved_config, ckpt = load_checkpoint(args.out)
         saved = vars(saved_config)
+        differ = {n: (v, saved[n]) for n, v in recipe.items() if saved.get(n) != v}
+        if differ:
+            said = ", ".join(
+                f"--{n.replace('_', '-')} {v} (checkpoint: {old})" for n, (v, old) in differ.items()
+            )
+            raise TorchFmapError(
+                f"--resume continues the recipe of {args.out}, which differs from {said}. Fix: drop "
+                "those flags to continue it, or train a new checkpoint (another --out)."
+            )
         if budget:  # a budget given now replaces the saved one (it is the whole run's)
             saved.update(epochs=None, minutes=0.0, max_steps=0)
         config = TrainConfig(**{**saved, **budget})
@@ -241,12 +269,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     config.epochs = epochs  # recorded as it runs (None: bounded by time or steps only)
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
-    pairs = class_pairs(shapes.names)
-    net, solver, loss_fn = build_model(config)
-    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+    pairs = class_pairs(shapes.names, within=args.pairs == "classes")
     steps = total_steps(-(-len(pairs) // config.batch_size), epochs, config.max_steps) or 0
-    # cosine to a floor over the whole budget: the step bound and/or the time budget
-    scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineBudget(minutes=config.minutes, steps=steps))
     limits = [f"{epochs} epochs" if epochs else "", f"{steps} steps" if steps else ""]
     limits.append(f"{config.minutes:g} minutes" if config.minutes else "")
     print(
@@ -255,30 +279,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
     picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+    solver, loss_fn = build_solver(config)
     validate = unsupervised_score(shapes, picked, solver, loss_fn) if args.validate_every else None
-    state, interrupted = _train_or_interrupted(
-        train,
+    result, interrupted = _train_or_interrupted(
+        train_recipe,
         args.out,
-        net,
-        PairDataset(shapes, pairs),
-        loss_fn,
-        opt,
-        solver=solver,
-        scheduler=scheduler,
-        epochs=epochs,
-        minutes=config.minutes,
-        max_steps=config.max_steps,
-        batch_size=config.batch_size,
-        clip_grad=config.clip_grad,
-        augment=config.inputs == "xyz",
+        config,
+        shapes,
+        pairs,
+        out=args.out,
+        resume=args.resume,
         validate=validate,
         validate_every=args.validate_every,
-        checkpoint=args.out,
-        config=config,
-        resume=args.resume,
-        seed=config.seed,
         progress=not args.quiet,
     )
+    state = result[0] if result else None
     if interrupted:
         print(interrupted, file=sys.stderr)
         return 130
@@ -311,9 +326,10 @@ def _check_budget_left(config, state: dict, out) -> None:
         )
 
 
-def _train_or_interrupted(train, out, *args, **kwargs):
+def _train_or_interrupted(train, checkpoint, *args, **kwargs):
     """``(train(*args, **kwargs), None)``, or on Ctrl-C ``(None, message)`` saying which step the
-    checkpoint at ``out`` holds (it is written atomically, so it is always a whole one)."""
+    checkpoint at ``checkpoint`` holds (it is written atomically, so it is always a whole one)."""
+    out = checkpoint
     try:
         return train(*args, **kwargs), None
     except KeyboardInterrupt:
@@ -363,7 +379,8 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
         )
         lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
         lm += f", landmarks from {args.landmarks}" if args.landmarks else ""
-        return settings, f"{args.basis or 'laplacian'} basis, k={args.k}, refine {args.refine or '-'}{lm}"
+        basis = args.basis or ("auto" if lm else "laplacian")
+        return settings, f"{basis} basis, k={args.k}, refine {args.refine or '-'}{lm}"
     if args.gt_landmarks or args.landmarks or args.basis or args.k_final or args.w_lap is not None:
         raise TorchFmapError(
             "--checkpoint matches with the network's own basis and without landmarks. Fix: drop "
@@ -382,7 +399,8 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
 def cmd_eval(args: argparse.Namespace) -> int:
     settings, title = _eval_method(args)
     # absolute paths: workers of a cluster may run in another folder
-    pairs = list(discover_pairs(Path(args.folder).resolve()))[: args.max_pairs or None]
+    identity = {None: None, "identity": True, "files": False}[args.gt]
+    pairs = list(discover_pairs(Path(args.folder).resolve(), identity))[: args.max_pairs or None]
     results = evaluate_pairs(
         pairs,
         max_points=args.max_points,

@@ -256,13 +256,20 @@ def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
     return np.stack([idx_x[rows], idx_y[rows]], axis=1)
 
 
-def discover_pairs(folder: str | os.PathLike):
+def discover_pairs(folder: str | os.PathLike, identity: bool | None = None):
     """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
 
     Meshes are the folder's :func:`~torchfmap.io.mesh_files` (``.gz`` included), named by
     :func:`~torchfmap.io.shape_name`. ``corres/<name>.vts`` files give ``.vts`` ground truth
-    (pairs from ``test_pairs.txt``, or consecutive meshes); otherwise meshes with equal vertex
-    counts get the identity. Every file may be gzip-compressed (``<name>.gz``).
+    (pairs from ``test_pairs.txt``, or consecutive meshes). Without them, ``identity`` says
+    whether vertex ``i`` of one mesh is vertex ``i`` of the other: ``True`` for every pair of
+    equal vertex counts; ``None`` (default) only where the two meshes have the same face list
+    (one template, e.g. registrations); ``False`` never. Every file may be gzip-compressed
+    (``<name>.gz``).
+
+    Raises:
+        ParameterError: fewer than two meshes, a pair without ground truth (the message names
+            the fix), or a ``test_pairs.txt`` naming absent meshes.
     """
     folder = Path(folder)
     meshes = {shape_name(p): p for p in mesh_files(folder)}
@@ -292,10 +299,14 @@ def discover_pairs(folder: str | os.PathLike):
                 raise ParameterError(f"no ground truth {absent}. Fix: add the .vts (or .vts.gz) files.")
             gt = gt_from_vts(read_vts(vts[a]), read_vts(vts[b]))
         else:
-            n_a, n_b = len(read_arrays(meshes[a])[0]), len(read_arrays(meshes[b])[0])
-            if n_a != n_b:
+            (va, fa), (vb, fb) = read_arrays(meshes[a]), read_arrays(meshes[b])
+            same = len(va) == len(vb) and (identity or (identity is None and np.array_equal(fa, fb)))
+            if not same:
+                why = "their vertex counts differ" if len(va) != len(vb) else "their face lists differ"
                 raise ParameterError(
-                    f"no ground truth for {a}/{b}: no corres/ folder and vertex counts differ."
+                    f"no ground truth for {a}/{b}: no corres/ folder, and {why}, so vertex i of one need "
+                    "not be vertex i of the other. Fix: add corres/<name>.vts files, or, if the meshes "
+                    "do share vertex order, pass identity=True (CLI: --gt identity)."
                 )
-            gt = gt_identity(n_a)
+            gt = gt_identity(len(va))
         yield a, b, meshes[a], meshes[b], gt

@@ -31,6 +31,9 @@ import numpy as np
 import trimesh
 
 from ._files import atomic_write
+from ._format_checks import check_off as _check_off
+from ._format_checks import check_stl as _check_stl
+from ._format_checks import off_header_counts as off_header_counts
 from .errors import MeshError, ParameterError, TorchFmapError
 from .mesh import Mesh
 
@@ -132,60 +135,6 @@ def _decode(data: bytes) -> bytes:
         return data.decode("latin-1").encode("utf-8")
 
 
-def off_header_counts(text: str) -> tuple[int, int, int, int] | None:
-    """``(n_vertices, n_faces, vertex lines, face lines)`` declared and present in OFF text.
-
-    Comments (``#``) and blank lines are skipped; the counts may follow ``OFF`` on its line.
-    None if the header cannot be read (trimesh then reports the parse error).
-    """
-    lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
-    lines = [ln for ln in lines if ln]
-    if not lines or not lines[0].upper().endswith("OFF"):
-        return None
-    head = lines[0].split()[1:]
-    rest = lines[1:]
-    if not head:
-        if not rest:
-            return None
-        head, rest = rest[0].split(), rest[1:]
-    try:
-        n_v, n_f = int(head[0]), int(head[1])
-    except (IndexError, ValueError):
-        return None
-    return n_v, n_f, min(len(rest), n_v), max(0, len(rest) - n_v)
-
-
-def _check_off(text: str, name: str) -> None:
-    counts = off_header_counts(text)
-    if counts is None:
-        return
-    n_v, n_f, have_v, have_f = counts
-    if have_v < n_v or have_f < n_f:
-        raise MeshError(
-            f"{name!r} is truncated: its OFF header declares {n_v} vertices and {n_f} faces, the file "
-            f"holds {have_v} vertex lines and {have_f} face lines. Fix: copy or export the file again."
-        )
-    # a face line starts with its corner count: under 3 is no face (trimesh would drop it, and
-    # the mesh would load with a new hole)
-    lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
-    lines = [ln for ln in lines if ln]
-    start = len(lines) - have_f
-    short = [
-        (start + i, ln)
-        for i, ln in enumerate(lines[start : start + n_f])
-        if not ln.split()[0].lstrip("-").isdigit() or int(ln.split()[0]) < 3
-    ]
-    if short:
-        where = ", ".join(f"{ln!r}" for _, ln in short[:3]) + (
-            f" ({len(short)} in all)" if len(short) > 3 else ""
-        )
-        raise MeshError(
-            f"{name!r} has face lines with fewer than 3 corners: {where}. An OFF face line is "
-            "'n i_1 ... i_n' with n >= 3. Fix: remove or complete those lines (and the face "
-            "count in the header)."
-        )
-
-
 def _existing_file(path, what: str) -> Path:
     """``path`` as a Path, or :class:`MeshError` when it is missing or a folder."""
     path = Path(path)
@@ -196,21 +145,6 @@ def _existing_file(path, what: str) -> Path:
             f"{str(path)!r} is a folder, not a {what} file. Fix: give the path of one {what} file."
         )
     return path
-
-
-def _check_stl(data: bytes, name: str) -> None:
-    """Refuse bytes that are neither binary STL (80-byte header, a triangle count ``n`` and
-    ``50 n`` bytes) nor ASCII STL (``solid`` ... ``facet``)."""
-    if len(data) >= 84 and len(data) == 84 + 50 * int.from_bytes(data[80:84], "little"):
-        return
-    head = data[:1024].lstrip().lower()
-    if head.startswith(b"solid") and (b"facet" in data[:4096].lower() or len(data) < 4096):
-        return
-    raise MeshError(
-        f"{name!r} is not an STL file: not binary STL (84-byte header + 50 bytes per triangle; "
-        f"{len(data)} bytes here) and not ASCII STL (starting 'solid' with 'facet' lines). Fix: "
-        "check the file and its extension."
-    )
 
 
 def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -289,16 +223,23 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
 def load_mesh(path: str | os.PathLike, *, validate: bool = True, **flags) -> Mesh:
     """Load a triangle mesh (.off/.ply/.obj/.stl, optionally .gz) keeping the file's vertex order.
 
+    Files are read as published pipelines read them: duplicated faces are dropped and
+    non-manifold edges accepted, each with a :class:`~torchfmap.MeshWarning` (benchmark files
+    such as FAUST_a and SCAPE_a hold a few; their operators are then the intrinsic tufted
+    Laplacian). Pass ``allow_nonmanifold=False`` to refuse them instead.
+
     Args:
         path: file path.
         validate: run :func:`~torchfmap.mesh.validate_mesh`; extra keyword flags
-            (``allow_components``, ``allow_unreferenced``, ``allow_nonmanifold``) go to it.
+            (``allow_components``, ``allow_unreferenced``, ``allow_nonmanifold``, default
+            ``'warn'``) go to it.
 
     Returns:
         a :class:`~torchfmap.Mesh` named after the file.
     """
     vertices, faces = read_arrays(path)
     name = shape_name(path)
+    flags.setdefault("allow_nonmanifold", "warn")
     try:
         return Mesh(vertices, faces, validate=validate, name=name, **flags)
     except MeshError as err:

@@ -61,7 +61,7 @@ class Mesh:
         validate: bool = True,
         allow_components: bool = False,
         allow_unreferenced: bool = False,
-        allow_nonmanifold: bool = False,
+        allow_nonmanifold: bool | str = False,
         name: str | None = None,
     ) -> None:
         v, f = _as_arrays(vertices, faces)
@@ -86,6 +86,15 @@ class Mesh:
                     stacklevel=2,
                 )
             report = validate_mesh(self.vertices, self.faces, **self._flags)
+            if report.n_nonmanifold_edges and allow_nonmanifold == "warn":
+                warnings.warn(
+                    f"{name or 'mesh'}: {report.n_nonmanifold_edges} non-manifold edges (shared by more "
+                    "than two faces); read as they are, and its operators are the intrinsic tufted "
+                    "Laplacian (prepare_shape), which is right on them. Fix: repair the mesh to "
+                    "silence this.",
+                    MeshWarning,
+                    stacklevel=2,
+                )
             faces, n_flipped = orient_faces(self.vertices, self.faces)
             if n_flipped:
                 self.faces = np.ascontiguousarray(faces)
@@ -162,6 +171,11 @@ class Mesh:
     def edges(self) -> np.ndarray:
         """``(E, 2)`` unique undirected edges, each sorted ``(i < j)``."""
         return self._incidence[0]
+
+    @property
+    def n_nonmanifold_edges(self) -> int:
+        """Edges shared by more than two faces (0 on a manifold mesh)."""
+        return int(np.count_nonzero(self._incidence[1] > 2))
 
     @property
     def edge_lengths(self) -> np.ndarray:

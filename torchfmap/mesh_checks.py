@@ -40,6 +40,9 @@ class MeshReport:
     #: faces whose corner order :class:`Mesh` reversed to orient every component consistently
     #: (and closed components outward); 0 when the file was already consistent.
     n_flipped_faces: int = 0
+    #: edges shared by more than two faces (accepted with ``allow_nonmanifold``; operators of
+    #: :func:`~torchfmap.bases.prepare_shape` are then the intrinsic tufted Laplacian).
+    n_nonmanifold_edges: int = 0
 
     @property
     def is_closed(self) -> bool:
@@ -127,15 +130,17 @@ def validate_mesh(
     *,
     allow_components: bool = False,
     allow_unreferenced: bool = False,
-    allow_nonmanifold: bool = False,
+    allow_nonmanifold: bool | str = False,
 ) -> MeshReport:
     """Check a triangle mesh and return a :class:`MeshReport`.
 
     Raises :class:`MeshError` (message names the problem and the fix) for: an empty mesh,
     NaN/inf coordinates, face indices out of range, degenerate faces (a repeated index or
     zero area), unreferenced vertices, non-manifold edges (shared by more than two faces) and
-    several connected components. The last three can be allowed by flag. Holes (boundary
-    loops) are reported, never an error: many scanned and TOSCA meshes have them.
+    several connected components. The last three can be allowed by flag
+    (``allow_nonmanifold='warn'``: accepted, and :class:`~torchfmap.Mesh` warns). Holes
+    (boundary loops) are reported, never an error: many scanned and TOSCA meshes have them;
+    non-manifold edges are counted in ``n_nonmanifold_edges``.
 
     Args:
         vertices: ``(V, 3)`` coordinates.
@@ -155,10 +160,16 @@ def validate_mesh(
         )
     bad = np.flatnonzero(((f < 0) | (f >= len(v))).any(axis=1))
     if len(bad):
-        raise MeshError(
-            f"{len(bad)} faces index vertices outside [0, {len(v)}): faces {_preview(bad)}. "
-            "Fix: faces must be 0-based indices into the vertex array (subtract 1 if they come "
+        one_based = f.min() == 1 and f.max() == len(v)  # every index in 1..V, none 0
+        hint = (
+            f"Every index is in 1..{len(v)} and none is 0: the faces are 1-based. Fix: subtract 1 "
+            "from every face index (in the file: rewrite it 0-based, as OFF requires)."
+            if one_based
+            else "Fix: faces must be 0-based indices into the vertex array (subtract 1 if they come "
             "from a 1-based format)."
+        )
+        raise MeshError(
+            f"{len(bad)} faces index vertices outside [0, {len(v)}): faces {_preview(bad)}. {hint}"
         )
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     # degeneracy is scale-free: judge it on coordinates scaled to unit size, so that a tiny or
@@ -211,6 +222,7 @@ def validate_mesh(
         n_boundary_loops=_count_boundary_loops(boundary, len(v)),
         unreferenced=unref,
         euler_characteristic=int(len(v) - len(unref) - len(edges) + len(f)),
+        n_nonmanifold_edges=int(np.count_nonzero(counts > 2)),
     )
     if not report.is_closed:
         log.info("mesh has %d hole(s) (%d boundary edges)", report.n_boundary_loops, len(boundary))

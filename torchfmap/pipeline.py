@@ -9,32 +9,50 @@ Evaluating whole collections is :mod:`torchfmap.collection`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from tqdm import tqdm
 
 from ._checks import check_count
 from .bases import Basis
-from .bases.kinds import BasisKind, get_kind
+from .bases.kinds import BasisKind, get_kind, kind_of
 from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
 from .errors import MapWarning, ParameterError
-from .eval import shape_distance
 from .fmap import check_landmark_pairs, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .fmap.refine import map_to_p2p, refine_map
 from .mesh import Mesh
+from .quality import (
+    OFF_BY_ONE_RATIO,
+    geodesic_distortion,
+    landmark_distortion,
+    warn_collapsed,
+)
+from .quality import warn_if_off_by_one as warn_if_off_by_one
+from .results import MatchContext, MatchResult, RefineKind, refine_result
 
-RefineKind = Literal["icp", "zoomout"]
 P2PMode = Literal["pullback", "orthogonal"]
-#: :func:`warn_if_off_by_one` warns when the shifted landmarks distort distances this much less.
-OFF_BY_ONE_RATIO = 0.25
+#: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
+#: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
+#: ``hybrid``. ``diffusion`` is not a candidate: its maps are built by trilateration from the
+#: landmarks, so they preserve geodesic distances by construction and score a lower distortion
+#: than maps with lower error (bench/landmark_default.py: chosen on 1 of 6 near-isometric pairs
+#: at 7 landmarks, 1.24x the eigenbasis's error there).
+AUTO_KINDS = ("laplacian", "hybrid")
+#: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
+#: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): on
+#: near-isometric pairs the scores of good maps differ by discretisation noise, and there the
+#: eigenbasis is the better basis.
+AUTO_MARGIN = 0.1
 
 __all__ = [
+    "AUTO_KINDS",
+    "AUTO_MARGIN",
+    "OFF_BY_ONE_RATIO",
     "MatchResult",
     "PreparedShape",
     "landmark_distortion",
@@ -43,56 +61,9 @@ __all__ = [
     "match_descriptors",
     "prepare_shape",
     "refine_map",
-    "shape_distance_matrix",
+    "refine_result",
     "warn_if_off_by_one",
 ]
-
-
-@dataclass
-class MatchResult:
-    """Output of :func:`match`: ``p2p_yx (V_y,)``, ``C_xy (K_y, K_x)``, the bases and timings;
-    ``seeds`` ``(S, 2)`` are the corresponding seed pairs of feature-aware bases (else None);
-    ``kind`` the name of the basis kind that ran. The bases are B-orthonormal in each mesh's
-    unit-area frame (their ``mass`` is that of ``mesh.scaled(1 / sqrt(area))``), unless given."""
-
-    p2p_yx: np.ndarray
-    C_xy: np.ndarray
-    basis_x: Basis
-    basis_y: Basis
-    p2p_yx_initial: np.ndarray
-    timings: dict[str, float] = field(default_factory=dict)
-    seeds: np.ndarray | None = None
-    kind: str = ""
-
-
-def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> float:
-    """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(a_i, b_i)``, in units of
-    ``sqrt(area)``: small for corresponding landmarks on near-isometric shapes, large for
-    landmarks that do not correspond (e.g. read with the wrong index base)."""
-    dx = shape_x.distances.rows(landmarks[:, 0])[:, landmarks[:, 0]]
-    dy = shape_y.distances.rows(landmarks[:, 1])[:, landmarks[:, 1]]
-    return float(np.mean(np.abs(dx - dy)))
-
-
-def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> None:
-    """Warn (``UserWarning``) when the landmarks shifted by -1 fit the shapes far better than as
-    given: the file was probably 1-based. Needs at least 3 landmarks; costs 2 geodesic solves
-    per landmark, reused by the feature-aware bases."""
-    if len(landmarks) < 3 or landmarks.min() < 1:
-        return
-    shifted = landmarks - 1
-    if len(np.unique(shifted[:, 0])) < len(shifted) or len(np.unique(shifted[:, 1])) < len(shifted):
-        return
-    given = landmark_distortion(shape_x, shape_y, landmarks)
-    other = landmark_distortion(shape_x, shape_y, shifted)
-    if other < OFF_BY_ONE_RATIO * given:
-        warnings.warn(
-            f"the landmarks fit the shapes {given / max(other, 1e-12):.0f}x better shifted by -1 (mean "
-            f"distance distortion {other:.3f} vs {given:.3f} sqrt(area)): were they read 1-based? "
-            "Fix: landmarks are 0-based vertex indices; subtract 1 if the file is 1-based.",
-            UserWarning,
-            stacklevel=3,
-        )
 
 
 def match_descriptors(
@@ -181,8 +152,16 @@ def match(
     :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` ->
     :func:`refine_map`.
 
-    The default basis is the Laplacian eigenbasis, with or without landmarks (landmarks then
-    enter as descriptors and constraints). The feature-aware ``basis='diffusion'`` builds ``k``
+    The default basis: without landmarks, the Laplacian eigenbasis. With landmarks, ``match``
+    chooses without ground truth (``basis='auto'``): it solves the pair in each kind of
+    :data:`AUTO_KINDS` (the eigenbasis, where landmarks enter as descriptors and constraints,
+    refined as asked, and the feature-aware ``hybrid`` kind, built at the landmarks) and keeps
+    the map that preserves geodesic distances best
+    (:func:`~torchfmap.quality.geodesic_distortion`), the eigenbasis unless the other map
+    distorts them :data:`AUTO_MARGIN` less (a chosen ``hybrid`` map is then refined); ``kind``,
+    ``distortion`` and ``candidates`` of the result say what was chosen and why. With landmarks,
+    a refinement that raises the distortion is dropped (the start is kept), for
+    every kind. The feature-aware ``basis='diffusion'`` builds ``k``
     heat kernels at corresponding seeds (see :func:`match_bases`), whose map is close to the
     identity; its solve is pulled to ``C = I`` with weight ``w_prior`` (default
     :data:`~torchfmap.fmap.defaults.W_PRIOR`; at ``inf`` the identity is the map and no
@@ -193,8 +172,8 @@ def match(
         landmarks: ``(L, 2)`` corresponding pairs ``(vertex on x, vertex on y)``; required by
             the feature-aware bases, used as descriptors and constraints by the eigenbasis.
         basis: a kind of :data:`torchfmap.bases.KINDS` (``'laplacian'``, ``'diffusion'``,
-            ``'harmonic'``, ``'stack'``, ``'hybrid'``, ``'eigen_diffusion'``; default
-            ``'laplacian'``).
+            ``'harmonic'``, ``'stack'``, ``'hybrid'``, ``'eigen_diffusion'``), or ``'auto'``;
+            default: ``'auto'`` with landmarks, ``'laplacian'`` without (see above).
         k: basis size; every basis has exactly ``k`` columns.
         refine: ``'icp'`` or ``'zoomout'`` (as the kind's ``refinement`` says: the eigenbasis
             grows up to ``k_final``, default ``2k``; feature-aware kinds iterate at a fixed
@@ -236,14 +215,29 @@ def match(
         pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     # the eigenbasis, with or without landmarks: on the dev benchmarks it is the best or tied
     # default at 3-15 landmarks (bench/faust.py, bench/feature_accuracy.py; the issue notes)
+    if basis == "auto" and (pairs is None or bases is not None):
+        raise ParameterError(
+            "basis='auto' chooses among bases built at landmarks. Fix: pass landmarks, or name a "
+            "basis (e.g. basis='laplacian')."
+        )
+    if basis in (None, "auto") and pairs is not None and bases is None:
+        passed = dict(
+            k=k, refine=refine, k_final=k_final, n_descriptors=n_descriptors, k_descriptors=k_descriptors,
+            w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm, w_lmk=w_lmk, w_prior=w_prior, times=times,
+            p2p_mode=p2p_mode, zoomout_samples=zoomout_samples,
+        )  # fmt: skip
+        return _match_auto(mesh_x, mesh_y, pairs, shapes, passed)
     name = basis or "laplacian"
+    together = False  # given bases built as a pair at corresponding seeds: their columns correspond
     if bases is not None:
-        given_x, given_y = _check_given_bases(bases, mesh_x, mesh_y)
+        given_x, given_y, together = _check_given_bases(bases, mesh_x, mesh_y)
         eigen_only = all(c.kind == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
-        name = basis or ("laplacian" if eigen_only else "stack")
+        seeded = kind_of(given_x) if together else None
+        name = basis or ("laplacian" if eigen_only else seeded or "stack")
         k = min(given_x.k, given_y.k)
     kind = get_kind(name)
-    if bases is not None and refine == "zoomout" and kind.refinement != "grow":
+    together = together and kind.needs_landmarks
+    if bases is not None and refine == "zoomout" and kind.refinement != "grow" and not together:
         raise ParameterError(
             "ZoomOut grows nested bases: given bases only support it as eigenbases. Fix: "
             "refine='icp', or basis='laplacian' with eigenbasis files."
@@ -251,14 +245,16 @@ def match(
     n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
     k = check_count(k, 1, n_max, "k (basis size)")
     k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
+    if refine not in (None, "icp", "zoomout"):
+        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
+    _check_unused(kind, refine, k_final, times)
     grow = refine == "zoomout" and kind.refinement in ("grow", "hybrid")
-    k_final = k_final if k_final is not None else (2 * k if grow else k)
-    if grow and k_final < k:
+    if grow and k_final is not None and k_final < k:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
-    prior = kind.needs_landmarks and bases is None  # given bases: columns need not correspond
+    prior = kind.needs_landmarks and (bases is None or together)  # else columns need not correspond
     w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
     need_desc = kind.uses_descriptors(w_prior)
-    n_eigen = max(kind.n_eigen(k), k_final if grow else 0, k_descriptors if need_desc else 0)
+    n_eigen = max(kind.n_eigen(k), (k_final or 2 * k) if grow else 0, k_descriptors if need_desc else 0)
     if shapes is None:
         shape_x, shape_y = prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
     else:
@@ -271,7 +267,8 @@ def match(
     if bases is None:
         bx, by, seeds = match_bases(shape_x, shape_y, kind, k, pairs, times)
     else:
-        bx, by, seeds = given_x.truncated(k), given_y.truncated(k), None
+        bx, by = given_x.truncated(k), given_y.truncated(k)
+        seeds = np.asarray(given_x.pair_landmarks) if together else None
     timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -303,53 +300,99 @@ def match(
     mode = p2p_mode or kind.p2p_mode
     p2p = map_to_p2p(C, bx, by, kind, mode)
     timings["fmap+p2p"] = time.perf_counter() - t0
-    initial = p2p
-
-    t0 = time.perf_counter()
+    context = MatchContext(shape_x, shape_y, kind, k, k_final, mode, len(pairs) if pairs is not None else 0,
+                       times, zoomout_samples)  # fmt: skip
+    distortion = None
+    if pairs is not None:  # the score that chooses among kinds and guards the refinement
+        distortion = geodesic_distortion(shape_x, shape_y, p2p, context.anchors)
+    result = MatchResult(p2p, C, bx, by, p2p, timings, seeds, kind.name, distortion, _context=context)
     if refine is not None:
-        C, p2p, bx, by, seeds = refine_map(
-            C,
-            p2p,
-            shape_x,
-            shape_y,
-            bx,
-            by,
-            refine,
-            kind=kind,
-            k_final=k_final,
-            mode=mode,
-            seeds=seeds,
-            n_fixed=0 if pairs is None else len(pairs),
-            times=times,
-            zoomout_samples=zoomout_samples,
+        result = refine_result(result, refine)
+    warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
+    return result
+
+
+def _match_auto(mesh_x: Mesh, mesh_y: Mesh, pairs: np.ndarray, shapes, kwargs: dict) -> MatchResult:
+    """The landmark default of :func:`match`: each kind of :data:`AUTO_KINDS` solved on shapes
+    prepared once, the eigenbasis refined as asked (ZoomOut is where it gains most) and the
+    feature-aware kinds unrefined; the map of least geodesic distortion is kept (the eigenbasis
+    within :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the
+    same score), so only one feature-aware refinement runs. Kinds that cannot be built on these
+    meshes (e.g. too few vertices for their columns) are skipped, with the reason."""
+    t0 = time.perf_counter()
+    refine, k = kwargs.pop("refine"), kwargs["k"]
+    n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
+    check_count(k, 1, n_max, "k (basis size)")  # the eigenbasis's own check, before any work
+    need = [k, min(kwargs["k_descriptors"], n_max)]  # the eigenbasis: k, and its descriptors
+    if refine == "zoomout":
+        need.append(kwargs["k_final"] or 2 * k)
+    n_eigen = min(max(need), n_max)
+    if shapes is None:
+        shapes = (prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen))
+    prep = time.perf_counter() - t0
+    candidates: dict[str, MatchResult] = {}
+    skipped: dict[str, str] = {}
+    _check_unused(get_kind(AUTO_KINDS[-1]), refine, kwargs["k_final"], None)
+    for name in AUTO_KINDS:
+        kind = get_kind(name)
+        first = name == AUTO_KINDS[0]
+        passed = dict(kwargs, refine=refine if first else None)  # the others: once chosen
+        passed.update(
+            k_final=kwargs["k_final"] if first else None,
+            times=kwargs["times"] if kind.needs_landmarks else None,
         )
-    timings["refine"] = time.perf_counter() - t0
-    warn_collapsed(p2p, mesh_x.n_vertices)
-    return MatchResult(p2p, C, bx, by, initial, timings, seeds, kind.name)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", MapWarning)  # said of the chosen map only, below
+                if candidates:  # the first kind warned about the landmarks already
+                    warnings.simplefilter("ignore", UserWarning)
+                candidates[name] = match(mesh_x, mesh_y, landmarks=pairs, basis=name, shapes=shapes, **passed)
+        except ParameterError as err:
+            if name == AUTO_KINDS[0]:  # the eigenbasis refuses only what every kind would
+                raise
+            skipped[name] = str(err)
+    pref = AUTO_KINDS[0]
+    best = min(candidates, key=lambda n: candidates[n].distortion)
+    if candidates[best].distortion > (1 - AUTO_MARGIN) * candidates[pref].distortion:
+        best = pref
+    chosen = candidates[best]
+    if refine is not None and best != pref:
+        ctx = dataclasses.replace(chosen._context, k_final=kwargs["k_final"])  # the caller's k_final
+        chosen = candidates[best] = refine_result(dataclasses.replace(chosen, _context=ctx), refine)
+    warn_collapsed(chosen.p2p_yx, mesh_x.n_vertices, stacklevel=4)
+    timings = {"prepare": prep}
+    for name, c in candidates.items():
+        timings |= {f"{name}:{step}": t for step, t in c.timings.items()}
+    return dataclasses.replace(chosen, timings=timings, candidates=candidates, skipped=skipped)
 
 
-#: A point map reaching under this fraction of the vertices it could reach (``min(V_x, V_y)``)
-#: has collapsed (e.g. an extreme regulariser weight): :func:`match` warns.
-COLLAPSE_COVERAGE = 0.05
-
-
-def warn_collapsed(p2p_yx: np.ndarray, n_x: int, stacklevel: int = 3) -> None:
-    """Warn (:class:`~torchfmap.errors.MapWarning`) when ``p2p_yx`` reaches under
-    :data:`COLLAPSE_COVERAGE` of the ``min(V_x, V_y)`` source vertices it could reach."""
-    reachable = min(n_x, len(p2p_yx))
-    reached = len(np.unique(p2p_yx))
-    if reachable > 1 and reached < COLLAPSE_COVERAGE * reachable:
-        warnings.warn(
-            f"the point map sends {len(p2p_yx)} target vertices to only {reached} source vertices "
-            f"({100 * reached / reachable:.1f} % of the {reachable} it could reach): it has collapsed. "
-            "Fix: check the weights (w_lap, w_orient), the landmarks and the meshes' scale and "
-            "orientation; refine='zoomout' often spreads a collapsed start.",
-            MapWarning,
-            stacklevel=stacklevel,
+def _check_unused(kind: BasisKind, refine, k_final, times) -> None:
+    """Refuse settings that would change nothing in this call (a silent no-op misleads)."""
+    if k_final is not None and refine != "zoomout":
+        raise ParameterError(
+            f"k_final={k_final} is the size ZoomOut grows the basis to; without refine='zoomout' it "
+            "changes nothing. Fix: refine='zoomout', or drop k_final."
+        )
+    if times is not None and not kind.needs_landmarks:
+        raise ParameterError(
+            f"times are the heat times of feature-aware bases; the {kind.name} basis has none, so "
+            "they would change nothing. Fix: drop times, or basis='diffusion' (or another seeded kind)."
         )
 
 
-def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]:
+def _mass_mismatch(basis: Basis, mesh: Mesh) -> float:
+    """Relative L1 difference of ``basis``'s lumped mass and ``mesh``'s, both normalised to sum
+    1 (0 for a basis built on this mesh, in any frame; large for another mesh's basis)."""
+    b = np.asarray(basis.mass.diagonal(), dtype=np.float64)
+    m = np.bincount(
+        mesh.faces.ravel(), weights=np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices
+    )
+    return float(np.abs(b / b.sum() - m / m.sum()).sum())
+
+
+def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, bool]:
+    """``(basis_x, basis_y, together)``: checked given bases and whether they were built as a
+    pair at the same corresponding seeds (``Basis.pair_landmarks``)."""
     try:
         bx, by = bases
     except (TypeError, ValueError) as err:
@@ -362,6 +405,14 @@ def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]
                 f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
                 "pass the basis built on that mesh (bases in the order source, target)."
             )
+    given = _mass_mismatch(bx, mesh_x) + _mass_mismatch(by, mesh_y)
+    swapped = _mass_mismatch(bx, mesh_y) + _mass_mismatch(by, mesh_x)
+    if swapped < 0.25 * given:  # vertex areas are a fingerprint of the mesh a basis was built on
+        raise ParameterError(
+            "the given bases fit the meshes in the other order (their vertex masses are those of "
+            f"the other mesh: mismatch {given:.3f} as given, {swapped:.3f} swapped). Fix: give the "
+            "bases in the order source, target (CLI: --bases SRC.npz TGT.npz)."
+        )
     seeded = any(c.seed >= 0 for b in (bx, by) for c in b.provenance)
     px, py = bx.pair_landmarks, by.pair_landmarks
     together = px is not None and py is not None and np.array_equal(px, py)
@@ -374,25 +425,4 @@ def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis]
             MapWarning,
             stacklevel=3,
         )
-    return bx, by
-
-
-def shape_distance_matrix(
-    meshes: list[Mesh], *, k: int = 20, kind: str = "area", progress: bool = False, **match_kwargs
-) -> np.ndarray:
-    """``(N, N)`` symmetric shape distances from the functional maps between all pairs.
-
-    Each ordered pair is matched (:func:`match`, eigenbasis by default) and the map's
-    shape difference is compared with the identity (:func:`~torchfmap.eval.shape_distance`);
-    the two directions are averaged. Feed the result to
-    :func:`~torchfmap.eval.retrieval_accuracy` with class labels.
-    """
-    n = len(meshes)
-    D = np.zeros((n, n))
-    pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
-    shapes = [prepare_shape(m, 0) for m in meshes]  # each shape's work done once, not per pair
-    for i, j in tqdm(pairs, desc="shape pairs", disable=not progress):
-        result = match(meshes[i], meshes[j], k=k, shapes=(shapes[i], shapes[j]), **match_kwargs)
-        W_x, W_y = result.basis_x.projected_laplacian(), result.basis_y.projected_laplacian()
-        D[i, j] = shape_distance(result.C_xy, W_x, W_y, kind=kind)
-    return 0.5 * (D + D.T)
+    return bx, by, seeded and together

@@ -65,12 +65,13 @@ class PreparedShape:
 
 
 def prepare_shape(
-    mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian_kind: str = "cotan"
+    mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian_kind: str = "auto"
 ) -> PreparedShape:
     """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`~torchfmap.match` does
-    per shape), in its unit-area frame: :func:`~torchfmap.laplacian` (``kind=laplacian_kind``)
-    of ``mesh.scaled(1 / sqrt(area))``. Given ``operators`` ``(L, B)`` are used as they are
-    (the caller's frame, ``scale = 1``).
+    per shape), in its unit-area frame: :func:`~torchfmap.laplacian` (``kind=laplacian_kind``;
+    ``'auto'``: ``'cotan'``, or ``'robust'``, the intrinsic tufted Laplacian, for a mesh with
+    non-manifold edges) of ``mesh.scaled(1 / sqrt(area))``. Given ``operators`` ``(L, B)`` are
+    used as they are (the caller's frame, ``scale = 1``).
 
     Raises:
         ParameterError: ``n_eigen`` negative or not below the vertex count.
@@ -78,6 +79,8 @@ def prepare_shape(
     n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
     scale = 1.0 / np.sqrt(mesh.area) if operators is None else 1.0
     frame = mesh.scaled(scale) if operators is None else mesh
+    if laplacian_kind == "auto":
+        laplacian_kind = "robust" if mesh.n_nonmanifold_edges else "cotan"
     ops = operators if operators is not None else laplacian(frame, kind=laplacian_kind)
     eig = laplacian_eigenbasis(frame, n_eigen, operators=ops) if n_eigen else None
     return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True), scale=scale)

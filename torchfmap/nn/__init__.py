@@ -18,6 +18,8 @@ Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
 """
 
 from . import functional
+from .checkpoints import load_checkpoint, read_checkpoint, save_checkpoint
+from .config import CosineBudget, TrainConfig, build_model, build_solver
 from .data import (
     PairDataset,
     PrecomputeCache,
@@ -29,6 +31,7 @@ from .data import (
     precompute_shape,
 )
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
+from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
 from .modules import (
     BasisModule,
     RegularizedFMSolver,
@@ -45,10 +48,29 @@ from .networks import (
     check_network,
     features,
 )
+from .shipped import shipped_models
+from .train import TrainState, train, train_recipe
 
 __all__ = [
     "BasisBatch",
     "BasisModule",
+    "CheckpointMatcher",
+    "CosineBudget",
+    "TrainConfig",
+    "TrainState",
+    "adapt",
+    "build_model",
+    "build_solver",
+    "evaluate",
+    "load_checkpoint",
+    "match_with_network",
+    "predict_p2p",
+    "read_checkpoint",
+    "refine_p2p",
+    "save_checkpoint",
+    "shipped_models",
+    "train",
+    "train_recipe",
     "DiffusionNet",
     "FeatureNet",
     "FeatureNetwork",

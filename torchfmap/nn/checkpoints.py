@@ -22,7 +22,8 @@ import torch
 
 from .._files import load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
-from .config import TrainConfig, build_model
+from .config import TrainConfig, build_model, network_kwargs
+from .networks import DiffusionNet
 from .shipped import resolve_checkpoint
 
 #: Types a network's recorded constructor arguments may hold (what ``weights_only`` loading reads).
@@ -73,6 +74,28 @@ def network_record(net: torch.nn.Module, net_kwargs: dict | None = None) -> dict
     return {"class": f"{cls.__module__}:{cls.__qualname__}", "kwargs": kwargs}
 
 
+def _check_config_fits(record: dict, cfg) -> None:
+    """Refuse a recipe config that disagrees with the recipe network it is saved with (the
+    checkpoint would load the right network next to a wrong config)."""
+    if (
+        not isinstance(cfg, dict)
+        or record["class"] != f"{DiffusionNet.__module__}:{DiffusionNet.__qualname__}"
+    ):
+        return
+    try:
+        expected = network_kwargs(TrainConfig(**cfg))
+    except TypeError:
+        return  # not a recipe config: nothing to compare
+    got = record.get("kwargs") or {}
+    differ = {k: (v, got[k]) for k, v in expected.items() if k in got and got[k] != v}
+    if differ:
+        said = ", ".join(f"{k}: config {a!r}, network {b!r}" for k, (a, b) in differ.items())
+        raise ParameterError(
+            f"the config does not describe the network being saved ({said}). Fix: save the config the "
+            "network was built from (build_model(config)), or correct those fields."
+        )
+
+
 def save_checkpoint(
     path, net: torch.nn.Module, config: TrainConfig | dict, *, net_kwargs: dict | None = None, **extra
 ) -> Path:
@@ -80,9 +103,10 @@ def save_checkpoint(
     (:func:`network_record`; ``net_kwargs`` overrides the network's ``init_kwargs``) and extras;
     read it with :func:`read_checkpoint`, rebuild the network with :func:`load_checkpoint`."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     cfg = asdict(config) if isinstance(config, TrainConfig) else config
     record = network_record(net, net_kwargs)
+    _check_config_fits(record, cfg)
+    path.parent.mkdir(parents=True, exist_ok=True)
     ckpt = {"state_dict": _unwrap(net).state_dict(), "config": cfg, "network": record, **extra}
     buffer = io.BytesIO()
     torch.save(ckpt, buffer)

@@ -47,17 +47,28 @@ class TrainConfig:
         return dict(k=self.k, n_wks=self.n_wks, k_net=self.k_net, basis=self.basis, inputs=self.inputs)
 
 
+def network_kwargs(config: TrainConfig) -> dict:
+    """The :class:`~torchfmap.nn.networks.DiffusionNet` arguments of the recipe ``config``."""
+    c_in = config.n_wks if config.inputs == "wks" else 3
+    return dict(
+        c_in=c_in, c_out=config.c_out, width=config.width, n_blocks=config.n_blocks,
+        dropout=config.dropout, gradients=config.gradients,
+    )  # fmt: skip
+
+
 def build_model(config: TrainConfig) -> tuple[DiffusionNet, RegularizedFMSolver, UnsupervisedFMLoss]:
     """``(network, solver, loss)`` of the recipe. The network's initial weights are drawn with
     torch's CPU generator seeded by ``config.seed`` inside ``torch.random.fork_rng``, so the same
     seed gives the same network and the caller's global RNG state is left as it was."""
-    c_in = config.n_wks if config.inputs == "wks" else 3
     with torch.random.fork_rng(devices=[]):
         torch.default_generator.manual_seed(config.seed)
-        net = DiffusionNet(
-            c_in, config.c_out, config.width, config.n_blocks, config.dropout, config.gradients
-        )
-    return net, RegularizedFMSolver(w_lap=config.w_lap), UnsupervisedFMLoss(**config.loss_weights)
+        net = DiffusionNet(**network_kwargs(config))
+    return (net, *build_solver(config))
+
+
+def build_solver(config: TrainConfig) -> tuple[RegularizedFMSolver, UnsupervisedFMLoss]:
+    """``(solver, loss)`` of the recipe, without building a network (inference)."""
+    return RegularizedFMSolver(w_lap=config.w_lap), UnsupervisedFMLoss(**config.loss_weights)
 
 
 class CosineBudget:

@@ -21,17 +21,13 @@ import torch
 from tqdm import tqdm
 
 from .._files import load_arrays, save_arrays
-from ..bases import laplacian_eigenbasis
 from ..bases.basis import Basis
 from ..bases.kinds import get_kind, learned_kind
-from ..bases.prepared import PreparedShape
+from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
 from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
 from ..mesh import Mesh
-from ..operators import laplacian
-from ..operators.geodesic import DistanceRows
-from ..operators.laplacian import normalize_area
 from .functional import BasisBatch, GradientBatch
 from .geometry import gradient_operator
 from .modules import basis_arrays
@@ -92,15 +88,16 @@ class PrecomputeCache:
         return arrays
 
 
+#: Eigenpairs the WKS inputs are computed from (:func:`precompute_shape`'s ``k_wks``).
+K_WKS = 100
 #: Relative diffusion times of the feature-aware bases on the learned path.
 SEED_TIMES = (0.01, 0.03)
 
 
-def _solver_basis(unit: Mesh, eig: Basis, kind: str, k: int, ops) -> Basis:
+def _solver_basis(shape: PreparedShape, kind: str, k: int) -> Basis:
     """The functional-map basis of ``k`` functions of a registered kind
-    (:data:`torchfmap.bases.KINDS`), built on one shape by the kind's ``shape_basis``
+    (:data:`torchfmap.bases.KINDS`), built on one prepared shape by the kind's ``shape_basis``
     (farthest-point seeds for seeded kinds, diffusion at :data:`SEED_TIMES`), B-orthonormal."""
-    shape = PreparedShape(unit, ops, eig, DistanceRows(unit, normalized=True))
     return get_kind(kind).shape_basis(shape, k, times=SEED_TIMES)
 
 
@@ -108,12 +105,14 @@ def precompute_shape(
     mesh: Mesh,
     k: int = 50,
     n_wks: int = 32,
-    k_wks: int = 100,
+    k_wks: int = K_WKS,
     *,
     k_net: int = 0,
     basis: str = "laplacian",
+    shape: PreparedShape | None = None,
 ) -> dict[str, np.ndarray]:
-    """Arrays for training and inference, on the mesh scaled to unit area.
+    """Arrays for training and inference, in the mesh's unit-area frame
+    (:func:`~torchfmap.bases.prepare_shape`, the per-shape precompute of the classical path).
 
     - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
     - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
@@ -121,15 +120,26 @@ def precompute_shape(
     - gradient operator: ``grad_rows, grad_cols, grad_x, grad_y, grad_order_t (E,)``
       (:func:`~torchfmap.nn.geometry.gradient_operator`);
     - the original ``vertices``, ``faces``.
+
+    ``shape``: ``prepare_shape(mesh, n)`` to build on (its operators, and its eigenpairs,
+    extended in place to ``max(k, k_wks, k_net)`` if fewer), so a caller that also refines with
+    ZoomOut computes one Laplacian and one eigendecomposition per shape.
+
+    Raises:
+        ParameterError: an unknown or classical-only ``basis``, or a ``shape`` of another mesh.
     """
     learned_kind(basis)  # refuses an unknown or classical-only kind before any work
-    unit = normalize_area(mesh)
-    ops = laplacian(unit)
     k_all = max(k, k_wks, k_net)
-    full = laplacian_eigenbasis(unit, k_all, operators=ops)
+    if shape is None:
+        shape = prepare_shape(mesh, k_all)
+    elif not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
+        raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
+    full = with_eigenpairs(shape, k_all).eigenbasis.truncated(k_all)
+    unit = mesh.scaled(shape.scale)
     feats = wks(full.eigenvalues[:k_wks], full.values[:, :k_wks], n_wks)
     feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
-    arrays = basis_arrays(_solver_basis(unit, full, basis, k, ops))
+    frame = PreparedShape(mesh, shape.operators, full, shape.distances, shape.kernels, shape.scale)
+    arrays = basis_arrays(_solver_basis(frame, basis, k))
     if k_net:
         net = basis_arrays(full.truncated(k_net))
         arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
@@ -258,11 +268,14 @@ def _open_cache(folder) -> PrecomputeCache | None:
         return None
 
 
-def class_pairs(names: list[str]) -> list[tuple[int, int]]:
+def class_pairs(names: list[str], within: bool = True) -> list[tuple[int, int]]:
     """Ordered pairs within classes: names sharing the prefix before trailing digits (and ``_-``)
-    form a class (``cat0``, ``cat1``); when no class has two shapes, all ordered pairs."""
+    form a class (``cat0``, ``cat1``); when no class has two shapes, or with ``within=False``
+    (e.g. animals of different species, humans of several data sets), all ordered pairs."""
     kind = [n.rstrip("0123456789").rstrip("_-") for n in names]
     n = len(names)
+    if not within:
+        return [(i, j) for i in range(n) for j in range(n) if i != j]
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j and kind[i] == kind[j]]
     return pairs or [(i, j) for i in range(n) for j in range(n) if i != j]
 

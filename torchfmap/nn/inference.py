@@ -18,11 +18,14 @@ from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
 from ..fmap.refine import zoomout
 from ..mesh import Mesh
 from .checkpoints import load_checkpoint
-from .config import TrainConfig, build_model
-from .data import ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
+from .config import TrainConfig, build_solver
+from .data import K_WKS, ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .train import pair_loss
+
+#: Eigenfunctions of the ZoomOut refinement of the learned path (:func:`refine_p2p`'s ``k_final``).
+REFINE_K_FINAL = 200
 
 
 def _single(item: dict, device) -> ShapeBatch:
@@ -110,7 +113,7 @@ def refine_p2p(
     mesh_y: Mesh,
     p2p_yx: np.ndarray,
     k0: int = 50,
-    k_final: int = 200,
+    k_final: int = REFINE_K_FINAL,
     *,
     bases: tuple[Basis, Basis] | None = None,
 ) -> np.ndarray:
@@ -151,10 +154,16 @@ def refine_p2p(
     return zoomout(C_xy, bx, by, k_final, mode="orthogonal")[1]
 
 
-def _shape_item(mesh: Mesh, config: TrainConfig, index: int = 0) -> dict:
-    """A dataset item of ``mesh`` precomputed as in training with ``config``."""
-    arrays = precompute_shape(mesh, config.k, config.n_wks, k_net=config.k_net, basis=config.basis)
-    return shape_item(arrays, config.inputs, name=mesh.name or "", index=index)
+def _prepared(mesh: Mesh, config: TrainConfig, refine: bool):
+    """``(dataset item, eigenbasis for ZoomOut or None)`` of ``mesh``: one Laplacian and one
+    eigendecomposition, serving the network's inputs and bases and, with ``refine``, ZoomOut."""
+    need = max(config.k, config.k_net, K_WKS, REFINE_K_FINAL if refine else 0)
+    shape = prepare_shape(mesh, min(need, mesh.n_vertices - 1))
+    arrays = precompute_shape(
+        mesh, config.k, config.n_wks, k_net=config.k_net, basis=config.basis, shape=shape
+    )
+    item = shape_item(arrays, config.inputs, name=mesh.name or "")
+    return item, (shape.eigenbasis if refine else None)
 
 
 def _network_p2p(
@@ -196,19 +205,21 @@ def match_with_network(
         ParameterError: ``adapt_steps < 0`` or an unknown ``mode``.
     """
     _check_inference(adapt_steps, mode)
-    items = [_shape_item(m, config, i) for i, m in enumerate((mesh_x, mesh_y))]
-    _, solver, loss_fn = build_model(config)
+    (ix, bx), (iy, by) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
+    ix["index"], iy["index"] = 0, 1
+    solver, loss_fn = build_solver(config)
     return _network_p2p(
         net,
         solver,
         loss_fn,
-        items,
+        (ix, iy),
         (mesh_x, mesh_y),
         adapt_steps=adapt_steps,
         adapt_lr=adapt_lr,
         refine=refine,
         mode=mode,
         device=device,
+        bases=(bx, by) if refine else None,
     )
 
 
@@ -246,7 +257,7 @@ class CheckpointMatcher:
 
     def _load(self) -> tuple:
         net, config, _ = load_checkpoint(self.checkpoint)
-        _, solver, loss_fn = build_model(config)
+        solver, loss_fn = build_solver(config)
         return net, config, solver, loss_fn
 
     def __getstate__(self) -> dict:
@@ -260,10 +271,7 @@ class CheckpointMatcher:
         net, config, solver, loss_fn = self._model
         for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
             if key not in self._items:
-                self._items[key] = _shape_item(mesh, config)
-                if self.refine:
-                    k = min(200, mesh.n_vertices - 1)
-                    self._bases[key] = prepare_shape(mesh, k).eigenbasis
+                self._items[key], self._bases[key] = _prepared(mesh, config, self.refine)
         bases = (self._bases[key_x], self._bases[key_y]) if self.refine else None
         return _network_p2p(
             net,

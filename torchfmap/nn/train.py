@@ -301,8 +301,69 @@ def total_steps(batches_per_epoch: int, epochs: int | None, max_steps: int = 0) 
     return min(bounds) if bounds else None
 
 
+def train_recipe(
+    config: TrainConfig,
+    shapes: ShapeDataset,
+    pairs=None,
+    *,
+    out=None,
+    resume: bool = False,
+    validate=None,
+    validate_every: int = 0,
+    device: str | torch.device = "cpu",
+    progress: bool = True,
+    rank: int = 0,
+    world_size: int = 1,
+) -> tuple[TrainState, torch.nn.Module]:
+    """The reference recipe, all of it read from ``config``: the network, solver and loss of
+    :func:`~torchfmap.nn.config.build_model`, Adam at ``config.lr``, the cosine schedule over
+    the budget (``config.epochs`` / ``minutes`` / ``max_steps``, whichever ends first:
+    :class:`~torchfmap.nn.config.CosineBudget`), ``config.clip_grad``, and rigid augmentation
+    for XYZ inputs; trained by :func:`train` on ``pairs`` of ``shapes`` (default
+    :func:`~torchfmap.nn.data.class_pairs`). ``torchfmap train``, DDP ranks
+    (:func:`ddp_worker`) and ``examples/train.py`` all call it, so one process and a DDP run
+    follow the same schedule. Returns ``(state, net)``.
+
+    Raises:
+        ParameterError: a config without a budget, or as :func:`train`.
+    """
+    pairs = class_pairs(shapes.names) if pairs is None else list(pairs)
+    net, solver, loss_fn = build_model(config)
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+    per_rank = -(-len(pairs) // (config.batch_size * world_size))  # batches of one rank per epoch
+    steps = total_steps(per_rank, config.epochs, config.max_steps) or 0
+    scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineBudget(minutes=config.minutes, steps=steps))
+    state = train(
+        net,
+        PairDataset(shapes, pairs),
+        loss_fn,
+        opt,
+        solver=solver,
+        scheduler=scheduler,
+        device=device,
+        epochs=config.epochs,
+        minutes=config.minutes,
+        max_steps=config.max_steps,
+        batch_size=config.batch_size,
+        clip_grad=config.clip_grad,
+        augment=config.inputs == "xyz",
+        validate=validate,
+        validate_every=validate_every,
+        checkpoint=out,
+        config=config,
+        resume=resume,
+        seed=config.seed,
+        progress=progress,
+        rank=rank,
+        world_size=world_size,
+    )
+    return state, net
+
+
 def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_dict: dict, out_path) -> None:
-    """One rank of a DDP run of the reference recipe (gloo on CPU, NCCL with one GPU per rank).
+    """One rank of a DDP run of the reference recipe (gloo on CPU, NCCL with one GPU per rank):
+    :func:`train_recipe` with the whole budget, schedule, clipping and augmentation of
+    ``config_dict``.
 
     The same pairs as one process (:func:`~torchfmap.nn.data.class_pairs`); rank 0 shows
     progress and writes the checkpoint ``out_path``; every rank writes its final weights to
@@ -319,22 +380,8 @@ def ddp_worker(rank: int, world_size: int, port: int, files, cache_dir, config_d
         shapes = ShapeDataset(
             files, cache_dir, **config.dataset_kwargs(), rank=rank, world_size=world_size, progress=False
         )
-        net, solver, loss_fn = build_model(config)
-        opt = torch.optim.Adam(net.parameters(), lr=config.lr)
-        train(
-            net,
-            PairDataset(shapes, class_pairs(shapes.names)),
-            loss_fn,
-            opt,
-            solver=solver,
-            device=device,
-            epochs=config.epochs,
-            checkpoint=out_path,
-            config=config,
-            seed=config.seed,
-            progress=rank == 0,
-            rank=rank,
-            world_size=world_size,
+        _, net = train_recipe(
+            config, shapes, out=out_path, device=device, progress=rank == 0, rank=rank, world_size=world_size
         )
         torch.save(net.state_dict(), Path(out_path).parent / f"rank{rank}.pt")
     finally:

@@ -1,0 +1,128 @@
+"""Dev data made differently from ours: remeshed copies of the shared shapes, ground truth carried.
+
+Run by hand from the repository root (needs ``pip install 'torchfmap[remesh]'``)::
+
+    python3 bench/make_remeshed.py                      # every set below, into bench/data/
+    python3 bench/make_remeshed.py --sets scape_r --out /tmp/remeshed
+
+Sets (each a folder of ``<name>.off`` and ``corres/<name>.vts``, 1-based, row r of A.vts and of
+B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was made):
+
+- ``scape_r``: the 51 SCAPE training poses, each remeshed on its own (isotropic, ~5,000
+  vertices), as SCAPE_r is; ``.vts`` rows are the 12,500 template vertices;
+- ``scape_a``: the same poses, anisotropically remeshed (``torchfmap.remesh``, stretch 3 along
+  a random direction per pose), ~5,000 vertices;
+- ``faust_a``: FAUST_r training shapes tr_reg_000..079 anisotropically remeshed from their
+  FAUST_r meshing (stretch 3, random direction per shape), ~5,000 vertices, their ``.vts``
+  carried through (5,000 rows);
+- ``fs_train``: links to the F+S training shapes in both meshings (FAUST_r and faust_a
+  tr_reg_000..069, scape_r and scape_a mesh000..040; anisotropic copies named ``<name>_a``):
+  the folder ``torchfmap train --pairs all`` reads for the shipped ``humans`` model;
+- ``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe (every 4th
+  sorted name validates instead, ``bench/_common.smal_split``).
+
+Ground truth through a remesh: each old vertex goes to its nearest new vertex, so the carried
+ground truth has an error of about half an edge, far below the errors measured.
+The files are git-ignored (they are derived from data that must not be shipped).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from _common import BENCH_DIR, log, require_data, smal_split, str_list
+from tqdm import tqdm
+
+from torchfmap.io import load_mesh, mesh_files, read_vts, save_mesh, shape_name
+from torchfmap.remesh import remesh
+
+SETS = ("scape_r", "scape_a", "faust_a", "fs_train", "smal_train")
+#: Training shapes of the F+S recipe (the rest of each set validates): FAUST_r 000..069, SCAPE 000..040.
+FAUST_TRAIN = [f"tr_reg_{i:03d}" for i in range(70)]
+SCAPE_TRAIN = [f"mesh{i:03d}" for i in range(41)]
+N_VERTICES = 5000
+
+
+def _write(out: Path, name: str, mesh, vts0: np.ndarray) -> None:
+    (out / "corres").mkdir(parents=True, exist_ok=True)
+    save_mesh(mesh, out / f"{name}.off")
+    np.savetxt(out / "corres" / f"{name}.vts", vts0 + 1, fmt="%d")
+
+
+def make(set_name: str, out: Path, names=None) -> None:
+    src = require_data("scape_train" if set_name.startswith("scape") else "faust_r_train")
+    method = "isotropic" if set_name == "scape_r" else "anisotropic"
+    folder = out / set_name
+    files = [f for f in mesh_files(src) if names is None or shape_name(f) in names]
+    for i, path in enumerate(tqdm(files, desc=set_name)):
+        name = shape_name(path)
+        if (folder / f"{name}.off").exists():
+            continue
+        mesh = load_mesh(path, allow_nonmanifold=True)
+        res = remesh(mesh, N_VERTICES, method, seed=1000 + i)
+        if set_name.startswith("scape"):
+            old = np.arange(mesh.n_vertices)  # identity ground truth on the template
+        else:
+            old = read_vts(src / "corres" / f"{name}.vts")
+        _write(folder, name, res.mesh, res.to_new[old])
+    (folder / "README.md").write_text(
+        f"# {set_name}\n\nMade by `python3 bench/make_remeshed.py --sets {set_name}` from "
+        f"`../shared/data/{src.name}` ({method} remeshing, ~{N_VERTICES} vertices, "
+        "ground truth carried to the nearest new vertex). Same terms as the source; do not ship.\n"
+    )
+    log(f"{set_name}: {len(files)} shapes in {folder}")
+
+
+def make_training_folder(out: Path) -> None:
+    """``fs_train``: links to the F+S training shapes in both meshings (FAUST_r and faust_a
+    000..069, scape_r and scape_a 000..040; the anisotropic copies named ``<name>_a``)."""
+    folder = out / "fs_train"
+    folder.mkdir(parents=True, exist_ok=True)
+    faust = require_data("faust_r_train")
+    links = [(faust / f"{n}.off", n) for n in FAUST_TRAIN]
+    links += [(out / "faust_a" / f"{n}.off", f"{n}_a") for n in FAUST_TRAIN]
+    links += [(out / "scape_r" / f"{n}.off", n) for n in SCAPE_TRAIN]
+    links += [(out / "scape_a" / f"{n}.off", f"{n}_a") for n in SCAPE_TRAIN]
+    for target, name in links:
+        if not target.exists():
+            raise SystemExit(f"{target} is missing: make the sets faust_a, scape_r, scape_a first")
+        link = folder / f"{name}.off"
+        if not link.exists():
+            link.symlink_to(target.resolve())
+    log(f"fs_train: {len(links)} shapes in {folder}")
+
+
+def make_smal_training_folder(out: Path) -> None:
+    """``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe
+    (``bench/_common.smal_split``; the other 8 validate)."""
+    folder = out / "smal_train"
+    folder.mkdir(parents=True, exist_ok=True)
+    src = require_data("smal_r_train")
+    train, _ = smal_split()
+    for name in train:
+        link = folder / f"{name}.off.gz"
+        if not link.exists():
+            link.symlink_to((src / f"{name}.off.gz").resolve())
+    log(f"smal_train: {len(train)} shapes in {folder}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--sets", type=str_list, default=list(SETS), help=f"comma list of {', '.join(SETS)}")
+    p.add_argument("--out", default=str(BENCH_DIR / "data"), help="output folder (default bench/data)")
+    args = p.parse_args()
+    for s in args.sets:
+        if s not in SETS:
+            raise SystemExit(f"unknown set {s!r}: one of {', '.join(SETS)}")
+        if s == "fs_train":
+            make_training_folder(Path(args.out))
+        elif s == "smal_train":
+            make_smal_training_folder(Path(args.out))
+        else:
+            make(s, Path(args.out))
+
+
+if __name__ == "__main__":
+    main()

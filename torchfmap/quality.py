@@ -1,0 +1,140 @@
+"""How good is a point map, without ground truth: scores that :func:`torchfmap.match` chooses by.
+
+- :func:`geodesic_distortion`: how much the map changes geodesic distances. Anchors spread over
+  ``y`` (farthest points) and their images on ``x`` are compared by their distances to every
+  vertex: ``mean |d_y(a, v) - d_x(p(a), p(v))|`` in units of ``sqrt(area)``. A correct map of
+  an isometry scores the discretisation noise only; maps that tear a part off, send a leg to
+  another leg or scatter vertices score more, and so do correct maps of non-isometric pairs, but
+  the *same* amount for every candidate of one pair, so scores of one pair compare maps. It is
+  blind to intrinsic symmetries (a left-right swap preserves distances).
+- :func:`orientation_agreement`: the area share of ``y``'s triangles whose image on ``x`` keeps
+  its orientation, as ``2 share - 1`` in ``[-1, 1]``: near 1 for smooth orientation-preserving
+  maps, near -1 for mirror images, near 0 for scattered ones. Reported beside the distortion.
+- :func:`landmark_distortion`: distances among landmark pairs compared on the two shapes
+  (landmarks read with the wrong index base or swapped columns stand out);
+  :func:`warn_if_off_by_one` warns on that;
+- :func:`warn_collapsed`: a map that reaches only a few source vertices.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .bases.prepared import PreparedShape
+from .errors import MapWarning
+from .fmap.convert import check_p2p
+from .mesh import Mesh
+from .seeds import farthest_point_sampling
+
+#: Anchors of :func:`geodesic_distortion` (farthest points on ``y``).
+N_ANCHORS = 64
+#: :func:`warn_if_off_by_one` warns when the shifted landmarks distort distances this much less.
+OFF_BY_ONE_RATIO = 0.25
+
+__all__ = [
+    "COLLAPSE_COVERAGE",
+    "N_ANCHORS",
+    "distortion_anchors",
+    "geodesic_distortion",
+    "landmark_distortion",
+    "orientation_agreement",
+    "warn_collapsed",
+    "warn_if_off_by_one",
+]
+
+
+def distortion_anchors(shape_y: PreparedShape, n_anchors: int = N_ANCHORS) -> np.ndarray:
+    """``(A,)`` anchors of :func:`geodesic_distortion` on ``y``: ``min(n_anchors, V_y)``
+    Euclidean farthest points (deterministic: they start from vertex 0's farthest point)."""
+    return farthest_point_sampling(shape_y.mesh, min(n_anchors, shape_y.mesh.n_vertices), metric="euclidean")
+
+
+def geodesic_distortion(
+    shape_x: PreparedShape, shape_y: PreparedShape, p2p_yx, anchors: np.ndarray | None = None
+) -> float:
+    """``mean_{a, v} |d_y(a, v) - d_x(p(a), p(v))|`` over anchors ``a`` on ``y`` (default
+    :func:`distortion_anchors`) and every vertex ``v`` of ``y``, ``p = p2p_yx``, in units of
+    ``sqrt(area)`` (prepared shapes live in their unit-area frame). Lower is better; ``0`` for an
+    exact isometry. Distance rows are computed by, and kept in, each shape's ``distances``.
+
+    Raises:
+        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``.
+    """
+    p2p = check_p2p(p2p_yx, shape_y.mesh.n_vertices, shape_x.mesh.n_vertices, "p2p_yx")
+    anchors = distortion_anchors(shape_y) if anchors is None else np.asarray(anchors, dtype=np.int64)
+    d_y = shape_y.distances.rows(anchors)
+    images, inverse = np.unique(p2p[anchors], return_inverse=True)
+    d_x = shape_x.distances.rows(images)[inverse]
+    return float(np.mean(np.abs(d_y - d_x[:, p2p])))
+
+
+def orientation_agreement(mesh_x: Mesh, mesh_y: Mesh, p2p_yx) -> float:
+    """``2 s - 1`` where ``s`` is the area share of ``y``'s faces whose image triangle on ``x``
+    (vertices ``p2p_yx[face]``) turns the same way as ``x``'s vertex normals there; faces whose
+    image has a repeated vertex are left out (0.0 if every face is). In ``[-1, 1]``.
+
+    Raises:
+        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``.
+    """
+    p2p = check_p2p(p2p_yx, mesh_y.n_vertices, mesh_x.n_vertices, "p2p_yx")
+    a, b, c = (p2p[mesh_y.faces[:, i]] for i in range(3))
+    kept = (a != b) & (b != c) & (a != c)
+    X, N = mesh_x.vertices, mesh_x.vertex_normals
+    normal = np.cross(X[b] - X[a], X[c] - X[a])
+    sign = np.sign(np.einsum("ij,ij->i", normal, N[a] + N[b] + N[c]))
+    weight = mesh_y.face_areas * kept
+    total = weight.sum()
+    return float((sign * weight).sum() / total) if total > 0 else 0.0
+
+
+def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> float:
+    """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(a_i, b_i)``, in units of
+    ``sqrt(area)``: small for corresponding landmarks on near-isometric shapes, large for
+    landmarks that do not correspond (e.g. read with the wrong index base)."""
+    dx = shape_x.distances.rows(landmarks[:, 0])[:, landmarks[:, 0]]
+    dy = shape_y.distances.rows(landmarks[:, 1])[:, landmarks[:, 1]]
+    return float(np.mean(np.abs(dx - dy)))
+
+
+def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> None:
+    """Warn (``UserWarning``) when the landmarks shifted by -1 fit the shapes far better than as
+    given: the file was probably 1-based. Needs at least 3 landmarks; costs 2 geodesic solves
+    per landmark, reused by the feature-aware bases."""
+    if len(landmarks) < 3 or landmarks.min() < 1:
+        return
+    shifted = landmarks - 1
+    if len(np.unique(shifted[:, 0])) < len(shifted) or len(np.unique(shifted[:, 1])) < len(shifted):
+        return
+    given = landmark_distortion(shape_x, shape_y, landmarks)
+    other = landmark_distortion(shape_x, shape_y, shifted)
+    if other < OFF_BY_ONE_RATIO * given:
+        warnings.warn(
+            f"the landmarks fit the shapes {given / max(other, 1e-12):.0f}x better shifted by -1 (mean "
+            f"distance distortion {other:.3f} vs {given:.3f} sqrt(area)): were they read 1-based? "
+            "Fix: landmarks are 0-based vertex indices; subtract 1 if the file is 1-based.",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+#: A point map reaching under this fraction of the vertices it could reach (``min(V_x, V_y)``)
+#: has collapsed (e.g. an extreme regulariser weight): :func:`match` warns.
+COLLAPSE_COVERAGE = 0.05
+
+
+def warn_collapsed(p2p_yx: np.ndarray, n_x: int, stacklevel: int = 3) -> None:
+    """Warn (:class:`~torchfmap.errors.MapWarning`) when ``p2p_yx`` reaches under
+    :data:`COLLAPSE_COVERAGE` of the ``min(V_x, V_y)`` source vertices it could reach."""
+    reachable = min(n_x, len(p2p_yx))
+    reached = len(np.unique(p2p_yx))
+    if reachable > 1 and reached < COLLAPSE_COVERAGE * reachable:
+        warnings.warn(
+            f"the point map sends {len(p2p_yx)} target vertices to only {reached} source vertices "
+            f"({100 * reached / reachable:.1f} % of the {reachable} it could reach): it has collapsed. "
+            "Fix: check the weights (w_lap, w_orient), the landmarks and the meshes' scale and "
+            "orientation; refine='zoomout' often spreads a collapsed start.",
+            MapWarning,
+            stacklevel=stacklevel,
+        )
