@@ -30,10 +30,10 @@ from learned import FAUST_VAL, PairErrors, faust_val_pairs
 
 from torchfmap.eval import gt_from_vts
 from torchfmap.io import read_vts
-from torchfmap.nn.config import CosineBudget, TrainConfig, build_model
-from torchfmap.nn.data import PairDataset, ShapeDataset, class_pairs
+from torchfmap.nn.config import TrainConfig, build_solver
+from torchfmap.nn.data import ShapeDataset, class_pairs
 from torchfmap.nn.inference import predict_p2p
-from torchfmap.nn.train import train, unsupervised_score
+from torchfmap.nn.train import train_recipe, unsupervised_score
 
 RECIPE = dict(k=100, n_wks=128, k_net=128, width=128, c_out=256, clip_grad=1.0)
 
@@ -62,9 +62,7 @@ def main() -> None:
     val_pairs = [(index[a], index[b]) for a, b in rows]
     scorers = [PairErrors(val, p, gt, 500) for p, gt in zip(val_pairs, gts, strict=True)]
     pairs = class_pairs(shapes.names)
-    net, solver, loss_fn = build_model(config)
-    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(opt, CosineBudget(minutes=config.minutes))
+    solver, loss_fn = build_solver(config)
     picked = pairs[:: max(1, len(pairs) // 6)][:6]
     unsupervised = unsupervised_score(shapes, picked, solver, loss_fn)
     curve: list[dict] = []
@@ -81,7 +79,7 @@ def main() -> None:
         ]
         eval_seconds += time.perf_counter() - t0
         point = {
-            "step": scheduler.last_epoch,  # one scheduler step per optimiser step
+            "step": (len(curve) + 1) * args.every,  # every N steps (the last: fixed below)
             "minutes": (time.perf_counter() - t_start - eval_seconds) / 60,
             "val error": float(np.mean(errors)),
             "val loss": score,
@@ -94,21 +92,9 @@ def main() -> None:
         model.train()
         return score
 
-    state = train(
-        net,
-        PairDataset(shapes, pairs),
-        loss_fn,
-        opt,
-        solver=solver,
-        scheduler=scheduler,
-        epochs=None,
-        minutes=config.minutes,
-        clip_grad=config.clip_grad,
-        validate=validate,
-        validate_every=args.every,
-        config=config,
-        progress=True,
-    )
+    state, _ = train_recipe(config, shapes, pairs, validate=validate, validate_every=args.every)
+    if curve:
+        curve[-1]["step"] = state.step  # the validation at the end
     report = Report(args.name)
     report.add(
         f"`python3 bench/learned_curve.py --minutes {args.minutes:g} --every {args.every} --val-pairs "

@@ -45,3 +45,20 @@ def test_cli_errors_name_flags(tmp_path, capsys):
         == 2
     )
     assert "--k (basis size, default 50) must be an integer in [1, 11], got 50" in capsys.readouterr().err
+
+
+def test_two_components_refused_by_basis_and_named_by_info(tmp_path, capsys):
+    a = icosphere(1)
+    two = Mesh(
+        np.vstack([a.vertices, a.vertices + 3]),
+        np.vstack([a.faces, a.faces + a.n_vertices]),
+        allow_components=True,
+    )
+    save_mesh(two, tmp_path / "two.off")
+    assert main(["basis", str(tmp_path / "two.off"), "--k", "5", "--out", str(tmp_path / "b.npz")]) == 2
+    assert "--allow-components" in capsys.readouterr().err
+    out = ["--out", str(tmp_path / "b.npz")]
+    assert main(["basis", str(tmp_path / "two.off"), "--k", "5", "--allow-components", *out]) == 0
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "two.off")]) == 0
+    assert "2 connected components" in capsys.readouterr().out

@@ -40,3 +40,10 @@ def test_identity_only_for_one_template_unless_asked(shuffled_folder, tmp_path, 
     with pytest.raises(ParameterError, match="no ground truth"):
         list(discover_pairs(same, identity=False))
     assert main(["eval", str(same), "--k", "8", "--quiet", "--gt", "files"]) == 2
+
+
+def test_gt_from_vts_names_paths_given_for_arrays(tmp_path):
+    from torchfmap.eval import gt_from_vts
+
+    with pytest.raises(ParameterError, match=r"not their paths.*read_vts"):
+        gt_from_vts(str(tmp_path / "a.vts"), tmp_path / "b.vts")

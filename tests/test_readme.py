@@ -1,5 +1,5 @@
-"""The README runs: every ``python`` block (in order, in one namespace, as a reader pasting them
-would) and every ``bash`` block (each line through the shell, from a copy of the repository's
+"""The README runs: every ``python`` block (each on its own, in a fresh namespace: a reader may
+paste any one) and every ``bash`` block (each line through the shell, from a copy of the repository's
 layout), verbatim. A block preceded by ``<!-- readme-test: skip: REASON -->`` is not run (an
 install, the test command itself, minutes-long training or benchmarks); a block that reads
 ``../shared/data`` skips when that folder is absent."""
@@ -63,7 +63,6 @@ def test_readme_runs(workdir, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     bindir = str(Path(sys.executable).parent)
     env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
-    namespace: dict = {"__name__": "__readme__"}
     ran = 0
     for lang, body, why in readme_blocks():
         if why is not None or lang == "text":
@@ -71,7 +70,7 @@ def test_readme_runs(workdir, monkeypatch):
         if "../shared/data" in body and not SHARED.exists():
             continue
         if lang == "python":
-            exec(compile(body, "README.md", "exec"), namespace)
+            exec(compile(body, "README.md", "exec"), {"__name__": "__readme__"})  # self-contained
         else:
             for command in shell_commands(body):
                 command = re.sub(r"^python3 ", f"{sys.executable} ", command)

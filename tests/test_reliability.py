@@ -489,3 +489,27 @@ def test_unreferenced_vertices_are_refused_by_operators_and_referenced_removes_t
     np.testing.assert_array_equal(mesh.vertices[ids], sub.vertices)
     L_sub, L_ref = laplacian(sub), laplacian(sphere)
     assert abs(L_sub.stiffness - L_ref.stiffness).max() == 0 and abs(L_sub.mass - L_ref.mass).max() == 0
+
+
+def test_misread_landmark_files_are_flagged_on_real_pairs():
+    """FAUST_r 070 -> 071 with 7 ground-truth landmarks: read 1-based or with swapped columns,
+    match warns and names the reading that fits; as given, it does not warn."""
+    import warnings
+
+    from torchfmap import load_mesh, match
+    from torchfmap.eval import gt_from_vts, landmarks_from_gt
+    from torchfmap.io import read_vts
+
+    from .conftest import data_path
+
+    folder = data_path("faust_r_train")
+    x, y = (load_mesh(folder / f"tr_reg_{n}.off") for n in ("070", "071"))
+    gt = gt_from_vts(*(read_vts(folder / "corres" / f"tr_reg_{n}.vts") for n in ("070", "071")))
+    lm = landmarks_from_gt(x, gt, 7)
+    with pytest.warns(UserWarning, match="read 1-based"):
+        match(x, y, landmarks=lm + 1, k=20, basis="laplacian")
+    with pytest.warns(UserWarning, match="columns swapped"):
+        match(x, y, landmarks=lm[:, ::-1].copy(), k=20, basis="laplacian")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*fit the shapes.*")
+        match(x, y, landmarks=lm, k=20, basis="laplacian")

@@ -5,6 +5,9 @@ Data flow: mesh -> operators -> seeds -> bases -> descriptors -> functional map 
 as differentiable ``torch.nn.Module`` layers.
 """
 
+import importlib
+import warnings
+
 from .bases import (
     KINDS,
     Basis,
@@ -130,9 +133,6 @@ _MOVED = {
 
 def __getattr__(name: str):
     if name in _MOVED:
-        import importlib
-        import warnings
-
         warnings.warn(
             f"torchfmap.{name} moved to {_MOVED[name]}.{name} (an internal helper); import it from there.",
             DeprecationWarning,

@@ -11,7 +11,6 @@ import argparse
 import importlib.util
 import math
 import os
-import re
 import sys
 import warnings
 from collections.abc import Sequence
@@ -20,6 +19,9 @@ import numpy as np
 
 from . import __version__
 from .bases.kinds import KINDS
+from .cli_messages import error_line as _error_line
+from .cli_messages import in_cli_terms as in_cli_terms
+from .cli_messages import warning_line as _warning_line
 from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match, cmd_models, cmd_train
 from .errors import TorchFmapError
 
@@ -31,9 +33,12 @@ DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
   torchfmap match SRC TGT --out MAP   map target vertices to source vertices
   torchfmap eval FOLDER               match every pair with ground truth: table, PCK plot
   torchfmap train FOLDER --out CKPT   train a feature network, unsupervised
+  torchfmap models                    list the pretrained models shipped in the package
 
-Flags mean the same in every subcommand: --landmarks is always a FILE (0-based vertex
-indices), --k the basis size, --out the output file. Run 'torchfmap COMMAND --help'."""
+Flags mean the same in every subcommand: --k is the basis size, --out the output file,
+--landmarks 0-based vertex indices (match: a FILE of pairs; basis: a FILE of one column for a
+mesh, two for a pair; eval: a FOLDER of <source>-<target>.txt pair files). Run
+'torchfmap COMMAND --help'."""
 
 #: Every basis kind of the registry (torchfmap.bases.KINDS), for the commands that take one.
 BASES = list(KINDS)
@@ -111,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="basis kind (default: diffusion with --landmarks, else laplacian)",
     )
     p.add_argument("--k", type=positive_int, default=50, help="basis size (exactly k columns)")
+    p.add_argument(
+        "--allow-components", action="store_true", help="accept meshes with several connected components"
+    )
     p.add_argument(
         "--landmarks",
         metavar="FILE",
@@ -377,47 +385,6 @@ def check_outputs(args: argparse.Namespace) -> None:
             )
     if getattr(args, "png", None) and importlib.util.find_spec("matplotlib") is None:
         raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
-
-
-#: The library's fixes in Python terms -> the same fix in the command line's terms.
-CLI_TERMS = (
-    (re.compile(r"`?allow_components=True`?"), "--allow-components"),
-    (re.compile(r"`?basis='(\w+)'`?"), r"--basis \1"),
-    (re.compile(r"`?refine='(\w+)'`?"), r"--refine \1"),
-    (re.compile(r"`?k_final( >=| =)"), r"--k-final\1"),
-    (re.compile(r"\bk_final=(\d+)"), r"--k-final \1"),
-    (re.compile(r"drop k_final"), "drop --k-final"),
-    (re.compile(r"drop times\b"), "drop --times"),
-    (re.compile(r"\btimes are the heat times"), "--times are the heat times"),
-    (re.compile(r"`?w_lap=([\w.]+)`?"), r"--w-lap \1"),
-    (re.compile(r"`?identity=True`? \(CLI: --gt identity\)"), "--gt identity"),
-    (re.compile(r"\(CLI: ([^)]*)\)"), r"(\1)"),
-    (re.compile(r"keep one with `mesh\.largest_component\(\)`, or"), "keep the largest component, or"),
-    (re.compile(r"\bk \(basis size\)"), "--k (basis size, default 50)"),
-)
-
-
-def in_cli_terms(text: str) -> str:
-    """A library message with its Python fixes (``basis='laplacian'``, ``allow_components=True``)
-    said as the flags that do the same (``--basis laplacian``, ``--allow-components``)."""
-    for pattern, flag in CLI_TERMS:
-        text = pattern.sub(flag, text)
-    return text
-
-
-def _error_line(err: BaseException) -> str:
-    """``torchfmap: error: ...``, naming the error class where it says more than 'error'."""
-    name = type(err).__name__
-    text = err.strerror if isinstance(err, OSError) and err.strerror else str(err)  # no "[Errno 2]"
-    text = in_cli_terms(text)
-    plain = name in ("TorchFmapError", "FileWriteError", "FileReadError")
-    return f"torchfmap: error: {text}" if plain else f"torchfmap: error ({name}): {text}"
-
-
-def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` of the command line: ``torchfmap: warning: <message>`` on stderr,
-    without Python's source line, its fixes in the command line's terms."""
-    print(f"torchfmap: warning: {in_cli_terms(str(message))}", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

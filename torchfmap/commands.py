@@ -89,6 +89,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_info(args: argparse.Namespace) -> int:
     mesh = load_mesh(args.mesh, allow_components=True)
     _operator_summary(mesh, print)
+    if mesh.n_components > 1:
+        print(
+            f"note: {mesh.n_components} connected components; match and basis refuse such a mesh "
+            "unless given --allow-components (every component then needs its own seeds)"
+        )
     return 0
 
 
@@ -107,7 +112,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
             f"--out {bad[0]!r}: a basis file is .npz (it would be written as {bad[0]}.npz). Fix: name "
             "it *.npz."
         )
-    loaded = [load_mesh(m, allow_components=True) for m in meshes]
+    loaded = [load_mesh(m, allow_components=args.allow_components) for m in meshes]
     kind = get_kind(args.kind or ("diffusion" if args.landmarks else "laplacian"))
     pair = len(loaded) == 2
     if pair:

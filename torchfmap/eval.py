@@ -50,7 +50,18 @@ def gt_from_map(gt_yx: np.ndarray) -> Correspondence:
 
 
 def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
-    """From two 0-based ``.vts`` index arrays whose rows correspond."""
+    """From two 0-based ``.vts`` index arrays whose rows correspond.
+
+    Raises:
+        ParameterError: file paths instead of arrays (read them with
+            :func:`~torchfmap.io.read_vts`, which also makes them 0-based), or row counts that
+            differ.
+    """
+    if any(isinstance(v, (str, os.PathLike)) for v in (vts_x, vts_y)):
+        raise ParameterError(
+            "gt_from_vts takes the 0-based index arrays of two .vts files, not their paths. Fix: "
+            "gt_from_vts(read_vts(path_x), read_vts(path_y)) (torchfmap.io.read_vts)."
+        )
     if len(vts_x) != len(vts_y):
         raise ParameterError(f".vts files have {len(vts_x)} and {len(vts_y)} rows; rows must correspond.")
     return Correspondence(np.asarray(vts_x, dtype=np.int64), np.asarray(vts_y, dtype=np.int64))

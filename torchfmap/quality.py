@@ -30,8 +30,14 @@ from .seeds import farthest_point_sampling
 
 #: Anchors of :func:`geodesic_distortion` (farthest points on ``y``).
 N_ANCHORS = 64
-#: :func:`warn_if_off_by_one` warns when the shifted landmarks distort distances this much less.
-OFF_BY_ONE_RATIO = 0.25
+#: :func:`warn_if_off_by_one` reads landmark files of at least this many pairs (fewer distances
+#: among them do not tell readings apart: 3 landmarks give 3 distances).
+MISREAD_MIN_LANDMARKS = 5
+#: ... and warns when the pairs shifted by -1 distort distances by this factor less than given
+#: (a shift by one vertex often lands near the intended vertex: a weaker signal than a swap).
+OFF_BY_ONE_RATIO = 0.7
+#: ... or the pairs with swapped columns by this factor less.
+SWAPPED_RATIO = 0.5
 
 __all__ = [
     "COLLAPSE_COVERAGE",
@@ -99,24 +105,35 @@ def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmark
 
 
 def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> None:
-    """Warn (``UserWarning``) when the landmarks shifted by -1 fit the shapes far better than as
-    given: the file was probably 1-based. Needs at least 3 landmarks; costs 2 geodesic solves
-    per landmark, reused by the feature-aware bases."""
-    if len(landmarks) < 3 or landmarks.min() < 1:
-        return
-    shifted = landmarks - 1
-    if len(np.unique(shifted[:, 0])) < len(shifted) or len(np.unique(shifted[:, 1])) < len(shifted):
+    """Warn (``UserWarning``) when another reading of the landmark pairs fits the shapes far
+    better than the given one, by :func:`landmark_distortion` (distances among landmarks agree
+    on corresponding points): the pairs shifted by -1 (a 1-based file; at least
+    :data:`MISREAD_MIN_LANDMARKS` pairs, better by :data:`OFF_BY_ONE_RATIO`) or with their
+    columns swapped (target vertex first; better by :data:`SWAPPED_RATIO`). Costs 2 geodesic
+    solves per landmark, reused by the feature-aware bases."""
+    if len(landmarks) < MISREAD_MIN_LANDMARKS:
         return
     given = landmark_distortion(shape_x, shape_y, landmarks)
-    other = landmark_distortion(shape_x, shape_y, shifted)
-    if other < OFF_BY_ONE_RATIO * given:
-        warnings.warn(
-            f"the landmarks fit the shapes {given / max(other, 1e-12):.0f}x better shifted by -1 (mean "
-            f"distance distortion {other:.3f} vs {given:.3f} sqrt(area)): were they read 1-based? "
-            "Fix: landmarks are 0-based vertex indices; subtract 1 if the file is 1-based.",
-            UserWarning,
-            stacklevel=3,
-        )
+    readings = []
+    if landmarks.min() >= 1:
+        fix = "landmarks are 0-based vertex indices; subtract 1 if the file is 1-based"
+        readings.append(("shifted by -1 (were they read 1-based?)", landmarks - 1, OFF_BY_ONE_RATIO, fix))
+    nx, ny = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
+    if landmarks[:, 1].max() < nx and landmarks[:, 0].max() < ny:
+        fix = "each line is 'source_vertex target_vertex'; swap the columns"
+        readings.append(("with their columns swapped", landmarks[:, ::-1].copy(), SWAPPED_RATIO, fix))
+    for what, other, ratio, fix in readings:
+        if len(np.unique(other[:, 0])) < len(other) or len(np.unique(other[:, 1])) < len(other):
+            continue
+        score = landmark_distortion(shape_x, shape_y, other)
+        if score < ratio * given:
+            warnings.warn(
+                f"the landmarks fit the shapes {given / max(score, 1e-12):.1f}x better {what}: mean "
+                f"distance distortion {score:.3f} vs {given:.3f} sqrt(area) as given. Fix: {fix}.",
+                UserWarning,
+                stacklevel=3,
+            )
+            return
 
 
 #: A point map reaching under this fraction of the vertices it could reach (``min(V_x, V_y)``)

@@ -28,6 +28,9 @@ from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import check_network, features
 
+#: Progress bar of a time budget: seconds of the budget, no rate (steps and epochs in the postfix).
+TIME_BAR = "{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}{postfix}]"
+
 
 def random_rigid(xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1)) -> torch.Tensor:
     """Augmentation for XYZ inputs: a random rotation and scaling per shape, ``(B, V, 3)``.
@@ -245,6 +248,8 @@ def train(
         initial=min(round(state.seconds), round(60 * minutes)) if by_time else state.step,
         disable=not progress or not main,
         unit="s" if by_time else "step",
+        # a time budget counts seconds: no "s/s" rate, the steps and epochs are in the postfix
+        bar_format=TIME_BAR if by_time else None,
     )
     last_tick = state.seconds
     while (epochs is None or state.epoch < epochs) and not stop:
@@ -274,7 +279,8 @@ def train(
                 last_tick = now
             else:
                 bar.update()
-            bar.set_postfix(step=state.step, epoch=state.epoch + 1, loss=f"{state.losses[-1]['total']:.3f}")
+            # full epochs, as the end-of-run summary counts them
+            bar.set_postfix(step=state.step, full_epochs=state.epoch, loss=f"{state.losses[-1]['total']:.3f}")
             if validate_every and state.step % validate_every == 0:
                 run_validation()
                 save()
