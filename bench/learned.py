@@ -229,7 +229,7 @@ def run_checkpoint(
                 **({"set": set_name} if set_name else {}),
                 "method": method,
                 "pairs": len(errs),
-                "mean error": float(np.mean(errs)),
+                "mean error x100": 100 * float(np.mean(errs)),
                 "s / pair": seconds[method] / len(errs),
             }
         )
@@ -291,7 +291,7 @@ def main() -> None:
         report.add(f"# Learned path on {data} ({args.pairs} pairs; {load_note()} at start)")
         for spec in args.checkpoints.split(","):
             run_checkpoint(spec, args, require_data(data), report, rows, curves)
-    report.table("Mean geodesic error (normalised by sqrt(area))", rows)
+    report.table("Mean geodesic error / sqrt(area), x100; seconds per pair (precompute excluded)", rows)
     png = RESULTS_DIR / f"learned_{args.name}_loss.png"
     loss_png(curves, png)
     report.add(f"Loss curves: `{png.relative_to(RESULTS_DIR.parent.parent)}`. {load_note()} at end.")
