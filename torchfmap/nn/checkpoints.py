@@ -82,10 +82,12 @@ def _check_config_fits(record: dict, cfg) -> None:
         or record["class"] != f"{DiffusionNet.__module__}:{DiffusionNet.__qualname__}"
     ):
         return
+    if not {"width", "c_out", "n_blocks", "n_wks", "inputs"} <= set(cfg):
+        return  # not a recipe config (e.g. train() with a network of the caller's): nothing to compare
     try:
         expected = network_kwargs(TrainConfig(**cfg))
     except TypeError:
-        return  # not a recipe config: nothing to compare
+        return
     got = record.get("kwargs") or {}
     differ = {k: (v, got[k]) for k, v in expected.items() if k in got and got[k] != v}
     if differ:
