@@ -63,20 +63,10 @@ class Pair:
         self.name = spec
         if spec.startswith("faust:"):  # faust:A-B: FAUST_r training meshes tr_reg_A (x), tr_reg_B (y)
             a, b = (f"tr_reg_{n}" for n in spec.split(":", 1)[1].split("-"))
-            folder = require_data("faust_r_train")
-            self.x = torchfmap.load_mesh(folder / f"{a}.off")
-            self.y = torchfmap.load_mesh(folder / f"{b}.off")
-            corres = folder / "corres"
-            self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
-            self.fixed = None
+            self._load_vts_pair(require_data("faust_r_train"), a, b, ".off")
         elif spec.startswith("smal:"):  # smal:A+B: SMAL_r training animals A (x), B (y)
             a, b = spec.split(":", 1)[1].split("+")
-            folder = require_data("smal_r_train")
-            self.x = torchfmap.load_mesh(folder / f"{a}.off.gz")
-            self.y = torchfmap.load_mesh(folder / f"{b}.off.gz")
-            corres = folder / "corres"
-            self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
-            self.fixed = None
+            self._load_vts_pair(require_data("smal_r_train"), a, b, ".off.gz")
         elif spec == "cat-lion":
             folder = require_data("pyfm_cat_lion")
             self.x = torchfmap.load_mesh(folder / "cat-00.off")
@@ -97,6 +87,14 @@ class Pair:
         self._rows: np.ndarray | None = None
         self._inverse: np.ndarray | None = None
         self.checked = False
+
+    def _load_vts_pair(self, folder: Path, a: str, b: str, suffix: str) -> None:
+        """Meshes ``folder/a``, ``folder/b`` and the ground truth of their ``corres/*.vts`` rows."""
+        self.x = torchfmap.load_mesh(folder / f"{a}{suffix}")
+        self.y = torchfmap.load_mesh(folder / f"{b}{suffix}")
+        corres = folder / "corres"
+        self.gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+        self.fixed = None
 
     def landmarks(self, n: int, use_fixed: bool = True) -> np.ndarray:
         if use_fixed and self.fixed is not None:
