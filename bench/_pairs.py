@@ -206,6 +206,25 @@ def lookup(rows, pair: str, method: str, refine: str | None, n_lmk: int | None =
     return None
 
 
+def values(rows, names, method: str, refine: str, n_lmk: int, key: str = "mean") -> list[float]:
+    """``key`` of the rows of ``pairs`` in ``names`` for one method, refinement and ``L``."""
+    return [
+        r[key]
+        for r in rows
+        if r["pair"] in names
+        and r["method"] == method
+        and r["refine"] == refine
+        and r["L"] == n_lmk
+        and key in r
+    ]
+
+
+def mean_of(rows, names, method: str, refine: str, n_lmk: int, key: str = "mean") -> float:
+    """Mean of :func:`values` (x100 for errors), NaN unless every pair of ``names`` has a row."""
+    v = values(rows, names, method, refine, n_lmk, key)
+    return float(np.mean(v)) * (100 if key == "mean" else 1) if len(v) == len(names) else float("nan")
+
+
 def save_csv(rows: list[dict], path: Path) -> None:
     keys: list[str] = []
     for r in rows:

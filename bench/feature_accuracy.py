@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 from _common import RESULTS_DIR, Report, fmt, int_list, log, str_list
-from _pairs import Pair, _crash, na_row, record, run_pyfm_rows, save_csv
+from _pairs import Pair, _crash, mean_of, na_row, record, run_pyfm_rows, save_csv
 
 from torchfmap.pipeline import match
 
@@ -65,15 +65,6 @@ def run_pair(pair: Pair, n: int, use_pyfm: bool, rows: list[dict], also: tuple[s
             rows.append(record(pair, method, refine, n, res.basis_x.k, res.p2p_yx, wall))
     if use_pyfm:
         run_pyfm_rows(pair, lmk, K, (None, "icp", "zoomout"), rows)
-
-
-def mean_of(rows, names, method, refine, n, key="mean"):
-    vals = [
-        r[key]
-        for r in rows
-        if r["pair"] in names and r["method"] == method and r["refine"] == refine and r["L"] == n and key in r
-    ]
-    return float(np.mean(vals)) * (100 if key == "mean" else 1) if len(vals) == len(names) else float("nan")
 
 
 def summary(rows, sets, Ls, use_pyfm, also=()) -> list[dict]:

@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 from _common import RESULTS_DIR, Report, fmt, int_list, log, str_list
-from _pairs import Pair, _crash, na_row, record, run_pyfm_rows, save_csv
+from _pairs import Pair, _crash, mean_of, na_row, record, run_pyfm_rows, save_csv, values
 
 from torchfmap.io import mesh_files, shape_name
 from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN, match
@@ -124,19 +124,6 @@ def read_rows(path) -> list[dict]:
         if r.get("refine") in (None, "none"):
             r["refine"] = "none"
     return rows
-
-
-def values(rows, names, method, refine, n, key="mean") -> list[float]:
-    return [
-        r[key]
-        for r in rows
-        if r["pair"] in names and r["method"] == method and r["refine"] == refine and r["L"] == n and key in r
-    ]
-
-
-def mean_of(rows, names, method, refine, n, key="mean") -> float:
-    v = values(rows, names, method, refine, n, key)
-    return float(np.mean(v)) * (100 if key == "mean" else 1) if len(v) == len(names) else float("nan")
 
 
 def choice_right(rows, names, n) -> float:

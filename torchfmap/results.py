@@ -39,10 +39,11 @@ class MatchContext:
     n_fixed: int
     times: object
     zoomout_samples: int | None
+    #: the anchors of the distortion score on ``shape_y`` (sampled once, on creation)
+    anchors: np.ndarray = field(init=False, repr=False, compare=False)
 
-    @property
-    def anchors(self) -> np.ndarray:
-        return distortion_anchors(self.shape_y)
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "anchors", distortion_anchors(self.shape_y))
 
 
 def refine_result(result: MatchResult, refine: RefineKind) -> MatchResult:
