@@ -336,3 +336,25 @@ def test_spectral_frame_is_a_named_tuple():
     lam, U = frame
     assert (lam[:, 1:] >= lam[:, :-1]).all()
     torch.testing.assert_close(U @ torch.diag_embed(lam) @ U.mT, W, rtol=1e-12, atol=1e-12)
+
+
+def test_the_frame_of_an_eigenbasis_is_read_off_and_of_other_bases_solved():
+    """``core.spectral_frame``: ``W = diag(lambda)`` (an eigenbasis) gives ``U = I`` exactly and
+    its diagonal; a full symmetric ``W`` gives ``U diag(lam) Uᵀ = W`` with ``U`` orthogonal."""
+    from torchfmap.fmap import core
+
+    lam = torch.linspace(0.0, 5.0, 7, dtype=torch.float64)
+    frame = core.spectral_frame(torch.diag(lam))
+    assert torch.equal(frame.U, torch.eye(7, dtype=torch.float64)) and torch.equal(frame.lam, lam)
+    A = torch.randn(7, 7, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    W = A @ A.T
+    lam_w, U = core.spectral_frame(W)
+    scale = torch.linalg.matrix_norm(W)
+    tol = 100 * 7 * torch.finfo(W.dtype).eps * scale  # eigh's backward error, a few ulps per entry
+    assert torch.linalg.matrix_norm(U @ torch.diag(lam_w) @ U.T - W) <= tol
+    assert (
+        torch.linalg.matrix_norm(U.T @ U - torch.eye(7, dtype=torch.float64))
+        <= 100 * 7 * torch.finfo(W.dtype).eps
+    )
+    unsorted = core.spectral_frame(torch.diag(lam.flip(0)))  # not ascending: decomposed, sorted
+    assert torch.allclose(unsorted.lam, lam)

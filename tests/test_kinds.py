@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, match
-from torchfmap.bases import KINDS, Basis, BasisKind, Column, get_kind, kind_of, prepare_shape
-from torchfmap.bases.kinds import SeededKind
+from torchfmap.bases import KINDS, Basis, Column, get_kind, kind_of, prepare_shape
+from torchfmap.bases.prepared import with_eigenpairs
 from torchfmap.cli import build_parser
-from torchfmap.eval import Correspondence, evaluate_map
+from torchfmap.eval import Correspondence, evaluate_map, geodesic_errors, landmarks_from_gt
 from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap, default_w_orient
+from torchfmap.kinds import BasisKind, SeededKind
 
 from .conftest import bumpy_blob
 
@@ -163,7 +164,7 @@ def test_basis_module_from_mesh_builds_every_kind(blob, name):
 
 
 def test_hybrid_map_is_block_diagonal_and_zoomout_grows_only_the_eigen_block():
-    from torchfmap.bases.kinds.hybrid import split_blocks
+    from torchfmap.kinds.hybrid import split_blocks
 
     from .conftest import bend
 
@@ -196,7 +197,8 @@ def test_hybrid_zoomout_never_ends_worse_than_its_start_by_the_eigen_energy():
     eigen-block energy (Σ_k ‖C_kᵀC_k - I‖²/k over its sizes) is at most the start's, and its C
     is the refit of that map (block-diagonal, eigen block of the final size); the identity of a
     shape onto itself stays exact."""
-    from torchfmap.fmap.refine import hybrid_zoomout, zoomout_energy
+    from torchfmap.fmap.refine import zoomout_energy
+    from torchfmap.kinds.hybrid import hybrid_zoomout
 
     from .conftest import bend
 
@@ -220,3 +222,44 @@ def test_hybrid_zoomout_never_ends_worse_than_its_start_by_the_eigen_energy():
     bxx, bxx2, _ = kind.pair_bases(sx, sx, 20, seeds)
     exact = np.arange(x.n_vertices)
     np.testing.assert_array_equal(hybrid_zoomout(exact, sx, sx, bxx, bxx2, kind, 30, step=5)[1], exact)
+
+
+@pytest.mark.parametrize("name", ["laplacian", "hybrid", "diffusion", "eigen_diffusion"])
+def test_each_kind_refines_its_own_maps(bent_pair, name):
+    """``kind.refine``: ICP keeps the bases; ZoomOut grows them to ``k_final`` in kinds that grow
+    (``grows``) and keeps their size otherwise; a refined map of a bent pair is no worse than
+    its start (for the eigenbasis, ZoomOut's guard makes that a property)."""
+    x, y, gt = bent_pair
+    lm = landmarks_from_gt(x, gt, 6)
+    start = match(x, y, landmarks=None if name == "laplacian" else lm, k=16, basis=name)
+    ctx, kind = start._context, KINDS[name]
+    if kind.grows:
+        for shape in (ctx.shape_x, ctx.shape_y):
+            with_eigenpairs(shape, 24)
+    args = (start.C_xy, start.p2p_yx, ctx.shape_x, ctx.shape_y, start.basis_x, start.basis_y)
+    icp = kind.refine(*args, "icp", k_final=24, mode=ctx.mode, seeds=start.seeds)
+    assert (icp.basis_x.k, icp.basis_y.k) == (16, 16)
+    zo = kind.refine(*args, "zoomout", k_final=24, mode=ctx.mode, seeds=start.seeds, times=ctx.times)
+    assert zo.basis_x.k == (24 if kind.grows else 16)
+    assert zo.p2p_yx.shape == (y.n_vertices,) and zo.p2p_yx.min() >= 0 and zo.p2p_yx.max() < x.n_vertices
+    if name == "laplacian":  # ZoomOut's guard keeps the lowest-energy map, never a worse start
+        errors = [geodesic_errors(x, p, gt, max_points=200).mean() for p in (start.p2p_yx, zo.p2p_yx)]
+        assert errors[1] <= errors[0] * 1.05
+    with pytest.raises(ParameterError, match="unknown refinement"):
+        kind.refine(*args, "nearest", k_final=24, mode=ctx.mode)
+
+
+def test_refine_map_is_a_deprecated_alias_and_the_fmap_layer_points_to_the_kinds(bent_pair):
+    import torchfmap.fmap
+    from torchfmap.pipeline import refine_map
+
+    x, y, _ = bent_pair
+    r = match(x, y, k=12)
+    ctx = r._context
+    args = (r.C_xy, r.p2p_yx, ctx.shape_x, ctx.shape_y, r.basis_x, r.basis_y, "icp")
+    with pytest.warns(DeprecationWarning, match="refine"):
+        old = refine_map(*args, kind="laplacian", k_final=12, mode="orthogonal")
+    new = KINDS["laplacian"].refine(*args, k_final=12, mode="orthogonal")
+    np.testing.assert_array_equal(old.p2p_yx, new.p2p_yx)
+    with pytest.raises(AttributeError, match="get_kind"):
+        torchfmap.fmap.refine_map  # noqa: B018

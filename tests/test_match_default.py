@@ -63,18 +63,19 @@ def test_forced_basis_and_no_landmarks_do_not_choose(bent_pair):
 def test_a_refinement_that_raises_the_distortion_is_dropped(bent_pair, monkeypatch):
     x, y, gt = bent_pair
     lm = landmarks_from_gt(x, gt, 8)
-    real = torchfmap.results.refine_map
+    eigen = type(torchfmap.KINDS["laplacian"])  # the kind owns its refinement
+    real = eigen.refine
 
     def scrambling(*args, **kwargs):  # a refinement that returns a scattered map
         out = real(*args, **kwargs)
         bad = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
         return out._replace(p2p_yx=bad)
 
-    monkeypatch.setattr(torchfmap.results, "refine_map", scrambling)
+    monkeypatch.setattr(eigen, "refine", scrambling)
     result = match(x, y, landmarks=lm, k=20, basis="laplacian", refine="zoomout")
     assert not result.refined
     np.testing.assert_array_equal(result.p2p_yx, result.p2p_yx_initial)
-    monkeypatch.setattr(torchfmap.results, "refine_map", real)
+    monkeypatch.setattr(eigen, "refine", real)
     kept = match(x, y, landmarks=lm, k=20, basis="laplacian", refine="zoomout")
     assert kept.refined and kept.distortion <= result.distortion
 

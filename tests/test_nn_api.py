@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import importlib
 
+import pytest
+
 import torchfmap.nn as tnn
 from torchfmap.nn import (
     CheckpointMatcher,
@@ -55,3 +57,15 @@ def test_recipe_pieces_without_a_network():
     net, config, ckpt = load_checkpoint("faust_r")
     assert "provenance" in ckpt and callable(train) and callable(train_recipe)
     assert callable(match_with_network) and CheckpointMatcher("faust_r").checkpoint == "faust_r"
+
+
+def test_renamed_names_still_work_with_a_deprecation_warning():
+    """One name per concept: the batched solve is ``solve_fmap`` as in the classical path; the
+    old name warns and gives the same function."""
+    import torchfmap.nn.functional as F
+
+    with pytest.warns(DeprecationWarning, match="solve_fmap"):
+        old = F.fmap_solve
+    assert old is F.solve_fmap
+    with pytest.raises(AttributeError):
+        F.no_such_name  # noqa: B018

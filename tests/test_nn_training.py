@@ -137,11 +137,11 @@ def test_predict_p2p_point_map_rules(tmp_path, blob_files):
         predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode="nearest")
 
 
-def test_refine_p2p_reuses_given_eigenbases_and_refuses_wrong_ones():
-    """With the meshes' own eigenbases passed in (reused across pairs), ZoomOut gives exactly the
-    map it computes itself; the true map of a vertex-permuted copy is kept; bases of another
-    size or without eigenvalues are refused."""
-    from torchfmap import Mesh, harmonic_basis, laplacian_eigenbasis
+def test_refine_p2p_reuses_prepared_shapes_and_refuses_wrong_ones():
+    """With the meshes prepared once and passed in (reused across pairs), ZoomOut gives exactly
+    the map it computes itself; the true map of a vertex-permuted copy is kept; shapes of
+    another mesh or with too few eigenpairs are refused."""
+    from torchfmap import Mesh, prepare_shape
     from torchfmap.errors import ParameterError
     from torchfmap.nn.inference import refine_p2p
 
@@ -154,15 +154,15 @@ def test_refine_p2p_reuses_given_eigenbases_and_refuses_wrong_ones():
     noisy[flip] = noisy[np.roll(flip, 1)]
     kw = dict(k0=10, k_final=30)
     own = refine_p2p(mesh_x, mesh_y, noisy, **kw)
-    same = (laplacian_eigenbasis(mesh_x, 30), laplacian_eigenbasis(mesh_y, 30))
-    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=same), own)
-    bases = (laplacian_eigenbasis(mesh_x, 40), laplacian_eigenbasis(mesh_y, 40))  # truncated to 30
-    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, perm, **kw, bases=bases), perm)
-    assert (refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=bases) == perm).mean() > (noisy == perm).mean()
-    with pytest.raises(ParameterError, match="eigenbasis"):
-        refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(bases[0], laplacian_eigenbasis(mesh_y, 20)))
-    with pytest.raises(ParameterError, match="eigenbasis"):
-        refine_p2p(mesh_x, mesh_y, noisy, **kw, bases=(harmonic_basis(mesh_x, np.arange(40)), bases[1]))
+    same = (prepare_shape(mesh_x, 30), prepare_shape(mesh_y, 30))
+    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=same), own)
+    more = (prepare_shape(mesh_x, 40), prepare_shape(mesh_y, 40))  # truncated to 30
+    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, perm, **kw, shapes=more), perm)
+    assert (refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=more) == perm).mean() > (noisy == perm).mean()
+    with pytest.raises(ParameterError, match="eigenpairs"):
+        refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=(more[0], prepare_shape(mesh_y, 20)))
+    with pytest.raises(ParameterError, match="prepare_shape"):
+        refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=(prepare_shape(bumpy_blob(1), 30), more[1]))
 
 
 @pytest.mark.slow

@@ -139,7 +139,8 @@ def test_match_steps_one_by_one_equal_match(pair):
     from torchfmap import MatchResult
     from torchfmap.fmap import Refined, fmap_to_p2p, solve_fmap
     from torchfmap.fmap.defaults import W_DCOMM, W_LAP, W_ORIENT
-    from torchfmap.pipeline import match_bases, match_descriptors, prepare_shape, refine_map
+    from torchfmap.kinds import get_kind
+    from torchfmap.pipeline import match_bases, match_descriptors, prepare_shape
 
     x, y, gt = pair
     lm = landmarks_from_gt(x, gt, 6)
@@ -164,7 +165,8 @@ def test_match_steps_one_by_one_equal_match(pair):
     )
     p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx_initial)
-    refined = refine_map(C, p2p, sx, sy, bx, by, "icp", kind="laplacian", k_final=20, mode="orthogonal")
+    kind = get_kind("laplacian")
+    refined = kind.refine(C, p2p, sx, sy, bx, by, "icp", k_final=20, mode="orthogonal")
     assert isinstance(refined, Refined) and refined.seeds is None
     C, p2p = refined.C_xy, refined.p2p_yx
     np.testing.assert_array_equal(p2p, result.p2p_yx)

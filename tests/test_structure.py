@@ -39,12 +39,15 @@ HOMES = {
     "check_finite": "torchfmap._torch_checks",
     "check_index_range": "torchfmap._torch_checks",
     "check_lengths": "torchfmap._torch_checks",
-    "get_kind": "torchfmap.bases.kinds",
-    "kind_of": "torchfmap.bases.kinds",
+    "get_kind": "torchfmap.bases.registry",
+    "kind_of": "torchfmap.bases.registry",
+    "register_kind": "torchfmap.bases.registry",
     "prepare_shape": "torchfmap.bases.prepared",
-    "seed_time": "torchfmap.bases.kinds.base",
+    "seed_time": "torchfmap.kinds.base",
     "replace_seeds": "torchfmap.seeds",
-    "refine_map": "torchfmap.fmap.refine",
+    "refine_map": "torchfmap.results",
+    "hybrid_zoomout": "torchfmap.kinds.hybrid",
+    "fixed_size_iterations": "torchfmap.kinds.base",
     "zoomout": "torchfmap.fmap.refine",
     "mesh_files": "torchfmap.io",
     "split_suffix": "torchfmap.io",
@@ -222,6 +225,18 @@ def test_seeds_and_descriptors_import_nothing_from_bases():
     for module in ("torchfmap.seeds", "torchfmap.descriptors"):
         bad = sorted(t for t in graph[module] if t == "torchfmap.bases" or t.startswith("torchfmap.bases."))
         assert not bad, f"{module} imports {bad}: import heat kernels from torchfmap.operators.heat"
+
+
+def test_the_solver_and_the_bases_know_no_basis_kind():
+    """Kinds sit above the functional-map layer (they build bases, and solve and refine maps by
+    calling it): nothing under ``bases`` or ``fmap`` reaches ``torchfmap.kinds`` (the defaults
+    read the registry ``bases.registry``, which the kinds fill)."""
+    graph, _ = import_graph(include_functions=True)
+    below = [m for m in graph if m.split(".")[1:2] in (["bases"], ["fmap"], ["operators"])]
+    assert "torchfmap.fmap.refine" in below and "torchfmap.bases.registry" in below
+    for module in below:
+        bad = sorted(t for t in graph[module] if t == "torchfmap.kinds" or t.startswith("torchfmap.kinds."))
+        assert not bad, f"{module} imports {bad}: a kind's behaviour belongs in torchfmap/kinds"
 
 
 def test_modules_are_short():

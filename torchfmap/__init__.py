@@ -9,7 +9,6 @@ import importlib
 import warnings
 
 from .bases import (
-    KINDS,
     Basis,
     Column,
     basis_stack,
@@ -37,6 +36,7 @@ from .errors import (
 from .eval import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .io import load_mesh, load_points, save_mesh
+from .kinds import KINDS
 from .mesh import Mesh, MeshReport, validate_mesh
 from .operators import (
     Factorization,

@@ -18,12 +18,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from . import __version__
-from .bases.kinds import KINDS
 from .cli_messages import error_line as _error_line
 from .cli_messages import in_cli_terms as in_cli_terms
 from .cli_messages import warning_line as _warning_line
 from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match, cmd_models, cmd_train
 from .errors import TorchFmapError
+from .kinds import KINDS
 
 DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
 
@@ -287,6 +287,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--inputs", choices=["wks", "xyz"], default=None, help="per-vertex network inputs (default: wks)"
+    )
+    p.add_argument(
+        "--augment",
+        choices=["rigid", "scale", "none"],
+        default=None,
+        help="moves of XYZ inputs at each step: rotation and scaling, scaling only (shapes aligned "
+        "alike), or none (default: rigid)",
     )
     p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default 32)")
     p.add_argument(

@@ -249,7 +249,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     }
     recipe = {
         name: getattr(args, name)
-        for name in ("k", "basis", "inputs", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
+        for name in ("k", "basis", "inputs", "augment", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad")
         if getattr(args, name, None) is not None
     }
     config = TrainConfig(seed=args.seed, **budget, **recipe)

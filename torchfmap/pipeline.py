@@ -18,13 +18,12 @@ import numpy as np
 
 from ._checks import check_count
 from .bases import Basis
-from .bases.kinds import BasisKind, get_kind, kind_of
 from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
 from .errors import MapWarning, ParameterError
 from .fmap import check_landmark_pairs, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
-from .fmap.refine import map_to_p2p, refine_map
+from .kinds import BasisKind, get_kind, kind_of
 from .mesh import Mesh
 from .quality import (
     OFF_BY_ONE_RATIO,
@@ -33,7 +32,7 @@ from .quality import (
     warn_collapsed,
 )
 from .quality import warn_if_off_by_one as warn_if_off_by_one
-from .results import MatchContext, MatchResult, RefineKind, refine_result
+from .results import MatchContext, MatchResult, RefineKind, refine_map, refine_result
 
 P2PMode = Literal["pullback", "orthogonal"]
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
@@ -149,8 +148,8 @@ def match(
 
     The steps, each public for callers with their own bases or descriptors:
     :func:`prepare_shape` -> :func:`match_bases` -> :func:`match_descriptors` ->
-    :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` ->
-    :func:`refine_map`.
+    :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` -> the kind's
+    :meth:`~torchfmap.kinds.BasisKind.refine`.
 
     The default basis: without landmarks, the Laplacian eigenbasis. With landmarks, ``match``
     chooses without ground truth (``basis='auto'``): it solves the pair in each kind of
@@ -187,7 +186,7 @@ def match(
             three at 0 the solve is the exact row-wise one; otherwise preconditioned CG.
         w_prior: proximity-to-identity weight for feature-aware bases (see above).
         times: relative diffusion times of feature-aware bases (default: one time,
-            :func:`~torchfmap.bases.kinds.seed_time` of the seed count).
+            :func:`~torchfmap.kinds.seed_time` of the seed count).
         p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
             default: the kind's ``p2p_mode`` (``'orthogonal'`` for the eigenbasis).
         zoomout_samples: run eigenbasis ZoomOut on this many farthest-point samples per shape
@@ -237,7 +236,8 @@ def match(
         k = min(given_x.k, given_y.k)
     kind = get_kind(name)
     together = together and kind.needs_landmarks
-    if bases is not None and refine == "zoomout" and kind.refinement != "grow" and not together:
+    eigen_zoomout = kind.grows and not kind.needs_landmarks  # ZoomOut of given bases: eigenbases only
+    if bases is not None and refine == "zoomout" and not eigen_zoomout and not together:
         raise ParameterError(
             "ZoomOut grows nested bases: given bases only support it as eigenbases. Fix: "
             "refine='icp', or basis='laplacian' with eigenbasis files."
@@ -248,7 +248,7 @@ def match(
     if refine not in (None, "icp", "zoomout"):
         raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
     _check_unused(kind, refine, k_final, times)
-    grow = refine == "zoomout" and kind.refinement in ("grow", "hybrid")
+    grow = refine == "zoomout" and kind.grows
     if grow and k_final is not None and k_final < k:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
     prior = kind.needs_landmarks and (bases is None or together)  # else columns need not correspond
@@ -298,7 +298,7 @@ def match(
 
     C = kind.solve_map(bx, by, solve_block, w_prior)
     mode = p2p_mode or kind.p2p_mode
-    p2p = map_to_p2p(C, bx, by, kind, mode)
+    p2p = kind.to_p2p(C, bx, by, mode)
     timings["fmap+p2p"] = time.perf_counter() - t0
     context = MatchContext(shape_x, shape_y, kind, k, k_final, mode, len(pairs) if pairs is not None else 0,
                        times, zoomout_samples)  # fmt: skip

@@ -9,21 +9,22 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from .bases import Basis
-from .bases.kinds import BasisKind
 from .bases.prepared import PreparedShape, with_eigenpairs
 from .errors import ParameterError
-from .fmap.refine import refine_map
+from .fmap.refine import Refined
+from .kinds import BasisKind, get_kind
 from .quality import distortion_anchors, geodesic_distortion
 
 RefineKind = Literal["icp", "zoomout"]
 
-__all__ = ["MatchContext", "MatchResult", "RefineKind", "refine_result"]
+__all__ = ["MatchContext", "MatchResult", "RefineKind", "refine_map", "refine_result"]
 
 
 @dataclass(frozen=True)
@@ -48,8 +49,8 @@ class MatchContext:
 
 def refine_result(result: MatchResult, refine: RefineKind) -> MatchResult:
     """``result`` (of :func:`match`, unrefined) refined by ``'icp'`` or ``'zoomout'``
-    (:func:`~torchfmap.fmap.refine.refine_map`, as the kind's ``refinement`` says; ZoomOut grows
-    eigenbases to ``k_final``, default ``2k``). With landmarks, a refinement that raises the
+    (the kind's :meth:`~torchfmap.kinds.BasisKind.refine`; ZoomOut grows eigenfunctions to
+    ``k_final``, default ``2k``, in kinds that grow). With landmarks, a refinement that raises the
     geodesic distortion is dropped: the result then keeps its map, with ``refined=False``.
 
     Raises:
@@ -65,16 +66,16 @@ def refine_result(result: MatchResult, refine: RefineKind) -> MatchResult:
         raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
     t0 = time.perf_counter()
     kind = ctx.kind
-    grow = refine == "zoomout" and kind.refinement in ("grow", "hybrid")
+    grow = refine == "zoomout" and kind.grows
     k_final = ctx.k_final if ctx.k_final is not None else (2 * ctx.k if grow else ctx.k)
     if grow:
         if k_final < ctx.k:
             raise ParameterError(f"k_final={k_final} is below k={ctx.k}: ZoomOut grows. Fix: k_final >= k.")
         for shape in (ctx.shape_x, ctx.shape_y):  # grown in place when ZoomOut needs more
             with_eigenpairs(shape, k_final)
-    C, p2p, bx, by, seeds = refine_map(
+    C, p2p, bx, by, seeds = kind.refine(
         result.C_xy, result.p2p_yx, ctx.shape_x, ctx.shape_y, result.basis_x, result.basis_y, refine,
-        kind=kind, k_final=k_final, mode=ctx.mode, seeds=result.seeds, n_fixed=ctx.n_fixed,
+        k_final=k_final, mode=ctx.mode, seeds=result.seeds, n_fixed=ctx.n_fixed,
         times=ctx.times, zoomout_samples=ctx.zoomout_samples,
     )  # fmt: skip
     timings = dict(result.timings)
@@ -90,6 +91,19 @@ def refine_result(result: MatchResult, refine: RefineKind) -> MatchResult:
         result, p2p_yx=p2p, C_xy=C, basis_x=bx, basis_y=by, seeds=seeds, timings=timings,
         distortion=distortion, refined=True,
     )  # fmt: skip
+
+
+def refine_map(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, method, *, kind, **kwargs) -> Refined:
+    """Deprecated: ``get_kind(kind).refine(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y,
+    method, **kwargs)`` (:meth:`torchfmap.kinds.BasisKind.refine`; each kind owns its
+    refinement)."""
+    warnings.warn(
+        "refine_map is deprecated: each basis kind refines its own maps. Fix: "
+        "torchfmap.kinds.get_kind(kind).refine(...) with the same arguments.",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return get_kind(kind).refine(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, method, **kwargs)
 
 
 @dataclass

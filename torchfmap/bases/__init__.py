@@ -6,17 +6,16 @@ from ..operators.heat import cf_poles, heat_apply, heat_kernels
 from .basis import Basis, Column, support_fraction
 from .diffusion import DEFAULT_TIMES, diffusion_basis
 from .harmonic import harmonic_basis, harmonic_functions
-from .kinds import KINDS, BasisKind, get_kind, kind_of
 from .laplacian import laplacian_eigenbasis
 from .orthonormalize import cholqr, mgs, orthonormalize, orthonormalize_pair
 from .prepared import PreparedShape, prepare_shape
+from .registry import KINDS, get_kind, kind_of, register_kind
 from .stack import basis_stack, concatenate
 
 __all__ = [
     "DEFAULT_TIMES",
     "KINDS",
     "Basis",
-    "BasisKind",
     "PreparedShape",
     "Column",
     "CorruptFileError",
@@ -38,5 +37,6 @@ __all__ = [
     "orthonormalize",
     "orthonormalize_pair",
     "prepare_shape",
+    "register_kind",
     "support_fraction",
 ]

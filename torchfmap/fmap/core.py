@@ -44,7 +44,9 @@ class SpectralFrame(NamedTuple):
 
 
 def spectral_frame(W: torch.Tensor) -> SpectralFrame:
-    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of projected Laplacians.
+    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of projected Laplacians. ``W`` of an
+    eigenbasis is already diagonal (off-diagonal entries below ``sqrt(eps) ‖W‖``, eigenvalues
+    ascending): its frame is read off with ``U = I``, no eigensolve.
 
     Args:
         W: ``(..., K, K)`` projected Laplacians ``Φᵀ L Φ`` (symmetrised here, so a
@@ -56,7 +58,15 @@ def spectral_frame(W: torch.Tensor) -> SpectralFrame:
     """
     if W.shape[-1] != W.shape[-2]:
         raise ParameterError(f"W must be square (..., K, K), got {tuple(W.shape)}.")
-    return SpectralFrame(*torch.linalg.eigh(0.5 * (W + W.transpose(-1, -2))))
+    W = 0.5 * (W + W.transpose(-1, -2))
+    lam = torch.diagonal(W, dim1=-2, dim2=-1)
+    off = torch.linalg.matrix_norm(W - torch.diag_embed(lam))
+    tol = torch.finfo(W.dtype).eps ** 0.5 * torch.linalg.matrix_norm(W)
+    if W.numel() and bool((off <= tol).all()) and bool((lam[..., 1:] >= lam[..., :-1]).all()):
+        # an eigenbasis: W is diag(lambda) up to round-off, its frame is read off (no eigh)
+        eye = torch.eye(W.shape[-1], dtype=W.dtype, device=W.device).expand(W.shape)
+        return SpectralFrame(lam.clone(), eye.clone())
+    return SpectralFrame(*torch.linalg.eigh(W))
 
 
 def laplacian_mask(

@@ -4,28 +4,53 @@
 
 A default that depends on the basis is read off the basis' kind in the registry
 (:data:`torchfmap.bases.KINDS`, recognised from the columns' provenance by
-:func:`~torchfmap.bases.kinds.kind_of`), so the same call gives the same map whichever entry
-point makes it.
+:func:`~torchfmap.bases.kind_of`; the kinds themselves live in :mod:`torchfmap.kinds`), so
+the same call gives the same map whichever entry point makes it.
 """
 
 from __future__ import annotations
 
-from ..bases.basis import Basis
-from ..bases.kinds import KINDS, kind_of
+from collections.abc import Iterator, Mapping
 
+from ..bases.basis import Basis
+from ..bases.registry import KINDS, kind_of
+
+#: Laplacian-commutativity weight of eigenfunctions and of bases with no heat kernels (the mask
+#: is normalised to mean 1), chosen by ``python bench/weight_sweep.py``.
+W_LAP_SMOOTH = 0.1
+#: Laplacian-commutativity weight of bases holding heat kernels, whose projected Laplacians have
+#: very large top eigenvalues, which dominate the mask's mean.
+W_LAP_KERNELS = 1.0
 #: Laplacian-commutativity weight of bases of no registered kind: ``'diffusion_mix'`` for mixes
-#: holding heat kernels (whose projected Laplacians have very large top eigenvalues, which
-#: dominate the mask's mean), ``'custom'`` for the rest.
-W_LAP_OTHER = {"diffusion_mix": KINDS["diffusion"].w_lap, "custom": KINDS["laplacian"].w_lap}
-#: Laplacian-commutativity weight per basis kind (the mask is normalised to mean 1), chosen by
-#: ``python bench/weight_sweep.py``; read from the kinds' ``w_lap``.
-W_LAP = {name: kind.w_lap for name, kind in KINDS.items()} | W_LAP_OTHER
+#: holding heat kernels, ``'custom'`` for the rest.
+W_LAP_OTHER = {"diffusion_mix": W_LAP_KERNELS, "custom": W_LAP_SMOOTH}
 #: Orientation-preservation weight when both meshes are given (tells left from right), for
-#: bases of no registered kind; a kind's own is its ``w_orient``. Each operator pair is scaled
-#: to unit norm (``fmap.solver``), so at 1 the 16 orientation pairs together weigh like several
-#: times the descriptor term: on humans, whose limbs WKS cannot tell apart, weaker settings mix
-#: up left and right (``python3 bench/faust.py``).
-W_ORIENT = KINDS["laplacian"].w_orient
+#: bases of no registered kind and the kinds' default; a kind's own is its ``w_orient``. Each
+#: operator pair is scaled to unit norm (``fmap.solver``), so at 1 the 16 orientation pairs
+#: together weigh like several times the descriptor term: on humans, whose limbs WKS cannot
+#: tell apart, weaker settings mix up left and right (``python3 bench/faust.py``).
+W_ORIENT = 1.0
+
+
+class _KindWeights(Mapping):
+    """:data:`W_LAP`: each registered kind's ``w_lap`` (read when asked, so a kind registered
+    later is seen), then :data:`W_LAP_OTHER`."""
+
+    def __getitem__(self, name: str) -> float:
+        return KINDS[name].w_lap if name in KINDS else W_LAP_OTHER[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter([*KINDS, *W_LAP_OTHER])
+
+    def __len__(self) -> int:
+        return len(KINDS) + len(W_LAP_OTHER)
+
+    def __repr__(self) -> str:
+        return repr(dict(self))
+
+
+#: Laplacian-commutativity weight per basis kind name (and of :data:`W_LAP_OTHER`).
+W_LAP: Mapping[str, float] = _KindWeights()
 #: Descriptor-commutativity weight of :func:`torchfmap.match` (multiplication operators,
 #: Nogneng & Ovsjanikov 2017): it asks ``C`` to carry each descriptor's product structure,
 #: which the descriptor term alone does not constrain (``python3 bench/faust.py``).
@@ -42,7 +67,7 @@ ZOOMOUT_STEP_DIVISOR = 10
 
 
 def basis_kind(basis: Basis) -> str:
-    """The registered kind of ``basis`` (:func:`~torchfmap.bases.kinds.kind_of`), else
+    """The registered kind of ``basis`` (:func:`~torchfmap.bases.kind_of`), else
     ``'diffusion_mix'`` if it holds heat kernels, else ``'custom'``."""
     kind = kind_of(basis)
     if kind is not None:
@@ -53,7 +78,7 @@ def basis_kind(basis: Basis) -> str:
 def default_w_lap(basis_x: Basis, basis_y: Basis) -> float:
     """The ``w_lap`` of the pair's kind (:data:`W_LAP`; the larger one if the kinds differ)."""
     names = [basis_kind(b) for b in (basis_x, basis_y)]
-    return max(KINDS[n].w_lap if n in KINDS else W_LAP_OTHER[n] for n in names)
+    return max(W_LAP[n] for n in names)
 
 
 def default_w_orient(basis_x: Basis, basis_y: Basis) -> float:

@@ -9,9 +9,11 @@ Which applies where:
   while the basis grows. It needs *nested* bases. For an eigenbasis, the first ``k``
   eigenfunctions with ``k`` increasing. For feature-aware bases, pass a sequence of bases with
   growing spans (:func:`zoomout_sequence`): more scales (large to small ``t``) or more seeds
-  (harmonic spans are nested in the seed set); or iterate at a fixed size, then move the seeds
-  (:func:`refine_map`, the refinement of :func:`torchfmap.match`, which follows each basis
-  kind's ``refinement``).
+  (harmonic spans are nested in the seed set); or iterate at a fixed size, then move the seeds.
+
+These functions know nothing of basis kinds: each kind's own refinement
+(:meth:`torchfmap.kinds.BasisKind.refine`, the refinement step of :func:`torchfmap.match` and
+of the learned path) calls them.
 """
 
 from __future__ import annotations
@@ -21,12 +23,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from ..bases.basis import Basis
-from ..bases.kinds import BasisKind, get_kind
-from ..bases.kinds.hybrid import join_blocks, split_blocks
-from ..bases.orthonormalize import orthonormalize_pair
-from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
-from ..seeds import farthest_point_sampling, replace_seeds
 from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
 from .defaults import default_p2p_mode, zoomout_step
 
@@ -221,168 +218,12 @@ def zoomout_sequence(
     return C, p2p
 
 
-def map_to_p2p(
-    C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, kind: str | BasisKind, mode: Mode
-) -> np.ndarray:
-    """``p2p_yx (V_y,)`` of ``C_xy`` in a pair of ``kind``'s bases: nearest neighbours of the
-    kind's embeddings (:meth:`~torchfmap.bases.kinds.BasisKind.embeddings`) when it defines
-    them, else :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``."""
-    pair = get_kind(kind).embeddings(C_xy, basis_x, basis_y)
-    if pair is None:
-        return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode)
-    return nearest_neighbor(pair[1], pair[0], precision="single")
-
-
-def hybrid_zoomout(
-    p2p_yx: np.ndarray,
-    shape_x: PreparedShape,
-    shape_y: PreparedShape,
-    basis_x: Basis,
-    basis_y: Basis,
-    kind: BasisKind,
-    k_final: int,
-    step: int | None = None,
-    *,
-    guard: bool = True,
-) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
-    """ZoomOut of a hybrid pair of bases (:mod:`torchfmap.bases.kinds.hybrid`): the eigen block
-    grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
-    :func:`~torchfmap.fmap.defaults.zoomout_step` of its size) while the feature block keeps its
-    ``k_f`` columns; at each size both blocks are refitted from the point map
-    (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
-
-    ``guard``: as :func:`zoomout`'s, scored by :func:`zoomout_energy` of the eigen block (the
-    feature block is not orthonormal, so it has no orthogonality energy): the start and every
-    iterate are scored over the eigen sizes and the lowest-energy point map is returned, with
-    both blocks refitted from it at the final size.
-
-    Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
-
-    Raises:
-        ParameterError: ``k_final`` not above the feature block, or too few eigenpairs.
-    """
-    (ex, fx), (_, fy) = split_blocks(basis_x), split_blocks(basis_y)
-    k_e, k_f = ex.k, fx.k
-    k_end = k_final - k_f
-    if k_end < k_e:
-        raise ParameterError(f"k_final={k_final} leaves fewer eigenfunctions than the start ({k_e}).")
-    if shape_x.n_eigen < k_end or shape_y.n_eigen < k_end:
-        raise ParameterError(f"hybrid ZoomOut needs {k_end} eigenpairs. Fix: prepare_shape(mesh, {k_end}).")
-    step = zoomout_step(k_e) if step is None else step
-    if step < 1:
-        raise ParameterError(f"step must be >= 1, got {step}.")
-    p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
-    sizes = list(range(k_e, k_end, step)) + [k_end]
-    eig_x, eig_y = shape_x.eigenbasis, shape_y.eigenbasis
-
-    def refit(p2p: np.ndarray, size: int) -> np.ndarray:
-        C = np.zeros((size + k_f, size + k_f))
-        C[:size, :size] = p2p_to_fmap(p2p, eig_x, eig_y, size, size)
-        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
-        return C
-
-    best = (zoomout_energy(p2p, eig_x, eig_y, sizes), p2p) if guard else None
-    for size in sizes:  # bounded: one pass per size
-        bx = join_blocks(eig_x.truncated(size), fx)
-        by = join_blocks(eig_y.truncated(size), fy)
-        C = refit(p2p, size)
-        p2p = map_to_p2p(C, bx, by, kind, "orthogonal")
-        if guard:
-            energy = zoomout_energy(p2p, eig_x, eig_y, sizes)
-            if energy < best[0]:
-                best = (energy, p2p)
-    if guard and best[1] is not p2p:
-        p2p = best[1]
-        C = refit(p2p, k_end)
-    return C, p2p, bx, by
-
-
-#: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
-FEATURE_REFINE_STEPS = 5
-#: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
-FEATURE_SEED_MOVES = 2
-#: Farthest-point samples per basis column for the iterations of feature-aware refinement (the
-#: least-squares map of ``K`` columns is fitted on ``25 K`` sample rows; only the last point map
-#: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
-#: (accuracy against every-vertex iterations: ``bench/feature_accuracy.py``).
-FEATURE_SAMPLES_PER_COLUMN = 25
-
-
 class Refined(NamedTuple):
-    """Result of :func:`refine_map`: the map, the bases it lives in and their seeds (or None)."""
+    """Result of a kind's refinement (:meth:`torchfmap.kinds.BasisKind.refine`): the map, the
+    bases it lives in and their seeds (or None)."""
 
     C_xy: np.ndarray
     p2p_yx: np.ndarray
     basis_x: Basis
     basis_y: Basis
     seeds: np.ndarray | None
-
-
-def refine_map(
-    C_xy: np.ndarray,
-    p2p_yx: np.ndarray,
-    shape_x: PreparedShape,
-    shape_y: PreparedShape,
-    basis_x: Basis,
-    basis_y: Basis,
-    method: str,
-    *,
-    kind: str | BasisKind,
-    k_final: int,
-    mode: Mode,
-    seeds: np.ndarray | None = None,
-    n_fixed: int = 0,
-    times=None,
-    zoomout_samples: int | None = None,
-) -> Refined:
-    """The map refined by ``'icp'`` or ``'zoomout'`` (the refinement step of :func:`torchfmap.match`).
-
-    ICP works in ``basis_x, basis_y``. ZoomOut follows the kind's ``refinement``
-    (:data:`torchfmap.bases.KINDS`): ``'grow'`` grows the prepared eigenbases up to ``k_final``
-    (:func:`zoomout`, on ``zoomout_samples`` farthest-point samples per shape if given);
-    otherwise it starts from the current map and alternates ``C`` and the point map
-    :data:`FEATURE_REFINE_STEPS` times at full size (on :data:`FEATURE_SAMPLES_PER_COLUMN`
-    ``x K`` farthest-point samples per shape, the last point map on every vertex); then, for
-    bases built at corresponding ``seeds`` (``(S, 2)``, the first ``n_fixed`` being landmarks)
-    of a ``'reseed'`` kind, :data:`FEATURE_SEED_MOVES` times it moves the seeds to where the map
-    puts them (:func:`~torchfmap.seeds.replace_seeds`), rebuilds the bases, restarts from
-    ``C = I`` in them and alternates again.
-
-    Raises:
-        ParameterError: an unknown method or kind.
-    """
-    kind = get_kind(kind)
-    if method == "icp":
-        return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=mode), basis_x, basis_y, seeds)
-    if method != "zoomout":
-        raise ParameterError(f"unknown refinement {method!r}. Fix: 'icp', 'zoomout' or None.")
-    if kind.refinement == "grow":
-        full_x, full_y = shape_x.eigenbasis, shape_y.eigenbasis
-        samples = None
-        if zoomout_samples is not None:
-            samples = tuple(
-                farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
-                for m in (shape_x.mesh, shape_y.mesh)
-            )
-        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=mode, subsample=samples)
-        return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
-    if kind.refinement == "hybrid":
-        C, p2p, bx, by = hybrid_zoomout(p2p_yx, shape_x, shape_y, basis_x, basis_y, kind, k_final)
-        return Refined(C, p2p, bx, by, seeds)
-    steps = FEATURE_REFINE_STEPS
-    bx, by = basis_x, basis_y
-    n_samples = min(FEATURE_SAMPLES_PER_COLUMN * bx.k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
-    samples = tuple(
-        farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y)
-    )
-    C, p2p = zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
-    if seeds is None or kind.refinement != "reseed":
-        return Refined(C, p2p, bx, by, seeds)
-    raw_x = kind.functions(shape_x, seeds[:, 0], times)  # x's seeds never move (kernels cached)
-    for _ in range(FEATURE_SEED_MOVES):
-        seeds = replace_seeds(shape_x.distances, shape_y.distances, seeds, p2p, n_fixed)
-        raw_y = kind.functions(shape_y, seeds[:, 1], times)
-        bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
-        p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=mode)
-        C, p2p = zoomout_sequence(p2p, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
-    return Refined(C, p2p, bx, by, seeds)

@@ -27,7 +27,6 @@ weights do not depend on the meshes' scale or the descriptors' units.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import scipy.sparse.linalg as ssla
@@ -39,26 +38,19 @@ from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from . import core
-from .defaults import W_LAP, W_LMK, default_w_lap, default_w_orient
+from .defaults import W_LAP_SMOOTH, W_LMK, default_w_lap, default_w_orient
 
-MaskKind = Literal["laplacian", "resolvent"]
 #: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
 MAX_OPERATOR_DESCRIPTORS = 16
 
 
-@dataclass
-class SpectralFrame:
-    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of a projected Laplacian (for rotations):
-    ``lam (K,)``, ``U (K, K)``, computed by :func:`torchfmap.fmap.core.spectral_frame`."""
-
-    lam: np.ndarray
-    U: np.ndarray
-
-    @classmethod
-    def of(cls, W: np.ndarray) -> SpectralFrame:
-        with torch_threads(1):  # a small eigenproblem: see torchfmap._threads
-            lam, U = core.spectral_frame(core.as_tensor(W))
-        return cls(lam.numpy(), U.numpy())
+def basis_frame(basis: Basis) -> core.SpectralFrame:
+    """:class:`~torchfmap.fmap.core.SpectralFrame` ``(lam (K,), U (K, K))`` of ``basis``'s
+    projected Laplacian ``W = Φᵀ L Φ`` (:func:`~torchfmap.fmap.core.spectral_frame`: read off
+    for an eigenbasis, decomposed otherwise), as numpy arrays."""
+    with torch_threads(1):  # a small eigenproblem: see torchfmap._threads
+        lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
+    return core.SpectralFrame(lam.numpy(), U.numpy())
 
 
 def multiplication_operator(basis: Basis, f: np.ndarray) -> np.ndarray:
@@ -111,8 +103,8 @@ class FmapProblem:
     A_x: np.ndarray
     A_y: np.ndarray
     mask: np.ndarray
-    frame_x: SpectralFrame
-    frame_y: SpectralFrame
+    frame_x: core.SpectralFrame
+    frame_y: core.SpectralFrame
     commute: list[tuple[np.ndarray, np.ndarray, float, float]]  # (Dx', Dy', weight, sign)
     landmarks: tuple[np.ndarray, np.ndarray, float] | None  # (P_y', P_x', weight)
     w_desc: float
@@ -236,8 +228,8 @@ def build_problem(
     desc_y: np.ndarray,
     *,
     w_desc: float = 1.0,
-    w_lap: float = W_LAP["laplacian"],
-    mask: MaskKind = "laplacian",
+    w_lap: float = W_LAP_SMOOTH,
+    mask: core.MaskKind = "laplacian",
     w_dcomm: float = 0.0,
     w_orient: float = 0.0,
     orient_reversing: bool = False,
@@ -267,8 +259,7 @@ def build_problem(
     bad = {k: v for k, v in weights.items() if not (np.isfinite(v) and v >= 0)}
     if bad:
         raise ParameterError(f"energy weights must be finite and >= 0, got {bad}.")
-    fx = SpectralFrame.of(basis_x.projected_laplacian())
-    fy = SpectralFrame.of(basis_y.projected_laplacian())
+    fx, fy = basis_frame(basis_x), basis_frame(basis_y)
     with np.errstate(over="ignore", invalid="ignore"):
         A_x = fx.U.T @ basis_x.project(desc_x)
         A_y = fy.U.T @ basis_y.project(desc_y)
@@ -335,7 +326,7 @@ def solve_fmap(
     *,
     w_desc: float = 1.0,
     w_lap: float | None = None,
-    mask: MaskKind = "laplacian",
+    mask: core.MaskKind = "laplacian",
     w_dcomm: float = 0.0,
     w_orient: float | None = None,
     orient_reversing: bool = False,

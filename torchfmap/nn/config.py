@@ -15,10 +15,17 @@ from ..errors import ParameterError
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import DiffusionNet
 
+#: Augmentations of XYZ inputs (:attr:`TrainConfig.augment`).
+AUGMENTS = ("rigid", "scale", "none")
+
 
 @dataclass
 class TrainConfig:
-    """The reference recipe (saved in checkpoints): data, network, solver, loss and optimiser."""
+    """The reference recipe (saved in checkpoints): data, network, solver, loss and optimiser.
+
+    ``augment`` (XYZ inputs only): ``"rigid"`` a random rotation and scaling per step,
+    ``"scale"`` a scaling only (for data sets whose shapes are aligned alike), ``"none"``.
+    """
 
     k: int = 50
     k_net: int = 96
@@ -38,6 +45,7 @@ class TrainConfig:
     batch_size: int = 1
     w_lap: float = 1e-3
     seed: int = 0
+    augment: str = "rigid"
     loss_weights: dict = field(
         default_factory=lambda: {"w_bij": 1.0, "w_orth": 1.0, "w_couple": 1.0, "n_samples": 1000, "tau": 0.07}
     )

@@ -22,11 +22,11 @@ from tqdm import tqdm
 
 from .._files import load_arrays, save_arrays
 from ..bases.basis import Basis
-from ..bases.kinds import get_kind, learned_kind
 from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
 from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
+from ..kinds import get_kind, learned_kind
 from ..mesh import Mesh
 from .functional import BasisBatch, GradientBatch
 from .geometry import gradient_operator

@@ -23,6 +23,7 @@ instead of an error: pass ``check=True`` to debug on a GPU. Nothing global is re
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -30,7 +31,7 @@ import torch
 from .._torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
 from ..errors import ParameterError
 from ..fmap import core
-from ..fmap.defaults import W_LAP
+from ..fmap.defaults import W_LAP_SMOOTH
 from .gradients import GradientBatch, TangentGradient, gradient_features, spatial_gradient
 
 __all__ = [
@@ -42,7 +43,7 @@ __all__ = [
     "basis_like",
     "bijectivity_loss",
     "coupling_loss",
-    "fmap_solve",
+    "solve_fmap",
     "geodesic_loss",
     "gradient_features",
     "laplacian_commutativity_loss",
@@ -105,7 +106,7 @@ class BasisBatch(NamedTuple):
 
 
 class FmapPair(NamedTuple):
-    """Result of :func:`fmap_solve`: ``C_xy (B, K_y, K_x)`` and ``C_yx (B, K_x, K_y)`` (or None)."""
+    """Result of :func:`solve_fmap`: ``C_xy (B, K_y, K_x)`` and ``C_yx (B, K_x, K_y)`` (or None)."""
 
     C_xy: torch.Tensor
     C_yx: torch.Tensor | None
@@ -171,14 +172,14 @@ def check_solver_weights(w_desc: float, w_lap: float) -> None:
         )
 
 
-def fmap_solve(
+def solve_fmap(
     feat_x: torch.Tensor,
     feat_y: torch.Tensor,
     basis_x: BasisBatch,
     basis_y: BasisBatch,
     *,
     w_desc: float = 1.0,
-    w_lap: float = W_LAP["laplacian"],
+    w_lap: float = W_LAP_SMOOTH,
     mask: str = "laplacian",
     both: bool = True,
     check: bool | None = None,
@@ -378,3 +379,15 @@ def geodesic_loss(
         check_index_range(idx_y, V_y, "idx_y", "ground-truth vertices are 0-based vertices of y.")
     rows = torch.gather(pi_yx, 1, idx_y[..., None].expand(-1, -1, V_x))
     return (rows * dist_rows).sum(dim=-1).mean()
+
+
+def __getattr__(name: str):
+    if name == "fmap_solve":  # the name of earlier releases: one name per concept now
+        warnings.warn(
+            "torchfmap.nn.functional.fmap_solve is now solve_fmap (the name of the classical "
+            "torchfmap.solve_fmap). Fix: F.solve_fmap(...), same arguments.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return solve_fmap
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,12 +10,11 @@ import copy
 import numpy as np
 import torch
 
-from ..bases import Basis
-from ..bases.prepared import prepare_shape
+from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
 from ..eval import geodesic_errors
 from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
-from ..fmap.refine import zoomout
+from ..kinds import get_kind
 from ..mesh import Mesh
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
@@ -24,12 +23,24 @@ from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .train import pair_loss
 
-#: Eigenfunctions of the ZoomOut refinement of the learned path (:func:`refine_p2p`'s ``k_final``).
+#: Eigenfunctions the ZoomOut refinement of the learned path starts from and grows to
+#: (:func:`refine_p2p`'s ``k0`` and ``k_final``; the published recipe's 50 -> 200).
+REFINE_K_START = 50
 REFINE_K_FINAL = 200
 
 
-def _single(item: dict, device) -> ShapeBatch:
-    return collate_pairs([(item, item)])["x"].to(device)
+def _pair(x: dict, y: dict, device) -> tuple[ShapeBatch, ShapeBatch]:
+    """Both items as batches of one, collated once."""
+    batch = collate_pairs([(x, y)])
+    return batch["x"].to(device), batch["y"].to(device)
+
+
+def _solve_xy(solver, fx, fy, bx, by) -> torch.Tensor:
+    """``C_xy (B, K_y, K_x)`` only: the reference solver is asked for one direction."""
+    if isinstance(solver, RegularizedFMSolver) and solver.both:
+        solver = copy.copy(solver)  # a shallow copy: same settings, one direction
+        solver.both = False
+    return solver(fx, fy, bx, by)[0]
 
 
 @torch.no_grad()
@@ -47,7 +58,7 @@ def predict_p2p(
     """
     check_network(net)
     net.eval()
-    sx, sy = _single(x, device), _single(y, device)
+    sx, sy = _pair(x, y, device)
     fx, fy = features(net, sx), features(net, sy)
     if mode == "features":
         a = torch.nn.functional.normalize(fy[0], dim=-1).double().cpu().numpy()
@@ -57,8 +68,7 @@ def predict_p2p(
         raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
     if p2p_mode not in ("orthogonal", "pullback"):
         raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
-    C_xy, _ = solver(fx, fy, sx.basis, sy.basis)
-    C = C_xy[0].double().cpu().numpy()
+    C = _solve_xy(solver, fx, fy, sx.basis, sy.basis)[0].double().cpu().numpy()
     return values_to_p2p(C, x["values"].double().numpy(), y["values"].double().numpy(), mode=p2p_mode)
 
 
@@ -112,68 +122,66 @@ def refine_p2p(
     mesh_x: Mesh,
     mesh_y: Mesh,
     p2p_yx: np.ndarray,
-    k0: int = 50,
+    k0: int = REFINE_K_START,
     k_final: int = REFINE_K_FINAL,
     *,
-    bases: tuple[Basis, Basis] | None = None,
+    shapes: tuple[PreparedShape, PreparedShape] | None = None,
 ) -> np.ndarray:
     """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
-    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes.
-    Point maps are converted by the orthogonal rule (nearest neighbours of ``Φ_y`` in
-    ``Φ_x C_xyᵀ``), the classical choice in eigenbases, as in :func:`torchfmap.match`; the step
-    is :func:`~torchfmap.fmap.refine.zoomout`'s default (one eigenbasis ZoomOut for both paths).
+    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes. It
+    is the eigenbasis kind's own refinement (``KINDS['laplacian'].refine``, the refinement of
+    :func:`torchfmap.match`), point maps by the orthogonal rule (nearest neighbours of ``Φ_y``
+    in ``Φ_x C_xyᵀ``).
 
-    ``bases``: the meshes' Laplacian eigenbases (e.g.
-    ``prepare_shape(mesh, k_final).eigenbasis``, in the unit-area frame, at least ``k_final``
-    columns each), to reuse them across pairs; computed here (unit-area frames) when None.
+    ``shapes``: the meshes prepared once (``prepare_shape(mesh, n)``, unit-area frames, ``n >=
+    k_final`` eigenpairs), to reuse them across pairs and with the network's inputs; prepared
+    here when None.
 
     Raises:
-        ParameterError: ``bases`` that are not eigenbases of these meshes' sizes, or have fewer
-            than ``k_final`` columns.
+        ParameterError: ``shapes`` that are not of these meshes, or hold fewer than ``k_final``
+            eigenpairs.
     """
     k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
     k0 = min(k0, k_final)
-    if bases is None:
+    if shapes is None:
         # in each mesh's unit-area frame, so meshes at different scales refine alike
-        bx, by = (prepare_shape(m, k_final).eigenbasis for m in (mesh_x, mesh_y))
-    else:
-        bx, by = bases
-        for name, basis, mesh in (("x", bx, mesh_x), ("y", by, mesh_y)):
-            if (
-                getattr(basis, "eigenvalues", None) is None
-                or basis.n_vertices != mesh.n_vertices
-                or basis.k < k_final
-            ):
-                raise ParameterError(
-                    f"bases[{name}] must be the Laplacian eigenbasis of mesh_{name} ({mesh.n_vertices} "
-                    f"vertices) with >= {k_final} columns. Fix: "
-                    f"prepare_shape(mesh_{name}, {k_final}).eigenbasis."
-                )
-        bx, by = bx.truncated(k_final), by.truncated(k_final)
+        shapes = tuple(prepare_shape(m, k_final) for m in (mesh_x, mesh_y))
+    for name, shape, mesh in (("x", shapes[0], mesh_x), ("y", shapes[1], mesh_y)):
+        if (
+            not isinstance(shape, PreparedShape)
+            or shape.mesh.n_vertices != mesh.n_vertices
+            or (shape.n_eigen < k_final)
+        ):
+            raise ParameterError(
+                f"shapes[{name}] must be mesh_{name} prepared with >= {k_final} eigenpairs "
+                f"({mesh.n_vertices} vertices). Fix: prepare_shape(mesh_{name}, {k_final})."
+            )
+    bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
     C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
-    return zoomout(C_xy, bx, by, k_final, mode="orthogonal")[1]
+    kind = get_kind("laplacian")
+    return kind.refine(C_xy, p2p_yx, *shapes, bx, by, "zoomout", k_final=k_final, mode="orthogonal").p2p_yx
 
 
-def _prepared(mesh: Mesh, config: TrainConfig, refine: bool):
-    """``(dataset item, eigenbasis for ZoomOut or None)`` of ``mesh``: one Laplacian and one
-    eigendecomposition, serving the network's inputs and bases and, with ``refine``, ZoomOut."""
+def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, PreparedShape]:
+    """``(dataset item, prepared shape)`` of ``mesh``: one Laplacian and one eigendecomposition,
+    serving the network's inputs and bases and, with ``refine``, ZoomOut."""
     need = max(config.k, config.k_net, K_WKS, REFINE_K_FINAL if refine else 0)
     shape = prepare_shape(mesh, min(need, mesh.n_vertices - 1))
     arrays = precompute_shape(
         mesh, config.k, config.n_wks, k_net=config.k_net, basis=config.basis, shape=shape
     )
     item = shape_item(arrays, config.inputs, name=mesh.name or "")
-    return item, (shape.eigenbasis if refine else None)
+    return item, shape
 
 
 def _network_p2p(
-    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, bases=None
+    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes=None
 ) -> np.ndarray:
     """One pair's ``p2p_yx``: adapt (optional), predict, refine (optional)."""
     if adapt_steps:
         net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
     p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
-    return refine_p2p(meshes[0], meshes[1], p2p, bases=bases) if refine else p2p
+    return refine_p2p(meshes[0], meshes[1], p2p, shapes=shapes) if refine else p2p
 
 
 def _check_inference(adapt_steps: int, mode: str) -> None:
@@ -205,7 +213,7 @@ def match_with_network(
         ParameterError: ``adapt_steps < 0`` or an unknown ``mode``.
     """
     _check_inference(adapt_steps, mode)
-    (ix, bx), (iy, by) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
+    (ix, sx), (iy, sy) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
     ix["index"], iy["index"] = 0, 1
     solver, loss_fn = build_solver(config)
     return _network_p2p(
@@ -219,7 +227,7 @@ def match_with_network(
         refine=refine,
         mode=mode,
         device=device,
-        bases=(bx, by) if refine else None,
+        shapes=(sx, sy) if refine else None,
     )
 
 
@@ -253,7 +261,7 @@ class CheckpointMatcher:
         self.adapt_steps, self.adapt_lr, self.refine, self.mode = adapt_steps, adapt_lr, refine, mode
         self._model = self._load()
         self._items: dict = {}
-        self._bases: dict = {}
+        self._shapes: dict = {}
 
     def _load(self) -> tuple:
         net, config, _ = load_checkpoint(self.checkpoint)
@@ -262,7 +270,7 @@ class CheckpointMatcher:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_model=None, _items={}, _bases={})
+        state.update(_model=None, _items={}, _shapes={})
         return state
 
     def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:
@@ -271,8 +279,8 @@ class CheckpointMatcher:
         net, config, solver, loss_fn = self._model
         for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
             if key not in self._items:
-                self._items[key], self._bases[key] = _prepared(mesh, config, self.refine)
-        bases = (self._bases[key_x], self._bases[key_y]) if self.refine else None
+                self._items[key], self._shapes[key] = _prepared(mesh, config, self.refine)
+        shapes = (self._shapes[key_x], self._shapes[key_y]) if self.refine else None
         return _network_p2p(
             net,
             solver,
@@ -284,5 +292,5 @@ class CheckpointMatcher:
             refine=self.refine,
             mode=self.mode,
             device="cpu",
-            bases=bases,
+            shapes=shapes,
         )

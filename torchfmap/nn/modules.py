@@ -14,10 +14,10 @@ from torch import nn
 from .._checks import check_lumped_mass
 from ..bases import prepare_shape
 from ..bases.basis import Basis
-from ..bases.kinds import learned_kind
 from ..errors import ParameterError
 from ..fmap import core
-from ..fmap.defaults import W_LAP
+from ..fmap.defaults import W_LAP_SMOOTH
+from ..kinds import learned_kind
 from ..mesh import Mesh
 from . import functional as F
 from .functional import BasisBatch
@@ -130,14 +130,14 @@ class RegularizedFMSolver(nn.Module):
     (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` is None with ``both=False``).
     The defaults are those of :func:`torchfmap.fmap.solve_fmap` for eigenbases (the same
     core solve gives the same map); for bases with diffusion columns pass
-    ``w_lap=torchfmap.fmap.defaults.W_LAP['diffusion']``. ``check``: the data checks of
-    :func:`~torchfmap.nn.functional.fmap_solve` (None: on CPU inputs only).
+    ``w_lap=torchfmap.fmap.defaults.W_LAP_KERNELS``. ``check``: the data checks of
+    :func:`~torchfmap.nn.functional.solve_fmap` (None: on CPU inputs only).
     """
 
     def __init__(
         self,
         w_desc: float = 1.0,
-        w_lap: float = W_LAP["laplacian"],
+        w_lap: float = W_LAP_SMOOTH,
         mask: str = "laplacian",
         both: bool = True,
         check: bool | None = None,
@@ -149,7 +149,7 @@ class RegularizedFMSolver(nn.Module):
     def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch) -> F.FmapPair:
         """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> FmapPair(C_xy (B, K_y, K_x), C_yx)``;
         bases may be :class:`BasisModule` s (cast to the features' dtype)."""
-        return F.fmap_solve(
+        return F.solve_fmap(
             feat_x,
             feat_y,
             basis_x,

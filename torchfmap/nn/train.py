@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from ..errors import ParameterError
 from .checkpoints import read_checkpoint, save_checkpoint
-from .config import CosineBudget, TrainConfig, build_model
+from .config import AUGMENTS, CosineBudget, TrainConfig, build_model
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import check_network, features
@@ -32,8 +32,11 @@ from .networks import check_network, features
 TIME_BAR = "{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}{postfix}]"
 
 
-def random_rigid(xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1)) -> torch.Tensor:
-    """Augmentation for XYZ inputs: a random rotation and scaling per shape, ``(B, V, 3)``.
+def random_rigid(
+    xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1), rotate: bool = True
+) -> torch.Tensor:
+    """Augmentation for XYZ inputs: a random rotation (uniform on SO(3); none with
+    ``rotate=False``) and a uniform scaling in ``scale`` per shape, ``(B, V, 3)``.
 
     Drawn (in float64) from ``generator`` on its device, then cast to ``xyz``'s dtype and device.
     """
@@ -49,6 +52,8 @@ def random_rigid(xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1)
     flip = torch.where(torch.linalg.det(q) < 0, -1.0, 1.0).to(q)
     q = torch.cat([q[:, :, :1] * flip[:, None, None], q[:, :, 1:]], dim=-1)
     s = torch.empty(B, 1, 1, dtype=torch.float64, device=device).uniform_(*scale, generator=generator)
+    if not rotate:
+        q = torch.eye(3, dtype=torch.float64, device=device).expand(B, 3, 3)
     return xyz @ (s * q).to(xyz)
 
 
@@ -126,7 +131,7 @@ def train(
     max_steps: int = 0,
     batch_size: int = 1,
     clip_grad: float = 0.0,
-    augment: bool = False,
+    augment: bool | str = False,
     validate=None,
     validate_every: int = 0,
     checkpoint: str | os.PathLike | None = None,
@@ -152,7 +157,9 @@ def train(
     bound for a schedule (:class:`~torchfmap.nn.config.CosineBudget`).
     ``net`` is moved to ``device`` and every batch with it.
     ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
-    ``augment``: random rigid motion and scaling of XYZ inputs. ``validate(net) -> score``
+    ``augment``: XYZ inputs moved at random each step (:func:`random_rigid`): ``"rigid"`` (or
+    True) a rotation and a scaling, ``"scale"`` a scaling only (shapes aligned alike, e.g.
+    SMAL_r), ``"none"`` (or False) nothing. ``validate(net) -> score``
     (lower is better) runs every ``validate_every`` steps and at the end; the best weights are
     kept in the checkpoint as ``best_state_dict``. ``checkpoint`` is written atomically at each
     epoch end, each validation and the end (by rank 0), with the network's record
@@ -168,6 +175,9 @@ def train(
     initialisation still use it).
     """
     check_network(net)
+    augment = {True: "rigid", False: "none"}.get(augment, augment)
+    if augment not in AUGMENTS:
+        raise ParameterError(f"augment must be one of {AUGMENTS} or a bool, got {augment!r}.")
     if epochs is None and not minutes and not max_steps:
         raise ParameterError("training needs a budget. Fix: epochs, minutes and/or max_steps.")
     if not (math.isfinite(minutes) and minutes >= 0):
@@ -258,10 +268,11 @@ def train(
         t_epoch = time.perf_counter()
         for batch in loader:
             batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
-            if augment:
+            if augment != "none":
                 for side in ("x", "y"):
                     s = batch[side]
-                    batch[side] = s._replace(inputs=random_rigid(s.inputs, draws))
+                    moved = random_rigid(s.inputs, draws, rotate=augment == "rigid")
+                    batch[side] = s._replace(inputs=moved)
             terms = pair_loss(model, solver, loss_fn, batch, draws)
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
@@ -324,8 +335,8 @@ def train_recipe(
     """The reference recipe, all of it read from ``config``: the network, solver and loss of
     :func:`~torchfmap.nn.config.build_model`, Adam at ``config.lr``, the cosine schedule over
     the budget (``config.epochs`` / ``minutes`` / ``max_steps``, whichever ends first:
-    :class:`~torchfmap.nn.config.CosineBudget`), ``config.clip_grad``, and rigid augmentation
-    for XYZ inputs; trained by :func:`train` on ``pairs`` of ``shapes`` (default
+    :class:`~torchfmap.nn.config.CosineBudget`), ``config.clip_grad``, and the augmentation
+    ``config.augment`` of XYZ inputs; trained by :func:`train` on ``pairs`` of ``shapes`` (default
     :func:`~torchfmap.nn.data.class_pairs`). ``torchfmap train``, DDP ranks
     (:func:`ddp_worker`) and ``examples/train.py`` all call it, so one process and a DDP run
     follow the same schedule. Returns ``(state, net)``.
@@ -352,7 +363,7 @@ def train_recipe(
         max_steps=config.max_steps,
         batch_size=config.batch_size,
         clip_grad=config.clip_grad,
-        augment=config.inputs == "xyz",
+        augment=config.augment if config.inputs == "xyz" else "none",
         validate=validate,
         validate_every=validate_every,
         checkpoint=out,

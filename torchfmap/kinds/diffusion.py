@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..prepared import seed_kernels
+from ..bases.prepared import seed_kernels
+from ..fmap.defaults import W_LAP_KERNELS
 from .base import SeededKind, relative_times
 
 
@@ -26,6 +27,6 @@ DIFFUSION = DiffusionKind(
     # Projected Laplacians of small-t heat kernels have very large top eigenvalues, which
     # dominate the mask's mean: bases with diffusion columns need a larger weight than eigenbases
     # (python bench/weight_sweep.py).
-    w_lap=1.0,
+    w_lap=W_LAP_KERNELS,
     column_kinds=frozenset({"diffusion"}),
 )

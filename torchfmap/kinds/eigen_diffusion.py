@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...errors import ParameterError
-from ..orthonormalize import orthonormalize
-from ..prepared import with_eigenpairs
-from ..stack import concatenate
+from ..bases.orthonormalize import orthonormalize
+from ..bases.prepared import with_eigenpairs
+from ..bases.stack import concatenate
+from ..errors import ParameterError
+from ..fmap.defaults import W_LAP_KERNELS
 from .base import BasisKind, seeds_for
 from .diffusion import DIFFUSION
 
@@ -53,9 +54,8 @@ EIGEN_DIFFUSION = EigenDiffusionKind(
     name="eigen_diffusion",
     summary="k/2 eigenfunctions + heat kernels at each shape's farthest points",
     needs_landmarks=False,
-    w_lap=1.0,
+    w_lap=W_LAP_KERNELS,
     p2p_mode="pullback",
-    refinement="fixed",
     column_kinds=frozenset({"laplacian", "diffusion"}),
     # in a basis whose columns do not correspond, a strong orientation term (minimised by C = 0)
     # shrinks the map until the point map collapses onto a few vertices: keep it weak

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..harmonic import harmonic_basis
+from ..bases.harmonic import harmonic_basis
+from ..fmap.defaults import W_LAP_SMOOTH
 from .base import SeededKind
 
 
@@ -22,6 +23,6 @@ class HarmonicKind(SeededKind):
 HARMONIC = HarmonicKind(
     name="harmonic",
     summary="harmonic functions interpolating corresponding seeds",
-    w_lap=0.1,
+    w_lap=W_LAP_SMOOTH,
     column_kinds=frozenset({"harmonic"}),
 )

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..stack import concatenate
+from ..bases.stack import concatenate
+from ..fmap.defaults import W_LAP_KERNELS
 from .base import SeededKind
 from .diffusion import DIFFUSION
 from .harmonic import HARMONIC
@@ -28,6 +29,6 @@ class StackKind(SeededKind):
 STACK = StackKind(
     name="stack",
     summary="heat kernels then harmonic functions at corresponding seeds",
-    w_lap=1.0,
+    w_lap=W_LAP_KERNELS,
     column_kinds=frozenset({"diffusion", "harmonic"}),
 )

@@ -18,8 +18,8 @@ preserves eigenfunctions), and the kernel block, which is identical by construct
 corresponding seeds, tells apart what the eigenbasis confuses (symmetric limbs, left and right).
 On non-isometric pairs the kernels stay correct near the seeds where eigenfunctions drift.
 
-ZoomOut (``refinement='hybrid'``, :func:`torchfmap.fmap.refine.hybrid_zoomout`) grows the
-eigen block and refits both blocks from the point map at each step.
+ZoomOut (:meth:`HybridKind.zoomout_refine`, :func:`hybrid_zoomout`) grows the eigen block and
+refits both blocks from the point map at each step.
 """
 
 from __future__ import annotations
@@ -28,10 +28,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import ParameterError
-from ..basis import Basis
-from ..prepared import with_eigenpairs
-from ..stack import concatenate
+from ..bases.basis import Basis
+from ..bases.prepared import PreparedShape, with_eigenpairs
+from ..bases.stack import concatenate
+from ..errors import ParameterError
+from ..fmap.convert import check_p2p, p2p_to_fmap
+from ..fmap.defaults import W_LAP_SMOOTH, W_ORIENT, zoomout_step
+from ..fmap.refine import Refined, zoomout_energy
 from .base import BasisKind
 from .diffusion import DIFFUSION
 
@@ -155,16 +158,88 @@ class HybridKind(BasisKind):
         side_x = np.hstack([ex.values @ C_e.T, w * (fx.values @ C_f.T)])
         return side_x, np.hstack([ey.values, w * fy.values])
 
+    def zoomout_refine(
+        self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, *, k_final, mode, seeds, n_fixed, times,
+        zoomout_samples,
+    ) -> Refined:  # fmt: skip
+        """:func:`hybrid_zoomout` from ``p2p_yx`` to ``k_final`` columns in all."""
+        C, p2p, bx, by = hybrid_zoomout(p2p_yx, shape_x, shape_y, basis_x, basis_y, self, k_final)
+        return Refined(C, p2p, bx, by, seeds)
+
+
+def hybrid_zoomout(
+    p2p_yx: np.ndarray,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    basis_x: Basis,
+    basis_y: Basis,
+    kind: HybridKind,
+    k_final: int,
+    step: int | None = None,
+    *,
+    guard: bool = True,
+) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
+    """ZoomOut of a hybrid pair of bases (this module): the eigen block
+    grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
+    :func:`~torchfmap.fmap.defaults.zoomout_step` of its size) while the feature block keeps its
+    ``k_f`` columns; at each size both blocks are refitted from the point map
+    (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
+
+    ``guard``: as :func:`zoomout`'s, scored by :func:`zoomout_energy` of the eigen block (the
+    feature block is not orthonormal, so it has no orthogonality energy): the start and every
+    iterate are scored over the eigen sizes and the lowest-energy point map is returned, with
+    both blocks refitted from it at the final size.
+
+    Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
+
+    Raises:
+        ParameterError: ``k_final`` not above the feature block, or too few eigenpairs.
+    """
+    (ex, fx), (_, fy) = split_blocks(basis_x), split_blocks(basis_y)
+    k_e, k_f = ex.k, fx.k
+    k_end = k_final - k_f
+    if k_end < k_e:
+        raise ParameterError(f"k_final={k_final} leaves fewer eigenfunctions than the start ({k_e}).")
+    if shape_x.n_eigen < k_end or shape_y.n_eigen < k_end:
+        raise ParameterError(f"hybrid ZoomOut needs {k_end} eigenpairs. Fix: prepare_shape(mesh, {k_end}).")
+    step = zoomout_step(k_e) if step is None else step
+    if step < 1:
+        raise ParameterError(f"step must be >= 1, got {step}.")
+    p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
+    sizes = list(range(k_e, k_end, step)) + [k_end]
+    eig_x, eig_y = shape_x.eigenbasis, shape_y.eigenbasis
+
+    def refit(p2p: np.ndarray, size: int) -> np.ndarray:
+        C = np.zeros((size + k_f, size + k_f))
+        C[:size, :size] = p2p_to_fmap(p2p, eig_x, eig_y, size, size)
+        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
+        return C
+
+    best = (zoomout_energy(p2p, eig_x, eig_y, sizes), p2p) if guard else None
+    for size in sizes:  # bounded: one pass per size
+        bx = join_blocks(eig_x.truncated(size), fx)
+        by = join_blocks(eig_y.truncated(size), fy)
+        C = refit(p2p, size)
+        p2p = kind.to_p2p(C, bx, by, "orthogonal")
+        if guard:
+            energy = zoomout_energy(p2p, eig_x, eig_y, sizes)
+            if energy < best[0]:
+                best = (energy, p2p)
+    if guard and best[1] is not p2p:
+        p2p = best[1]
+        C = refit(p2p, k_end)
+    return C, p2p, bx, by
+
 
 HYBRID = HybridKind(
     name="hybrid",
     summary="eigenfunctions + heat kernels at corresponding seeds, block-diagonal map",
     needs_landmarks=True,
     # the eigen block is solved as the eigenbasis kind solves it (same weights)
-    w_lap=0.1,
-    w_orient=1.0,
+    w_lap=W_LAP_SMOOTH,
+    w_orient=W_ORIENT,
     p2p_mode="orthogonal",
-    refinement="hybrid",
+    grows=True,
     column_kinds=frozenset({"laplacian", "diffusion"}),
     # the torch solver is one regularised solve, not block-diagonal (classical path only)
     learned=False,

@@ -1,0 +1,35 @@
+"""The basis kinds: how each builds a pair of bases, solves its map and refines it (see
+:mod:`.base` for what a kind holds). They sit above the functional-map layer, whose solver and
+refinements they call; the registry :data:`KINDS` they are entered in lives with the bases
+(:mod:`torchfmap.bases.registry`).
+
+A new kind is one module in this folder and one line in the tuple below (or, from outside the
+package, :func:`register_kind`).
+"""
+
+from __future__ import annotations
+
+from ..bases.registry import KINDS, get_kind, kind_of, learned_kind, register_kind
+from .base import BasisKind, SeededKind, relative_times, seed_time
+from .diffusion import DIFFUSION
+from .eigen_diffusion import EIGEN_DIFFUSION
+from .harmonic import HARMONIC
+from .hybrid import HYBRID
+from .laplacian import LAPLACIAN
+from .stack import STACK
+
+for _kind in (LAPLACIAN, HYBRID, DIFFUSION, HARMONIC, STACK, EIGEN_DIFFUSION):
+    register_kind(_kind)
+del _kind
+
+__all__ = [
+    "KINDS",
+    "BasisKind",
+    "SeededKind",
+    "get_kind",
+    "kind_of",
+    "learned_kind",
+    "register_kind",
+    "relative_times",
+    "seed_time",
+]
