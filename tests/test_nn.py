@@ -256,8 +256,12 @@ def test_data_checks_follow_the_switch_in_function_and_layer(setting):
         F.solve_fmap(fx, fy, tx, ty, check="yes")
     # singular systems (no descriptor information, w_lap = 0): the LU's info is read under check
     zeros, mask = torch.zeros(1, 4, 3, dtype=torch.float64), torch.ones(1, 4, 4, dtype=torch.float64)
-    with pytest.raises(ParameterError, match="singular"):
+    with pytest.raises(ParameterError, match="singular: the descriptor term is zero"):
         solve_rowwise(zeros, zeros, mask, 1.0, 0.0)
+    low_rank = torch.zeros(1, 4, 3, dtype=torch.float64)
+    low_rank[0, 0, 0] = 1.0  # one descriptor direction for four columns
+    with pytest.raises(ParameterError, match=r"Laplacian term is off \(w_lap = 0\)"):
+        solve_rowwise(low_rank, low_rank, mask, 1.0, 0.0)
     solve_rowwise(zeros, zeros, mask, 1.0, 0.0, check=False)  # unchecked: no error
     with pytest.raises(ParameterError, match="NaN or inf"):
         FeatureNet(5, 4).double()(bad, tx)

@@ -16,7 +16,15 @@ import torchfmap
 
 ROOT = Path(torchfmap.__file__).parent
 #: Third-party modules that may be imported inside functions: optional dependencies only.
-OPTIONAL_IMPORTS = {"matplotlib", "mpl_toolkits", "cholespy", "sksparse", "distributed", "pymeshlab"}
+OPTIONAL_IMPORTS = {
+    "matplotlib",
+    "mpl_toolkits",
+    "cholespy",
+    "sksparse",
+    "distributed",
+    "pymeshlab",
+    "plotly",
+}
 #: Most lines a module of torchfmap may have (ARCHITECTURE.md rule 7: split at ~400).
 MAX_MODULE_LINES = 450
 #: Shared checks and file helpers: the only module allowed to define each name.

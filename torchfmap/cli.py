@@ -181,10 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
     p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
     p.add_argument(
+        "--html",
+        help="also save the colour transfer as a self-contained page to turn in a browser (needs plotly)",
+    )
+    p.add_argument(
         "--up",
         choices=["x", "y", "z"],
         default="z",
-        help="the meshes' vertical axis in --png (not detected: y for y-up meshes such as FAUST or TOSCA)",
+        help="the meshes' vertical axis in --png and --html (not detected: y for y-up meshes such as "
+        "FAUST or TOSCA)",
     )
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
@@ -377,8 +382,9 @@ def _as_list(value) -> list:
 
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, output paths that cannot be written: a missing or read-only
-    folder, an existing folder as the file; ``--png`` without matplotlib installed."""
-    values = [(flag, v) for flag in ("out", "png") for v in _as_list(getattr(args, flag, None))]
+    folder, an existing folder as the file; ``--png`` without matplotlib, ``--html`` without
+    plotly installed."""
+    values = [(flag, v) for flag in ("out", "png", "html") for v in _as_list(getattr(args, flag, None))]
     for flag, value in values:
         path = os.path.abspath(value)
         folder = os.path.dirname(path)
@@ -392,6 +398,8 @@ def check_outputs(args: argparse.Namespace) -> None:
             )
     if getattr(args, "png", None) and importlib.util.find_spec("matplotlib") is None:
         raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
+    if getattr(args, "html", None) and importlib.util.find_spec("plotly") is None:
+        raise TorchFmapError("--html needs plotly. Fix: pip install plotly (or the 'html' extra).")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -25,7 +25,7 @@ from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, 
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match, match_bases
-from .viz import plot_color_transfer, plot_pck
+from .viz import plot_color_transfer, plot_pck, save_transfer_html
 
 
 def _operator_summary(mesh, out) -> None:
@@ -210,12 +210,14 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
     """Write the map file (:func:`~torchfmap.io.write_map`: atomic, line i: source vertex of
-    target vertex i, ``.gz`` compressed), report, and draw ``--png``."""
+    target vertex i, ``.gz`` compressed), report, and draw ``--png`` / ``--html``."""
     write_map(args.out, p2p)
     say = (lambda *_: None) if getattr(args, "quiet", False) else print
     say(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
     if args.png:
         say(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
+    if args.html:
+        say(f"colour transfer (browser page) -> {save_transfer_html(src, tgt, p2p, args.html, up=args.up)}")
     return 0
 
 

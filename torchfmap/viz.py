@@ -1,5 +1,5 @@
 """Pictures a person would rather look at than read: colour transfer of a map, per-vertex
-errors, PCK curves (PNG).
+errors, PCK curves (PNG), and a map to turn in a browser (:func:`save_transfer_html`).
 
 matplotlib is an optional dependency (``pip install torchfmap[plot]``). Figures are drawn with
 matplotlib's object-oriented API on an Agg canvas, so the user's pyplot backend and state are
@@ -20,6 +20,7 @@ from typing import Literal
 
 import numpy as np
 
+from ._files import atomic_write
 from .errors import ParameterError, TorchFmapError
 from .mesh import Mesh
 
@@ -139,3 +140,63 @@ def plot_pck(
     ax.legend(fontsize=8)
     ax.set_title(title)
     return _save(fig, path)
+
+
+#: The marker a page of :func:`save_transfer_html` sets on ``<body>`` once plotly has drawn it
+#: (``data-torchfmap-drawn``: the number of meshes drawn), and the one it sets on a script error.
+HTML_DRAWN, HTML_ERROR = "data-torchfmap-drawn", "data-torchfmap-error"
+
+
+def _mesh_trace(go, mesh: Mesh, colors: np.ndarray, scene: str, name: str):
+    v, f = mesh.vertices, mesh.faces
+    rgb = np.round(255 * np.clip(colors, 0.0, 1.0)).astype(int)
+    return go.Mesh3d(
+        x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2],
+        vertexcolor=[f"rgb({r},{g},{b})" for r, g, b in rgb], flatshading=False, name=name,
+        hoverinfo="name", scene=scene, lighting=dict(ambient=0.6, diffuse=0.6, specular=0.1),
+    )  # fmt: skip
+
+
+def save_transfer_html(
+    mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, path: str | os.PathLike, *, up: Axis = "z"
+) -> Path:
+    """The colour transfer of :func:`plot_color_transfer` as one self-contained HTML page:
+    source and target side by side, each rotatable and zoomable with the mouse (plotly's
+    JavaScript is embedded, so the page needs no network when it is viewed). ``p2p_yx (V_y,)``;
+    ``up``: the meshes' vertical axis (the cameras' up). Written atomically; returns the path.
+
+    Raises:
+        TorchFmapError: plotly is not installed (optional extra ``torchfmap[html]``).
+        ParameterError: ``p2p_yx`` of the wrong shape or out of range, or an unknown ``up``.
+    """
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.shape != (mesh_y.n_vertices,) or not np.issubdtype(p2p_yx.dtype, np.integer):
+        raise ParameterError(f"p2p_yx must be ({mesh_y.n_vertices},) integers, got {p2p_yx.shape}.")
+    if len(p2p_yx) and (p2p_yx.min() < 0 or p2p_yx.max() >= mesh_x.n_vertices):
+        raise ParameterError(f"p2p_yx has vertices outside [0, {mesh_x.n_vertices}) of the source mesh.")
+    if up not in ("x", "y", "z"):
+        raise ParameterError(f"up must be 'x', 'y' or 'z', got {up!r}.")
+    try:
+        import plotly.graph_objects as go
+        from plotly.subplots import make_subplots
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise TorchFmapError(
+            "--html / save_transfer_html need plotly. Fix: pip install 'torchfmap[html]'."
+        ) from err
+    colors = position_colors(mesh_x)
+    names = (f"source {mesh_x.name or 'x'}", f"target {mesh_y.name or 'y'}: colours carried by the map")
+    fig = make_subplots(rows=1, cols=2, specs=[[{"type": "scene"}, {"type": "scene"}]], subplot_titles=names)
+    fig.add_trace(_mesh_trace(go, mesh_x, colors, "scene", names[0]), row=1, col=1)
+    fig.add_trace(_mesh_trace(go, mesh_y, colors[p2p_yx], "scene2", names[1]), row=1, col=2)
+    camera = dict(up={a: float(a == up) for a in "xyz"}, eye=dict(x=1.6, y=1.6, z=1.6))
+    axis = dict(visible=False)
+    for scene in ("scene", "scene2"):
+        fig.layout[scene].update(aspectmode="data", camera=camera, xaxis=axis, yaxis=axis, zaxis=axis)
+    fig.update_layout(margin=dict(l=0, r=0, t=40, b=0), showlegend=False)
+    marker = (
+        f"window.addEventListener('error', e => document.body.setAttribute('{HTML_ERROR}', e.message));"
+        f"document.body.setAttribute('{HTML_DRAWN}', String(document.getElementById('{{plot_id}}')"
+        "._fullData.length));"
+    )
+    html = fig.to_html(include_plotlyjs=True, full_html=True, post_script=marker, default_height="95vh")
+    return atomic_write(path, lambda fh: fh.write(html.encode("utf-8")))

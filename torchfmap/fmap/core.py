@@ -171,6 +171,18 @@ def solve_rowwise(
 
 
 @functools.cache
+def _singular_reason(G: torch.Tensor, diag: torch.Tensor) -> str:
+    """Why the row-wise systems ``G + diag(d_i)`` are singular, and the fix, in words."""
+    if not bool(G.abs().amax() > 0):
+        return (
+            "the descriptor term is zero (the descriptors, or the bases they are projected on, are "
+            "zero: e.g. a basis of zero mass). Fix: check the bases' mass and the descriptors."
+        )
+    if not bool(diag.abs().amax() > 0):
+        return "the descriptors span too little and the Laplacian term is off (w_lap = 0). Fix: w_lap > 0."
+    return "the descriptors span too little for this basis size. Fix: more descriptors or a smaller k."
+
+
 def _rowwise_solve():
     """The autograd Function of :func:`solve_rowwise`, defined on first use (torch is
     imported then); cached, as a class statement would be."""
@@ -202,10 +214,7 @@ def _rowwise_solve():
             info = torch.empty(shape[:-2], dtype=torch.int32, device=G.device)
             torch.linalg.lu_factor_ex(LU, out=(LU, pivots, info))
             if check and bool((info > 0).any()):
-                raise ParameterError(
-                    "the functional-map systems are singular (descriptors span too little and w_lap = 0). "
-                    "Fix: use w_lap > 0 or more descriptors."
-                )
+                raise ParameterError(f"the functional-map systems are singular: {_singular_reason(G, diag)}")
             c = torch.linalg.lu_solve(LU, pivots, rhs[..., None], adjoint=True)[..., 0]
             ctx.save_for_backward(G, diag, rhs, LU, pivots, c)
             return c

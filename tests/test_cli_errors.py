@@ -1,4 +1,4 @@
-"""Bad input and the CLI, round 3: every failure a torchfmap error with a fix (never a
+"""Bad input through the files and the CLI: every failure a torchfmap error with a fix (never a
 traceback), silent failures made loud, the CLI's help and flags consistent."""
 
 from __future__ import annotations
