@@ -67,7 +67,7 @@ def _refine_flags(p: argparse.ArgumentParser) -> None:
     """The refinement and solver flags ``match`` and ``eval`` share."""
     p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
     p.add_argument(
-        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default 2k)"
+        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default: 2k)"
     )
     p.add_argument(
         "--w-lap",
@@ -209,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ground truth: corres/*.vts files only, or identity (vertex i is vertex i) for meshes "
         "of equal vertex counts (default: the files, else identity where the face lists agree)",
     )
-    p.add_argument("--basis", choices=["auto", *BASES], default=None, help="basis kind (default as in match)")
+    p.add_argument("--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)")
     p.add_argument("--k", type=positive_int, default=50, help="basis size")
     _refine_flags(p)
     p.add_argument(
@@ -275,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="epochs of all ordered pairs (default: 5 when no other budget is given)",
     )
-    p.add_argument("--max-steps", type=count, default=0, help="optimiser steps (default 0: no limit)")
+    p.add_argument("--max-steps", type=count, default=0, help="optimiser steps (default: 0: no limit)")
     p.add_argument(
         "--basis",
         choices=LEARNED_BASES,
@@ -300,19 +300,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="moves of XYZ inputs at each step: rotation and scaling, scaling only (shapes aligned "
         "alike), or none (default: rigid)",
     )
-    p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default 32)")
+    p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default: 32)")
     p.add_argument(
-        "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default 96)"
+        "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default: 96)"
     )
     p.add_argument(
         "--clip-grad",
         type=nonnegative_float,
         default=None,
-        help="gradient-norm clipping per step (default 0: none)",
+        help="gradient-norm clipping per step (default: 0: none)",
     )
-    p.add_argument("--width", type=positive_int, default=None, help="network width (default 48)")
-    p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default 64)")
-    p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default 1e-3)")
+    p.add_argument("--width", type=positive_int, default=None, help="network width (default: 48)")
+    p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default: 64)")
+    p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default: 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
