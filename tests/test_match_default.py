@@ -104,3 +104,27 @@ def test_cli_line_names_the_choice(tmp_path, bent_pair, capsys):
     assert main([*args, "--k", "20", "--out", str(tmp_path / "m.txt")]) == 0
     out = capsys.readouterr().out
     assert "chosen by geodesic distortion (laplacian" in out and "hybrid" in out
+
+
+def test_seeded_refinement_solves_again_at_the_seeds_its_map_agrees_on(bent_pair, capsys, tmp_path):
+    """``refine='seeded'``: stage 1 is the ZoomOut map; stage 2 is the match with the consistent
+    seeds of stage 1 as landmarks (its ``seeds`` start with them), refined; both are kept in
+    ``candidates``; landmarks are refused (the stage seeds itself); the CLI runs it."""
+    x, y, gt = bent_pair
+    result = match(x, y, k=20, refine="seeded")
+    first = result.first_stage
+    assert first is not None and first.first_stage is None and result.candidates == {}
+    np.testing.assert_array_equal(first.p2p_yx, match(x, y, k=20, refine="zoomout").p2p_yx)
+    assert result.distortion is not None and result.kind == "laplacian"  # solved with landmarks
+    errors = [evaluate_map(x, y, r.p2p_yx, gt, max_points=300)[0].mean_error for r in (first, result)]
+    assert errors[1] <= 2.0 * errors[0] + 0.01  # a second solve at agreeing seeds stays a good map
+    with pytest.raises(ParameterError, match="refine='seeded' seeds a second solve"):
+        match(x, y, k=20, refine="seeded", landmarks=landmarks_from_gt(x, gt, 4))
+    from torchfmap import save_mesh
+    from torchfmap.cli import main
+
+    a, b = save_mesh(x, tmp_path / "x.off"), save_mesh(y, tmp_path / "y.off")
+    assert (
+        main(["match", str(a), str(b), "--k", "20", "--refine", "seeded", "--out", str(tmp_path / "m.txt")])
+        == 0
+    )

@@ -274,7 +274,10 @@ def test_no_cycle_hidden_in_function_level_imports():
 #: The one lazy boundary: the command line imports the torch-based learning path only in the
 #: commands that use it (torchfmap.commands, run by torchfmap.cli), so that classical commands
 #: start without torch.
-LAZY_TORCH = {"torchfmap.commands": ("torch", "torchfmap.nn")}
+LAZY_TORCH = {
+    "torchfmap.commands": ("torch", "torchfmap.nn"),
+    "torchfmap.commands_train": ("torch", "torchfmap.nn"),
+}
 
 
 def test_no_function_level_import_of_torchfmap_modules():

@@ -2,26 +2,25 @@
 
 This module parses the flags (:func:`build_parser`, the argparse types, :func:`check_outputs`)
 and runs the command through :func:`main`; the commands themselves are in
-:mod:`torchfmap.commands`.
+:mod:`torchfmap.commands` (and :mod:`torchfmap.commands_train`, the learned path's).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
-import math
 import os
 import sys
 import warnings
 from collections.abc import Sequence
 
-import numpy as np
-
 from . import __version__
 from .cli_messages import error_line as _error_line
 from .cli_messages import in_cli_terms as in_cli_terms
 from .cli_messages import warning_line as _warning_line
-from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match, cmd_models, cmd_train
+from .cli_types import count, nonnegative_float, positive_float, positive_int, time_list
+from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match
+from .commands_train import cmd_models, cmd_train
 from .errors import TorchFmapError
 from .kinds import KINDS
 
@@ -65,7 +64,13 @@ class _DefaultsFormatter(argparse.HelpFormatter):
 
 def _refine_flags(p: argparse.ArgumentParser) -> None:
     """The refinement and solver flags ``match`` and ``eval`` share."""
-    p.add_argument("--refine", choices=["icp", "zoomout"], default=None, help="refinement (default: none)")
+    p.add_argument(
+        "--refine",
+        choices=["icp", "zoomout", "seeded"],
+        default=None,
+        help="refinement; seeded: ZoomOut, then solved again with the seeds where that map agrees "
+        "both ways as landmarks (no --landmarks) (default: none)",
+    )
     p.add_argument(
         "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default: 2k)"
     )
@@ -209,7 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="ground truth: corres/*.vts files only, or identity (vertex i is vertex i) for meshes "
         "of equal vertex counts (default: the files, else identity where the face lists agree)",
     )
-    p.add_argument("--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)")
+    p.add_argument(
+        "--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)"
+    )
     p.add_argument("--k", type=positive_int, default=50, help="basis size")
     _refine_flags(p)
     p.add_argument(
@@ -294,6 +301,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--inputs", choices=["wks", "xyz"], default=None, help="per-vertex network inputs (default: wks)"
     )
     p.add_argument(
+        "--stages",
+        type=int,
+        choices=[1, 2],
+        default=None,
+        help="2: also train the self-seeded second stage (eigenbasis + heat kernels at the seeds "
+        "where the stage-1 map agrees both ways); inference then runs it (default: 1)",
+    )
+    p.add_argument(
         "--augment",
         choices=["rigid", "scale", "none"],
         default=None,
@@ -317,63 +332,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    p.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from the (best) weights and recipe of a checkpoint or shipped model: fine-tuning "
+        "(recipe flags given here override its recipe; the network must stay the same)",
+    )
     p.add_argument("--validate-every", type=count, default=100, help="steps between validations (0: none)")
     p.add_argument("--validate-pairs", type=positive_int, default=6, help="pairs of the validation score")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
     return parser
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1 or str(value) != text.strip().lstrip("+"):
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
-
-
-def _finite_float(text: str, strict: bool) -> float:
-    """``text`` as a finite float ``> 0`` (``strict``) or ``>= 0``, else an argparse error."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and (value > 0 if strict else value >= 0)):
-        raise argparse.ArgumentTypeError(f"must be a finite number {'>' if strict else '>='} 0, got {text!r}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    """argparse type: a finite number >= 0."""
-    return _finite_float(text, strict=False)
-
-
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
-    return _finite_float(text, strict=True)
-
-
-def count(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    return 0 if text.strip() == "0" else positive_int(text)
-
-
-def time_list(text: str) -> list[float]:
-    """argparse type: comma-separated finite times > 0 (an empty list is refused)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError(
-            "times must not be empty. Fix: omit --times for the default, or give e.g. 0.01,0.03"
-        )
-    try:
-        times = [float(t) for t in text.split(",")]
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"times must be comma-separated numbers, got {text!r}") from err
-    if not all(np.isfinite(t) and t > 0 for t in times):
-        raise argparse.ArgumentTypeError(f"times must be finite and > 0, got {text!r}")
-    return times
 
 
 def _as_list(value) -> list:

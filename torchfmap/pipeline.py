@@ -22,8 +22,10 @@ from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_e
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
 from .errors import MapWarning, ParameterError
 from .fmap import check_landmark_pairs, solve_fmap
+from .fmap.convert import values_to_p2p
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .kinds import BasisKind, get_kind, kind_of
+from .match_checks import check_given_bases, check_unused
 from .mesh import Mesh
 from .quality import (
     OFF_BY_ONE_RATIO,
@@ -33,6 +35,7 @@ from .quality import (
 )
 from .quality import warn_if_off_by_one as warn_if_off_by_one
 from .results import MatchContext, MatchResult, RefineKind, refine_map, refine_result
+from .seeds import consistent_seeds, farthest_point_sampling
 
 P2PMode = Literal["pullback", "orthogonal"]
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
@@ -174,9 +177,11 @@ def match(
             ``'harmonic'``, ``'stack'``, ``'hybrid'``, ``'eigen_diffusion'``), or ``'auto'``;
             default: ``'auto'`` with landmarks, ``'laplacian'`` without (see above).
         k: basis size; every basis has exactly ``k`` columns.
-        refine: ``'icp'`` or ``'zoomout'`` (as the kind's ``refinement`` says: the eigenbasis
+        refine: ``'icp'`` or ``'zoomout'`` (the kind's own refinement: the eigenbasis
             grows up to ``k_final``, default ``2k``; feature-aware kinds iterate at a fixed
-            size from the current map, then move their seeds), or None.
+            size from the current map, then move their seeds), ``'seeded'`` (without
+            landmarks: ZoomOut, then the pair solved again with the seeds where that map agrees
+            both ways as landmarks, and ZoomOut; see :func:`_match_seeded`), or None.
         n_descriptors, k_descriptors: see :func:`match_descriptors`.
         w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
             the kind's ``w_lap``), orientation preservation (tells left from right,
@@ -219,6 +224,18 @@ def match(
             "basis='auto' chooses among bases built at landmarks. Fix: pass landmarks, or name a "
             "basis (e.g. basis='laplacian')."
         )
+    if refine == "seeded":
+        if pairs is not None or bases is not None or basis not in (None, "laplacian"):
+            raise ParameterError(
+                "refine='seeded' seeds a second solve from the eigenbasis map without landmarks. Fix: "
+                "drop landmarks / bases / basis, or refine='zoomout'."
+            )
+        passed = dict(
+            k=k, k_final=k_final, n_descriptors=n_descriptors, k_descriptors=k_descriptors,
+            w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm, w_lmk=w_lmk, p2p_mode=p2p_mode,
+            zoomout_samples=zoomout_samples,
+        )  # fmt: skip
+        return _match_seeded(mesh_x, mesh_y, shapes, passed)
     if basis in (None, "auto") and pairs is not None and bases is None:
         passed = dict(
             k=k, refine=refine, k_final=k_final, n_descriptors=n_descriptors, k_descriptors=k_descriptors,
@@ -229,7 +246,7 @@ def match(
     name = basis or "laplacian"
     together = False  # given bases built as a pair at corresponding seeds: their columns correspond
     if bases is not None:
-        given_x, given_y, together = _check_given_bases(bases, mesh_x, mesh_y)
+        given_x, given_y, together = check_given_bases(bases, mesh_x, mesh_y)
         eigen_only = all(c.kind == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
         seeded = kind_of(given_x) if together else None
         name = basis or ("laplacian" if eigen_only else seeded or "stack")
@@ -246,8 +263,8 @@ def match(
     k = check_count(k, 1, n_max, "k (basis size)")
     k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
     if refine not in (None, "icp", "zoomout"):
-        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
-    _check_unused(kind, refine, k_final, times)
+        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout', 'seeded' or None.")
+    check_unused(kind, refine, k_final, times)
     grow = refine == "zoomout" and kind.grows
     if grow and k_final is not None and k_final < k:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
@@ -332,7 +349,7 @@ def _match_auto(mesh_x: Mesh, mesh_y: Mesh, pairs: np.ndarray, shapes, kwargs: d
     prep = time.perf_counter() - t0
     candidates: dict[str, MatchResult] = {}
     skipped: dict[str, str] = {}
-    _check_unused(get_kind(AUTO_KINDS[-1]), refine, kwargs["k_final"], None)
+    check_unused(get_kind(AUTO_KINDS[-1]), refine, kwargs["k_final"], None)
     for name in AUTO_KINDS:
         kind = get_kind(name)
         first = name == AUTO_KINDS[0]
@@ -366,63 +383,30 @@ def _match_auto(mesh_x: Mesh, mesh_y: Mesh, pairs: np.ndarray, shapes, kwargs: d
     return dataclasses.replace(chosen, timings=timings, candidates=candidates, skipped=skipped)
 
 
-def _check_unused(kind: BasisKind, refine, k_final, times) -> None:
-    """Refuse settings that would change nothing in this call (a silent no-op misleads)."""
-    if k_final is not None and refine != "zoomout":
-        raise ParameterError(
-            f"k_final={k_final} is the size ZoomOut grows the basis to; without refine='zoomout' it "
-            "changes nothing. Fix: refine='zoomout', or drop k_final."
-        )
-    if times is not None and not kind.needs_landmarks:
-        raise ParameterError(
-            f"times are the heat times of feature-aware bases; the {kind.name} basis has none, so "
-            "they would change nothing. Fix: drop times, or basis='diffusion' (or another seeded kind)."
-        )
+#: Farthest points of ``x`` offered as seeds by ``refine='seeded'``.
+SEEDED_SEEDS = 40
 
 
-def _mass_mismatch(basis: Basis, mesh: Mesh) -> float:
-    """Relative L1 difference of ``basis``'s lumped mass and ``mesh``'s, both normalised to sum
-    1 (0 for a basis built on this mesh, in any frame; large for another mesh's basis)."""
-    b = np.asarray(basis.mass.diagonal(), dtype=np.float64)
-    m = np.bincount(
-        mesh.faces.ravel(), weights=np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices
-    )
-    return float(np.abs(b / b.sum() - m / m.sum()).sum())
-
-
-def _check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, bool]:
-    """``(basis_x, basis_y, together)``: checked given bases and whether they were built as a
-    pair at the same corresponding seeds (``Basis.pair_landmarks``)."""
-    try:
-        bx, by = bases
-    except (TypeError, ValueError) as err:
-        raise ParameterError("bases must be a pair (basis_x, basis_y) of Basis objects.") from err
-    for b, mesh, name in ((bx, mesh_x, "x"), (by, mesh_y, "y")):
-        if not isinstance(b, Basis):
-            raise ParameterError(f"basis_{name} is a {type(b).__name__}, not a Basis. Fix: Basis.load(path).")
-        if b.n_vertices != mesh.n_vertices:
-            raise ParameterError(
-                f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
-                "pass the basis built on that mesh (bases in the order source, target)."
-            )
-    given = _mass_mismatch(bx, mesh_x) + _mass_mismatch(by, mesh_y)
-    swapped = _mass_mismatch(bx, mesh_y) + _mass_mismatch(by, mesh_x)
-    if swapped < 0.25 * given:  # vertex areas are a fingerprint of the mesh a basis was built on
-        raise ParameterError(
-            "the given bases fit the meshes in the other order (their vertex masses are those of "
-            f"the other mesh: mismatch {given:.3f} as given, {swapped:.3f} swapped). Fix: give the "
-            "bases in the order source, target (CLI: --bases SRC.npz TGT.npz)."
-        )
-    seeded = any(c.seed >= 0 for b in (bx, by) for c in b.provenance)
-    px, py = bx.pair_landmarks, by.pair_landmarks
-    together = px is not None and py is not None and np.array_equal(px, py)
-    if seeded and not together:
-        warnings.warn(
-            "the given bases have seeded columns but were not built together from the same "
-            "landmark pairs, so their columns need not correspond and the map can be wrong. Fix: "
-            "build them as a pair (`torchfmap basis SRC TGT --landmarks pairs.txt --out a.npz b.npz`, "
-            "or match_bases()), or match with landmarks=... directly.",
-            MapWarning,
-            stacklevel=3,
-        )
-    return bx, by, seeded and together
+def _match_seeded(mesh_x: Mesh, mesh_y: Mesh, shapes, kwargs: dict) -> MatchResult:
+    """``refine='seeded'``: the eigenbasis map refined by ZoomOut (stage 1); seed pairs where it
+    agrees both ways (:data:`SEEDED_SEEDS` farthest points of ``x`` sent to ``y`` and back by the
+    orthogonal rule of ``C_xy`` and ``C_xyᵀ``, :func:`~torchfmap.seeds.consistent_seeds`);
+    then the pair solved again with those seeds as landmarks (descriptors and constraints) in
+    the eigenbasis and refined by ZoomOut, guarded by the geodesic distortion (stage 2). The
+    result is stage 2's, with stage 1 as ``first_stage``; stage 1's when fewer than two seeds
+    agree."""
+    first = match(mesh_x, mesh_y, refine="zoomout", shapes=shapes, **kwargs)
+    ctx = first._context
+    bx, by, C = first.basis_x, first.basis_y, first.C_xy
+    s = farthest_point_sampling(mesh_x, min(SEEDED_SEEDS, mesh_x.n_vertices), metric="euclidean")
+    t = values_to_p2p(C.T, by.values, bx.values[s], mode="orthogonal")  # x -> y at the seeds
+    back = values_to_p2p(C, bx.values, by.values[t], mode="orthogonal")
+    seeds = consistent_seeds(ctx.shape_x.distances, s, t, back)
+    if len(seeds) < 2:
+        return first
+    second = match(
+        mesh_x, mesh_y, landmarks=seeds, basis="laplacian", refine="zoomout",
+        shapes=(ctx.shape_x, ctx.shape_y), **kwargs,
+    )  # fmt: skip
+    timings = {f"stage1:{k}": v for k, v in first.timings.items()} | second.timings
+    return dataclasses.replace(second, timings=timings, first_stage=first, seeds=seeds)

@@ -22,7 +22,7 @@ from .fmap.refine import Refined
 from .kinds import BasisKind, get_kind
 from .quality import distortion_anchors, geodesic_distortion
 
-RefineKind = Literal["icp", "zoomout"]
+RefineKind = Literal["icp", "zoomout", "seeded"]
 
 __all__ = ["MatchContext", "MatchResult", "RefineKind", "refine_map", "refine_result"]
 
@@ -118,7 +118,9 @@ class MatchResult:
     kept (a refinement that raises the distortion is dropped: ``p2p_yx`` is then the initial
     map). The landmark default also fills ``candidates``: each kind it solved in
     (:data:`AUTO_KINDS`), by name, with its own result; ``skipped`` names the kinds that could
-    not be built on these meshes, with the reason."""
+    not be built on these meshes, with the reason. With ``refine='seeded'``, ``first_stage`` is
+    the stage-1 result (the ZoomOut map the seeds were read from) and ``seeds`` the seed pairs
+    ``(S, 2)`` stage 2 was solved with (as landmarks)."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -132,6 +134,7 @@ class MatchResult:
     refined: bool = False
     candidates: dict[str, MatchResult] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
+    first_stage: MatchResult | None = None
     _context: MatchContext | None = field(default=None, repr=False, compare=False)
 
     def scores(self) -> str:

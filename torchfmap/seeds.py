@@ -21,6 +21,7 @@ from .operators.heat import heat_kernels
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
 __all__ = [
+    "consistent_seeds",
     "check_seeds_cover_components",
     "corresponding_seeds",
     "coverage_seeds",
@@ -353,3 +354,36 @@ def replace_seeds(
         out[i, 1] = new
         used.add(new)
     return out
+
+
+def consistent_seeds(
+    distances_x: DistanceRows, seeds_x: np.ndarray, images_y: np.ndarray, returns_x: np.ndarray
+) -> np.ndarray:
+    """Seed pairs ``(S', 2)`` read off a map where its two directions agree: seed ``s`` of ``x``
+    (e.g. farthest points), its image ``t`` on ``y`` (``images_y``, by the map ``x -> y``) and
+    the image of ``t`` back on ``x`` (``returns_x``, by ``y -> x``); the pair ``(s, t)`` is kept
+    when the round trip lands less than half the seeds' covering radius ``sqrt(1 / S)`` from
+    ``s`` (nearer to ``s`` than to any other seed), and its ``t`` is not taken by an earlier
+    seed. ``distances_x``: distance rows of ``x`` in units of ``sqrt(area)``. Order of
+    ``seeds_x`` is kept.
+
+    Raises:
+        ParameterError: the three index arrays differ in length or are not 1-D.
+    """
+    seeds_x, images_y, returns_x = (np.asarray(a, dtype=np.int64) for a in (seeds_x, images_y, returns_x))
+    if not (seeds_x.ndim == images_y.ndim == returns_x.ndim == 1) or not (
+        len(seeds_x) == len(images_y) == len(returns_x)
+    ):
+        raise ParameterError("seeds_x, images_y and returns_x must be 1-D index arrays of one length.")
+    if not len(seeds_x):
+        return np.zeros((0, 2), dtype=np.int64)
+    radius = 0.5 * np.sqrt(1.0 / len(seeds_x))
+    rows = distances_x.distances(seeds_x)  # (S, V_x)
+    near = rows[np.arange(len(seeds_x)), returns_x] < radius
+    taken: set[int] = set()
+    keep = []
+    for i in np.flatnonzero(near):  # bounded: one pass over the seeds
+        if int(images_y[i]) not in taken:
+            taken.add(int(images_y[i]))
+            keep.append(i)
+    return np.stack([seeds_x[keep], images_y[keep]], axis=1).astype(np.int64).reshape(-1, 2)

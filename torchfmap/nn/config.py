@@ -25,6 +25,8 @@ class TrainConfig:
 
     ``augment`` (XYZ inputs only): ``"rigid"`` a random rotation and scaling per step,
     ``"scale"`` a scaling only (for data sets whose shapes are aligned alike), ``"none"``.
+    ``stages``: 1, or 2 for the self-seeded second stage (:mod:`torchfmap.nn.stages`) at
+    ``stage_seeds`` farthest points, trained with stage 1 and run by inference.
     """
 
     k: int = 50
@@ -46,6 +48,8 @@ class TrainConfig:
     w_lap: float = 1e-3
     seed: int = 0
     augment: str = "rigid"
+    stages: int = 1
+    stage_seeds: int = 40
     loss_weights: dict = field(
         default_factory=lambda: {"w_bij": 1.0, "w_orth": 1.0, "w_couple": 1.0, "n_samples": 1000, "tau": 0.07}
     )

@@ -235,6 +235,11 @@ class ShapeDataset(torch.utils.data.Dataset):
     def __len__(self) -> int:
         return len(self.files)
 
+    def mesh(self, i: int) -> Mesh:
+        """Shape ``i`` as a :class:`~torchfmap.Mesh` (its stored vertices and faces)."""
+        item = self[i]
+        return Mesh(item["vertices"].numpy(), item["faces"].numpy(), validate=False)
+
     def __getitem__(self, i: int) -> dict:
         return self.items[i]
 

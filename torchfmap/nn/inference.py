@@ -10,6 +10,7 @@ import copy
 import numpy as np
 import torch
 
+from .._checks import check_landmark_pairs
 from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
 from ..eval import geodesic_errors
@@ -21,6 +22,7 @@ from .config import TrainConfig, build_solver
 from .data import K_WKS, ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
+from .stages import StageTwo, two_stage_p2p
 from .train import pair_loss
 
 #: Eigenfunctions the ZoomOut refinement of the learned path starts from and grows to
@@ -175,13 +177,24 @@ def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, Prep
 
 
 def _network_p2p(
-    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes=None
-) -> np.ndarray:
-    """One pair's ``p2p_yx``: adapt (optional), predict, refine (optional)."""
+    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes, stage=None,
+    landmarks=None,
+) -> np.ndarray:  # fmt: skip
+    """One pair's ``p2p_yx``: adapt (optional), predict (stage 1, or both stages with
+    ``stage``), refine (optional)."""
     if adapt_steps:
         net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
-    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
+    if stage is not None and mode == "fmap":
+        p2p = two_stage_p2p(net, solver, items[0], items[1], *shapes, stage, device, landmarks)[1]
+    else:
+        p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
     return refine_p2p(meshes[0], meshes[1], p2p, shapes=shapes) if refine else p2p
+
+
+def _stage(config: TrainConfig, landmarks) -> StageTwo | None:
+    """The second stage a checkpoint runs: its own (``config.stages == 2``), or one seeded by
+    user ``landmarks``."""
+    return StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 or landmarks is not None else None
 
 
 def _check_inference(adapt_steps: int, mode: str) -> None:
@@ -202,17 +215,23 @@ def match_with_network(
     refine: bool = False,
     mode: str = "fmap",
     device="cpu",
+    landmarks=None,
 ) -> np.ndarray:
     """``p2p_yx`` of two meshes with a trained network: no dataset folder, no cache.
 
     Precomputes both shapes as in training (:func:`~torchfmap.nn.data.precompute_shape`),
-    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`)
-    and optionally refines with ZoomOut (:func:`refine_p2p`).
+    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`;
+    with the self-seeded second stage, :func:`~torchfmap.nn.stages.two_stage_p2p`, when the
+    checkpoint was trained with it or ``landmarks`` ``(L, 2)`` (source, target vertex pairs)
+    are given, which then seed it first) and optionally refines with ZoomOut
+    (:func:`refine_p2p`).
 
     Raises:
-        ParameterError: ``adapt_steps < 0`` or an unknown ``mode``.
+        ParameterError: ``adapt_steps < 0``, an unknown ``mode``, or landmarks outside the meshes.
     """
     _check_inference(adapt_steps, mode)
+    if landmarks is not None:
+        landmarks = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     (ix, sx), (iy, sy) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
     ix["index"], iy["index"] = 0, 1
     solver, loss_fn = build_solver(config)
@@ -227,7 +246,9 @@ def match_with_network(
         refine=refine,
         mode=mode,
         device=device,
-        shapes=(sx, sy) if refine else None,
+        shapes=(sx, sy),
+        stage=_stage(config, landmarks),
+        landmarks=landmarks,
     )
 
 
@@ -266,6 +287,7 @@ class CheckpointMatcher:
     def _load(self) -> tuple:
         net, config, _ = load_checkpoint(self.checkpoint)
         solver, loss_fn = build_solver(config)
+        self._stage = _stage(config, None)
         return net, config, solver, loss_fn
 
     def __getstate__(self) -> dict:
@@ -280,7 +302,6 @@ class CheckpointMatcher:
         for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
             if key not in self._items:
                 self._items[key], self._shapes[key] = _prepared(mesh, config, self.refine)
-        shapes = (self._shapes[key_x], self._shapes[key_y]) if self.refine else None
         return _network_p2p(
             net,
             solver,
@@ -292,5 +313,6 @@ class CheckpointMatcher:
             refine=self.refine,
             mode=self.mode,
             device="cpu",
-            shapes=shapes,
+            shapes=(self._shapes[key_x], self._shapes[key_y]),
+            stage=self._stage,
         )

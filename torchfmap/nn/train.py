@@ -27,6 +27,7 @@ from .config import AUGMENTS, CosineBudget, TrainConfig, build_model
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import check_network, features
+from .stages import StageTwo, stage_two_loss
 
 #: Progress bar of a time budget: seconds of the budget, no rate (steps and epochs in the postfix).
 TIME_BAR = "{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}{postfix}]"
@@ -75,17 +76,29 @@ def forward_pair(net, solver, batch: dict) -> PairForward:
 
 
 def pair_loss(
-    net, solver, loss_fn, batch: dict, generator: torch.Generator | None = None
+    net, solver, loss_fn, batch: dict, generator: torch.Generator | None = None, *, stage=None, mesh_of=None
 ) -> dict[str, torch.Tensor]:
     """The loss terms of a collated batch:
-    ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=generator)``."""
+    ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=generator)``. With a
+    second stage (``stage``, :class:`~torchfmap.nn.stages.StageTwo`; ``mesh_of(index) -> Mesh``
+    of the dataset's shapes) its terms are added as ``stage2_<term>`` and its total to
+    ``total`` (:func:`~torchfmap.nn.stages.stage_two_loss`)."""
     out = forward_pair(net, solver, batch)
-    return loss_fn(
+    terms = loss_fn(
         out.C_xy, out.C_yx, out.feat_x, out.feat_y, batch["x"].basis, batch["y"].basis, generator=generator
     )
+    if stage is None:
+        return terms
+    second = stage_two_loss(stage, solver, loss_fn, out, batch, mesh_of, generator)
+    if second is None:  # too few consistent seeds: this step trains stage 1 only
+        second = {name: torch.zeros_like(value) for name, value in terms.items()}
+    both = {**terms, **{f"stage2_{n}": v for n, v in second.items()}}
+    return {**both, "total": terms["total"] + second["total"]}
 
 
-def unsupervised_score(shapes: ShapeDataset, pairs, solver, loss_fn: UnsupervisedFMLoss, device="cpu"):
+def unsupervised_score(
+    shapes: ShapeDataset, pairs, solver, loss_fn: UnsupervisedFMLoss, device="cpu", stage=None
+):
     """``score(net) -> float``: the mean unsupervised loss on ``pairs`` with full (not sampled)
     soft maps, in eval mode, for :func:`train`'s ``validate`` (no ground truth)."""
     full = copy.deepcopy(loss_fn)
@@ -98,7 +111,7 @@ def unsupervised_score(shapes: ShapeDataset, pairs, solver, loss_fn: Unsupervise
         total = 0.0
         for batch in batches:
             batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
-            total += float(pair_loss(net, solver, full, batch)["total"])
+            total += float(pair_loss(net, solver, full, batch, stage=stage, mesh_of=shapes.mesh)["total"])
         return total / max(len(batches), 1)
 
     return score
@@ -141,6 +154,7 @@ def train(
     progress: bool = True,
     rank: int = 0,
     world_size: int = 1,
+    stage: StageTwo | None = None,
 ) -> TrainState:
     """Unsupervised training of ``net`` on the pairs of ``data``; returns the :class:`TrainState`.
 
@@ -157,6 +171,8 @@ def train(
     bound for a schedule (:class:`~torchfmap.nn.config.CosineBudget`).
     ``net`` is moved to ``device`` and every batch with it.
     ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
+    ``stage``: a self-seeded second stage (:class:`~torchfmap.nn.stages.StageTwo`) whose loss
+    is added to stage 1's (:func:`pair_loss`; batches of one pair).
     ``augment``: XYZ inputs moved at random each step (:func:`random_rigid`): ``"rigid"`` (or
     True) a rotation and a scaling, ``"scale"`` a scaling only (shapes aligned alike, e.g.
     SMAL_r), ``"none"`` (or False) nothing. ``validate(net) -> score``
@@ -273,7 +289,7 @@ def train(
                     s = batch[side]
                     moved = random_rigid(s.inputs, draws, rotate=augment == "rigid")
                     batch[side] = s._replace(inputs=moved)
-            terms = pair_loss(model, solver, loss_fn, batch, draws)
+            terms = pair_loss(model, solver, loss_fn, batch, draws, stage=stage, mesh_of=data.shapes.mesh)
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             if clip_grad > 0:
@@ -331,6 +347,7 @@ def train_recipe(
     progress: bool = True,
     rank: int = 0,
     world_size: int = 1,
+    init: dict | None = None,
 ) -> tuple[TrainState, torch.nn.Module]:
     """The reference recipe, all of it read from ``config``: the network, solver and loss of
     :func:`~torchfmap.nn.config.build_model`, Adam at ``config.lr``, the cosine schedule over
@@ -339,13 +356,22 @@ def train_recipe(
     ``config.augment`` of XYZ inputs; trained by :func:`train` on ``pairs`` of ``shapes`` (default
     :func:`~torchfmap.nn.data.class_pairs`). ``torchfmap train``, DDP ranks
     (:func:`ddp_worker`) and ``examples/train.py`` all call it, so one process and a DDP run
-    follow the same schedule. Returns ``(state, net)``.
+    follow the same schedule. ``init``: a state dict the network starts from (fine-tuning).
+    Returns ``(state, net)``.
 
     Raises:
         ParameterError: a config without a budget, or as :func:`train`.
     """
     pairs = class_pairs(shapes.names) if pairs is None else list(pairs)
     net, solver, loss_fn = build_model(config)
+    if init is not None:  # fine-tuning: the recipe's network, started from these weights
+        try:
+            net.load_state_dict(init)
+        except RuntimeError as err:
+            raise ParameterError(
+                f"the initial weights do not fit the recipe's network ({str(err).splitlines()[0]}). Fix: "
+                "keep the network settings of the checkpoint (--width, --c-out, --inputs, --n-wks)."
+            ) from None
     opt = torch.optim.Adam(net.parameters(), lr=config.lr)
     per_rank = -(-len(pairs) // (config.batch_size * world_size))  # batches of one rank per epoch
     steps = total_steps(per_rank, config.epochs, config.max_steps) or 0
@@ -373,6 +399,7 @@ def train_recipe(
         progress=progress,
         rank=rank,
         world_size=world_size,
+        stage=StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 else None,
     )
     return state, net
 

@@ -1,0 +1,76 @@
+"""The checks of :func:`torchfmap.match`'s arguments that need the library's types: settings
+that would change nothing, and given bases (their meshes, their order, whether their columns
+correspond)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .bases import Basis
+from .errors import MapWarning, ParameterError
+from .kinds import BasisKind
+from .mesh import Mesh
+
+
+def check_unused(kind: BasisKind, refine, k_final, times) -> None:
+    """Refuse settings that would change nothing in this call (a silent no-op misleads)."""
+    if k_final is not None and refine != "zoomout":
+        raise ParameterError(
+            f"k_final={k_final} is the size ZoomOut grows the basis to; without refine='zoomout' it "
+            "changes nothing. Fix: refine='zoomout', or drop k_final."
+        )
+    if times is not None and not kind.needs_landmarks:
+        raise ParameterError(
+            f"times are the heat times of feature-aware bases; the {kind.name} basis has none, so "
+            "they would change nothing. Fix: drop times, or basis='diffusion' (or another seeded kind)."
+        )
+
+
+def mass_mismatch(basis: Basis, mesh: Mesh) -> float:
+    """Relative L1 difference of ``basis``'s lumped mass and ``mesh``'s, both normalised to sum
+    1 (0 for a basis built on this mesh, in any frame; large for another mesh's basis)."""
+    b = np.asarray(basis.mass.diagonal(), dtype=np.float64)
+    m = np.bincount(
+        mesh.faces.ravel(), weights=np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices
+    )
+    return float(np.abs(b / b.sum() - m / m.sum()).sum())
+
+
+def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, bool]:
+    """``(basis_x, basis_y, together)``: checked given bases and whether they were built as a
+    pair at the same corresponding seeds (``Basis.pair_landmarks``)."""
+    try:
+        bx, by = bases
+    except (TypeError, ValueError) as err:
+        raise ParameterError("bases must be a pair (basis_x, basis_y) of Basis objects.") from err
+    for b, mesh, name in ((bx, mesh_x, "x"), (by, mesh_y, "y")):
+        if not isinstance(b, Basis):
+            raise ParameterError(f"basis_{name} is a {type(b).__name__}, not a Basis. Fix: Basis.load(path).")
+        if b.n_vertices != mesh.n_vertices:
+            raise ParameterError(
+                f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
+                "pass the basis built on that mesh (bases in the order source, target)."
+            )
+    given = mass_mismatch(bx, mesh_x) + mass_mismatch(by, mesh_y)
+    swapped = mass_mismatch(bx, mesh_y) + mass_mismatch(by, mesh_x)
+    if swapped < 0.25 * given:  # vertex areas are a fingerprint of the mesh a basis was built on
+        raise ParameterError(
+            "the given bases fit the meshes in the other order (their vertex masses are those of "
+            f"the other mesh: mismatch {given:.3f} as given, {swapped:.3f} swapped). Fix: give the "
+            "bases in the order source, target (CLI: --bases SRC.npz TGT.npz)."
+        )
+    seeded = any(c.seed >= 0 for b in (bx, by) for c in b.provenance)
+    px, py = bx.pair_landmarks, by.pair_landmarks
+    together = px is not None and py is not None and np.array_equal(px, py)
+    if seeded and not together:
+        warnings.warn(
+            "the given bases have seeded columns but were not built together from the same "
+            "landmark pairs, so their columns need not correspond and the map can be wrong. Fix: "
+            "build them as a pair (`torchfmap basis SRC TGT --landmarks pairs.txt --out a.npz b.npz`, "
+            "or match_bases()), or match with landmarks=... directly.",
+            MapWarning,
+            stacklevel=3,
+        )
+    return bx, by, seeded and together

@@ -1,0 +1,210 @@
+"""The self-seeded second stage of the learned path: feature-aware bases built where the
+first-stage map is sure of itself, and the same features solved again in them.
+
+Stage 1 is the eigenbasis map of the network's features. Its seeds: farthest points ``s`` of
+``x``, their images ``t`` on ``y`` by the stage-1 map ``x -> y``, kept where the map ``y -> x``
+brings ``t`` back near ``s`` (:func:`~torchfmap.seeds.consistent_seeds`); user landmarks, when
+given, come first. At those seed pairs both shapes get the paper's diffusion functions (heat
+kernels at the relative time matched to the seed spacing, spectrum-free:
+:func:`~torchfmap.bases.prepared.seed_kernels`) appended to the stage-1 eigenbasis, and each
+shape's block pair is B-orthonormalised with the same columns kept on both
+(:func:`~torchfmap.bases.orthonormalize_pair`): the eigen block as it was, then the part of
+each kernel the eigenfunctions miss. Stage 2 solves the same features in these bases with the
+same differentiable solver and converts by the same orthogonal rule. Why it can help: the
+truncated eigenbasis blurs what lies between its frequencies; kernels at corresponding points
+add localised functions that are the same on both shapes where stage 1 was right, and the
+round-trip test keeps a seed out where it was not. The seeds come from the detached stage-1
+map, so training differentiates through stage 2's solve, not through the seeding.
+
+(A second stage in the diffusion kernels alone, without the eigen block, measured worse than
+stage 1 on FAUST_r validation pairs at 40-160 seeds: ``bench/stage_two.py``, README.)
+
+Seeds need only a few rows of each stage-1 point map, not all of them: the round trip is
+evaluated for the seeds alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..bases.basis import Basis, Column
+from ..bases.orthonormalize import orthonormalize_pair
+from ..bases.prepared import PreparedShape, prepare_shape, seed_kernels
+from ..bases.stack import concatenate
+from ..errors import ParameterError
+from ..fmap.convert import values_to_p2p
+from ..kinds import seed_time
+from ..mesh import Mesh
+from ..seeds import consistent_seeds, farthest_point_sampling
+from .data import collate_pairs
+from .modules import BasisModule
+from .networks import check_network, features
+
+#: Farthest-point seeds of ``x`` offered to the second stage (columns of its bases at most).
+STAGE2_SEEDS = 40
+#: Fewest consistent seed pairs the second stage needs; with fewer it is skipped (the stage-1
+#: map stands).
+STAGE2_MIN_SEEDS = 8
+
+
+@dataclass
+class StageTwo:
+    """Settings and per-shape state of the second stage.
+
+    ``n_seeds`` farthest points are offered, at least ``min_seeds`` consistent pairs are needed.
+    The solve is the stage-1 solver's (passed to :meth:`solve`). Shapes are prepared once per
+    key (:meth:`shape`; operators, geodesic rows and heat kernels, cached in the
+    :class:`~torchfmap.bases.prepared.PreparedShape`), for as long as the caller keeps this
+    object.
+
+    Raises:
+        ParameterError: ``n_seeds < min_seeds`` or ``min_seeds < 2``.
+    """
+
+    n_seeds: int = STAGE2_SEEDS
+    min_seeds: int = STAGE2_MIN_SEEDS
+    shapes: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.min_seeds < 2 or self.n_seeds < self.min_seeds:
+            raise ParameterError(
+                f"the second stage needs 2 <= min_seeds <= n_seeds, got {self.min_seeds}, {self.n_seeds}."
+            )
+
+    def shape(self, key, mesh: Mesh) -> PreparedShape:
+        """The prepared shape of ``key`` (operators only; eigenpairs are not needed), made once."""
+        if key not in self.shapes:
+            self.shapes[key] = prepare_shape(mesh, 0)
+        return self.shapes[key]
+
+    def seeds(
+        self,
+        shape_x: PreparedShape,
+        C_xy: np.ndarray,
+        C_yx: np.ndarray,
+        values_x: np.ndarray,
+        values_y: np.ndarray,
+        landmarks: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Seed pairs ``(S, 2)``: ``landmarks`` ``(L, 2)`` first (if given), then the consistent
+        seeds of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in the eigenbases
+        ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)`` (orthogonal rule, as the stage-1 point
+        map), farthest points continuing from the landmarks; no vertex of ``y`` twice."""
+        given = (
+            np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
+        )
+        n = min(self.n_seeds + len(given), shape_x.mesh.n_vertices)
+        start = given[:, 0] if len(given) else None
+        s = farthest_point_sampling(shape_x.mesh, n, landmarks=start, metric="euclidean")[len(given) :]
+        t = values_to_p2p(C_yx, values_y, values_x[s], mode="orthogonal")  # x -> y at the seeds
+        back = values_to_p2p(C_xy, values_x, values_y[t], mode="orthogonal")  # and back
+        found = consistent_seeds(shape_x.distances, s, t, back)
+        found = found[~np.isin(found[:, 1], given[:, 1])]
+        return np.concatenate([given, found]).astype(np.int64)
+
+    @staticmethod
+    def bases(
+        shape_x: PreparedShape,
+        shape_y: PreparedShape,
+        seeds: np.ndarray,
+        eigen_x: np.ndarray,
+        eigen_y: np.ndarray,
+    ) -> tuple[Basis, Basis]:
+        """Stage-2 bases ``(V, K + S')``: the eigenbasis values ``eigen_* (V, K)`` (B-orthonormal
+        in the shapes' frames), then the heat kernels at ``seeds`` ``(S, 2)`` (relative time
+        :func:`~torchfmap.kinds.seed_time` of ``S``), orthonormalised as a pair (a column is
+        kept only where it is independent on both shapes)."""
+        t = seed_time(len(seeds))
+        blocks = []
+        for shape, eigen, side in ((shape_x, eigen_x, 0), (shape_y, eigen_y, 1)):
+            L, B = shape.operators
+            cols = [Column("laplacian", index=i) for i in range(eigen.shape[1])]
+            eig = Basis(np.asarray(eigen, dtype=np.float64), B, cols, stiffness=L)
+            blocks.append(concatenate([eig, seed_kernels(shape, seeds[:, side], [t])]))
+        return orthonormalize_pair(*blocks)
+
+    @staticmethod
+    def solve(solver, feat_x: torch.Tensor, feat_y: torch.Tensor, basis_x: Basis, basis_y: Basis):
+        """``(C_xy (1, K', K'), C_yx, batch_x, batch_y)``: the features ``(1, V, D)`` solved by
+        ``solver`` in the stage-2 bases (cast to the features' dtype and device)."""
+        bx, by = (BasisModule(b, dtype=feat_x.dtype).to(feat_x.device).batch() for b in (basis_x, basis_y))
+        C_xy, C_yx = solver(feat_x, feat_y, bx, by)
+        return C_xy, C_yx, bx, by
+
+    @staticmethod
+    def p2p(C_xy: torch.Tensor, basis_x: Basis, basis_y: Basis) -> np.ndarray:
+        """``p2p_yx (V_y,)`` of a stage-2 map by the orthogonal rule (as stage 1)."""
+        C = C_xy[0].detach().double().cpu().numpy()
+        return values_to_p2p(C, basis_x.values, basis_y.values, mode="orthogonal")
+
+
+@torch.no_grad()
+def two_stage_p2p(
+    net,
+    solver,
+    x: dict,
+    y: dict,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    stage: StageTwo,
+    device="cpu",
+    landmarks: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(p2p_yx of stage 1, p2p_yx of stage 2, seed pairs used)`` of one pair of dataset items
+    (:class:`~torchfmap.nn.data.ShapeDataset`) whose meshes were prepared as ``shape_x``,
+    ``shape_y`` (the frame of the items' eigenbases). With fewer than ``stage.min_seeds``
+    consistent seeds the second map is the first (and 0 seeds are reported). ``landmarks``
+    ``(L, 2)``: user seed pairs placed first."""
+    check_network(net)
+    net.eval()
+    batch = collate_pairs([(x, y)])
+    sx, sy = batch["x"].to(device), batch["y"].to(device)
+    fx, fy = features(net, sx), features(net, sy)
+    C_xy, C_yx = solver(fx, fy, sx.basis, sy.basis)
+    if C_yx is None:
+        raise ParameterError(
+            "the second stage needs both directions of stage 1. Fix: a solver with both=True."
+        )
+    vx, vy = x["values"].double().numpy(), y["values"].double().numpy()
+    Cxy, Cyx = (C[0].double().cpu().numpy() for C in (C_xy, C_yx))
+    first = values_to_p2p(Cxy, vx, vy, mode="orthogonal")
+    seeds = stage.seeds(shape_x, Cxy, Cyx, vx, vy, landmarks)
+    if len(seeds) < stage.min_seeds:
+        return first, first, 0
+    bx, by = stage.bases(shape_x, shape_y, seeds, vx, vy)
+    C2 = stage.solve(solver, fx, fy, bx, by)[0]
+    return first, stage.p2p(C2, bx, by), len(seeds)
+
+
+def stage_two_loss(
+    stage: StageTwo, solver, loss_fn, out, batch: dict, mesh_of, generator=None
+) -> dict | None:
+    """The loss terms of stage 2 of a collated batch of one pair (training): seeds from the
+    detached stage-1 maps of ``out`` (:class:`~torchfmap.nn.train.PairForward`, both
+    directions), bases at them on the pair's shapes (``mesh_of(dataset index) -> Mesh``,
+    prepared once per index in ``stage``), and ``loss_fn`` of the stage-2 maps of the same
+    features. None when too few seeds are consistent (the step then trains stage 1 only).
+
+    Raises:
+        ParameterError: a batch of more than one pair, or a solver without ``C_yx``.
+    """
+    if len(batch["index"]) != 1:
+        raise ParameterError("the second stage trains on batches of one pair. Fix: batch_size=1.")
+    if out.C_yx is None:
+        raise ParameterError(
+            "the second stage needs both directions of stage 1. Fix: a solver with both=True."
+        )
+    ix, iy = batch["index"][0]
+    shape_x, shape_y = stage.shape(ix, mesh_of(ix)), stage.shape(iy, mesh_of(iy))
+    vx = batch["x"].basis.values[0].detach().double().cpu().numpy()
+    vy = batch["y"].basis.values[0].detach().double().cpu().numpy()
+    Cxy, Cyx = (C[0].detach().double().cpu().numpy() for C in (out.C_xy, out.C_yx))
+    seeds = stage.seeds(shape_x, Cxy, Cyx, vx, vy)
+    if len(seeds) < stage.min_seeds:
+        return None
+    bx, by = stage.bases(shape_x, shape_y, seeds, vx, vy)
+    C_xy, C_yx, Bx, By = stage.solve(solver, out.feat_x, out.feat_y, bx, by)
+    return loss_fn(C_xy, C_yx, out.feat_x, out.feat_y, Bx, By, generator=generator)
