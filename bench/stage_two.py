@@ -14,7 +14,8 @@ checkpoint's eigenbasis map; ``stage 2``: the same features solved in diffusion 
 consistent seeds of stage 1 (the network was trained for stage 1 only unless the checkpoint
 says otherwise); ``+ZO``: ZoomOut 50 -> 200 from each (``refine_p2p``). ``seeds``: the mean
 count of consistent seed pairs. Time: seconds per pair of each map (network, solves, seeding,
-kernels; shapes prepared once per mesh are not counted).
+kernels; shapes prepared once per mesh are not counted); ``s_per_step``: one training step
+(forward, both losses, backward) of stage 1 alone and of both stages on ``--step-pairs`` pairs.
 """
 
 from __future__ import annotations
@@ -30,9 +31,32 @@ from torchfmap.bases import prepare_shape
 from torchfmap.mesh import Mesh
 from torchfmap.nn.checkpoints import load_checkpoint
 from torchfmap.nn.config import build_solver
-from torchfmap.nn.data import ShapeDataset
+from torchfmap.nn.data import ShapeDataset, collate_pairs
 from torchfmap.nn.inference import REFINE_K_FINAL, predict_p2p, refine_p2p
 from torchfmap.nn.stages import StageTwo, two_stage_p2p
+from torchfmap.nn.train import pair_loss
+
+
+def step_times(net, config, shapes, pairs) -> tuple[float, float]:
+    """Seconds per training step (forward, loss, backward; no optimiser) of stage 1 alone and of
+    both stages, on the same ``pairs``, after one untimed warm-up pass of each (shapes of the
+    second stage prepared then, as in training after the first epoch)."""
+    solver, loss_fn = build_solver(config)
+    stage = StageTwo(n_seeds=config.stage_seeds)
+    batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
+    net.train()
+    out = []
+    for with_stage in (None, stage):
+        for timed in (False, True):
+            t0 = time.perf_counter()
+            for batch in batches:
+                net.zero_grad()
+                terms = pair_loss(net, solver, loss_fn, batch, stage=with_stage, mesh_of=shapes.mesh)
+                terms["total"].backward()
+            if timed:
+                out.append((time.perf_counter() - t0) / len(batches))
+    net.eval()
+    return out[0], out[1]
 
 
 def run(set_name: str, spec: str, args) -> dict:
@@ -75,6 +99,7 @@ def run(set_name: str, spec: str, args) -> dict:
             f"{set_name} {label} pair {n + 1}/{len(pairs)}: "
             + ", ".join(f"{m} {100 * v[-1]:.2f}" for m, v in errors.items())
         )
+    step = step_times(net, config, shapes, pairs[: args.step_pairs]) if args.step_pairs else (np.nan, np.nan)
     mean = {m: 100 * float(np.mean(v)) for m, v in errors.items()}
     return dict(
         set=set_name, model=label, pairs=len(pairs), **{m: f"{v:.3f}" for m, v in mean.items()},
@@ -83,6 +108,7 @@ def run(set_name: str, spec: str, args) -> dict:
         seeds=f"{np.mean(counts):.1f}", s_per_pair_1=f"{seconds['stage 1'] / len(pairs):.3f}",
         s_per_pair_2=f"{seconds['stage 2'] / len(pairs):.3f}",
         time_ratio=f"{seconds['stage 2'] / max(seconds['stage 1'], 1e-12):.2f}",
+        s_per_step_1=f"{step[0]:.3f}", s_per_step_2=f"{step[1]:.3f}", step_ratio=f"{step[1] / step[0]:.2f}",
     )  # fmt: skip
 
 
@@ -96,6 +122,7 @@ def main() -> None:
     p.add_argument("--max-points", type=int, default=1000)
     p.add_argument("--seeds", type=int, default=StageTwo.n_seeds)
     p.add_argument("--no-zoomout", dest="zoomout", action="store_false")
+    p.add_argument("--step-pairs", type=int, default=4, help="pairs timed for the training step (0: none)")
     p.add_argument("--cache", default=None)
     p.add_argument("--name", default="stage_two")
     args = p.parse_args()

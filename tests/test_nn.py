@@ -350,6 +350,13 @@ def test_random_draws_come_from_the_given_generator(setting):
     torch.testing.assert_close(moved, random_rigid(xyz, torch.Generator().manual_seed(0)), rtol=0, atol=0)
     T = torch.linalg.lstsq(xyz, moved).solution  # (2, 3, 3): scale * rotation
     assert (torch.linalg.det(T) > 0).all() and not torch.allclose(T[0], T[1])
+    # augment='scale' (shapes aligned alike): a pure scaling, T = s I with s in the range
+    scaled = random_rigid(xyz, torch.Generator().manual_seed(0), rotate=False)
+    S = torch.linalg.lstsq(xyz, scaled).solution
+    s = torch.diagonal(S, dim1=-2, dim2=-1)
+    eye = torch.eye(3, dtype=S.dtype)
+    torch.testing.assert_close(S, s[:, :1, None] * eye, atol=1e-12, rtol=0)
+    assert ((s >= 0.9) & (s <= 1.1)).all()
     config = TrainConfig(n_wks=6, width=8, c_out=8, n_blocks=1)
     a, b = build_model(config)[0], build_model(config)[0]
     assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters(), strict=True))

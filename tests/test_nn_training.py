@@ -196,3 +196,15 @@ def test_ddp_follows_the_time_budget_and_schedule_of_one_process(tmp_path, blob_
     assert ckpt["config"]["minutes"] == config.minutes and ckpt["config"]["clip_grad"] == 1.0
     lr = ckpt["optimizer"]["param_groups"][0]["lr"]
     assert lr == pytest.approx(config.lr * 0.02, rel=0.05)  # the cosine's floor at the budget's end
+
+
+def test_train_refuses_an_unknown_augmentation(tmp_path):
+    from torchfmap.errors import ParameterError
+
+    mesh = bumpy_blob(2)
+    files = [save_mesh(mesh, tmp_path / "a0.off"), save_mesh(mesh.scaled(1.2), tmp_path / "a1.off")]
+    shapes = ShapeDataset(files, False, k=8, n_wks=6, k_net=16, progress=False)
+    net, solver, loss = build_model(TrainConfig(k=8, n_wks=6, width=8, c_out=8, n_blocks=1))
+    opt = torch.optim.Adam(net.parameters())
+    with pytest.raises(ParameterError, match="augment must be one of"):
+        train(net, PairDataset(shapes), loss, opt, solver=solver, augment="spin", max_steps=1, progress=False)
