@@ -24,6 +24,7 @@ import argparse
 import time
 
 import numpy as np
+import torch
 from _common import Report, log
 from learned import PairErrors, dev_set
 
@@ -44,6 +45,7 @@ def step_times(net, config, shapes, pairs) -> tuple[float, float]:
     solver, loss_fn = build_solver(config)
     stage = StageTwo(n_seeds=config.stage_seeds)
     batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
+    generator = torch.Generator().manual_seed(0)
     net.train()
     out = []
     for with_stage in (None, stage):
@@ -51,7 +53,9 @@ def step_times(net, config, shapes, pairs) -> tuple[float, float]:
             t0 = time.perf_counter()
             for batch in batches:
                 net.zero_grad()
-                terms = pair_loss(net, solver, loss_fn, batch, stage=with_stage, mesh_of=shapes.mesh)
+                terms = pair_loss(
+                    net, solver, loss_fn, batch, generator, stage=with_stage, mesh_of=shapes.mesh
+                )
                 terms["total"].backward()
             if timed:
                 out.append((time.perf_counter() - t0) / len(batches))
