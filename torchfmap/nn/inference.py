@@ -292,7 +292,7 @@ class CheckpointMatcher:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_model=None, _items={}, _shapes={})
+        state.update(_model=None, _items={}, _shapes={}, _stage=None)  # loaded again in each process
         return state
 
     def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:

@@ -141,6 +141,13 @@ class StageTwo:
         return values_to_p2p(C, basis_x.values, basis_y.values, mode="orthogonal")
 
 
+def _check_both(C_yx) -> None:
+    if C_yx is None:
+        raise ParameterError(
+            "the second stage needs both directions of stage 1. Fix: a solver with both=True."
+        )
+
+
 @torch.no_grad()
 def two_stage_p2p(
     net,
@@ -164,10 +171,7 @@ def two_stage_p2p(
     sx, sy = batch["x"].to(device), batch["y"].to(device)
     fx, fy = features(net, sx), features(net, sy)
     C_xy, C_yx = solver(fx, fy, sx.basis, sy.basis)
-    if C_yx is None:
-        raise ParameterError(
-            "the second stage needs both directions of stage 1. Fix: a solver with both=True."
-        )
+    _check_both(C_yx)
     vx, vy = x["values"].double().numpy(), y["values"].double().numpy()
     Cxy, Cyx = (C[0].double().cpu().numpy() for C in (C_xy, C_yx))
     first = values_to_p2p(Cxy, vx, vy, mode="orthogonal")
@@ -193,10 +197,7 @@ def stage_two_loss(
     """
     if len(batch["index"]) != 1:
         raise ParameterError("the second stage trains on batches of one pair. Fix: batch_size=1.")
-    if out.C_yx is None:
-        raise ParameterError(
-            "the second stage needs both directions of stage 1. Fix: a solver with both=True."
-        )
+    _check_both(out.C_yx)
     ix, iy = batch["index"][0]
     shape_x, shape_y = stage.shape(ix, mesh_of(ix)), stage.shape(iy, mesh_of(iy))
     vx = batch["x"].basis.values[0].detach().double().cpu().numpy()
