@@ -171,7 +171,8 @@ def train(
     bound for a schedule (:class:`~torchfmap.nn.config.CosineBudget`).
     ``net`` is moved to ``device`` and every batch with it.
     ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
-    ``stage``: a self-seeded second stage (:class:`~torchfmap.nn.stages.StageTwo`) whose loss
+    With ``world_size > 1`` the ranks agree on the time budget (one all-reduce a step), so all
+    stop at the same step. ``stage``: a self-seeded second stage (:class:`~torchfmap.nn.stages.StageTwo`) whose loss
     is added to stage 1's (:func:`pair_loss`; batches of one pair).
     ``augment``: XYZ inputs moved at random each step (:func:`random_rigid`): ``"rigid"`` (or
     True) a rotation and a scaling, ``"scale"`` a scaling only (shapes aligned alike, e.g.
@@ -241,6 +242,10 @@ def train(
 
     def out_of_budget() -> bool:
         over_time = minutes > 0 and time.perf_counter() - t_start >= 60 * minutes
+        if world_size > 1 and minutes > 0:  # each rank has its own clock: all stop at the same step
+            flag = torch.tensor([float(over_time)], device=device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            over_time = bool(flag.item())
         return over_time or (max_steps > 0 and state.step >= max_steps)
 
     def save() -> None:
