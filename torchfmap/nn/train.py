@@ -172,8 +172,9 @@ def train(
     ``net`` is moved to ``device`` and every batch with it.
     ``clip_grad > 0``: the gradient norm is clipped to it before each step (0: no clipping).
     With ``world_size > 1`` the ranks agree on the time budget (one all-reduce a step), so all
-    stop at the same step. ``stage``: a self-seeded second stage (:class:`~torchfmap.nn.stages.StageTwo`) whose loss
-    is added to stage 1's (:func:`pair_loss`; batches of one pair).
+    stop at the same step. ``stage``: a self-seeded second stage
+    (:class:`~torchfmap.nn.stages.StageTwo`) whose loss is added to stage 1's (:func:`pair_loss`;
+    batches of one pair).
     ``augment``: XYZ inputs moved at random each step (:func:`random_rigid`): ``"rigid"`` (or
     True) a rotation and a scaling, ``"scale"`` a scaling only (shapes aligned alike, e.g.
     SMAL_r), ``"none"`` (or False) nothing. ``validate(net) -> score``
