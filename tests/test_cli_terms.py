@@ -62,3 +62,44 @@ def test_two_components_refused_by_basis_and_named_by_info(tmp_path, capsys):
     capsys.readouterr()
     assert main(["info", str(tmp_path / "two.off")]) == 0
     assert "2 connected components" in capsys.readouterr().out
+
+
+def test_quiet_means_the_same_in_every_command(tmp_path, capsys):
+    """``--quiet``: no progress and no status lines in every command; the help says so in the
+    same words; ``basis --kind`` is the hidden old name of ``--basis``."""
+    from torchfmap.cli import build_parser, main
+    from torchfmap.data import demo_pair_paths
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices
+    helps = {
+        n: next(a.help for a in p._actions if "--quiet" in a.option_strings)
+        for n, p in sub.items()
+        if any("--quiet" in a.option_strings for a in p._actions)
+    }
+    assert len(set(helps.values())) == 1 and {"match", "eval", "basis", "train"} <= set(helps)
+    a, b, _ = demo_pair_paths()
+    capsys.readouterr()
+    assert (
+        main(
+            ["basis", str(a), "--kind", "laplacian", "--k", "8", "--out", str(tmp_path / "a.npz"), "--quiet"]
+        )
+        == 0
+    )
+    assert main(["match", str(a), str(b), "--k", "10", "--out", str(tmp_path / "m.txt"), "--quiet"]) == 0
+    ckpt = str(tmp_path / "m.ckpt")
+    flags = [
+        "--k",
+        "8",
+        "--width",
+        "8",
+        "--c-out",
+        "8",
+        "--max-steps",
+        "1",
+        "--validate-every",
+        "0",
+        "--no-cache",
+    ]
+    assert main(["train", str(a.parent), "--out", ckpt, *flags, "--quiet"]) == 0
+    assert capsys.readouterr().out == ""

@@ -78,7 +78,7 @@ def test_every_kind_is_offered_by_the_commands_that_take_a_basis():
         ("match", "--basis"),
         ("eval", "--basis"),
         ("train", "--basis"),
-        ("basis", "--kind"),
+        ("basis", "--basis"),
     ):
         action = next(a for a in sub[command]._actions if flag in a.option_strings)
         offered = [n for n, kind in KINDS.items() if kind.learned or command != "train"]

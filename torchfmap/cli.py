@@ -114,12 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--basis",
-        "--kind",
         dest="kind",
         choices=BASES,
         default=None,
         help="basis kind (default: diffusion with --landmarks, else laplacian)",
     )
+    p.add_argument("--kind", dest="kind", choices=BASES, help=argparse.SUPPRESS)  # the old name of --basis
     p.add_argument("--k", type=positive_int, default=50, help="basis size (exactly k columns)")
     p.add_argument(
         "--allow-components", action="store_true", help="accept meshes with several connected components"
@@ -141,7 +141,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", required=True, nargs="+", metavar="OUT.npz", help="output .npz file, one per mesh"
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no status lines (the results and errors still come)",
+    )
     p.set_defaults(func=cmd_basis)
 
     p = _sub(sub, "match", "map a target mesh to a source mesh; write the target->source vertex map")
@@ -199,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.add_argument(
-        "--quiet", action="store_true", help="print nothing on success (errors still go to stderr)"
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no status lines (the results and errors still come)",
     )
     p.set_defaults(func=cmd_match)
 
@@ -265,7 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
         "'torchfmap models') instead of the classical pipeline; each mesh precomputed once per worker",
     )
     p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no status lines (the results and errors still come)",
+    )
     p.set_defaults(func=cmd_eval)
 
     p = _sub(sub, "train", "train a feature network, unsupervised, on every mesh of a folder")
@@ -340,7 +350,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--validate-every", type=count, default=100, help="steps between validations (0: none)")
     p.add_argument("--validate-pairs", type=positive_int, default=6, help="pairs of the validation score")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bar and no status lines (the results and errors still come)",
+    )
     p.set_defaults(func=cmd_train)
     return parser
 

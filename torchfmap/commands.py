@@ -139,7 +139,8 @@ def cmd_basis(args: argparse.Namespace) -> int:
         bar.update()
         paths = [b.save(o) for b, o in zip(bases, outs, strict=True)]
     for b, path in zip(bases, paths, strict=True):
-        print(f"{kind.name} {b} -> {path}")
+        if not args.quiet:
+            print(f"{kind.name} {b} -> {path}")
     return 0
 
 

@@ -92,7 +92,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     steps = total_steps(-(-len(pairs) // config.batch_size), epochs, config.max_steps) or 0
     limits = [f"{epochs} epochs" if epochs else "", f"{steps} steps" if steps else ""]
     limits.append(f"{config.minutes:g} minutes" if config.minutes else "")
-    print(
+    say = (lambda *_: None) if args.quiet else print
+    say(
         f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k}); "
         f"budget: {', '.join(x for x in limits if x)} (whichever comes first; cosine learning rate over it)"
     )
@@ -123,7 +124,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     last = state.losses[-1]["total"] if state.losses else float("nan")
     best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
-    print(f"{summary}{best} -> {args.out}")
+    say(f"{summary}{best} -> {args.out}")
     return 0
 
 
