@@ -342,11 +342,12 @@ def tiny_folder(tmp_path):
 
 def test_train_command_writes_and_resumes_a_checkpoint(tiny_folder, tmp_path, capsys):
     ckpt = tmp_path / "model.ckpt"
-    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
-    assert main([*args, "--max-steps", "3"]) == 0
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache"]
+    assert main([*args, "--max-steps", "3"]) == 0  # without --quiet: the status lines
     first = read_checkpoint(ckpt)
     assert first["train_state"]["step"] == 3 and "6 ordered pairs" in capsys.readouterr().out
-    assert main([*args, "--max-steps", "5", "--resume"]) == 0
+    assert main([*args, "--max-steps", "5", "--resume", "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
     second = read_checkpoint(ckpt)
     losses = [t["total"] for t in second["train_state"]["losses"]]
     assert second["train_state"]["step"] == 5 and len(losses) == 5 and np.isfinite(losses).all()
