@@ -69,3 +69,21 @@ def test_renamed_names_still_work_with_a_deprecation_warning():
     assert old is F.solve_fmap
     with pytest.raises(AttributeError):
         F.no_such_name  # noqa: B018
+
+
+def test_the_learned_path_names_its_refinement_as_match_does():
+    """``refine='zoomout'`` / None, as in ``torchfmap.match`` (True / False: the older form);
+    other refinements are refused before any work."""
+    from torchfmap.data import demo_pair_paths
+    from torchfmap.errors import ParameterError
+    from torchfmap.io import load_mesh
+    from torchfmap.nn import CheckpointMatcher, load_checkpoint, match_with_network
+
+    net, config, _ = load_checkpoint("faust_r")
+    x, y = (load_mesh(p) for p in demo_pair_paths()[:2])
+    with pytest.raises(ParameterError, match="refines by ZoomOut only"):
+        match_with_network(net, config, x, y, refine="icp")
+    with pytest.raises(ParameterError, match="refines by ZoomOut only"):
+        CheckpointMatcher("faust_r", refine="seeded")
+    assert CheckpointMatcher("faust_r", refine="zoomout").refine is True
+    assert CheckpointMatcher("faust_r").refine is False

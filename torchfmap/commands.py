@@ -175,7 +175,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         net, config, _ = load_checkpoint(args.checkpoint)
         landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
         p2p = match_with_network(
-            net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine is not None, landmarks=landmarks
+            net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine, landmarks=landmarks
         )
         stages = "2 stages" + (", seeded by the landmarks" if landmarks is not None else "")
         stages = stages if config.stages == 2 or landmarks is not None else "1 stage"

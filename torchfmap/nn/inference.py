@@ -197,6 +197,16 @@ def _stage(config: TrainConfig, landmarks) -> StageTwo | None:
     return StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 or landmarks is not None else None
 
 
+def _refines(refine) -> bool:
+    """Whether a learned map is refined: ``refine`` is ``'zoomout'`` or None, as in
+    :func:`torchfmap.match` (True / False: the older form)."""
+    if refine in (None, False, True, "zoomout"):
+        return bool(refine)
+    raise ParameterError(
+        f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
+    )
+
+
 def _check_inference(adapt_steps: int, mode: str) -> None:
     if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
         raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
@@ -212,7 +222,7 @@ def match_with_network(
     *,
     adapt_steps: int = 0,
     adapt_lr: float = 1e-4,
-    refine: bool = False,
+    refine: str | None = None,
     mode: str = "fmap",
     device="cpu",
     landmarks=None,
@@ -223,13 +233,16 @@ def match_with_network(
     optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`;
     with the self-seeded second stage, :func:`~torchfmap.nn.stages.two_stage_p2p`, when the
     checkpoint was trained with it or ``landmarks`` ``(L, 2)`` (source, target vertex pairs)
-    are given, which then seed it first) and optionally refines with ZoomOut
+    are given, which then seed it first) and, with ``refine='zoomout'`` (the name
+    :func:`torchfmap.match` takes; True is the older form), refines with ZoomOut
     (:func:`refine_p2p`).
 
     Raises:
-        ParameterError: ``adapt_steps < 0``, an unknown ``mode``, or landmarks outside the meshes.
+        ParameterError: ``adapt_steps < 0``, an unknown ``mode`` or refinement, or landmarks
+            outside the meshes.
     """
     _check_inference(adapt_steps, mode)
+    refine = _refines(refine)
     if landmarks is not None:
         landmarks = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     (ix, sx), (iy, sy) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
@@ -275,9 +288,16 @@ class CheckpointMatcher:
     """
 
     def __init__(
-        self, checkpoint, *, adapt_steps: int = 0, adapt_lr: float = 1e-4, refine: bool = False, mode="fmap"
+        self,
+        checkpoint,
+        *,
+        adapt_steps: int = 0,
+        adapt_lr: float = 1e-4,
+        refine: str | None = None,
+        mode="fmap",
     ):
         _check_inference(adapt_steps, mode)
+        refine = _refines(refine)
         self.checkpoint = checkpoint
         self.adapt_steps, self.adapt_lr, self.refine, self.mode = adapt_steps, adapt_lr, refine, mode
         self._model = self._load()
