@@ -22,7 +22,6 @@ from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_e
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
 from .errors import MapWarning, ParameterError
 from .fmap import check_landmark_pairs, solve_fmap
-from .fmap.convert import values_to_p2p
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .kinds import BasisKind, get_kind, kind_of
 from .match_checks import check_given_bases, check_unused
@@ -31,11 +30,11 @@ from .quality import (
     OFF_BY_ONE_RATIO,
     geodesic_distortion,
     landmark_distortion,
+    map_seeds,
     warn_collapsed,
 )
 from .quality import warn_if_off_by_one as warn_if_off_by_one
 from .results import MatchContext, MatchResult, RefineKind, refine_map, refine_result
-from .seeds import consistent_seeds, farthest_point_sampling
 
 P2PMode = Literal["pullback", "orthogonal"]
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
@@ -398,10 +397,7 @@ def _match_seeded(mesh_x: Mesh, mesh_y: Mesh, shapes, kwargs: dict) -> MatchResu
     first = match(mesh_x, mesh_y, refine="zoomout", shapes=shapes, **kwargs)
     ctx = first._context
     bx, by, C = first.basis_x, first.basis_y, first.C_xy
-    s = farthest_point_sampling(mesh_x, min(SEEDED_SEEDS, mesh_x.n_vertices), metric="euclidean")
-    t = values_to_p2p(C.T, by.values, bx.values[s], mode="orthogonal")  # x -> y at the seeds
-    back = values_to_p2p(C, bx.values, by.values[t], mode="orthogonal")
-    seeds = consistent_seeds(ctx.shape_x.distances, s, t, back)
+    seeds = map_seeds(ctx.shape_x, C, C.T, bx.values, by.values, SEEDED_SEEDS)  # C_yx = C_xyᵀ
     if len(seeds) < 2:
         return first
     second = match(

@@ -38,7 +38,7 @@ from ..errors import ParameterError
 from ..fmap.convert import values_to_p2p
 from ..kinds import seed_time
 from ..mesh import Mesh
-from ..seeds import consistent_seeds, farthest_point_sampling
+from ..quality import map_seeds
 from .data import collate_pairs
 from .modules import BasisModule
 from .networks import check_network, features
@@ -80,30 +80,22 @@ class StageTwo:
             self.shapes[key] = prepare_shape(mesh, 0)
         return self.shapes[key]
 
-    def seeds(
-        self,
-        shape_x: PreparedShape,
-        C_xy: np.ndarray,
-        C_yx: np.ndarray,
-        values_x: np.ndarray,
-        values_y: np.ndarray,
-        landmarks: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """Seed pairs ``(S, 2)``: ``landmarks`` ``(L, 2)`` first (if given), then the consistent
-        seeds of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in the eigenbases
-        ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)`` (orthogonal rule, as the stage-1 point
-        map), farthest points continuing from the landmarks; no vertex of ``y`` twice."""
-        given = (
-            np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
-        )
-        n = min(self.n_seeds + len(given), shape_x.mesh.n_vertices)
-        start = given[:, 0] if len(given) else None
-        s = farthest_point_sampling(shape_x.mesh, n, landmarks=start, metric="euclidean")[len(given) :]
-        t = values_to_p2p(C_yx, values_y, values_x[s], mode="orthogonal")  # x -> y at the seeds
-        back = values_to_p2p(C_xy, values_x, values_y[t], mode="orthogonal")  # and back
-        found = consistent_seeds(shape_x.distances, s, t, back)
-        found = found[~np.isin(found[:, 1], given[:, 1])]
-        return np.concatenate([given, found]).astype(np.int64)
+    def seeds(self, shape_x, C_xy, C_yx, values_x, values_y, landmarks=None) -> np.ndarray:
+        """Seed pairs ``(S, 2)`` of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in
+        the eigenbases ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``: ``landmarks`` first,
+        then the consistent ones of :attr:`n_seeds` farthest points
+        (:func:`~torchfmap.quality.map_seeds`, as the classical ``refine='seeded'``)."""
+        return map_seeds(shape_x, C_xy, C_yx, values_x, values_y, self.n_seeds, landmarks)
+
+    def run(self, solver, shape_x, shape_y, feat_x, feat_y, C_xy, C_yx, values_x, values_y, landmarks=None):
+        """Stage 2 from the stage-1 maps (numpy ``C_xy``, ``C_yx``; features ``(1, V, D)``):
+        ``(seeds, basis_x, basis_y, (C_xy, C_yx, batch_x, batch_y))``, or None with fewer than
+        :attr:`min_seeds` seeds."""
+        seeds = self.seeds(shape_x, C_xy, C_yx, values_x, values_y, landmarks)
+        if len(seeds) < self.min_seeds:
+            return None
+        bx, by = self.bases(shape_x, shape_y, seeds, values_x, values_y)
+        return seeds, bx, by, self.solve(solver, feat_x, feat_y, bx, by)
 
     @staticmethod
     def bases(
@@ -175,11 +167,10 @@ def two_stage_p2p(
     vx, vy = x["values"].double().numpy(), y["values"].double().numpy()
     Cxy, Cyx = (C[0].double().cpu().numpy() for C in (C_xy, C_yx))
     first = values_to_p2p(Cxy, vx, vy, mode="orthogonal")
-    seeds = stage.seeds(shape_x, Cxy, Cyx, vx, vy, landmarks)
-    if len(seeds) < stage.min_seeds:
+    second = stage.run(solver, shape_x, shape_y, fx, fy, Cxy, Cyx, vx, vy, landmarks)
+    if second is None:
         return first, first, 0
-    bx, by = stage.bases(shape_x, shape_y, seeds, vx, vy)
-    C2 = stage.solve(solver, fx, fy, bx, by)[0]
+    seeds, bx, by, (C2, *_) = second
     return first, stage.p2p(C2, bx, by), len(seeds)
 
 
@@ -203,9 +194,8 @@ def stage_two_loss(
     vx = batch["x"].basis.values[0].detach().double().cpu().numpy()
     vy = batch["y"].basis.values[0].detach().double().cpu().numpy()
     Cxy, Cyx = (C[0].detach().double().cpu().numpy() for C in (out.C_xy, out.C_yx))
-    seeds = stage.seeds(shape_x, Cxy, Cyx, vx, vy)
-    if len(seeds) < stage.min_seeds:
+    second = stage.run(solver, shape_x, shape_y, out.feat_x, out.feat_y, Cxy, Cyx, vx, vy)
+    if second is None:
         return None
-    bx, by = stage.bases(shape_x, shape_y, seeds, vx, vy)
-    C_xy, C_yx, Bx, By = stage.solve(solver, out.feat_x, out.feat_y, bx, by)
+    C_xy, C_yx, Bx, By = second[3]
     return loss_fn(C_xy, C_yx, out.feat_x, out.feat_y, Bx, By, generator=generator)
