@@ -53,9 +53,9 @@ OURS = {
 }
 
 
-def ours(v: np.ndarray, f: np.ndarray, kind: str, mass: str) -> torchfmap.Operators:
+def ours(v: np.ndarray, f: np.ndarray, scheme: str, mass: str) -> torchfmap.Operators:
     """``torchfmap.laplacian`` from raw arrays (fresh, unvalidated Mesh: no cached quantities)."""
-    return torchfmap.laplacian(torchfmap.Mesh(v, f, validate=False), kind=kind, mass=mass)
+    return torchfmap.laplacian(torchfmap.Mesh(v, f, validate=False), scheme=scheme, mass=mass)
 
 
 def pp3d_cotan(v: np.ndarray, f: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

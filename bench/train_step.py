@@ -43,8 +43,8 @@ from _torch_inputs import DTYPES, random_basis
 from torchfmap import load_mesh
 from torchfmap.nn import DiffusionNet, FeatureNet, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn.config import TrainConfig
-from torchfmap.nn.data import precompute_shape, shape_item
 from torchfmap.nn.functional import fmap_solve
+from torchfmap.nn.inputs import shape_arrays, shape_item
 
 
 class Hooks:
@@ -188,7 +188,7 @@ def run_recipes(args) -> list[str]:
         log(f"recipe: precompute cat0, cat1 with K={k}")
         shapes = []
         for name in ("cat0", "cat1"):
-            arrays = precompute_shape(load_mesh(folder / f"{name}.off"), k, 32, k_net=k)
+            arrays = shape_arrays(load_mesh(folder / f"{name}.off"), k, 32, k_net=k)
             shapes.append(collate_shapes([shape_item(arrays)]))
         (sx, sy), cfg = shapes, TrainConfig()
         torch.manual_seed(args.seed)

@@ -5,9 +5,7 @@ Data flow: mesh -> operators -> seeds -> bases -> descriptors -> functional map 
 as differentiable ``torch.nn.Module`` layers.
 """
 
-import importlib
-import warnings
-
+from ._deprecation import module_aliases
 from .bases import (
     Basis,
     Column,
@@ -124,19 +122,11 @@ __all__ = [
 
 
 #: Names that left the top level (internals), still importable from here with a warning.
-_MOVED = {
-    "normalize_area": "torchfmap.operators",
-    "scipy_to_torch": "torchfmap.operators",
-    "torch_to_scipy": "torchfmap.operators",
-}
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        warnings.warn(
-            f"torchfmap.{name} moved to {_MOVED[name]}.{name} (an internal helper); import it from there.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module 'torchfmap' has no attribute {name!r}")
+__getattr__ = module_aliases(
+    __name__,
+    {
+        "normalize_area": "torchfmap.operators.normalize_area",
+        "scipy_to_torch": "torchfmap.operators.scipy_to_torch",
+        "torch_to_scipy": "torchfmap.operators.torch_to_scipy",
+    },
+)

@@ -155,7 +155,7 @@ def is_symmetric(A) -> bool:
 def check_symmetric(
     L,
     what: str,
-    fix: str = "build L with laplacian(mesh, kind='cotan') or kind='robust'",
+    fix: str = "build L with laplacian(mesh, scheme='cotan') or scheme='robust'",
 ) -> None:
     """Raise :class:`ParameterError` unless the stiffness ``L`` is symmetric (:func:`is_symmetric`).
 

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import check_count
+from ._deprecation import renamed_keywords
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import ParameterError
@@ -300,13 +301,15 @@ def evaluate_pairs(
     return [r for i in range(len(chunks)) for r in done[i]]
 
 
+@renamed_keywords(kind="form")
 def shape_distance_matrix(
-    meshes: list[Mesh], *, k: int = 20, kind: str = "area", progress: bool = False, **match_kwargs
+    meshes: list[Mesh], *, k: int = 20, form: str = "area", progress: bool = False, **match_kwargs
 ) -> np.ndarray:
     """``(N, N)`` symmetric shape distances from the functional maps between all pairs.
 
     Each ordered pair is matched (:func:`match`, eigenbasis by default) and the map's
-    shape difference is compared with the identity (:func:`~torchfmap.eval.shape_distance`);
+    shape difference (``form`` ``'area'`` or ``'conformal'``) is compared with the identity
+    (:func:`~torchfmap.eval.shape_distance`);
     the two directions are averaged. Feed the result to
     :func:`~torchfmap.eval.retrieval_accuracy` with class labels.
     """
@@ -317,5 +320,5 @@ def shape_distance_matrix(
     for i, j in tqdm(pairs, desc="shape pairs", disable=not progress):
         result = match(meshes[i], meshes[j], k=k, shapes=(shapes[i], shapes[j]), **match_kwargs)
         W_x, W_y = result.basis_x.projected_laplacian(), result.basis_y.projected_laplacian()
-        D[i, j] = shape_distance(result.C_xy, W_x, W_y, kind=kind)
+        D[i, j] = shape_distance(result.C_xy, W_x, W_y, form=form)
     return 0.5 * (D + D.T)

@@ -32,14 +32,14 @@ def _operator_summary(mesh, out) -> None:
     out(
         f"{mesh.name or 'mesh'}: {rep.summary()}; area {mesh.area:.4g}, mean edge {mesh.mean_edge_length:.3g}"
     )
-    for kind in ("cotan", "robust", "mean_value"):
+    for scheme in ("cotan", "robust", "mean_value"):
         t0 = time.perf_counter()
-        L, B = laplacian(mesh, kind=kind)
+        L, B = laplacian(mesh, scheme=scheme)
         dt = time.perf_counter() - t0
         sym = is_symmetric(L)
         neg = int((L.data[L.indices != np.repeat(np.arange(L.shape[0]), np.diff(L.indptr))] > 0).sum())
         out(
-            f"  L[{kind:<10}] nnz {L.nnz:>7}  symmetric {str(sym):<5}  positive off-diagonals "
+            f"  L[{scheme:<10}] nnz {L.nnz:>7}  symmetric {str(sym):<5}  positive off-diagonals "
             f"(negative weights) {neg:>5}  mass sum {B.sum():.4g}  ({dt * 1e3:.1f} ms)"
         )
     L, B = laplacian(mesh)
@@ -129,7 +129,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
         raise TorchFmapError(f"--k {args.k} needs {what} of more than {args.k} vertices ({small}).")
     with tqdm(total=2, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
-        shapes = [prepare_shape(m, 0, laplacian_kind=args.laplacian) for m in loaded]  # unit-area frames
+        shapes = [prepare_shape(m, 0, laplacian=args.laplacian) for m in loaded]  # unit-area frames
         bar.update()
         bar.set_postfix_str(f"{kind.name}, k={args.k}")
         if pair:

@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_vertex_indices
+from ._deprecation import renamed_keywords
 from .errors import ParameterError
 from .operators.heat import heat_kernels
 
@@ -87,10 +88,11 @@ def wks(
     return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
 
 
+@renamed_keywords(kind="kernel")
 def landmark_descriptors(
     landmarks,
     *,
-    kind: Literal["heat", "wks"] = "heat",
+    kernel: Literal["heat", "wks"] = "heat",
     operators=None,
     area: float | None = None,
     times=LANDMARK_TIMES,
@@ -101,11 +103,15 @@ def landmark_descriptors(
 ) -> np.ndarray:
     """Functions centred at landmarks: ``(V, L * n)`` (``n`` times or energies per landmark).
 
-    ``kind='heat'``: heat kernels ``K_t(l, ·)`` at relative times ``t`` (absolute ``t·|M|``),
-    spectrum-free (needs ``operators=(L, B)``). ``kind='wks'``: landmark-centred wave kernels
+    ``kernel='heat'``: heat kernels ``K_t(l, ·)`` at relative times ``t`` (absolute ``t·|M|``),
+    spectrum-free (needs ``operators=(L, B)``). ``kernel='wks'``: landmark-centred wave kernels
     ``Σ_k w_e(λ_k) φ_k(l) φ_k(·)`` (needs ``evals``, ``evecs``), as in pyFM.
+
+    Raises:
+        ParameterError: an unknown ``kernel``, a missing operator or spectrum, or landmarks
+            outside the mesh.
     """
-    if kind == "heat":
+    if kernel == "heat":
         if operators is None:
             raise ParameterError("heat landmark descriptors need operators=(L, B).")
         L, B = operators
@@ -114,14 +120,14 @@ def landmark_descriptors(
         total = float(B.sum()) if area is None else float(area)
         K = heat_kernels((L, B), lm, np.asarray(times, dtype=np.float64) * total, tol=tol)  # (T, V, L)
         return K.transpose(1, 2, 0).reshape(n, -1)
-    if kind == "wks":
+    if kernel == "wks":
         evals, evecs = _check_spectrum(evals, evecs)
         lm = check_vertex_indices(landmarks, evecs.shape[0], "landmarks")
         w = _wks_weights(evals, n_energies, WKS_SIGMA)  # (k, E)
         # column (l, e): sum_k w[k, e] phi_k(l) phi_k(x)
         coeffs = evecs[lm][:, :, None] * w[None]  # (L, k, E)
         return np.einsum("vk,lke->vle", evecs, coeffs).reshape(evecs.shape[0], -1)
-    raise ParameterError(f"unknown landmark descriptor kind {kind!r}. Fix: 'heat' or 'wks'.")
+    raise ParameterError(f"unknown landmark descriptor kernel {kernel!r}. Fix: 'heat' or 'wks'.")
 
 
 def normalize_descriptors(F: np.ndarray, mass=None) -> np.ndarray:

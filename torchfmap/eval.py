@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._deprecation import renamed_keywords
 from .errors import ParameterError
 from .io import find_file, mesh_files, read_arrays, read_test_pairs, read_vts, shape_name
 from .mesh import Mesh
@@ -218,25 +219,33 @@ def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapR
 
 
 # -- shape comparison --------------------------------------------------------------------------
-def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, kind: str = "area") -> np.ndarray:
-    """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``.
+@renamed_keywords(kind="form")
+def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> np.ndarray:
+    """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``: how the
+    map changes an inner-product form.
 
-    ``area``: ``C_xyᵀ C_xy`` (identity for area-preserving maps between B-orthonormal bases);
-    ``conformal``: ``W_x⁺ C_xyᵀ W_y C_xy`` (identity for conformal maps).
+    ``form='area'`` (the L2 form): ``C_xyᵀ C_xy`` (identity for area-preserving maps between
+    B-orthonormal bases); ``'conformal'`` (the Dirichlet form): ``W_x⁺ C_xyᵀ W_y C_xy``
+    (identity for conformal maps).
+
+    Raises:
+        ParameterError: an unknown ``form``, or ``'conformal'`` without ``W_x`` and ``W_y``.
     """
     C = np.asarray(C_xy, dtype=np.float64)
-    if kind == "area":
+    if form == "area":
         return C.T @ C
-    if kind == "conformal":
+    if form == "conformal":
         if W_x is None or W_y is None:
             raise ParameterError("the conformal shape difference needs W_x and W_y (projected Laplacians).")
         return np.linalg.pinv(W_x, rcond=1e-10, hermitian=True) @ C.T @ W_y @ C
-    raise ParameterError(f"unknown shape difference {kind!r}. Fix: 'area' or 'conformal'.")
+    raise ParameterError(f"unknown shape difference form {form!r}. Fix: 'area' or 'conformal'.")
 
 
-def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, kind: str = "area") -> float:
-    """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D``: 0 for isometric shapes."""
-    D = shape_difference(C_xy, W_x, W_y, kind)
+@renamed_keywords(kind="form")
+def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> float:
+    """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D`` (:func:`shape_difference`, same
+    ``form``): 0 for isometric shapes."""
+    D = shape_difference(C_xy, W_x, W_y, form)
     return float(np.linalg.norm(D - np.eye(len(D))) / np.sqrt(len(D)))
 
 

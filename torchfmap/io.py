@@ -185,7 +185,7 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             raise MeshError(
                 f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh. Fix: "
                 f"read it with torchfmap.io.load_points({path.name!r}) and build its operators with "
-                "laplacian(points, kind='robust')."
+                "laplacian(points, scheme='robust')."
             )
     return vertices, faces
 
@@ -202,7 +202,7 @@ def _read_points(data: bytes, fmt: str) -> np.ndarray:
 def load_points(path: str | os.PathLike) -> np.ndarray:
     """The points of a point-cloud (or mesh) file (.ply/.off/.obj, optionally .gz), ``(V, 3)``
     float64 in file order; faces, if any, are ignored. For point clouds pass them to
-    :func:`~torchfmap.operators.laplacian` with ``kind='robust'``.
+    :func:`~torchfmap.operators.laplacian` with ``scheme='robust'``.
 
     Raises:
         MeshError: a missing path, a folder, an unsupported format, no points, or non-finite ones.

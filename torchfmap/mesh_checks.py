@@ -150,7 +150,7 @@ def validate_mesh(
     if len(v) == 0 or len(f) == 0:
         raise MeshError(
             f"empty mesh ({len(v)} vertices, {len(f)} faces). Fix: check the file path and "
-            "format; a point cloud needs `laplacian(points, kind='robust')` instead."
+            "format; a point cloud needs `laplacian(points, scheme='robust')` instead."
         )
     bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if len(bad):
@@ -199,7 +199,7 @@ def validate_mesh(
         raise MeshError(
             f"{len(bad)} non-manifold edges are shared by more than two faces, e.g. edges "
             f"{[tuple(int(x) for x in e) for e in edges[bad[:4]]]}. Fix: repair the mesh, or use "
-            "`laplacian(mesh, kind='robust')` (intrinsic tufted Laplacian) with "
+            "`laplacian(mesh, scheme='robust')` (intrinsic tufted Laplacian) with "
             "allow_nonmanifold=True."
         )
     adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))

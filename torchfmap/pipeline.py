@@ -34,7 +34,7 @@ from .quality import (
     warn_collapsed,
 )
 from .quality import warn_if_off_by_one as warn_if_off_by_one
-from .results import MatchContext, MatchResult, RefineKind, refine_map, refine_result
+from .results import MatchContext, MatchResult, RefineMethod, refine_map, refine_result
 
 P2PMode = Literal["pullback", "orthogonal"]
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
@@ -131,7 +131,7 @@ def match(
     landmarks=None,
     basis: BasisKind | None = None,
     k: int = 50,
-    refine: RefineKind | None = None,
+    refine: RefineMethod | None = None,
     k_final: int | None = None,
     n_descriptors: int = 20,
     k_descriptors: int = 100,
@@ -246,7 +246,7 @@ def match(
     together = False  # given bases built as a pair at corresponding seeds: their columns correspond
     if bases is not None:
         given_x, given_y, together = check_given_bases(bases, mesh_x, mesh_y)
-        eigen_only = all(c.kind == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
+        eigen_only = all(c.family == "laplacian" for b in (given_x, given_y) for c in b.columns if c.kept)
         seeded = kind_of(given_x) if together else None
         name = basis or ("laplacian" if eigen_only else seeded or "stack")
         k = min(given_x.k, given_y.k)

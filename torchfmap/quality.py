@@ -54,7 +54,10 @@ __all__ = [
 def distortion_anchors(shape_y: PreparedShape, n_anchors: int = N_ANCHORS) -> np.ndarray:
     """``(A,)`` anchors of :func:`geodesic_distortion` on ``y``: ``min(n_anchors, V_y)``
     Euclidean farthest points (deterministic: they start from vertex 0's farthest point)."""
-    return farthest_point_sampling(shape_y.mesh, min(n_anchors, shape_y.mesh.n_vertices), metric="euclidean")
+    n = min(n_anchors, shape_y.mesh.n_vertices)
+    return shape_y.derive(
+        ("anchors", n), lambda: farthest_point_sampling(shape_y.mesh, n, metric="euclidean")
+    )
 
 
 def geodesic_distortion(
@@ -172,11 +175,14 @@ def map_seeds(
     ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``; only the seeds' rows are converted),
     kept where they agree (:func:`~torchfmap.seeds.consistent_seeds`); no vertex of ``y``
     twice. The seeds of both self-seeded second stages (``match(refine='seeded')``,
-    :mod:`torchfmap.nn.stages`)."""
+    :mod:`torchfmap.nn.stages`); without landmarks, the farthest points are computed once per
+    shape (cached on ``shape_x``)."""
     given = np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
     n = min(n_seeds + len(given), shape_x.mesh.n_vertices)
-    start = given[:, 0] if len(given) else None
-    s = farthest_point_sampling(shape_x.mesh, n, landmarks=start, metric="euclidean")[len(given) :]
+    if len(given):
+        s = farthest_point_sampling(shape_x.mesh, n, landmarks=given[:, 0], metric="euclidean")[len(given) :]
+    else:
+        s = shape_x.derive(("seeds", n), lambda: farthest_point_sampling(shape_x.mesh, n, metric="euclidean"))
     t = values_to_p2p(C_yx, values_y, values_x[s], mode="orthogonal")  # x -> y at the seeds
     back = values_to_p2p(C_xy, values_x, values_y[t], mode="orthogonal")  # and back
     found = consistent_seeds(shape_x.distances, s, t, back)

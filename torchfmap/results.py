@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from ._deprecation import module_aliases
 from .bases import Basis
 from .bases.prepared import PreparedShape, with_eigenpairs
 from .errors import ParameterError
@@ -22,9 +23,13 @@ from .fmap.refine import Refined
 from .kinds import BasisKind, get_kind
 from .quality import distortion_anchors, geodesic_distortion
 
-RefineKind = Literal["icp", "zoomout", "seeded"]
+#: The refinements of :func:`torchfmap.match` (``refine=``).
+RefineMethod = Literal["icp", "zoomout", "seeded"]
 
-__all__ = ["MatchContext", "MatchResult", "RefineKind", "refine_map", "refine_result"]
+__all__ = ["MatchContext", "MatchResult", "RefineMethod", "refine_map", "refine_result"]
+
+#: The name of earlier releases ("kind" names basis kinds only).
+__getattr__ = module_aliases(__name__, {"RefineKind": "RefineMethod"})
 
 
 @dataclass(frozen=True)
@@ -47,7 +52,7 @@ class MatchContext:
         object.__setattr__(self, "anchors", distortion_anchors(self.shape_y))
 
 
-def refine_result(result: MatchResult, refine: RefineKind) -> MatchResult:
+def refine_result(result: MatchResult, refine: RefineMethod) -> MatchResult:
     """``result`` (of :func:`match`, unrefined) refined by ``'icp'`` or ``'zoomout'``
     (the kind's :meth:`~torchfmap.kinds.BasisKind.refine`; ZoomOut grows eigenfunctions to
     ``k_final``, default ``2k``, in kinds that grow). With landmarks, a refinement that raises the

@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
+from ._deprecation import module_aliases, renamed_keywords
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver
@@ -34,7 +35,10 @@ __all__ = [
     "mean_curvature",
 ]
 
-CurvatureKind = Literal["mean", "gaussian", "abs_mean"]
+CurvatureMeasure = Literal["mean", "gaussian", "abs_mean"]
+
+#: The name of earlier releases ("kind" names basis kinds only).
+__getattr__ = module_aliases(__name__, {"CurvatureKind": "CurvatureMeasure"})
 
 
 def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray:
@@ -68,15 +72,20 @@ def gaussian_curvature(mesh: Mesh) -> np.ndarray:
     return defect / np.maximum(area, 1e-300)
 
 
-def curvature(mesh: Mesh, kind: CurvatureKind = "mean") -> np.ndarray:
-    """``(V,)`` curvature of the given kind: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``."""
-    if kind == "mean":
+@renamed_keywords(kind="measure")
+def curvature(mesh: Mesh, measure: CurvatureMeasure = "mean") -> np.ndarray:
+    """``(V,)`` curvature by the given measure: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``.
+
+    Raises:
+        ParameterError: an unknown ``measure``.
+    """
+    if measure == "mean":
         return mean_curvature(mesh)
-    if kind == "abs_mean":
+    if measure == "abs_mean":
         return np.abs(mean_curvature(mesh))
-    if kind == "gaussian":
+    if measure == "gaussian":
         return gaussian_curvature(mesh)
-    raise ParameterError(f"unknown curvature kind {kind!r}. Fix: use 'mean', 'abs_mean' or 'gaussian'.")
+    raise ParameterError(f"unknown curvature measure {measure!r}. Fix: use 'mean', 'abs_mean' or 'gaussian'.")
 
 
 def _adjacency(mesh: Mesh, weighted: bool = False) -> sp.csr_matrix:
@@ -100,10 +109,11 @@ def max_curvature_vertex(mesh: Mesh, smooth_steps: int = 2) -> int:
     return int(np.argmax(_smooth(mesh, np.abs(mean_curvature(mesh)), smooth_steps)))
 
 
+@renamed_keywords(kind="measure")
 def curvature_features(
     mesh: Mesh,
     k: int,
-    kind: CurvatureKind = "abs_mean",
+    measure: CurvatureMeasure = "abs_mean",
     min_separation: float | None = None,
     smooth_steps: int = 2,
 ) -> np.ndarray:
@@ -115,7 +125,7 @@ def curvature_features(
     """
     if k < 1:
         raise ParameterError(f"k must be >= 1, got {k}.")
-    values = _smooth(mesh, curvature(mesh, kind), smooth_steps)
+    values = _smooth(mesh, curvature(mesh, measure), smooth_steps)
     adj = _adjacency(mesh).tocoo()
     neighbour_max = np.full(mesh.n_vertices, -np.inf)
     np.maximum.at(neighbour_max, adj.row, values[adj.col])

@@ -17,6 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._checks import check_count
+from .._deprecation import warn_renamed
 from .._files import load_arrays, save_arrays
 from ..errors import ParameterError
 
@@ -27,26 +28,33 @@ _FORMAT_VERSION = 1
 class Column:
     """Where a basis column comes from.
 
-    ``kind``: ``'diffusion'``, ``'harmonic'``, ``'laplacian'`` or ``'custom'``; ``seed``: the
+    ``family``: the function family, ``'diffusion'``, ``'harmonic'``, ``'laplacian'``
+    (an eigenfunction) or ``'custom'`` (``kind`` is its old name); ``seed``: the
     seed vertex (``-1`` if none); ``time``: relative diffusion time ``t`` (absolute time is
     ``t * |M|``; None if none); ``index``: eigenfunction index (``-1`` if none); ``kept``:
     survived orthonormalisation.
     """
 
-    kind: str
+    family: str
     seed: int = -1
     time: float | None = None
     index: int = -1
     kept: bool = True
 
+    @property
+    def kind(self) -> str:
+        """Deprecated name of :attr:`family` ("kind" names basis kinds)."""
+        warn_renamed("Column.kind", "Column.family")
+        return self.family
+
     def label(self) -> str:
-        if self.kind == "diffusion":
+        if self.family == "diffusion":
             return f"diffusion(seed={self.seed}, t={self.time:g})"
-        if self.kind == "harmonic":
+        if self.family == "harmonic":
             return f"harmonic(seed={self.seed})"
-        if self.kind == "laplacian":
+        if self.family == "laplacian":
             return f"laplacian({self.index})"
-        return self.kind
+        return self.family
 
 
 class Basis:
@@ -119,15 +127,20 @@ class Basis:
         """Provenance of the input columns removed as numerically dependent."""
         return [c for c in self.provenance if not c.kept]
 
+    def families(self) -> np.ndarray:
+        """``(K,)`` function family of each kept column (:attr:`Column.family`)."""
+        return np.array([c.family for c in self.columns])
+
     def kinds(self) -> np.ndarray:
-        """``(K,)`` kind of each kept column."""
-        return np.array([c.kind for c in self.columns])
+        """Deprecated name of :meth:`families`."""
+        warn_renamed("Basis.kinds()", "Basis.families()")
+        return self.families()
 
     def __repr__(self) -> str:
         counts = {}
         for c in self.columns:
-            counts[c.kind] = counts.get(c.kind, 0) + 1
-        parts = ", ".join(f"{n} {kind}" for kind, n in counts.items())
+            counts[c.family] = counts.get(c.family, 0) + 1
+        parts = ", ".join(f"{n} {family}" for family, n in counts.items())
         return (
             f"Basis(V={self.n_vertices}, K={self.k}: {parts}; dropped {len(self.dropped)}; "
             f"orthonormal={self.orthonormal})"
@@ -198,7 +211,7 @@ class Basis:
             "mass_row": mass.row.astype(np.int64),
             "mass_col": mass.col.astype(np.int64),
             "mass_data": mass.data,
-            "prov_kind": np.array([c.kind for c in self.provenance], dtype=str),
+            "prov_kind": np.array([c.family for c in self.provenance], dtype=str),  # the file's key
             "prov_seed": np.array([c.seed for c in self.provenance], dtype=np.int64),
             "prov_time": np.array(
                 [np.nan if c.time is None else c.time for c in self.provenance], dtype=np.float64

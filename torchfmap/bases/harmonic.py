@@ -19,9 +19,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._checks import check_seeds_cover_components, check_vertex_indices, is_symmetric
+from .._deprecation import renamed_keywords
 from ..errors import SeedError
 from ..mesh import Mesh
-from ..operators.laplacian import LaplacianKind, Operators, laplacian
+from ..operators.laplacian import LaplacianScheme, Operators, laplacian
 from ..operators.solvers import factorize
 from .basis import Basis, Column
 
@@ -58,11 +59,12 @@ def harmonic_functions(L: sp.spmatrix, seeds, *, symmetric: bool | None = None) 
     return psi
 
 
+@renamed_keywords(kind="scheme")
 def harmonic_basis(
     mesh: Mesh,
     seeds,
     *,
-    kind: LaplacianKind = "cotan",
+    scheme: LaplacianScheme = "cotan",
     operators: Operators | None = None,
 ) -> Basis:
     """The harmonic basis of ``seeds`` as a (non-orthonormal) :class:`Basis`.
@@ -70,8 +72,8 @@ def harmonic_basis(
     Args:
         mesh: the surface (every connected component needs at least one seed).
         seeds: ``(k,)`` distinct vertex indices.
-        kind: Laplacian weights (``'cotan'``, ``'robust'``, ``'mean_value'``) when
-            ``operators`` is not given.
+        scheme: the Laplacian's scheme (``'cotan'``, ``'robust'``, ``'mean_value'``,
+            :func:`~torchfmap.laplacian`) when ``operators`` is not given.
         operators: precomputed ``(L, B)``; ``L`` may be non-symmetric.
 
     Returns:
@@ -79,6 +81,6 @@ def harmonic_basis(
     """
     seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")
     check_seeds_cover_components(mesh, seeds)
-    L, B = operators if operators is not None else laplacian(mesh, kind=kind)
+    L, B = operators if operators is not None else laplacian(mesh, scheme=scheme)
     psi = harmonic_functions(L, seeds)
     return Basis(psi, B, [Column("harmonic", int(s)) for s in seeds], stiffness=L)

@@ -1,9 +1,12 @@
 """Per-shape precomputation shared by every pair a shape takes part in, and its caches.
 
-A :class:`PreparedShape` holds what a shape needs once, whatever it is matched to: its
-operators, its first eigenpairs, its geodesic distance rows (solved on first use) and the heat
-kernels of seed bases (solved on first use, per ``(seed, relative time)``). Its lifetime is the
-caller's: nothing is kept between calls unless the caller keeps the object.
+A :class:`PreparedShape` holds what a shape needs once, whatever it is matched to and whichever
+path matches it (classical or learned): its operators, its first eigenpairs (grown in place when
+ZoomOut needs more), its geodesic distance rows (solved on first use), the heat kernels of seed
+bases (solved on first use, per ``(seed, relative time)``), its intrinsic gradient operator and
+what layers above derive from it once (the learned path's network inputs,
+:func:`torchfmap.nn.inputs.network_inputs`). Its lifetime is the caller's: nothing is kept
+between calls unless the caller keeps the object.
 
 Everything is computed in the shape's **unit-area frame** (its coordinates times
 ``scale = 1 / sqrt(area)``), so two shapes of different sizes get comparable eigenvalues,
@@ -18,11 +21,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._checks import check_count, check_seeds_cover_components, check_vertex_indices
+from .._deprecation import renamed_keywords
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import DistanceRows
+from ..operators.gradient import gradient_operator
 from ..operators.heat import heat_kernels
-from ..operators.laplacian import Operators, laplacian
+from ..operators.laplacian import Operators
+from ..operators.laplacian import laplacian as laplacian_operators
 from .basis import Basis, Column
 from .laplacian import laplacian_eigenbasis
 
@@ -43,7 +49,8 @@ class PreparedShape:
     ``(seed, relative time) -> (V,)``, computed on first use (a seed that refinement leaves in
     place is not solved again); ``scale``: the frame's coordinates are ``scale`` times the
     mesh's (``1 / sqrt(area)``: the unit-area frame; 1 for operators given by the caller), in
-    which ``operators``, ``eigenbasis`` and ``kernels`` live.
+    which ``operators``, ``eigenbasis``, ``kernels`` and :meth:`gradient` live; ``derived``:
+    per-shape quantities computed once by the layers above (:meth:`derive`), e.g. network inputs.
     """
 
     mesh: Mesh
@@ -52,6 +59,24 @@ class PreparedShape:
     distances: DistanceRows
     kernels: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)
     scale: float = 1.0
+    derived: dict = field(default_factory=dict)
+
+    def derive(self, key, compute):
+        """``compute()`` on first use of ``key`` (hashable), the stored value after; the value
+        is the caller's to leave unmodified."""
+        if key not in self.derived:
+            self.derived[key] = compute()
+        return self.derived[key]
+
+    @property
+    def frame(self) -> Mesh:
+        """The mesh in the frame of the operators (``mesh.scaled(scale)``), built once."""
+        return self.derive("frame", lambda: self.mesh if self.scale == 1.0 else self.mesh.scaled(self.scale))
+
+    def gradient(self) -> dict[str, np.ndarray]:
+        """The intrinsic gradient operator in the operators' frame
+        (:func:`~torchfmap.operators.gradient_operator`; ``(E,)`` edge arrays), built once."""
+        return self.derive("gradient", lambda: gradient_operator(self.frame))
 
     @property
     def area(self) -> float:
@@ -64,11 +89,12 @@ class PreparedShape:
         return 0 if self.eigenbasis is None else self.eigenbasis.k
 
 
+@renamed_keywords(laplacian_kind="laplacian")
 def prepare_shape(
-    mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian_kind: str = "auto"
+    mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian: str = "auto"
 ) -> PreparedShape:
     """Operators and ``n_eigen`` eigenpairs of ``mesh`` (the work :func:`~torchfmap.match` does
-    per shape), in its unit-area frame: :func:`~torchfmap.laplacian` (``kind=laplacian_kind``;
+    per shape), in its unit-area frame: :func:`~torchfmap.laplacian` (``scheme=laplacian``;
     ``'auto'``: ``'cotan'``, or ``'robust'``, the intrinsic tufted Laplacian, for a mesh with
     non-manifold edges) of ``mesh.scaled(1 / sqrt(area))``. Given ``operators`` ``(L, B)`` are
     used as they are (the caller's frame, ``scale = 1``).
@@ -79,15 +105,17 @@ def prepare_shape(
     n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
     scale = 1.0 / np.sqrt(mesh.area) if operators is None else 1.0
     frame = mesh.scaled(scale) if operators is None else mesh
-    if laplacian_kind == "auto":
-        laplacian_kind = "robust" if mesh.n_nonmanifold_edges else "cotan"
-    ops = operators if operators is not None else laplacian(frame, kind=laplacian_kind)
+    if laplacian == "auto":
+        laplacian = "robust" if mesh.n_nonmanifold_edges else "cotan"
+    ops = operators if operators is not None else laplacian_operators(frame, scheme=laplacian)
     eig = laplacian_eigenbasis(frame, n_eigen, operators=ops) if n_eigen else None
     return PreparedShape(mesh, ops, eig, DistanceRows(mesh, normalized=True), scale=scale)
 
 
 def with_eigenpairs(shape: PreparedShape, n_eigen: int) -> PreparedShape:
-    """``shape`` with at least ``n_eigen`` eigenpairs (extended in place when it has fewer)."""
+    """``shape`` with at least ``n_eigen`` eigenpairs (extended in place when it has fewer: one
+    eigendecomposition of the operators it holds, no second Laplacian). Quantities already
+    derived (:attr:`PreparedShape.derived`) are kept, not recomputed."""
     if n_eigen and shape.n_eigen < n_eigen:  # the operators carry the frame
         shape.eigenbasis = laplacian_eigenbasis(shape.mesh, n_eigen, operators=shape.operators)
     return shape

@@ -22,11 +22,16 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
+from .._deprecation import module_aliases, renamed_keywords
 from .._lazy import torch
 from .._torch_checks import resolve_check
 from ..errors import ParameterError
 
-MaskKind = Literal["laplacian", "resolvent"]
+#: The Laplacian-commutativity masks (:func:`laplacian_mask`'s ``mask``).
+Mask = Literal["laplacian", "resolvent"]
+
+#: The names of earlier releases ("kind" names basis kinds only).
+__getattr__ = module_aliases(__name__, {"MaskKind": "Mask"})
 
 
 def as_tensor(x, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -69,10 +74,11 @@ def spectral_frame(W: torch.Tensor) -> SpectralFrame:
     return SpectralFrame(*torch.linalg.eigh(W))
 
 
+@renamed_keywords(kind="mask")
 def laplacian_mask(
     lam_x: torch.Tensor,
     lam_y: torch.Tensor,
-    kind: MaskKind = "laplacian",
+    mask: Mask = "laplacian",
     gamma: float = 0.5,
     valid: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -81,35 +87,35 @@ def laplacian_mask(
     Args:
         lam_x, lam_y: ``(..., K_x)``, ``(..., K_y)`` eigenvalues of the projected Laplacians
             (negative round-off values are clipped to 0).
-        kind: ``'laplacian'``: ``(λ_x,j - λ_y,i)²``; ``'resolvent'``: the resolvent mask of
+        mask: ``'laplacian'``: ``(λ_x,j - λ_y,i)²``; ``'resolvent'``: the resolvent mask of
             Ren et al. 2019 with exponent ``gamma`` on eigenvalues scaled by their common
             maximum (invariant to a common scaling of the eigenvalues).
         valid: optional ``(..., K_y, K_x)`` 0/1 marking the entries of a padded batch that
             exist; the mean is taken over those only, so padding does not change the result.
 
     Raises:
-        ParameterError: unknown ``kind``.
+        ParameterError: unknown ``mask``.
     """
     lx = lam_x.clip(min=0)[..., None, :]
     ly = lam_y.clip(min=0)[..., :, None]
-    if kind == "laplacian":
-        mask = (lx - ly) ** 2
-    elif kind == "resolvent":
+    if mask == "laplacian":
+        penalty = (lx - ly) ** 2
+    elif mask == "resolvent":
         top = torch.maximum(lx.amax(dim=(-2, -1), keepdim=True), ly.amax(dim=(-2, -1), keepdim=True))
         scale = top.clip(min=torch.finfo(top.dtype).tiny)
         gx, gy = (lx / scale) ** gamma, (ly / scale) ** gamma
         re = gy / (gy**2 + 1) - gx / (gx**2 + 1)
         im = 1 / (gy**2 + 1) - 1 / (gx**2 + 1)
-        mask = re**2 + im**2
+        penalty = re**2 + im**2
     else:
-        raise ParameterError(f"unknown mask {kind!r}. Fix: 'laplacian' or 'resolvent'.")
+        raise ParameterError(f"unknown mask {mask!r}. Fix: 'laplacian' or 'resolvent'.")
     if valid is not None:
-        mask = mask * valid
+        penalty = penalty * valid
         count = valid.sum(dim=(-2, -1), keepdim=True)
     else:
-        count = mask.shape[-1] * mask.shape[-2]
-    mean = mask.sum(dim=(-2, -1), keepdim=True) / count
-    return mask / torch.where(mean > 0, mean, torch.ones_like(mean))
+        count = penalty.shape[-1] * penalty.shape[-2]
+    mean = penalty.sum(dim=(-2, -1), keepdim=True) / count
+    return penalty / torch.where(mean > 0, mean, torch.ones_like(mean))
 
 
 def solve_rowwise(
@@ -243,7 +249,7 @@ def rotate_and_solve(
     *,
     w_desc: float,
     w_lap: float,
-    mask: MaskKind = "laplacian",
+    mask: Mask = "laplacian",
     valid: torch.Tensor | None = None,
     prior: torch.Tensor | None = None,
     w_prior: float = 0.0,

@@ -72,7 +72,7 @@ def basis_kind(basis: Basis) -> str:
     kind = kind_of(basis)
     if kind is not None:
         return kind
-    return "diffusion_mix" if any(c.kind == "diffusion" for c in basis.columns) else "custom"
+    return "diffusion_mix" if any(c.family == "diffusion" for c in basis.columns) else "custom"
 
 
 def default_w_lap(basis_x: Basis, basis_y: Basis) -> float:

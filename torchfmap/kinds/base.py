@@ -16,7 +16,7 @@ comparing strings:
   (seeded kinds), or fixed-size iterations only (the default);
 - ``learned``: whether the torch layers (:mod:`torchfmap.nn`, one regularised solve per pair)
   train and predict in it;
-- ``column_kinds``: the :class:`~torchfmap.bases.Column` kinds its bases are made of, so a
+- ``column_families``: the :class:`~torchfmap.bases.Column` families its bases are made of, so a
   saved or given basis is recognised (:func:`torchfmap.bases.kind_of`).
 
 Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind` (or of
@@ -25,10 +25,11 @@ Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass
 
 import numpy as np
 
+from .._deprecation import warn_renamed
 from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize, orthonormalize_pair
 from ..bases.prepared import PreparedShape
@@ -97,12 +98,24 @@ class BasisKind:
     needs_landmarks: bool
     w_lap: float
     p2p_mode: str
-    column_kinds: frozenset[str]
+    column_families: frozenset[str] = frozenset()
     w_orient: float = W_ORIENT
     learned: bool = True
     #: whether ZoomOut grows the kind's eigenfunctions (the shapes then need ``k_final``
     #: eigenpairs, :func:`~torchfmap.bases.prepared.with_eigenpairs`)
     grows: bool = False
+    #: the old name of ``column_families`` (a keyword of the constructor only)
+    column_kinds: InitVar[frozenset[str] | None] = None
+
+    def __post_init__(self, column_kinds) -> None:
+        if column_kinds is not None:
+            warn_renamed("BasisKind(column_kinds=...)", "BasisKind(column_families=...)", stacklevel=4)
+            object.__setattr__(self, "column_families", frozenset(column_kinds))
+        if not self.column_families:
+            raise ParameterError(
+                f"kind {self.name!r} names no column families. Fix: column_families=frozenset({{...}}), the "
+                "Column families of its bases ('laplacian', 'harmonic', 'diffusion', 'custom')."
+            )
 
     def n_eigen(self, k: int) -> int:
         """Eigenpairs each prepared shape needs for a basis of ``k`` columns of this kind."""
@@ -129,8 +142,8 @@ class BasisKind:
 
     def recognises(self, basis: Basis) -> bool:
         """Whether ``basis`` is of this kind (:func:`~torchfmap.bases.kind_of`): its kept
-        columns' kinds are exactly :attr:`column_kinds`."""
-        return self.column_kinds == frozenset(c.kind for c in basis.columns)
+        columns' families are exactly :attr:`column_families`."""
+        return self.column_families == frozenset(c.family for c in basis.columns)
 
     def uses_descriptors(self, w_prior: float) -> bool:
         """Whether :func:`torchfmap.match` solves this kind's map from descriptors: always for

@@ -28,5 +28,5 @@ DIFFUSION = DiffusionKind(
     # dominate the mask's mean: bases with diffusion columns need a larger weight than eigenbases
     # (python bench/weight_sweep.py).
     w_lap=W_LAP_KERNELS,
-    column_kinds=frozenset({"diffusion"}),
+    column_families=frozenset({"diffusion"}),
 )

@@ -56,7 +56,7 @@ EIGEN_DIFFUSION = EigenDiffusionKind(
     needs_landmarks=False,
     w_lap=W_LAP_KERNELS,
     p2p_mode="pullback",
-    column_kinds=frozenset({"laplacian", "diffusion"}),
+    column_families=frozenset({"laplacian", "diffusion"}),
     # in a basis whose columns do not correspond, a strong orientation term (minimised by C = 0)
     # shrinks the map until the point map collapses onto a few vertices: keep it weak
     w_orient=1e-2,

@@ -24,5 +24,5 @@ HARMONIC = HarmonicKind(
     name="harmonic",
     summary="harmonic functions interpolating corresponding seeds",
     w_lap=W_LAP_SMOOTH,
-    column_kinds=frozenset({"harmonic"}),
+    column_families=frozenset({"harmonic"}),
 )

@@ -53,9 +53,10 @@ def split_blocks(basis: Basis) -> tuple[Basis, Basis]:
     Raises:
         ParameterError: a basis without leading eigenfunctions or without other columns.
     """
-    kinds = basis.kinds()
-    k_e = int(np.argmax(kinds != "laplacian")) if (kinds != "laplacian").any() else len(kinds)
-    if k_e == 0 or k_e == len(kinds) or (kinds[k_e:] == "laplacian").any():
+    families = basis.families()
+    eigen = families == "laplacian"
+    k_e = int(np.argmax(~eigen)) if (~eigen).any() else len(families)
+    if k_e == 0 or k_e == len(families) or eigen[k_e:].any():
         raise ParameterError(
             "a hybrid basis is eigenfunctions followed by feature-aware columns. Fix: build it with "
             "KINDS['hybrid'].pair_bases or shape_basis."
@@ -240,7 +241,7 @@ HYBRID = HybridKind(
     w_orient=W_ORIENT,
     p2p_mode="orthogonal",
     grows=True,
-    column_kinds=frozenset({"laplacian", "diffusion"}),
+    column_families=frozenset({"laplacian", "diffusion"}),
     # the torch solver is one regularised solve, not block-diagonal (classical path only)
     learned=False,
 )

@@ -60,5 +60,5 @@ LAPLACIAN = EigenKind(
     w_lap=W_LAP_SMOOTH,
     p2p_mode="orthogonal",
     grows=True,
-    column_kinds=frozenset({"laplacian"}),
+    column_families=frozenset({"laplacian"}),
 )

@@ -30,5 +30,5 @@ STACK = StackKind(
     name="stack",
     summary="heat kernels then harmonic functions at corresponding seeds",
     w_lap=W_LAP_KERNELS,
-    column_kinds=frozenset({"diffusion", "harmonic"}),
+    column_families=frozenset({"diffusion", "harmonic"}),
 )

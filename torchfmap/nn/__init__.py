@@ -12,7 +12,8 @@ inputs and skips them elsewhere, ``True`` / ``False`` force it (:mod:`torchfmap.
 Shape checks always run.
 
 Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
-:mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.data`,
+:mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.inputs`
+(a shape's arrays, read off its :class:`~torchfmap.PreparedShape`), :mod:`~torchfmap.nn.data`,
 :mod:`~torchfmap.nn.config` (the reference recipe), :mod:`~torchfmap.nn.train` (the loop, DDP),
 :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
 """
@@ -28,10 +29,10 @@ from .data import (
     class_pairs,
     collate_pairs,
     collate_shapes,
-    precompute_shape,
 )
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
 from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
+from .inputs import network_inputs, precompute_shape, shape_arrays, shape_item
 from .modules import (
     BasisModule,
     RegularizedFMSolver,
@@ -94,5 +95,8 @@ __all__ = [
     "collate_shapes",
     "features",
     "functional",
+    "network_inputs",
     "precompute_shape",
+    "shape_arrays",
+    "shape_item",
 ]

@@ -20,19 +20,26 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .._deprecation import module_aliases
 from .._files import load_arrays, save_arrays
-from ..bases.basis import Basis
-from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
-from ..descriptors import wks
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
-from ..kinds import get_kind, learned_kind
+from ..kinds import learned_kind
 from ..mesh import Mesh
 from .functional import BasisBatch, GradientBatch
-from .geometry import gradient_operator
-from .modules import basis_arrays
+from .inputs import shape_arrays, shape_item
 
 log = logging.getLogger(__name__)
+
+#: Names that moved to :mod:`torchfmap.nn.inputs` (the per-shape arrays of the learned path).
+__getattr__ = module_aliases(
+    __name__,
+    {
+        "precompute_shape": "torchfmap.nn.inputs.precompute_shape",
+        "K_WKS": "torchfmap.nn.inputs.K_WKS",
+        "SEED_TIMES": "torchfmap.nn.inputs.SEED_TIMES",
+    },
+)
 
 #: Key of the checksum array in cache entries (kept from the first cache format).
 CACHE_CHECKSUM_KEY = "__checksum__"
@@ -88,84 +95,16 @@ class PrecomputeCache:
         return arrays
 
 
-#: Eigenpairs the WKS inputs are computed from (:func:`precompute_shape`'s ``k_wks``).
-K_WKS = 100
-#: Relative diffusion times of the feature-aware bases on the learned path.
-SEED_TIMES = (0.01, 0.03)
-
-
-def _solver_basis(shape: PreparedShape, kind: str, k: int) -> Basis:
-    """The functional-map basis of ``k`` functions of a registered kind
-    (:data:`torchfmap.bases.KINDS`), built on one prepared shape by the kind's ``shape_basis``
-    (farthest-point seeds for seeded kinds, diffusion at :data:`SEED_TIMES`), B-orthonormal."""
-    return get_kind(kind).shape_basis(shape, k, times=SEED_TIMES)
-
-
-def precompute_shape(
-    mesh: Mesh,
-    k: int = 50,
-    n_wks: int = 32,
-    k_wks: int = K_WKS,
-    *,
-    k_net: int = 0,
-    basis: str = "laplacian",
-    shape: PreparedShape | None = None,
-) -> dict[str, np.ndarray]:
-    """Arrays for training and inference, in the mesh's unit-area frame
-    (:func:`~torchfmap.bases.prepare_shape`, the per-shape precompute of the classical path).
-
-    - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
-    - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
-    - inputs: ``wks (V, n_wks)`` (standardised), ``xyz (V, 3)`` (centred, unit area);
-    - gradient operator: ``grad_rows, grad_cols, grad_x, grad_y, grad_order_t (E,)``
-      (:func:`~torchfmap.nn.geometry.gradient_operator`);
-    - the original ``vertices``, ``faces``.
-
-    ``shape``: ``prepare_shape(mesh, n)`` to build on (its operators, and its eigenpairs,
-    extended in place to ``max(k, k_wks, k_net)`` if fewer), so a caller that also refines with
-    ZoomOut computes one Laplacian and one eigendecomposition per shape.
-
-    Raises:
-        ParameterError: an unknown or classical-only ``basis``, or a ``shape`` of another mesh.
-    """
-    learned_kind(basis)  # refuses an unknown or classical-only kind before any work
-    k_all = max(k, k_wks, k_net)
-    if shape is None:
-        shape = prepare_shape(mesh, k_all)
-    elif not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
-        raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
-    full = with_eigenpairs(shape, k_all).eigenbasis.truncated(k_all)
-    unit = mesh.scaled(shape.scale)
-    feats = wks(full.eigenvalues[:k_wks], full.values[:, :k_wks], n_wks)
-    feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
-    frame = PreparedShape(mesh, shape.operators, full, shape.distances, shape.kernels, shape.scale)
-    arrays = basis_arrays(_solver_basis(frame, basis, k))
-    if k_net:
-        net = basis_arrays(full.truncated(k_net))
-        arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
-    arrays["wks"] = feats
-    arrays["xyz"] = (
-        unit.vertices - (unit.vertices * arrays["mass"][:, None]).sum(axis=0) / arrays["mass"].sum()
-    )
-    arrays.update(gradient_operator(unit))
-    arrays["vertices"] = mesh.vertices
-    arrays["faces"] = mesh.faces
-    return arrays
-
-
 def default_cache_dir() -> Path:
     """The per-user cache folder: ``$XDG_CACHE_HOME/torchfmap`` or ``~/.cache/torchfmap``."""
     root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(root) / "torchfmap"
 
 
-_ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
-
-
 class ShapeDataset(torch.utils.data.Dataset):
     """Meshes of a folder (or a list of files), precomputed once and held in memory.
 
-    Each mesh is read and precomputed (:func:`precompute_shape`, through a
+    Each mesh is read and precomputed (:func:`~torchfmap.nn.inputs.shape_arrays`, through a
     :class:`PrecomputeCache`) once, at construction. ``cache_dir``: a folder, ``None`` for
     :func:`default_cache_dir`, ``False`` for no cache; a folder that cannot be written is
     used read-only or not at all (with a warning). ``inputs``: ``'wks'`` or ``'xyz'``.
@@ -212,7 +151,7 @@ class ShapeDataset(torch.utils.data.Dataset):
         p = self.params
 
         def compute():
-            return precompute_shape(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"])
+            return shape_arrays(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"])
 
         if self.cache is None:
             return compute()
@@ -242,20 +181,6 @@ class ShapeDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict:
         return self.items[i]
-
-
-def shape_item(
-    arrays: dict[str, np.ndarray], inputs: str = "wks", dtype=torch.float32, name: str = "", index: int = 0
-) -> dict:
-    """A dataset item (see :class:`ShapeDataset`) from :func:`precompute_shape` arrays."""
-    item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
-    item["inputs"] = torch.as_tensor(arrays[inputs], dtype=dtype)
-    item["xyz"] = torch.as_tensor(arrays["xyz"], dtype=dtype)
-    for key in ("grad_rows", "grad_cols", "grad_order_t", "vertices", "faces"):
-        if key in arrays:
-            item[key] = torch.as_tensor(arrays[key])
-    item["name"], item["index"] = name, index
-    return item
 
 
 def _open_cache(folder) -> PrecomputeCache | None:

@@ -23,11 +23,11 @@ instead of an error: pass ``check=True`` to debug on a GPU. Nothing global is re
 from __future__ import annotations
 
 import math
-import warnings
 from typing import NamedTuple
 
 import torch
 
+from .._deprecation import module_aliases
 from .._torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
 from ..errors import ParameterError
 from ..fmap import core
@@ -381,13 +381,5 @@ def geodesic_loss(
     return (rows * dist_rows).sum(dim=-1).mean()
 
 
-def __getattr__(name: str):
-    if name == "fmap_solve":  # the name of earlier releases: one name per concept now
-        warnings.warn(
-            "torchfmap.nn.functional.fmap_solve is now solve_fmap (the name of the classical "
-            "torchfmap.solve_fmap). Fix: F.solve_fmap(...), same arguments.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return solve_fmap
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: The name of earlier releases: one name per concept now (the classical ``torchfmap.solve_fmap``).
+__getattr__ = module_aliases(__name__, {"fmap_solve": "solve_fmap"})

@@ -1,7 +1,7 @@
 """Tangent-frame gradients of per-vertex features in torch: the batched operator type
 (:class:`GradientBatch`), its application (:func:`spatial_gradient`) and DiffusionNet's
 rotation-invariant gradient features (:func:`gradient_features`). The operators are precomputed
-in numpy by :func:`torchfmap.nn.geometry.gradient_operator`; :mod:`torchfmap.nn.functional`
+in numpy by :func:`torchfmap.operators.gradient_operator`; :mod:`torchfmap.nn.functional`
 re-exports these names with the other batched operations, and its module docstring describes
 the ``check`` switch of the data checks.
 """
@@ -18,7 +18,7 @@ from ..errors import ParameterError
 
 
 class GradientBatch(NamedTuple):
-    """Padded batch of vertex gradient operators (:func:`torchfmap.nn.geometry.gradient_operator`).
+    """Padded batch of vertex gradient operators (:func:`torchfmap.operators.gradient_operator`).
 
     ``rows, cols (B, E)`` (int64) and ``weight_x, weight_y (B, E)``: ``(∇f)_v`` in the tangent
     frame of ``v`` is ``Σ_{rows == v} weight · f[cols]``. Padded entries have weight 0.

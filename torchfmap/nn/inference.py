@@ -19,7 +19,8 @@ from ..kinds import get_kind
 from ..mesh import Mesh
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
-from .data import K_WKS, ShapeBatch, ShapeDataset, collate_pairs, precompute_shape, shape_item
+from .data import ShapeBatch, ShapeDataset, collate_pairs
+from .inputs import K_WKS, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .stages import StageTwo, two_stage_p2p
@@ -109,8 +110,10 @@ def adapt(
 def evaluate(
     net, shapes: ShapeDataset, pairs, gts, solver=None, *, mode: str = "fmap", max_points=500, device="cpu"
 ) -> float:
-    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``."""
-    solver = solver if solver is not None else RegularizedFMSolver()
+    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``
+    (``solver=None``: the recipe's, :func:`~torchfmap.nn.build_solver` of a default
+    :class:`~torchfmap.nn.TrainConfig`, as :func:`~torchfmap.nn.train` trains with)."""
+    solver = solver if solver is not None else build_solver(TrainConfig())[0]
     errors = []
     for (a, b), gt in zip(pairs, gts, strict=True):
         x, y = shapes[a], shapes[b]
@@ -169,9 +172,7 @@ def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, Prep
     serving the network's inputs and bases and, with ``refine``, ZoomOut."""
     need = max(config.k, config.k_net, K_WKS, REFINE_K_FINAL if refine else 0)
     shape = prepare_shape(mesh, min(need, mesh.n_vertices - 1))
-    arrays = precompute_shape(
-        mesh, config.k, config.n_wks, k_net=config.k_net, basis=config.basis, shape=shape
-    )
+    arrays = shape_arrays(shape, config.k, config.n_wks, k_net=config.k_net, basis=config.basis)
     item = shape_item(arrays, config.inputs, name=mesh.name or "")
     return item, shape
 
@@ -229,7 +230,7 @@ def match_with_network(
 ) -> np.ndarray:
     """``p2p_yx`` of two meshes with a trained network: no dataset folder, no cache.
 
-    Precomputes both shapes as in training (:func:`~torchfmap.nn.data.precompute_shape`),
+    Precomputes both shapes as in training (:func:`~torchfmap.nn.inputs.shape_arrays`),
     optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`;
     with the self-seeded second stage, :func:`~torchfmap.nn.stages.two_stage_p2p`, when the
     checkpoint was trained with it or ``landmarks`` ``(L, 2)`` (source, target vertex pairs)

@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from .._checks import check_lumped_mass
+from .._deprecation import renamed_keywords
 from ..bases import prepare_shape
 from ..bases.basis import Basis
 from ..errors import ParameterError
@@ -78,17 +79,20 @@ class BasisModule(nn.Module):
         return self.batch()
 
     @classmethod
+    @renamed_keywords(kind="basis")
     def from_mesh(
-        cls, mesh: Mesh, k: int = 50, kind: str = "laplacian", seeds=None, times=None, dtype=torch.float64
+        cls, mesh: Mesh, k: int = 50, basis: str = "laplacian", seeds=None, times=None, dtype=torch.float64
     ) -> BasisModule:
-        """A registered kind's basis of exactly ``k`` columns on ``mesh``
-        (``KINDS[kind].shape_basis``, :data:`torchfmap.bases.KINDS`): feature-aware kinds at
-        ``seeds`` first, farthest-point seeds after; ``times``: their relative diffusion times.
+        """A registered kind's basis of exactly ``k`` columns on ``mesh`` (``basis``: the kind's
+        name, as ``match(basis=...)``; ``KINDS[basis].shape_basis``,
+        :data:`torchfmap.bases.KINDS`): feature-aware kinds at ``seeds`` first, farthest-point
+        seeds after; ``times``: their relative diffusion times.
 
         Raises:
             ParameterError: an unknown kind, or fewer than ``k`` independent columns.
         """
-        return cls(learned_kind(kind).shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
+        kind = learned_kind(basis)
+        return cls(kind.shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
 
     @property
     def k(self) -> int:
@@ -130,7 +134,9 @@ class RegularizedFMSolver(nn.Module):
     (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` is None with ``both=False``).
     The defaults are those of :func:`torchfmap.fmap.solve_fmap` for eigenbases (the same
     core solve gives the same map); for bases with diffusion columns pass
-    ``w_lap=torchfmap.fmap.defaults.W_LAP_KERNELS``. ``check``: the data checks of
+    ``w_lap=torchfmap.fmap.defaults.W_LAP_KERNELS``. The training recipe solves with its own
+    ``TrainConfig.w_lap`` (:func:`~torchfmap.nn.build_solver`), which :func:`~torchfmap.nn.train`
+    and :func:`~torchfmap.nn.evaluate` use when given no solver. ``check``: the data checks of
     :func:`~torchfmap.nn.functional.solve_fmap` (None: on CPU inputs only).
     """
 

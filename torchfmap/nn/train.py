@@ -22,40 +22,19 @@ import torch
 from tqdm import tqdm
 
 from ..errors import ParameterError
+from .augment import augmentation, random_rigid
 from .checkpoints import read_checkpoint, save_checkpoint
-from .config import AUGMENTS, CosineBudget, TrainConfig, build_model
+from .config import CosineBudget, TrainConfig, build_model, build_solver
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
-from .modules import RegularizedFMSolver, UnsupervisedFMLoss
+from .modules import UnsupervisedFMLoss
 from .networks import check_network, features
 from .stages import StageTwo, stage_two_loss
 
 #: Progress bar of a time budget: seconds of the budget, no rate (steps and epochs in the postfix).
 TIME_BAR = "{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}{postfix}]"
 
-
-def random_rigid(
-    xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1), rotate: bool = True
-) -> torch.Tensor:
-    """Augmentation for XYZ inputs: a random rotation (uniform on SO(3); none with
-    ``rotate=False``) and a uniform scaling in ``scale`` per shape, ``(B, V, 3)``.
-
-    Drawn (in float64) from ``generator`` on its device, then cast to ``xyz``'s dtype and device.
-    """
-    if not isinstance(generator, torch.Generator):
-        raise ParameterError(
-            f"random_rigid draws from a torch.Generator, got {type(generator).__name__}. Fix: pass one, "
-            "e.g. torch.Generator().manual_seed(0)."
-        )
-    B, device = xyz.shape[0], generator.device
-    q, r = torch.linalg.qr(torch.randn(B, 3, 3, generator=generator, dtype=torch.float64, device=device))
-    q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1))[:, None, :]
-    # proper rotations only (reflections change the shape): flip the first column where det < 0
-    flip = torch.where(torch.linalg.det(q) < 0, -1.0, 1.0).to(q)
-    q = torch.cat([q[:, :, :1] * flip[:, None, None], q[:, :, 1:]], dim=-1)
-    s = torch.empty(B, 1, 1, dtype=torch.float64, device=device).uniform_(*scale, generator=generator)
-    if not rotate:
-        q = torch.eye(3, dtype=torch.float64, device=device).expand(B, 3, 3)
-    return xyz @ (s * q).to(xyz)
+#: The recipe whose settings are the defaults of :func:`train` (one set of defaults).
+_RECIPE = TrainConfig()
 
 
 class PairForward(NamedTuple):
@@ -139,18 +118,18 @@ def train(
     solver: torch.nn.Module | None = None,
     scheduler=None,
     device: str | torch.device = "cpu",
-    epochs: int | None = 1,
-    minutes: float = 0.0,
-    max_steps: int = 0,
-    batch_size: int = 1,
-    clip_grad: float = 0.0,
-    augment: bool | str = False,
+    epochs: int | None = _RECIPE.epochs,
+    minutes: float = _RECIPE.minutes,
+    max_steps: int = _RECIPE.max_steps,
+    batch_size: int = _RECIPE.batch_size,
+    clip_grad: float = _RECIPE.clip_grad,
+    augment: bool | str | None = None,
     validate=None,
     validate_every: int = 0,
     checkpoint: str | os.PathLike | None = None,
     config: TrainConfig | dict | None = None,
     resume: bool = False,
-    seed: int = 0,
+    seed: int = _RECIPE.seed,
     progress: bool = True,
     rank: int = 0,
     world_size: int = 1,
@@ -161,7 +140,9 @@ def train(
     ``net`` follows the :class:`~torchfmap.nn.networks.FeatureNetwork` protocol (checked by
     :func:`~torchfmap.nn.networks.check_network`); ``loss_fn`` is called as
     ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=...)`` and returns a
-    dict of terms with ``'total'`` (as :class:`~torchfmap.nn.UnsupervisedFMLoss`).
+    dict of terms with ``'total'`` (as :class:`~torchfmap.nn.UnsupervisedFMLoss`). The
+    defaults are the recipe's (:class:`~torchfmap.nn.TrainConfig`: budget, batch size, clipping,
+    augmentation, seed; ``solver=None``: the recipe's solver, :func:`~torchfmap.nn.build_solver`).
 
     Stops after ``epochs`` epochs (None: not bounded by epochs), ``minutes`` of training (0: no
     limit) or ``max_steps`` steps (0: no limit), whichever comes first; the budget is the whole
@@ -177,7 +158,8 @@ def train(
     batches of one pair).
     ``augment``: XYZ inputs moved at random each step (:func:`random_rigid`): ``"rigid"`` (or
     True) a rotation and a scaling, ``"scale"`` a scaling only (shapes aligned alike, e.g.
-    SMAL_r), ``"none"`` (or False) nothing. ``validate(net) -> score``
+    SMAL_r), ``"none"`` (or False) nothing; None: the recipe's for XYZ inputs, nothing for
+    others (a rigid motion of WKS inputs is meaningless and refused). ``validate(net) -> score``
     (lower is better) runs every ``validate_every`` steps and at the end; the best weights are
     kept in the checkpoint as ``best_state_dict``. ``checkpoint`` is written atomically at each
     epoch end, each validation and the end (by rank 0), with the network's record
@@ -193,15 +175,13 @@ def train(
     initialisation still use it).
     """
     check_network(net)
-    augment = {True: "rigid", False: "none"}.get(augment, augment)
-    if augment not in AUGMENTS:
-        raise ParameterError(f"augment must be one of {AUGMENTS} or a bool, got {augment!r}.")
+    augment = augmentation(augment, getattr(getattr(data, "shapes", None), "inputs", None))
     if epochs is None and not minutes and not max_steps:
         raise ParameterError("training needs a budget. Fix: epochs, minutes and/or max_steps.")
     if not (math.isfinite(minutes) and minutes >= 0):
         raise ParameterError(f"minutes must be finite and >= 0, got {minutes}.")
     device = torch.device(device)
-    solver = solver if solver is not None else RegularizedFMSolver()
+    solver = solver if solver is not None else build_solver(_RECIPE)[0]
     net.to(device)
     state = TrainState()
     best_state = None

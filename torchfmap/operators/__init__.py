@@ -5,6 +5,7 @@ from .._checks import check_vertex_indices, lumped_diagonal
 from .convert import scipy_to_torch, torch_to_scipy
 from .eigen import eigenpairs
 from .geodesic import DistanceRows, GeodesicSolver, geodesic_distances
+from .gradient import gradient_operator, tangent_frames
 from .heat import heat_apply, heat_kernels
 from .laplacian import (
     Operators,
@@ -26,6 +27,7 @@ __all__ = [
     "eigenpairs",
     "factorize",
     "geodesic_distances",
+    "gradient_operator",
     "heat_apply",
     "heat_kernels",
     "laplacian",
@@ -35,5 +37,6 @@ __all__ = [
     "point_cloud_laplacian",
     "scipy_to_torch",
     "torch_to_scipy",
+    "tangent_frames",
     "total_area",
 ]

@@ -97,7 +97,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
     if solver not in ("auto", "block", "arpack"):
         raise ParameterError(f"unknown eigensolver {solver!r}. Fix: 'auto', 'block' or 'arpack'.")
-    check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, kind='cotan') or kind='robust'")
+    check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, scheme='cotan') or scheme='robust'")
     area = float(B.sum())
     if not np.isfinite(area) or area <= 0 or not np.isfinite(1.0 / area):
         raise ParameterError(

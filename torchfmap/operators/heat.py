@@ -275,7 +275,7 @@ def heat_kernels(
     times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
     if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):
         raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}. Fix: t > 0.")
-    check_symmetric(L, "heat kernels", "laplacian(mesh, kind='cotan') or kind='robust'")
+    check_symmetric(L, "heat kernels", "laplacian(mesh, scheme='cotan') or scheme='robust'")
     if not local or method == "spectral":
         X0 = _initial(B, seeds, n, kernel)
         return heat_apply((L, B), X0, times, method, tol=tol, n_steps=n_steps, n_eigen=n_eigen)

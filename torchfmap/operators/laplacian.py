@@ -6,7 +6,7 @@ and ``L_ii = Σ_j w_ij``. The generalised eigenproblem ``L φ = λ B φ`` then h
 ``λ ≈ l(l+1)`` on the unit sphere. ``-L`` is the negative semidefinite matrix that some texts
 call "the" cotangent Laplacian; pass ``-L`` where such code is expected.
 
-Weights:
+Schemes (``laplacian(mesh, scheme=...)``):
 
 - ``cotan``: ``w_ij = (cot α_ij + cot β_ij) / 2`` (Pinkall-Polthier / Meyer et al.). Negative
   for obtuse opposite angles, so discrete harmonic functions can undulate.
@@ -18,7 +18,7 @@ Weights:
   for harmonic bases (maximum principle holds); it is not a self-adjoint operator, so do not
   use it for eigenbases or heat kernels.
 
-Mass (``B``): ``voronoi`` (mixed Voronoi areas of Meyer et al., lumped, default),
+Mass (``B``, ``mass=...``): ``voronoi`` (mixed Voronoi areas of Meyer et al., lumped, default),
 ``barycentric`` (a third of each incident triangle, lumped), ``fem`` (consistent P1 mass
 matrix, not diagonal). All sum to the surface area.
 """
@@ -32,13 +32,25 @@ import robust_laplacian
 import scipy.sparse as sp
 
 from .._checks import lumped_diagonal as lumped_diagonal  # public here too (re-export)
+from .._deprecation import module_aliases, renamed_keywords
 from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 
-LaplacianKind = Literal["cotan", "robust", "mean_value"]
-MassKind = Literal["voronoi", "barycentric", "fem"]
-LAPLACIAN_KINDS = ("cotan", "robust", "mean_value")
-MASS_KINDS = ("voronoi", "barycentric", "fem")
+LaplacianScheme = Literal["cotan", "robust", "mean_value"]
+MassScheme = Literal["voronoi", "barycentric", "fem"]
+LAPLACIAN_SCHEMES = ("cotan", "robust", "mean_value")
+MASS_SCHEMES = ("voronoi", "barycentric", "fem")
+
+#: The names of earlier releases ("kind" now names basis kinds only).
+__getattr__ = module_aliases(
+    __name__,
+    {
+        "LaplacianKind": "LaplacianScheme",
+        "MassKind": "MassScheme",
+        "LAPLACIAN_KINDS": "LAPLACIAN_SCHEMES",
+        "MASS_KINDS": "MASS_SCHEMES",
+    },
+)
 
 
 class Operators(NamedTuple):
@@ -105,14 +117,19 @@ def mean_value_stiffness(mesh: Mesh) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(mesh.n_vertices, mesh.n_vertices))
 
 
-def mass_matrix(mesh: Mesh, kind: MassKind = "voronoi") -> sp.csr_matrix:
-    """``(V, V)`` mass matrix; lumped (diagonal) unless ``kind='fem'``. Sums to the area."""
+@renamed_keywords(kind="scheme")
+def mass_matrix(mesh: Mesh, scheme: MassScheme = "voronoi") -> sp.csr_matrix:
+    """``(V, V)`` mass matrix; lumped (diagonal) unless ``scheme='fem'``. Sums to the area.
+
+    Raises:
+        ParameterError: an unknown ``scheme``.
+    """
     v, f, n = mesh.vertices, mesh.faces, mesh.n_vertices
     area = mesh.face_areas
-    if kind == "barycentric":
+    if scheme == "barycentric":
         m = np.bincount(f.ravel(), weights=np.repeat(area / 3.0, 3), minlength=n)
         return sp.diags(m).tocsr()
-    if kind == "voronoi":
+    if scheme == "voronoi":
         cot = _cotangents(v, f)
         a, b = _corner_geometry(v, f)
         la2 = np.einsum("fci,fci->fc", a, a)  # |x_{c+1} - x_c|^2
@@ -124,12 +141,12 @@ def mass_matrix(mesh: Mesh, kind: MassKind = "voronoi") -> sp.csr_matrix:
         per_corner = np.where(any_obtuse, np.where(obtuse, area[:, None] / 2.0, area[:, None] / 4.0), vor)
         m = np.bincount(f.ravel(), weights=per_corner.ravel(), minlength=n)
         return sp.diags(m).tocsr()
-    if kind == "fem":
+    if scheme == "fem":
         rows = np.repeat(f, 3, axis=1).ravel()
         cols = np.tile(f, (1, 3)).ravel()
         local = np.where(np.eye(3, dtype=bool).ravel()[None, :], 2.0, 1.0) * (area[:, None] / 12)
         return sp.csr_matrix((local.ravel(), (rows, cols)), shape=(n, n))
-    raise ParameterError(f"unknown mass kind {kind!r}. Fix: use one of {MASS_KINDS}.")
+    raise ParameterError(f"unknown mass scheme {scheme!r}. Fix: use one of {MASS_SCHEMES}.")
 
 
 def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float = 1e-5) -> Operators:
@@ -143,19 +160,21 @@ def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float =
     return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
 
 
+@renamed_keywords(kind="scheme")
 def laplacian(
     mesh: Mesh | np.ndarray,
-    kind: LaplacianKind = "cotan",
-    mass: MassKind = "voronoi",
+    scheme: LaplacianScheme = "cotan",
+    mass: MassScheme = "voronoi",
     *,
     mollify_factor: float = 1e-5,
     n_neighbors: int = 30,
 ) -> Operators:
-    """Stiffness ``L`` and mass ``B`` of a mesh (or, with ``kind='robust'``, a point cloud).
+    """Stiffness ``L`` and mass ``B`` of a mesh (or, with ``scheme='robust'``, a point cloud).
 
     Args:
-        mesh: a :class:`~torchfmap.Mesh`, or ``(V, 3)`` points for ``kind='robust'``.
-        kind: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring).
+        mesh: a :class:`~torchfmap.Mesh`, or ``(V, 3)`` points for ``scheme='robust'``.
+        scheme: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring;
+            ``kind=`` is its old name).
         mass: ``'voronoi'``, ``'barycentric'`` or ``'fem'`` (ignored by ``'robust'``).
         mollify_factor, n_neighbors: passed to ``robust-laplacian``.
 
@@ -163,18 +182,19 @@ def laplacian(
         :class:`Operators` ``(L, B)``, both ``(V, V)`` CSR float64, ``L`` positive semidefinite.
 
     Raises:
-        MeshError: a vertex no face uses (see :meth:`~torchfmap.Mesh.referenced`), or a
-            scale at which the products over- or underflow.
+        ParameterError: an unknown ``scheme`` or ``mass``.
+        MeshError: a vertex no face uses (see :meth:`~torchfmap.Mesh.referenced`), a point
+            cloud without ``scheme='robust'``, or a scale at which the products over- or underflow.
     """
-    if kind not in LAPLACIAN_KINDS:
-        raise ParameterError(f"unknown Laplacian kind {kind!r}. Fix: use one of {LAPLACIAN_KINDS}.")
-    if mass not in MASS_KINDS:
-        raise ParameterError(f"unknown mass kind {mass!r}. Fix: use one of {MASS_KINDS}.")
+    if scheme not in LAPLACIAN_SCHEMES:
+        raise ParameterError(f"unknown Laplacian scheme {scheme!r}. Fix: use one of {LAPLACIAN_SCHEMES}.")
+    if mass not in MASS_SCHEMES:
+        raise ParameterError(f"unknown mass scheme {mass!r}. Fix: use one of {MASS_SCHEMES}.")
     if not isinstance(mesh, Mesh):
-        if kind != "robust":
+        if scheme != "robust":
             raise MeshError(
-                "point clouds (arrays) only have kind='robust' Laplacians. Fix: pass a Mesh, or "
-                "kind='robust'."
+                "point clouds (arrays) only have scheme='robust' Laplacians. Fix: pass a Mesh, or "
+                "scheme='robust'."
             )
         return point_cloud_laplacian(mesh, n_neighbors=n_neighbors, mollify_factor=mollify_factor)
     unused = np.flatnonzero(np.bincount(mesh.faces.ravel(), minlength=mesh.n_vertices) == 0)
@@ -185,17 +205,17 @@ def laplacian(
             "`sub, ids = mesh.referenced()`, work on `sub`, and map results back (vertex i of sub "
             "is vertex ids[i] of the mesh)."
         )
-    if kind == "robust":
+    if scheme == "robust":
         L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
         return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
     with np.errstate(all="ignore"):  # over/underflow is detected on the result, just below
-        stiffness = cotan_stiffness(mesh) if kind == "cotan" else mean_value_stiffness(mesh)
+        stiffness = cotan_stiffness(mesh) if scheme == "cotan" else mean_value_stiffness(mesh)
         ops = Operators(stiffness, mass_matrix(mesh, mass))
         total = float(ops.mass.sum())
     finite = np.isfinite(ops.stiffness.data).all() and np.isfinite(ops.mass.data).all()
     if not (finite and 0 < total < np.inf):
         raise MeshError(
-            f"the {kind} Laplacian of this mesh has non-finite entries or no mass: its scale (largest "
+            f"the {scheme} Laplacian of this mesh has non-finite entries or no mass: its scale (largest "
             f"coordinate {np.abs(mesh.vertices).max():.3g}) over- or underflows float64 products. "
             "Fix: rescale it first, e.g. mesh.normalized()."
         )

@@ -1,0 +1,146 @@
+"""What the learned path needs of one shape, read off its :class:`~torchfmap.PreparedShape`.
+
+One per-shape precompute serves both paths: :func:`~torchfmap.prepare_shape` builds the
+operators and eigenpairs once (unit-area frame, float64), and everything the network needs is
+derived from that object and cached on it (:meth:`~torchfmap.PreparedShape.derive`), so
+training, inference, ZoomOut refinement and evaluation of a shape share one Laplacian and one
+eigendecomposition:
+
+- :func:`network_inputs`: the input features (standardised WKS, centred unit-area coordinates);
+- :meth:`~torchfmap.PreparedShape.gradient`: the intrinsic gradient operator;
+- :func:`shape_arrays`: all of it plus the solver and network bases as numpy arrays (what the
+  on-disk cache of :class:`~torchfmap.nn.data.ShapeDataset` stores);
+- :func:`shape_item`: those arrays as the tensors of a dataset item (the only cast to the
+  network's dtype).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from .._deprecation import warn_renamed
+from ..bases.basis import Basis
+from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
+from ..descriptors import wks
+from ..errors import ParameterError
+from ..kinds import get_kind, learned_kind
+from ..mesh import Mesh
+from .modules import basis_arrays
+
+#: Eigenpairs the WKS inputs are computed from (:func:`shape_arrays`'s ``k_wks``).
+K_WKS = 100
+#: Relative diffusion times of the feature-aware bases on the learned path.
+SEED_TIMES = (0.01, 0.03)
+
+_ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
+
+
+def network_inputs(shape: PreparedShape, n_wks: int = 32, k_wks: int = K_WKS) -> dict[str, np.ndarray]:
+    """The network's input features of one shape, float64, computed once per shape and
+    ``(n_wks, k_wks)`` (cached on ``shape``): ``'wks'`` ``(V, n_wks)`` (the wave-kernel signature
+    of the first ``k_wks`` eigenpairs, each channel standardised over the vertices) and ``'xyz'``
+    ``(V, 3)`` (unit-area coordinates, centred at the area-weighted centroid). The eigenbasis is
+    grown in place when it holds fewer than ``k_wks`` pairs (capped at ``V - 1``).
+
+    Raises:
+        ParameterError: ``n_wks`` or ``k_wks`` below 1.
+    """
+    if n_wks < 1 or k_wks < 1:
+        raise ParameterError(f"n_wks and k_wks must be >= 1, got {n_wks} and {k_wks}.")
+    k_wks = min(k_wks, shape.mesh.n_vertices - 1)
+
+    def compute() -> dict[str, np.ndarray]:
+        eig = with_eigenpairs(shape, k_wks).eigenbasis
+        feats = wks(eig.eigenvalues[:k_wks], eig.values[:, :k_wks], n_wks)
+        feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
+        mass = shape.operators.mass.diagonal()
+        xyz = shape.frame.vertices
+        return {"wks": feats, "xyz": xyz - (xyz * mass[:, None]).sum(axis=0) / mass.sum()}
+
+    return shape.derive(("network_inputs", n_wks, k_wks), compute)
+
+
+def _solver_basis(shape: PreparedShape, kind: str, k: int) -> Basis:
+    """The functional-map basis of ``k`` functions of a registered kind
+    (:data:`torchfmap.bases.KINDS`), built on one prepared shape by the kind's ``shape_basis``
+    (farthest-point seeds for seeded kinds, diffusion at :data:`SEED_TIMES`), B-orthonormal."""
+    return get_kind(kind).shape_basis(shape, k, times=SEED_TIMES)
+
+
+def shape_arrays(
+    shape: PreparedShape | Mesh,
+    k: int = 50,
+    n_wks: int = 32,
+    k_wks: int = K_WKS,
+    *,
+    k_net: int = 0,
+    basis: str = "laplacian",
+) -> dict[str, np.ndarray]:
+    """Arrays for training and inference of one shape, in its unit-area frame, float64.
+
+    ``shape``: a :class:`~torchfmap.PreparedShape` (``prepare_shape(mesh, n)``, its eigenbasis
+    grown in place to ``max(k, k_wks, k_net)`` if it holds fewer, so that a caller who also
+    refines with ZoomOut computes one Laplacian and one eigendecomposition per shape), or a
+    :class:`~torchfmap.Mesh`, prepared here.
+
+    - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
+    - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
+    - inputs (:func:`network_inputs`): ``wks (V, n_wks)``, ``xyz (V, 3)``;
+    - gradient operator (:meth:`~torchfmap.PreparedShape.gradient`): ``grad_rows, grad_cols,
+      grad_x, grad_y, grad_order_t (E,)``;
+    - the original ``vertices``, ``faces``.
+
+    Raises:
+        ParameterError: an unknown or classical-only ``basis``, or ``shape`` neither a prepared
+            shape nor a mesh.
+    """
+    learned_kind(basis)  # refuses an unknown or classical-only kind before any work
+    k_all = max(k, k_wks, k_net)
+    if isinstance(shape, Mesh):
+        shape = prepare_shape(shape, min(k_all, shape.n_vertices - 1))
+    elif not isinstance(shape, PreparedShape):
+        raise ParameterError(
+            f"shape must be a PreparedShape or a Mesh, got {type(shape).__name__}. "
+            "Fix: shape_arrays(prepare_shape(mesh, n), ...) or shape_arrays(mesh, ...)."
+        )
+    mesh = shape.mesh
+    full = with_eigenpairs(shape, k_all).eigenbasis.truncated(k_all)
+    # the kinds read the shape's eigenbasis: give them exactly the k_all pairs the inputs use
+    arrays = basis_arrays(_solver_basis(dataclasses.replace(shape, eigenbasis=full), basis, k))
+    if k_net:
+        net = basis_arrays(full.truncated(k_net))
+        arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
+    arrays.update(network_inputs(shape, n_wks, k_wks))
+    arrays.update(shape.gradient())
+    arrays["vertices"] = mesh.vertices
+    arrays["faces"] = mesh.faces
+    return arrays
+
+
+def precompute_shape(
+    mesh: Mesh, k: int = 50, n_wks: int = 32, k_wks: int = K_WKS, *, k_net=0, basis="laplacian", shape=None
+) -> dict[str, np.ndarray]:
+    """Deprecated name of :func:`shape_arrays` (``shape_arrays(shape or mesh, ...)``)."""
+    warn_renamed("torchfmap.nn.precompute_shape(mesh, shape=)", "torchfmap.nn.shape_arrays(shape or mesh)")
+    if shape is not None and (not isinstance(shape, PreparedShape) or shape.mesh is not mesh):
+        raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
+    return shape_arrays(mesh if shape is None else shape, k, n_wks, k_wks, k_net=k_net, basis=basis)
+
+
+def shape_item(
+    arrays: dict[str, np.ndarray], inputs: str = "wks", dtype=torch.float32, name: str = "", index: int = 0
+) -> dict:
+    """A dataset item (see :class:`~torchfmap.nn.data.ShapeDataset`) from :func:`shape_arrays`
+    arrays: floats cast to ``dtype``, ``inputs`` (``'wks'`` or ``'xyz'``) as the item's
+    ``'inputs'``, index arrays int64."""
+    item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
+    item["inputs"] = torch.as_tensor(arrays[inputs], dtype=dtype)
+    item["xyz"] = torch.as_tensor(arrays["xyz"], dtype=dtype)
+    for key in ("grad_rows", "grad_cols", "grad_order_t", "vertices", "faces"):
+        if key in arrays:
+            item[key] = torch.as_tensor(arrays[key])
+    item["name"], item["index"] = name, index
+    return item
