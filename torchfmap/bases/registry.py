@@ -15,6 +15,8 @@ from .basis import Basis
 #: Every basis kind by name (a kind object of :mod:`torchfmap.kinds`), in the order the command
 #: line lists them.
 KINDS: dict = {}
+#: Names of bases of no registered kind (``fmap.defaults.basis_kind``), never a kind's name.
+RESERVED_NAMES = ("custom", "diffusion_mix")
 
 
 def register_kind(kind):
@@ -22,11 +24,17 @@ def register_kind(kind):
     returns it. Registering a name again replaces the kind.
 
     Raises:
-        ParameterError: an object without a string ``name``.
+        ParameterError: an object without a string ``name``, or a name reserved for bases of no
+            kind (:data:`RESERVED_NAMES`).
     """
     name = getattr(kind, "name", None)
     if not isinstance(name, str) or not name:
         raise ParameterError(f"a basis kind needs a non-empty string name, got {name!r}.")
+    if name in RESERVED_NAMES:
+        raise ParameterError(
+            f"{name!r} names bases of no registered kind (torchfmap.fmap.defaults.W_LAP_OTHER). "
+            "Fix: give the kind another name."
+        )
     KINDS[name] = kind
     return kind
 

@@ -23,7 +23,7 @@ W_LAP_SMOOTH = 0.1
 W_LAP_KERNELS = 1.0
 #: Laplacian-commutativity weight of bases of no registered kind: ``'diffusion_mix'`` for mixes
 #: holding heat kernels, ``'custom'`` for the rest.
-W_LAP_OTHER = {"diffusion_mix": W_LAP_KERNELS, "custom": W_LAP_SMOOTH}
+W_LAP_OTHER = {"diffusion_mix": W_LAP_KERNELS, "custom": W_LAP_SMOOTH}  # registry.RESERVED_NAMES
 #: Orientation-preservation weight when both meshes are given (tells left from right), for
 #: bases of no registered kind and the kinds' default; a kind's own is its ``w_orient``. Each
 #: operator pair is scaled to unit norm (``fmap.solver``), so at 1 the 16 orientation pairs
