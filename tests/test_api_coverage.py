@@ -48,7 +48,7 @@ def public_callables(module_name: str) -> dict[str, object]:
 def test_every_public_callable_appears_in_a_test():
     text = "\n".join(
         p.read_text(encoding="utf-8")
-        for p in sorted(TESTS.glob("test_*.py"))
+        for p in sorted(TESTS.rglob("test_*.py"))
         if p.name != Path(__file__).name
     )
     missing = []
@@ -57,7 +57,9 @@ def test_every_public_callable_appears_in_a_test():
             called = rf"\b{re.escape(name)}\(" if inspect.isfunction(obj) else rf"\b{re.escape(name)}\b"
             if not re.search(called, text):
                 missing.append(f"{module_name}.{name}")
-    assert not missing, f"public functions never called (classes never named) in tests/test_*.py: {missing}"
+    assert not missing, (
+        f"public functions never called (classes never named) in tests/**/test_*.py: {missing}"
+    )
 
 
 def test_collection_finds_the_api():

@@ -1,4 +1,5 @@
-"""Shared input checks (``torchfmap._checks``): symmetry tolerance, lumped mass, vertex indices."""
+"""Shared input checks (``torchfmap._checks``): symmetry tolerance, lumped mass, vertex indices
+(also through every basis builder), seeds on every component."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from torchfmap import ParameterError, SeedError, laplacian
+from torchfmap import Mesh, ParameterError, SeedError, basis_stack, diffusion_basis, harmonic_basis, laplacian
 from torchfmap._checks import (
     check_lumped_mass,
     check_symmetric,
@@ -15,6 +16,8 @@ from torchfmap._checks import (
     lumped_diagonal,
     symmetry_tolerance,
 )
+from torchfmap.data import icosphere
+from torchfmap.seeds import check_seeds_cover_components
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
@@ -60,3 +63,41 @@ def test_vertex_index_messages_name_the_fix():
         with pytest.raises(SeedError, match="Fix:"):
             check_vertex_indices(bad, 5, "seeds")
     assert check_vertex_indices([3.0, 1], 5).dtype == np.int64
+
+
+def test_check_vertex_indices():
+    np.testing.assert_array_equal(check_vertex_indices([3, 1], 5), [3, 1])
+    np.testing.assert_array_equal(check_vertex_indices(np.array([2.0, 4.0]), 5), [2, 4])
+    for bad, msg in (
+        ([1, 1], "duplicates"),
+        ([], "empty"),
+        ([0.5], "integer"),
+        ([[0, 1]], "1-D"),
+        ([5], "out of range"),
+    ):
+        with pytest.raises(SeedError, match=msg):
+            check_vertex_indices(bad, 5)
+
+
+def test_check_seeds_cover_components():
+    a, b = icosphere(1), icosphere(1)
+    two = Mesh(
+        np.vstack([a.vertices, b.vertices + 3.0]),
+        np.vstack([a.faces, b.faces + a.n_vertices]),
+        validate=False,
+    )
+    check_seeds_cover_components(two, np.array([0, a.n_vertices]))  # one seed per component: fine
+    with pytest.raises(SeedError, match="1 connected component\\(s\\) have no seed"):
+        check_seeds_cover_components(two, np.array([0, 1]))
+
+
+@pytest.mark.parametrize("build", [harmonic_basis, diffusion_basis, basis_stack])
+def test_duplicate_out_of_range_and_empty_seeds(blob, build):
+    with pytest.raises(SeedError, match=r"duplicates \[5\].*np.unique"):
+        build(blob, [1, 5, 5])
+    with pytest.raises(SeedError, match=r"\[642\] are out of range .*0-based"):
+        build(blob, [0, 642])
+    with pytest.raises(SeedError, match="empty"):
+        build(blob, [])
+    with pytest.raises(SeedError, match="integer"):
+        build(blob, [0.5, 2.0])

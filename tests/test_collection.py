@@ -1,14 +1,17 @@
-"""Collection evaluation (behind ``torchfmap eval``): shapes prepared once, pools, executors."""
+"""Collection evaluation (``torchfmap.collection``, behind ``torchfmap eval``): shapes prepared
+once, pools, executors, landmark files per pair, shape-distance matrices."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torchfmap import ParameterError
-from torchfmap.eval import gt_identity
+from torchfmap import ParameterError, match
+from torchfmap.cli import main
+from torchfmap.data import icosphere
+from torchfmap.eval import gt_identity, retrieval_accuracy
 
-from .conftest import bend, bumpy_blob
+from .conftest import _err, _identity_folder, bend, bumpy_blob
 
 
 def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_results(tmp_path, monkeypatch):
@@ -201,3 +204,43 @@ def test_evaluate_pairs_on_a_local_dask_cluster_of_two_workers(tmp_path):
     assert [(r.source, r.target) for r in on_cluster] == [(r.source, r.target) for r in one]
     for r1, r2 in zip(one, on_cluster, strict=True):
         np.testing.assert_array_equal(r1.errors, r2.errors)
+
+
+def test_eval_reads_landmark_pairs_per_pair_from_a_folder(tmp_path, capsys):
+    """``eval --landmarks DIR``: each pair's landmarks come from DIR/<source>-<target>.txt; the
+    result equals passing the same pairs to match() directly."""
+    from torchfmap import load_mesh
+    from torchfmap.collection import LandmarkFiles, evaluate_pairs
+    from torchfmap.eval import discover_pairs, evaluate_map
+
+    folder = _identity_folder(tmp_path)
+    lms = tmp_path / "lm"
+    lms.mkdir()
+    pairs = list(discover_pairs(folder))
+    for a, b, *_ in pairs:
+        (lms / f"{a}-{b}.txt").write_text("3 3\n60 60\n120 120\n")
+    results = evaluate_pairs(pairs, gt_landmarks=LandmarkFiles(lms), k=12, threads=1)
+    for (_, _, pa, pb, gt), r in zip(pairs, results, strict=True):
+        x, y = load_mesh(pa), load_mesh(pb)
+        p2p = match(x, y, landmarks=np.array([[3, 3], [60, 60], [120, 120]]), k=12).p2p_yx
+        np.testing.assert_array_equal(r.errors, evaluate_map(x, y, p2p, gt)[1])
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--k", "12", "--quiet"]) == 0
+    capsys.readouterr()
+    (lms / f"{pairs[0][0]}-{pairs[0][1]}.txt").unlink()
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--quiet"]) == 2
+    assert "no landmark file" in _err(capsys)
+    assert main(["eval", str(folder), "--landmarks", str(lms), "--gt-landmarks", "3"]) == 2
+    assert "pass one of them" in _err(capsys)
+
+
+def test_retrieval_on_two_synthetic_classes():
+    """Bent blobs and ellipsoids: shape distances from maps separate the classes."""
+    from torchfmap.collection import shape_distance_matrix
+
+    blob = bumpy_blob(2)
+    sphere = icosphere(2)
+    shapes = [blob.copy(bend(blob.vertices, s)) for s in (0.1, 0.2, 0.4)]
+    shapes += [sphere.copy(sphere.vertices * np.array([1.6, a, 0.5])) for a in (0.8, 0.9, 1.0)]
+    D = shape_distance_matrix(shapes, k=10, k_descriptors=30)
+    assert np.allclose(D, D.T) and np.all(np.diag(D) == 0)
+    assert retrieval_accuracy(D, ["blob"] * 3 + ["sphere"] * 3) == 1.0

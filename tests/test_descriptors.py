@@ -19,17 +19,18 @@ import scipy.linalg as sla
 
 from torchfmap import ParameterError, SeedError, laplacian, laplacian_eigenbasis, total_area
 from torchfmap.data import icosphere
-from torchfmap.descriptors import (
-    check_descriptors,
-    hks,
-    landmark_descriptors,
-    normalize_descriptors,
-    wks,
-)
+from torchfmap.descriptors import check_descriptors, hks, landmark_descriptors, normalize_descriptors, wks
 
 from .conftest import random_rotation
 
 L_MAX = 4  # degrees 0..4: (L_MAX + 1)² = 25 eigenpairs, whole eigenvalue clusters
+
+
+def cotan_rel_error(lam, mesh) -> np.ndarray:
+    """Relative eigenvalue / eigenfunction accuracy ``λ h² / 12`` (module docstring)."""
+    return np.asarray(lam, dtype=float) * mesh.edge_lengths.max() ** 2 / 12
+
+
 K_SPHERE = (L_MAX + 1) ** 2
 
 
@@ -38,28 +39,6 @@ def sphere_setup(subdivisions: int):
     mesh = icosphere(subdivisions)
     basis = laplacian_eigenbasis(mesh, K_SPHERE)
     return mesh, basis
-
-
-def cotan_rel_error(lam, mesh) -> np.ndarray:
-    """Relative eigenvalue / eigenfunction accuracy ``λ h² / 12`` (module docstring)."""
-    return np.asarray(lam, dtype=float) * mesh.edge_lengths.max() ** 2 / 12
-
-
-def wks_reference(evals, evecs, n_energies, sigma_factor=7.0):
-    """Aubry et al. 2011, written out: log-energies evenly spaced between the logs of the
-    smallest non-zero and the largest eigenvalue, Gaussian width ``σ = factor·range/E``,
-    each energy's weights normalised to sum 1, the zero eigenvalue left out."""
-    out = np.zeros((evecs.shape[0], n_energies))
-    nz = evals > 1e-10 * evals.max()
-    logs = np.log(evals[nz])
-    energies = np.linspace(logs.min(), logs.max(), n_energies)
-    sigma = sigma_factor * (logs.max() - logs.min()) / n_energies
-    for j, e in enumerate(energies):
-        w = np.exp(-((e - logs) ** 2) / (2 * sigma**2))
-        w /= w.sum()
-        for wk, phi in zip(w, evecs[:, nz].T, strict=True):
-            out[:, j] += wk * phi**2
-    return out
 
 
 @pytest.mark.parametrize("subdivisions", [2, 3])
@@ -130,6 +109,23 @@ def test_hks_default_times_and_naive_sum(blob):
         for k in range(len(lam)):
             naive[:, j] += np.exp(-max(lam[k], 0) * t) * phi[:, k] ** 2
     np.testing.assert_allclose(hks(lam, phi, n_times=6), naive, rtol=1e-12)
+
+
+def wks_reference(evals, evecs, n_energies, sigma_factor=7.0):
+    """Aubry et al. 2011, written out: log-energies evenly spaced between the logs of the
+    smallest non-zero and the largest eigenvalue, Gaussian width ``σ = factor·range/E``,
+    each energy's weights normalised to sum 1, the zero eigenvalue left out."""
+    out = np.zeros((evecs.shape[0], n_energies))
+    nz = evals > 1e-10 * evals.max()
+    logs = np.log(evals[nz])
+    energies = np.linspace(logs.min(), logs.max(), n_energies)
+    sigma = sigma_factor * (logs.max() - logs.min()) / n_energies
+    for j, e in enumerate(energies):
+        w = np.exp(-((e - logs) ** 2) / (2 * sigma**2))
+        w /= w.sum()
+        for wk, phi in zip(w, evecs[:, nz].T, strict=True):
+            out[:, j] += wk * phi**2
+    return out
 
 
 def test_wks_matches_definition(blob):
@@ -288,3 +284,16 @@ def test_check_descriptors(blob, rng):
     bad[5, 4] = np.nan
     with pytest.raises(ParameterError, match=r"non-finite values in columns \[4\]"):
         check_descriptors(bad, blob.n_vertices, "descriptors")
+
+
+def test_no_nan_from_bad_descriptor_parameters(sphere2):
+    from torchfmap import laplacian_eigenbasis
+    from torchfmap.descriptors import hks, wks
+
+    basis = laplacian_eigenbasis(sphere2, 10)
+    for t in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ParameterError, match="HKS times must be finite"):
+            hks(basis.eigenvalues, basis.values, abs_times=[t])
+    for s in (0.0, -1.0, float("nan")):
+        with pytest.raises(ParameterError, match="sigma_factor"):
+            wks(basis.eigenvalues, basis.values, sigma_factor=s)

@@ -31,7 +31,7 @@ VARIABLES = {
 #: Module-level names of the test files (the docs cite a few, e.g. ``LAZY_TORCH``).
 TEST_NAMES = {
     m.group(1)
-    for path in Path(__file__).parent.glob("*.py")
+    for path in Path(__file__).parent.rglob("*.py")
     for m in re.finditer(r"^([A-Z][A-Z0-9_]*)\s*[:=]", path.read_text(encoding="utf-8"), flags=re.M)
 }
 SPAN = re.compile(r"`([^`\n]+)`")

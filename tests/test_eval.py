@@ -1,15 +1,21 @@
-"""Evaluation metrics against hand values; ground-truth formats; shape distances, retrieval."""
+"""Evaluation (``torchfmap.eval``): metrics against hand values, bijectivity error, shape
+differences, reports, ground-truth formats and pair discovery (never a silent identity), invalid
+maps refused."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torchfmap import ParameterError, load_mesh
+from torchfmap import ParameterError, load_mesh, save_mesh
+from torchfmap.cli import main
 from torchfmap.data import icosphere
 from torchfmap.eval import (
+    MapReport,
     auc,
+    bijectivity_error,
     coverage,
+    discover_pairs,
     evaluate_map,
     geodesic_errors,
     gt_from_map,
@@ -17,12 +23,13 @@ from torchfmap.eval import (
     gt_identity,
     pck_curve,
     retrieval_accuracy,
+    shape_difference,
     shape_distance,
     smoothness,
 )
 from torchfmap.io import read_map, read_vts
 
-from .conftest import bend, bumpy_blob, data_path
+from .conftest import bend, bumpy_blob, data_path, make_bent_pair
 
 
 def test_geodesic_error_hand_value():
@@ -88,14 +95,133 @@ def test_shape_distance_and_retrieval():
     assert retrieval_accuracy(D, ["a", "b", "a", "b"]) == 0.0
 
 
-def test_retrieval_on_two_synthetic_classes():
-    """Bent blobs and ellipsoids: shape distances from maps separate the classes."""
-    from torchfmap.collection import shape_distance_matrix
+def test_bijectivity_error_zero_for_bijection(sphere3):
+    perm = np.random.default_rng(2).permutation(sphere3.n_vertices)
+    assert bijectivity_error(sphere3, perm, np.argsort(perm)) == 0.0
 
-    blob = bumpy_blob(2)
-    sphere = icosphere(2)
-    shapes = [blob.copy(bend(blob.vertices, s)) for s in (0.1, 0.2, 0.4)]
-    shapes += [sphere.copy(sphere.vertices * np.array([1.6, a, 0.5])) for a in (0.8, 0.9, 1.0)]
-    D = shape_distance_matrix(shapes, k=10, k_descriptors=30)
-    assert np.allclose(D, D.T) and np.all(np.diag(D) == 0)
-    assert retrieval_accuracy(D, ["blob"] * 3 + ["sphere"] * 3) == 1.0
+
+@pytest.mark.parametrize("subdivisions", [2, 3])
+def test_bijectivity_error_by_hand(subdivisions):
+    """On the unit sphere the geodesic distance is arccos(p·q). A back map sending everything to
+    vertex 0 gives mean_v arccos(v·v_0)/sqrt(|M|); one sending v to its antipode gives
+    π/sqrt(|M|). The heat method (t = h²) is first-order accurate: relative error ≤ h_max."""
+    y = icosphere(subdivisions)
+    v, n = y.vertices, y.n_vertices
+    ident = np.arange(n)
+    h = y.edge_lengths.max()
+    const = np.zeros(n, dtype=np.int64)
+    hand = np.arccos(np.clip(v @ v[0], -1, 1)).mean() / np.sqrt(y.area)
+    assert bijectivity_error(y, ident, const, max_points=None) == pytest.approx(hand, rel=h)
+    antipode = np.argmin(v @ v.T, axis=1)
+    np.testing.assert_allclose(v[antipode], -v, atol=1e-12)  # icospheres are centrally symmetric
+    got = bijectivity_error(y, ident, antipode, max_points=None)
+    assert got == pytest.approx(np.pi / np.sqrt(y.area), rel=h)
+
+
+def test_shape_difference_closed_forms():
+    """Area: CᵀC (identity for orthogonal C); conformal: W_x⁺ Cᵀ W_y C (identity when
+    C W_x Cᵀ = W_y with invertible W)."""
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    np.testing.assert_allclose(shape_difference(Q), np.eye(5), atol=1e-12)
+    C = rng.normal(size=(4, 5))
+    np.testing.assert_allclose(shape_difference(C, kind="area"), C.T @ C, rtol=1e-12)
+    W = np.diag(rng.uniform(1, 3, 5))
+    np.testing.assert_allclose(shape_difference(Q, W, Q @ W @ Q.T, kind="conformal"), np.eye(5), atol=1e-10)
+    with pytest.raises(ParameterError, match="needs W_x and W_y"):
+        shape_difference(Q, kind="conformal")
+    with pytest.raises(ParameterError, match="unknown shape difference"):
+        shape_difference(Q, kind="volume")
+
+
+def test_map_report_row(sphere2):
+    """evaluate_map on the identity: zero errors, AUC 1, full coverage, unit stretch."""
+    n = sphere2.n_vertices
+    report, errors = evaluate_map(sphere2, sphere2, np.arange(n), gt_from_map(np.arange(n)))
+    assert isinstance(report, MapReport)
+    assert errors.max() == 0 and report.mean_error == 0 and report.auc == pytest.approx(1.0)
+    assert report.coverage == 1.0 and report.smoothness == pytest.approx(1.0, rel=1e-12)
+    assert report.row().split() == ["0.0000", "0.0000", "1.000", "1.000", "1.00"]
+
+
+def test_discover_pairs(tmp_path, sphere2):
+    """Without corres/: consecutive meshes with the identity; with corres/ and test_pairs.txt:
+    the listed pairs and .vts ground truth (1-based files -> 0-based indices)."""
+    for name in ("a", "b", "c"):
+        save_mesh(sphere2, tmp_path / f"{name}.off")
+    pairs = list(discover_pairs(tmp_path))
+    assert [(a, b) for a, b, *_ in pairs] == [("a", "b"), ("b", "c")]
+    gt = pairs[0][4]
+    np.testing.assert_array_equal(gt.idx_y, np.arange(sphere2.n_vertices))
+    np.testing.assert_array_equal(gt.idx_x, gt.idx_y)
+    (tmp_path / "corres").mkdir()
+    np.savetxt(tmp_path / "corres" / "a.vts", [1, 5, 7], fmt="%d")
+    np.savetxt(tmp_path / "corres" / "c.vts", [2, 3, 9], fmt="%d")
+    (tmp_path / "test_pairs.txt").write_text("c a\n")
+    (only,) = list(discover_pairs(tmp_path))
+    assert only[:2] == ("c", "a")
+    np.testing.assert_array_equal(only[4].idx_x, [1, 2, 8])  # source x = c
+    np.testing.assert_array_equal(only[4].idx_y, [0, 4, 6])  # target y = a
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ParameterError, match="fewer than two meshes"):
+        list(discover_pairs(empty))
+
+
+@pytest.fixture
+def shuffled_folder(tmp_path):
+    """Two meshes of equal vertex count whose vertex orders differ (the second is shuffled)."""
+    x, y, _ = make_bent_pair(0.2, seed=0, subdivisions=2)
+    save_mesh(x, tmp_path / "a.off")
+    save_mesh(y, tmp_path / "b.off")
+    return tmp_path
+
+
+def test_identity_only_for_one_template_unless_asked(shuffled_folder, tmp_path, capsys):
+    with pytest.raises(ParameterError, match="face lists differ.*--gt identity"):
+        list(discover_pairs(shuffled_folder))
+    ((_, _, _, _, gt),) = list(discover_pairs(shuffled_folder, identity=True))
+    np.testing.assert_array_equal(gt.idx_x, gt.idx_y)
+    assert main(["eval", str(shuffled_folder), "--k", "8", "--quiet"]) == 2
+    assert "--gt identity" in capsys.readouterr().err
+    # the same template (same faces): identity is the convention, and --gt files refuses it
+    same = tmp_path / "same"
+    same.mkdir()
+    x = bumpy_blob(2)
+    for i, s in enumerate((0.1, 0.3)):
+        save_mesh(x.copy(bend(x.vertices, s)), same / f"m{i}.off")
+    assert len(list(discover_pairs(same))) == 1
+    with pytest.raises(ParameterError, match="no ground truth"):
+        list(discover_pairs(same, identity=False))
+    assert main(["eval", str(same), "--k", "8", "--quiet", "--gt", "files"]) == 2
+
+
+def test_gt_from_vts_names_paths_given_for_arrays(tmp_path):
+    from torchfmap.eval import gt_from_vts
+
+    with pytest.raises(ParameterError, match=r"not their paths.*read_vts"):
+        gt_from_vts(str(tmp_path / "a.vts"), tmp_path / "b.vts")
+
+
+def test_evaluation_refuses_invalid_maps(sphere2):
+    """-1 used to wrap to the last vertex, a map in the wrong direction was scored, floats and
+    out-of-range entries gave bare IndexErrors, max_points=0 gave NaN."""
+    from torchfmap.eval import evaluate_map, geodesic_errors, gt_identity
+
+    small = icosphere(1)
+    n = sphere2.n_vertices
+    gt = gt_identity(small.n_vertices)
+    good = np.arange(small.n_vertices)
+    cases = {
+        "outside": good - 1,  # holds -1
+        "outside ": good + 1,  # holds n
+        "integer": good.astype(float),
+    }
+    for match_text, p2p in cases.items():
+        with pytest.raises(ParameterError, match=match_text.strip()):
+            geodesic_errors(small, p2p, gt)
+    with pytest.raises(ParameterError, match="looks like a map x -> y"):
+        evaluate_map(small, sphere2, good, gt)
+    with pytest.raises(ParameterError, match="max_points"):
+        geodesic_errors(small, good, gt, max_points=0)
+    assert n > small.n_vertices

@@ -1,4 +1,5 @@
-"""Atomic checksummed files (``torchfmap._files``) behind ``Basis.save/load`` and the nn cache."""
+"""Atomic checksummed files (``torchfmap._files``) behind ``Basis.save/load`` and the nn cache:
+concurrent writers, failed writes and renames, killed writers, unwritable destinations."""
 
 from __future__ import annotations
 
@@ -6,22 +7,14 @@ import threading
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
-from torchfmap import Basis, Column
-from torchfmap._files import atomic_write, checksum, load_arrays, save_arrays
+from torchfmap import Basis, TorchFmapError
+from torchfmap._files import atomic_write, load_arrays, save_arrays
 from torchfmap.bases import CorruptFileError
-from torchfmap.nn.data import PrecomputeCache
+from torchfmap.cli import main
+from torchfmap.errors import FileWriteError
 
-
-def _basis(n: int = 400, k: int = 60, value: float = 0.0) -> Basis:
-    rng = np.random.default_rng(int(value * 1000) % 2**32)
-    return Basis(
-        rng.standard_normal((n, k)) + value,
-        sp.diags(np.full(n, 1.0 / n)),
-        [Column("custom") for _ in range(k)],
-        stiffness=sp.identity(n, format="csr"),
-    )
+from .conftest import DEMO, _basis, _err
 
 
 def test_two_threads_saving_one_path_both_succeed(tmp_path):
@@ -119,46 +112,6 @@ def test_checksum_verified_on_read(tmp_path):
         load_arrays(tmp_path / "missing.npz")
 
 
-def test_old_basis_format_still_loads(tmp_path):
-    """A file as the previous ``Basis.save`` wrote it (plain np.savez, ``checksum`` key)."""
-    basis = _basis(n=20, k=3)
-    arrays = {
-        "values": basis.values,
-        "mass_row": np.arange(20, dtype=np.int64),
-        "mass_col": np.arange(20, dtype=np.int64),
-        "mass_data": np.full(20, 1 / 20),
-        "prov_kind": np.array(["custom"] * 3, dtype="U16"),
-        "prov_seed": np.full(3, -1, dtype=np.int64),
-        "prov_time": np.full(3, np.nan),
-        "prov_index": np.full(3, -1, dtype=np.int64),
-        "prov_kept": np.ones(3, dtype=bool),
-        "orthonormal": np.array(False),
-        "version": np.array(1),
-    }
-    arrays["checksum"] = np.array(checksum(arrays))
-    np.savez(tmp_path / "old.npz", **arrays)
-    back = Basis.load(tmp_path / "old.npz")
-    assert np.array_equal(back.values, basis.values) and back.provenance == basis.provenance
-
-
-def test_cache_uses_the_same_writer_and_rebuilds_corrupt_entries(tmp_path):
-    cache = PrecomputeCache(tmp_path)
-    calls = []
-
-    def compute():
-        calls.append(1)
-        return {"values": np.arange(6.0).reshape(3, 2)}
-
-    first = cache.get("k", compute)
-    second = cache.get("k", compute)
-    assert len(calls) == 1 and np.array_equal(first["values"], second["values"])
-    assert load_arrays(cache.path("k"), "__checksum__").keys() == {"values"}  # cache key kept
-    cache.path("k").write_bytes(cache.path("k").read_bytes()[:50])
-    cache.get("k", compute)
-    assert len(calls) == 2
-    assert [p.name for p in tmp_path.iterdir()] == ["k.npz"]
-
-
 def test_bytes_that_reach_the_disk_wrong_are_caught_before_the_rename(tmp_path, monkeypatch):
     """A save whose file on disk differs from what was meant (a flipped byte, as a bad disk or
     a concurrent scribbler would leave) is refused by the read-back check, and the old file
@@ -215,3 +168,85 @@ def test_unwritable_destination_is_named_with_the_fix(tmp_path, monkeypatch, err
     assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]  # no temp litter
     save_arrays(path, {"x": np.arange(4)})  # the next save works and leaves nothing else
     assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]
+
+
+def test_temp_litter_of_killed_writers_is_removed_by_the_next_save(tmp_path, sphere2):
+    """A writer killed mid-save leaves its hidden temp file; the next save of that path removes
+    it (its process is gone), and keeps files of live writers."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from torchfmap import Basis, laplacian_eigenbasis
+
+    basis = laplacian_eigenbasis(sphere2, 4)
+    target = tmp_path / "b.npz"
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    dead = tmp_path / f".b.npz.{child.pid}.1.abc.tmp"
+    dead.write_bytes(b"partial")
+    alive = tmp_path / f".b.npz.{os.getpid()}.99.def.tmp"
+    alive.write_bytes(b"in progress")
+    basis.save(target)
+    assert not dead.exists() and alive.exists()
+    assert Basis.load(target).k == 4
+
+
+@pytest.mark.slow
+def test_kill_during_save_leaves_a_valid_file_and_no_litter_after_the_next_save(tmp_path):
+    """kill -9 at random moments while a process rewrites a basis: the path always holds a
+    complete file (old or new, checksum verified), and the next save removes the dead
+    writer's temp file."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from torchfmap import Basis
+
+    target = tmp_path / "big.npz"
+    code = (
+        "import numpy as np, scipy.sparse as sp, sys\n"
+        "from torchfmap import Basis\n"
+        "v = np.random.default_rng(0).normal(size=(400000, 16))\n"
+        "b = Basis(v, sp.identity(400000, format='csr'))\n"
+        "b.save(sys.argv[1]); print('ready', flush=True)\n"
+        "while True: b.save(sys.argv[1])\n"
+    )
+    for delay in (0.05, 0.2, 0.5):
+        with subprocess.Popen(
+            [sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True
+        ) as child:
+            assert child.stdout.readline().strip() == "ready"
+            time.sleep(delay)
+            child.send_signal(signal.SIGKILL)
+            child.wait()
+        assert Basis.load(target).values.shape == (400000, 16)
+    small = Basis(np.ones((3, 1)), np.ones(3))
+    small.save(target)
+    assert not list(tmp_path.glob(".*.tmp"))
+    assert Basis.load(target).k == 1
+
+
+def test_a_failed_write_is_a_torchfmap_error_and_the_cli_says_so(tmp_path, monkeypatch, capsys):
+    import builtins
+
+    import torchfmap._files as files
+
+    real_open = builtins.open
+
+    def full_disk(file, mode="r", *args, **kwargs):
+        if "w" in mode and str(file).endswith(".tmp"):
+            raise OSError(28, "No space left on device")
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(files, "open", full_disk, raising=False)
+    with pytest.raises(FileWriteError) as info:
+        files.save_arrays(tmp_path / "a.npz", {"x": np.arange(3)})
+    assert info.value.errno == 28 and isinstance(info.value, TorchFmapError)
+    out = tmp_path / "b.npz"
+    assert main(["basis", f"{DEMO}/blob_a.off", "--k", "10", "--out", str(out), "--quiet"]) == 1
+    err = _err(capsys)
+    assert "could not write" in err and "free disk space" in err and not out.exists()

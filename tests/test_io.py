@@ -1,5 +1,6 @@
 """Loading keeps the file's vertex order for every format (round trip against the raw file); one
-suffix rule (``.gz`` everywhere) for every reader, writer and folder listing."""
+suffix rule (``.gz`` everywhere) for every reader, writer and folder listing; bad files are
+named (truncated, 1-based, not STL, point clouds, non-manifold)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import gzip
 import numpy as np
 import pytest
 
-from torchfmap import MeshError, ParameterError, TorchFmapError, load_mesh, save_mesh
+from torchfmap import MeshError, MeshWarning, ParameterError, TorchFmapError, load_mesh, save_mesh
+from torchfmap.bases.prepared import prepare_shape
 from torchfmap.data import icosphere
 from torchfmap.io import (
     find_file,
@@ -26,8 +28,10 @@ from torchfmap.io import (
     split_suffix,
     write_map,
 )
+from torchfmap.mesh import Mesh
+from torchfmap.operators import laplacian
 
-from .conftest import data_path
+from .conftest import bumpy_blob, data_path, smallest_eigenvalues, with_fin
 
 
 @pytest.fixture(scope="module")
@@ -37,12 +41,12 @@ def shuffled():
     return m.permuted(np.random.default_rng(7).permutation(m.n_vertices))
 
 
-def raw_off(path):
-    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
-    nv, nf = map(int, lines[1].split()[:2])
-    v = np.array([list(map(float, ln.split()[:3])) for ln in lines[2 : 2 + nv]])
-    f = np.array([list(map(int, ln.split()[1:4])) for ln in lines[2 + nv : 2 + nv + nf]])
-    return v, f
+@pytest.mark.parametrize("ext", [".off", ".obj", ".ply", ".off.gz", ".obj.gz", ".ply.gz"])
+def test_round_trip_keeps_order(tmp_path, shuffled, ext):
+    path = save_mesh(shuffled, tmp_path / f"mesh{ext}")
+    loaded = load_mesh(path)
+    assert np.allclose(loaded.vertices, shuffled.vertices, atol=1e-7)
+    assert np.array_equal(loaded.faces, shuffled.faces)
 
 
 def raw_obj(path):
@@ -57,12 +61,12 @@ def raw_obj(path):
     return np.array(v), np.array(f)
 
 
-@pytest.mark.parametrize("ext", [".off", ".obj", ".ply", ".off.gz", ".obj.gz", ".ply.gz"])
-def test_round_trip_keeps_order(tmp_path, shuffled, ext):
-    path = save_mesh(shuffled, tmp_path / f"mesh{ext}")
-    loaded = load_mesh(path)
-    assert np.allclose(loaded.vertices, shuffled.vertices, atol=1e-7)
-    assert np.array_equal(loaded.faces, shuffled.faces)
+def raw_off(path):
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    nv, nf = map(int, lines[1].split()[:2])
+    v = np.array([list(map(float, ln.split()[:3])) for ln in lines[2 : 2 + nv]])
+    f = np.array([list(map(int, ln.split()[1:4])) for ln in lines[2 + nv : 2 + nv + nf]])
+    return v, f
 
 
 @pytest.mark.parametrize("ext", [".off", ".obj"])
@@ -229,3 +233,119 @@ def test_one_based_off_faces_are_named_as_such(tmp_path):
     path.write_text("OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n3 0 1 9\n")
     with pytest.raises(MeshError, match="face index 9, outside the 4 vertices"):
         load_mesh(path)
+
+
+def _off_text(mesh) -> str:
+    lines = ["OFF", f"{mesh.n_vertices} {mesh.n_faces} 0"]
+    lines += [" ".join(f"{c:.9g}" for c in v) for v in mesh.vertices]
+    lines += ["3 " + " ".join(str(i) for i in f) for f in mesh.faces]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("cut", [1, 5, 200])
+def test_truncated_off_is_refused_naming_the_counts(tmp_path, sphere2, cut):
+    """A file missing its last face lines used to load with a new hole (or an
+    'allow_unreferenced' hint): the header's counts are now checked."""
+    from torchfmap import MeshError, load_mesh
+
+    text = _off_text(sphere2).splitlines()
+    path = tmp_path / "cut.off"
+    path.write_text("\n".join(text[:-cut]) + "\n")
+    with pytest.raises(MeshError, match=r"truncated.*declares 162 vertices and 320 faces.*Fix"):
+        load_mesh(path)
+
+
+def test_off_with_latin1_comment_loads(tmp_path, sphere2):
+    """A non-UTF-8 byte in a comment used to need an undeclared charset detector."""
+    from torchfmap import load_mesh
+
+    path = tmp_path / "latin.off"
+    text = _off_text(sphere2).replace("OFF\n", "OFF\n# caf\xe9 (Latin-1)\n", 1)
+    path.write_bytes(text.encode("latin-1"))
+    np.testing.assert_allclose(load_mesh(path).vertices, sphere2.vertices, rtol=1e-8)
+
+
+def test_mesh_errors_name_the_file_and_folders_are_refused(tmp_path, sphere2):
+    from torchfmap import MeshError, load_mesh
+
+    bad = sphere2.vertices.copy()
+    path = tmp_path / "nan.off"
+    path.write_text(_off_text(sphere2.copy(bad)).replace(_off_text(sphere2).splitlines()[2], "nan 0 0", 1))
+    with pytest.raises(MeshError, match=r"nan\.off.*NaN"):
+        load_mesh(path)
+    with pytest.raises(MeshError, match="is a folder"):
+        load_mesh(tmp_path)
+
+
+def test_zero_based_vts_is_refused(tmp_path):
+    from torchfmap.io import read_vts
+
+    path = tmp_path / "a.vts"
+    np.savetxt(path, [0, 4, 7], fmt="%d")
+    with pytest.raises(ParameterError, match="1-based"):
+        read_vts(path)
+
+
+def test_landmark_file_with_bom_and_comments_is_read(tmp_path):
+    from torchfmap.io import read_landmark_pairs
+
+    lm = tmp_path / "lm.txt"
+    lm.write_bytes("\ufeff# pairs\n1 2\n\n3 4  # a comment\n".encode())
+    np.testing.assert_array_equal(read_landmark_pairs(str(lm)), [[1, 2], [3, 4]])
+
+
+def test_off_face_line_with_two_indices_is_refused(tmp_path):
+    from torchfmap import load_mesh
+
+    path = tmp_path / "t.off"
+    path.write_text("OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n2 0 1\n")
+    with pytest.raises(MeshError, match="fewer than 3 corners: '2 0 1'"):
+        load_mesh(path)
+
+
+def test_point_cloud_ply_is_named_and_readable_end_to_end(tmp_path):
+    import trimesh
+
+    from torchfmap import load_mesh, load_points
+    from torchfmap.operators import laplacian
+
+    points = bumpy_blob(2).vertices
+    path = tmp_path / "cloud.ply"
+    trimesh.PointCloud(points).export(path)
+    with pytest.raises(MeshError, match=r"holds 162 points and no faces: a point cloud.*load_points"):
+        load_mesh(path)
+    loaded = load_points(path)
+    np.testing.assert_allclose(loaded, points)
+    ops = laplacian(loaded, kind="robust")
+    assert ops.stiffness.shape == (162, 162)
+
+
+def test_garbage_named_stl_is_reported_as_not_stl(tmp_path):
+    from torchfmap import load_mesh
+
+    path = tmp_path / "junk.stl"
+    path.write_bytes(np.random.default_rng(0).bytes(3000))
+    with pytest.raises(MeshError, match="is not an STL file"):
+        load_mesh(path)
+
+
+def test_nonmanifold_file_loads_with_a_warning_and_robust_operators(tmp_path):
+    base = bumpy_blob(2)
+    v, f = with_fin(base)
+    path = tmp_path / "fin.off"
+    with pytest.warns(MeshWarning, match="non-manifold"):
+        mesh = Mesh(v, f, allow_nonmanifold="warn")
+    save_mesh(mesh, path)
+    with pytest.warns(MeshWarning, match="1 non-manifold edges"):
+        loaded = load_mesh(path)
+    assert loaded.n_nonmanifold_edges == 1 and loaded.report.n_nonmanifold_edges == 1
+    with pytest.raises(MeshError, match="non-manifold"):
+        load_mesh(path, allow_nonmanifold=False)
+    shape = prepare_shape(loaded, 6)
+    L_robust, _ = laplacian(loaded.scaled(shape.scale), kind="robust")
+    assert abs(shape.operators[0] - L_robust).max() == 0
+    # the tufted Laplacian stays positive semidefinite with one zero eigenvalue per component
+    lam = smallest_eigenvalues(*shape.operators, 3)
+    assert abs(lam[0]) < 1e-8 and lam[1] > 1e-6
+    # a manifold mesh keeps the cotangent Laplacian
+    assert prepare_shape(base, 0).operators[0].nnz == laplacian(base.scaled(1 / np.sqrt(base.area)))[0].nnz

@@ -1,22 +1,14 @@
-"""Mesh validation: every bad input raises MeshError naming the problem; holes are reported."""
+"""The Mesh type (``torchfmap.mesh``): every bad input raises MeshError naming the problem; flipped
+and duplicated faces are repaired with a warning; lazy geometry and permutation."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torchfmap import Mesh, MeshError, validate_mesh
-from torchfmap.data import icosphere
+from torchfmap import Mesh, MeshError, MeshWarning, validate_mesh
 
-TET_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-TET_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
-
-
-def test_valid_tetrahedron_report():
-    rep = validate_mesh(TET_V, TET_F)
-    assert (rep.n_vertices, rep.n_faces, rep.n_components) == (4, 4, 1)
-    assert rep.is_closed and rep.n_boundary_loops == 0
-    assert rep.euler_characteristic == 2
+from .conftest import TET_F, TET_V, bumpy_blob
 
 
 def test_empty_mesh():
@@ -45,13 +37,6 @@ def test_face_index_out_of_range(index):
     f[3, 2] = index
     with pytest.raises(MeshError, match=r"outside \[0, 4\).*1-based"):
         Mesh(TET_V, f)
-
-
-def test_degenerate_zero_area_face():
-    v = np.vstack([TET_V, [0.5, 0.5, 0.0]])  # vertex 4 on the edge 1-2
-    f = np.vstack([TET_F, [1, 2, 4]])
-    with pytest.raises(MeshError, match=r"1 degenerate faces .*faces \[4\]"):
-        validate_mesh(v, f, allow_nonmanifold=True)
 
 
 def test_degenerate_repeated_vertex():
@@ -89,20 +74,6 @@ def test_several_components():
     assert part.n_vertices == 4 and np.allclose(part.vertices, two[ids])
 
 
-def test_holes_reported_not_raised(sphere2):
-    # remove the faces around vertex 0: one hole
-    ring = np.flatnonzero((sphere2.faces == 0).any(axis=1))
-    holed = sphere2.without_faces(ring)
-    rep = validate_mesh(holed.vertices, holed.faces, allow_unreferenced=True)
-    assert rep.n_boundary_loops == 1 and not rep.is_closed
-    assert rep.n_boundary_edges == len(ring)
-    # two separate holes
-    far = int(np.argmin(sphere2.vertices @ sphere2.vertices[0]))
-    ring2 = np.flatnonzero((sphere2.faces == far).any(axis=1))
-    rep2 = sphere2.without_faces(np.concatenate([ring, ring2])).report
-    assert rep2.n_boundary_loops == 2
-
-
 def test_lazy_geometry(sphere3):
     assert sphere3.area == pytest.approx(4 * np.pi, rel=1e-2)
     assert sphere3.edges.shape == (3 * sphere3.n_faces // 2, 2)
@@ -121,6 +92,50 @@ def test_permuted_mesh_is_same_surface(sphere2, rng):
         sphere2.permuted(np.zeros(sphere2.n_vertices, dtype=int))
 
 
-def test_icosphere_sizes():
-    for s in range(4):
-        assert icosphere(s).n_vertices == 10 * 4**s + 2
+@pytest.mark.parametrize("which", ["all", "half"])
+def test_flipped_faces_are_reoriented_and_reported(which):
+    """A target with flipped faces (all, or every other one) used to be matched as its mirror
+    image through the orientation term. The mesh is re-oriented on construction (closed
+    components outward), with a MeshWarning, and matches exactly like the original."""
+    from torchfmap import Mesh, MeshWarning, match
+
+    from .conftest import bend, bumpy_blob
+
+    x = bumpy_blob(2)
+    y = x.copy(bend(x.vertices, 0.3))
+    faces = y.faces.copy()
+    rows = slice(None) if which == "all" else slice(None, None, 2)
+    faces[rows] = faces[rows][:, ::-1]
+    with pytest.warns(MeshWarning, match="reversed the corner order"):
+        flipped = Mesh(y.vertices, faces)
+    assert flipped.report.n_flipped_faces == len(faces[rows])
+    np.testing.assert_array_equal(flipped.faces, y.faces)
+    a = match(x, y, k=15, k_descriptors=30)
+    b = match(x, flipped, k=15, k_descriptors=30)
+    np.testing.assert_array_equal(a.p2p_yx, b.p2p_yx)
+
+
+def test_consistent_mesh_is_left_alone(sphere2):
+    """An outward, consistent mesh is not touched (no warning, same faces)."""
+    import warnings
+
+    from torchfmap import Mesh
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        m = Mesh(sphere2.vertices, sphere2.faces)
+    assert m.report.n_flipped_faces == 0
+    np.testing.assert_array_equal(m.faces, sphere2.faces)
+
+
+def test_duplicated_faces_are_dropped_with_a_warning_and_the_operators_are_unchanged():
+    from torchfmap import Mesh
+    from torchfmap.operators import laplacian
+
+    mesh = bumpy_blob(1)
+    doubled = np.concatenate([mesh.faces, mesh.faces[[3]][:, ::-1]])  # the same face, another corner order
+    with pytest.warns(MeshWarning, match="dropped 1 duplicated faces"):
+        twin = Mesh(mesh.vertices, doubled, allow_nonmanifold=True)
+    assert twin.n_faces == mesh.n_faces
+    a, b = laplacian(mesh), laplacian(twin)
+    assert abs(a.stiffness - b.stiffness).max() == 0 and abs(a.mass - b.mass).max() == 0

@@ -1,4 +1,5 @@
-"""Seeds: curvature against closed forms, farthest-point sampling, features, coverage growth."""
+"""Seeds (``torchfmap.seeds``): curvature against closed forms, farthest-point sampling, features,
+coverage growth, corresponding, replaced and consistent seeds."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from torchfmap import (
     ParameterError,
     SeedError,
     coverage_seeds,
+    curvature,
     curvature_features,
     farthest_point_sampling,
     gaussian_curvature,
@@ -18,9 +20,11 @@ from torchfmap import (
     mean_curvature,
 )
 from torchfmap.data import icosphere
-from torchfmap.seeds import heat_support_radius
+from torchfmap.fmap import build_problem
+from torchfmap.pipeline import match_bases, prepare_shape
+from torchfmap.seeds import consistent_seeds, corresponding_seeds, heat_support_radius, max_curvature_vertex
 
-from .conftest import random_rotation
+from .conftest import bumpy_blob, random_rotation
 
 
 @pytest.mark.parametrize("radius", [1.0, 2.5])
@@ -105,3 +109,93 @@ def test_seed_errors(blob):
         coverage_seeds(blob, 0.0)
     with pytest.raises(ParameterError, match="curvature kind"):
         curvature_features(blob, 3, kind="principal")
+
+
+def test_curvature_names_its_kinds():
+    mesh = bumpy_blob(2)
+    np.testing.assert_array_equal(curvature(mesh, "mean"), mean_curvature(mesh))
+    np.testing.assert_array_equal(curvature(mesh, "abs_mean"), np.abs(mean_curvature(mesh)))
+    np.testing.assert_array_equal(curvature(mesh, "gaussian"), gaussian_curvature(mesh))
+    with pytest.raises(ParameterError, match="unknown curvature kind"):
+        curvature(mesh, "max")
+
+
+def test_max_curvature_vertex_finds_a_spike():
+    """A sphere with one vertex pulled out by 40%: the largest |mean curvature| (after 1-ring
+    smoothing) is at the spike or in its 1-ring."""
+    mesh = icosphere(3)
+    spike = 77
+    v = mesh.vertices.copy()
+    v[spike] *= 1.4
+    spiky = mesh.copy(v)
+    ring = np.unique(mesh.faces[np.any(mesh.faces == spike, axis=1)])
+    assert max_curvature_vertex(spiky) in ring
+    assert max_curvature_vertex(spiky, smooth_steps=0) == spike
+    # and on the asymmetric blob it is a vertex index, stable under rigid motion
+    blob = bumpy_blob(2)
+    assert max_curvature_vertex(blob) == max_curvature_vertex(blob.copy(blob.vertices + 5.0))
+
+
+def test_corresponding_seeds_bad_input(permuted_pair):
+    x, y, _, lm = permuted_pair
+    with pytest.raises(ParameterError, match="n_seeds"):
+        corresponding_seeds(x, y, lm, 2)
+    with pytest.raises(ParameterError, match="n_seeds"):
+        corresponding_seeds(x, y, lm, 10.0)
+    with pytest.raises(SeedError):
+        corresponding_seeds(x, y, np.array([[0, 10**6]]), 5)
+    with pytest.raises(ParameterError, match="prior must be"):
+        sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+        bx, by, _ = match_bases(sx, sy, "diffusion", 10, lm)
+        F = np.ones((x.n_vertices, 2))
+        build_problem(bx, by, F, F, prior=np.eye(3), w_prior=1.0)
+
+
+def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_pair):
+    """With the exact map, a seed misplaced by one edge goes back to its true image; one
+    misplaced by more than the covering radius sqrt(1/S) stays put; landmarks never move."""
+    from torchfmap.seeds import replace_seeds
+
+    x, y, perm, lm = permuted_pair
+    inverse = np.argsort(perm)
+    sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+    seeds = corresponding_seeds(x, y, lm, 12, distances=(sx.distances, sy.distances))
+    true_y = inverse[seeds[:, 0]]
+    np.testing.assert_array_equal(seeds[:, 1], true_y)
+    radius = np.sqrt(1.0 / len(seeds))
+    near_i, far_i = len(lm), len(lm) + 1
+    ring = y.edges[(y.edges == true_y[near_i]).any(axis=1)].ravel()
+    near = int(next(v for v in ring if v != true_y[near_i] and v not in set(seeds[:, 1])))
+    d_far = sy.distances(true_y[far_i])
+    far = int(np.argmax(np.where(np.isin(np.arange(y.n_vertices), seeds[:, 1]), -1, d_far)))
+    assert d_far[far] > radius
+    moved = seeds.copy()
+    moved[near_i, 1], moved[far_i, 1] = near, far
+    out = replace_seeds(sx.distances, sy.distances, moved, perm, len(lm))
+    np.testing.assert_array_equal(out[: len(lm)], seeds[: len(lm)])
+    assert out[near_i, 1] == true_y[near_i]
+    assert out[far_i, 1] == far
+    assert len(set(out[:, 1].tolist())) == len(out)
+
+
+def test_consistent_seeds_keep_round_trips_and_drop_the_rest():
+    x = bumpy_blob(2)
+    shape = prepare_shape(x, 0)
+    s = farthest_point_sampling(x, 12)
+    ident = consistent_seeds(shape.distances, s, s, s)  # a map and its inverse that agree
+    np.testing.assert_array_equal(ident, np.stack([s, s], axis=1))
+    back = s.copy()
+    back[3] = s[7]  # the round trip of seed 3 lands on another seed: far from it
+    images = s.copy()
+    images[5] = s[4]  # two seeds sent to one vertex: the second is dropped
+    kept = consistent_seeds(shape.distances, s, images, back)
+    assert 3 not in [list(s).index(v) for v in kept[:, 0]] and len(kept) == 10
+    assert len(np.unique(kept[:, 1])) == len(kept)
+    with pytest.raises(ParameterError, match="one length"):
+        consistent_seeds(shape.distances, s, s[:3], s)
+
+
+@pytest.mark.parametrize("t", [0.0, -1.0, float("nan"), float("inf")])
+def test_coverage_seeds_bad_time(sphere2, t):
+    with pytest.raises(ParameterError, match="diffusion time must be finite and > 0"):
+        coverage_seeds(sphere2, t)

@@ -1,7 +1,7 @@
 """Package structure: module-level imports (``if TYPE_CHECKING:`` ones included) form a DAG, no
 function-level imports of torchfmap modules (and of third-party ones only when optional), seeds
 and descriptors import nothing from bases, modules stay short, one home per shared check, errors
-in one module."""
+in one module; the tests mirror the package (a few declared concept files aside)."""
 
 from __future__ import annotations
 
@@ -415,3 +415,76 @@ def test_operator_numerics_live_in_operators_and_stay_importable_from_bases():
     assert bases.cf_poles is heat.cf_poles and bases.fix_signs is eigen.fix_signs
     assert heat.heat_kernels.__module__ == "torchfmap.operators.heat"
     assert eigen.eigenpairs.__module__ == "torchfmap.operators.eigen"
+
+
+#: Test files that check a concept across the package rather than one module: flat in ``tests/``,
+#: each with the reason it is not a module's test file. Every other ``tests/**/test_*.py`` names
+#: the module it tests (:func:`test_tests_mirror_the_package`).
+CONCEPT_TESTS = {
+    "test_structure.py": "the package's structure: the import DAG, lazy imports, module sizes, one home "
+    "per shared helper, error classes in one module, and this layout of the tests",
+    "test_docs_names.py": "README.md and ARCHITECTURE.md against the code: every name they cite exists",
+    "test_readme.py": "the README's code blocks run as a reader would paste them",
+    "test_api_coverage.py": "every public callable of every package is exercised by some test file",
+    "test_properties.py": "property-based runs (hypothesis) of random meshes through the eigenbasis, "
+    "the diffusion basis, the solver, evaluation and save/load under one bounded example budget",
+}
+TESTS = Path(__file__).resolve().parent
+
+
+def _stray_test_files(tests: Path, package: Path, concepts) -> list[str]:
+    """Test files of ``tests`` that name no module of ``package`` and are not flat concepts.
+
+    ``tests/a/test_b.py`` tests ``package/a/b.py`` (or the private ``a/_b.py``); ``tests/test_b.py``
+    tests ``package/b.py``, ``package/_b.py`` or the package ``package/b/__init__.py``."""
+    stray = []
+    for path in sorted(tests.rglob("test_*.py")):
+        rel = path.relative_to(tests)
+        stem, home = rel.stem[len("test_") :], package.joinpath(*rel.parent.parts)
+        homes = [home / f"{stem}.py", home / f"_{stem}.py"] + (
+            [home / stem / "__init__.py"] if not rel.parent.parts else []
+        )
+        if not any(h.is_file() for h in homes) and not (not rel.parent.parts and rel.name in concepts):
+            stray.append(rel.as_posix())
+    return stray
+
+
+def _folders_without_init(tests: Path) -> list[str]:
+    return sorted(
+        d.relative_to(tests).as_posix()
+        for d in tests.rglob("*")
+        if d.is_dir()
+        and d.name != "__pycache__"
+        and not any(part.startswith(".") for part in d.relative_to(tests).parts)
+        and not (d / "__init__.py").is_file()
+    )
+
+
+def test_tests_mirror_the_package(tmp_path):
+    """A test of ``torchfmap/<sub>/<module>.py`` lives in ``tests/<sub>/test_<module>.py`` (of a
+    private ``_module.py`` in ``test_module.py``), of a top-level module or of a package's
+    ``__init__`` in ``tests/test_<name>.py``; every other test file is one of the few declared
+    :data:`CONCEPT_TESTS`; every folder of tests is a package (``__init__.py``), as ``tests/`` is."""
+    # the checker on a made-up layout: it flags what it should
+    pkg, tests = tmp_path / "pkg", tmp_path / "tests"
+    for name in ("a/b.py", "a/_c.py", "d.py", "e/__init__.py"):
+        (pkg / name).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / name).write_text("")
+    for name in ("a/test_b.py", "a/test_c.py", "test_d.py", "test_e.py", "test_concept.py", "a/test_x.py"):
+        (tests / name).parent.mkdir(parents=True, exist_ok=True)
+        (tests / name).write_text("")
+    (tests / "z").mkdir()
+    assert _stray_test_files(tests, pkg, {"test_concept.py"}) == ["a/test_x.py"]
+    assert _folders_without_init(tests) == ["a", "z"]
+    # the real layout
+    assert (TESTS / "__init__.py").is_file() and len(CONCEPT_TESTS) <= 8
+    for name, why in CONCEPT_TESTS.items():
+        assert (TESTS / name).is_file() and why, f"CONCEPT_TESTS names {name}, which is not a test file"
+        assert _stray_test_files(TESTS, ROOT, {}).count(name) == 1, f"{name} names a module: not a concept"
+    stray = _stray_test_files(TESTS, ROOT, CONCEPT_TESTS)
+    assert not stray, (
+        "test files that name no module of torchfmap (tests/<sub>/test_<module>.py for "
+        f"torchfmap/<sub>/<module>.py) and are not declared in CONCEPT_TESTS: {stray}"
+    )
+    missing = _folders_without_init(TESTS)
+    assert not missing, f"folders of tests without __init__.py (tests/ is a package): {missing}"

@@ -1,0 +1,117 @@
+"""Basis kinds (``torchfmap.kinds``): every registered kind builds exactly k B-orthonormal columns
+and is recognised, seeded pair bases of a permuted copy are the same functions, each kind
+refines its own maps, and a kind defined outside the package is one class and one registry line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from torchfmap import ParameterError, match
+from torchfmap.bases import KINDS, Basis, Column, kind_of, prepare_shape
+from torchfmap.bases.prepared import with_eigenpairs
+from torchfmap.eval import Correspondence, evaluate_map, geodesic_errors, landmarks_from_gt
+from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap, default_w_orient
+from torchfmap.kinds import SeededKind
+
+from ..conftest import bumpy_blob
+
+#: MGS with re-orthogonalisation: orthogonality to a few eps per column (``K`` columns).
+ORTHO_EPS = 100 * np.finfo(float).eps
+
+
+@pytest.mark.parametrize("name", list(KINDS))
+def test_every_kind_builds_exactly_k_b_orthonormal_columns_and_is_recognised(small_blob, name):
+    k = 16
+    basis = KINDS[name].shape_basis(prepare_shape(small_blob, 0), k)
+    assert basis.k == k and basis.n_vertices == small_blob.n_vertices
+    blocks = KINDS[name].block_bases(basis)
+    assert sum(b.k for b in blocks) == k
+    for block in blocks:  # B-orthonormal (block by block for a block kind such as 'hybrid')
+        np.testing.assert_allclose(block.gram(), np.eye(block.k), atol=ORTHO_EPS * block.k)
+    assert kind_of(basis) == name == basis_kind(basis)
+    assert default_w_lap(basis, basis) == KINDS[name].w_lap == W_LAP[name]
+    assert default_w_orient(basis, basis) == KINDS[name].w_orient
+    assert default_p2p_mode(basis, basis) == KINDS[name].p2p_mode
+
+
+@pytest.mark.parametrize("name", [n for n, kind in KINDS.items() if kind.needs_landmarks])
+def test_seeded_pair_bases_of_a_permuted_copy_are_the_same_functions(name):
+    """On an exact copy with permuted vertices, the seeds are placed exactly, so the two bases
+    hold the same functions: Φ_y = Φ_x[perm] to the kernels' solve tolerance."""
+    x = bumpy_blob(2)
+    perm = np.random.default_rng(1).permutation(x.n_vertices)
+    inverse = np.argsort(perm)
+    y = x.permuted(perm)
+    lm = np.array([[v, inverse[v]] for v in (3, 60, 120)])
+    bx, by, seeds = KINDS[name].pair_bases(prepare_shape(x, 0), prepare_shape(y, 0), 12, lm)
+    np.testing.assert_array_equal(seeds[:, 1], inverse[seeds[:, 0]])
+    kind = KINDS[name]
+    for block_x, block_y in zip(kind.block_bases(bx), kind.block_bases(by), strict=True):
+        vx, vy = block_x.values[perm], block_y.values
+        if set(block_x.kinds()) == {"laplacian"}:  # eigenfunctions: each up to its sign
+            vy = vy * np.sign(np.sum(vx * vy, axis=0))
+        # heat kernels are solved to a relative 1e-4 (SEED_HEAT_TOL), eigenvectors to ARPACK_TOL,
+        # on each shape independently
+        np.testing.assert_allclose(vy, vx, atol=1e-3 * np.abs(vx).max())
+
+
+@dataclass(frozen=True, kw_only=True)
+class HatKind(SeededKind):
+    """A kind defined outside the package: one tent function per seed (1 at the seed, falling
+    linearly to 0 at the covering radius)."""
+
+    def columns_per_seed(self, times) -> int:
+        return 1
+
+    def functions(self, shape, seeds, times=None):
+        radius = 2.0 / np.sqrt(len(seeds))
+        values = np.stack([np.maximum(0.0, 1.0 - shape.distances(int(s)) / radius) for s in seeds], 1)
+        L, B = shape.operators
+        return Basis(values, B, [Column("hat", int(s)) for s in seeds], stiffness=L)
+
+
+def test_a_new_kind_is_one_class_and_one_registry_line(monkeypatch):
+    """Registering a kind is all ``match`` (raw and refined), its defaults and the datasets need."""
+    hat = HatKind(name="hat", summary="tent functions", w_lap=0.1, column_kinds=frozenset({"hat"}))
+    monkeypatch.setitem(KINDS, "hat", hat)
+    x = bumpy_blob(3)
+    perm = np.random.default_rng(3).permutation(x.n_vertices)
+    inverse = np.argsort(perm)
+    y = x.permuted(perm)
+    lm = np.array([[v, inverse[v]] for v in (3, 200, 450, 600)])
+    gt = Correspondence(idx_x=perm, idx_y=np.arange(y.n_vertices))
+    for refine in (None, "zoomout"):
+        result = match(x, y, landmarks=lm, basis="hat", k=30, refine=refine)
+        assert result.kind == "hat" and result.basis_x.k == 30
+        assert evaluate_map(x, y, result.p2p_yx, gt, max_points=300)[0].mean_error < 0.02
+    assert kind_of(result.basis_x) == "hat"
+    with pytest.raises(ParameterError, match="hat basis is built from corresponding landmarks"):
+        match(x, y, basis="hat")
+
+
+@pytest.mark.parametrize("name", ["laplacian", "hybrid", "diffusion", "eigen_diffusion"])
+def test_each_kind_refines_its_own_maps(bent_pair, name):
+    """``kind.refine``: ICP keeps the bases; ZoomOut grows them to ``k_final`` in kinds that grow
+    (``grows``) and keeps their size otherwise; a refined map of a bent pair is no worse than
+    its start (for the eigenbasis, ZoomOut's guard makes that a property)."""
+    x, y, gt = bent_pair
+    lm = landmarks_from_gt(x, gt, 6)
+    start = match(x, y, landmarks=None if name == "laplacian" else lm, k=16, basis=name)
+    ctx, kind = start._context, KINDS[name]
+    if kind.grows:
+        for shape in (ctx.shape_x, ctx.shape_y):
+            with_eigenpairs(shape, 24)
+    args = (start.C_xy, start.p2p_yx, ctx.shape_x, ctx.shape_y, start.basis_x, start.basis_y)
+    icp = kind.refine(*args, "icp", k_final=24, mode=ctx.mode, seeds=start.seeds)
+    assert (icp.basis_x.k, icp.basis_y.k) == (16, 16)
+    zo = kind.refine(*args, "zoomout", k_final=24, mode=ctx.mode, seeds=start.seeds, times=ctx.times)
+    assert zo.basis_x.k == (24 if kind.grows else 16)
+    assert zo.p2p_yx.shape == (y.n_vertices,) and zo.p2p_yx.min() >= 0 and zo.p2p_yx.max() < x.n_vertices
+    if name == "laplacian":  # ZoomOut's guard keeps the lowest-energy map, never a worse start
+        errors = [geodesic_errors(x, p, gt, max_points=200).mean() for p in (start.p2p_yx, zo.p2p_yx)]
+        assert errors[1] <= errors[0] * 1.05
+    with pytest.raises(ParameterError, match="unknown refinement"):
+        kind.refine(*args, "nearest", k_final=24, mode=ctx.mode)

@@ -1,0 +1,29 @@
+"""Argument types of the command line (``torchfmap.cli_types``): bad numbers are usage errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from torchfmap.cli import main
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["basis", "MESH", "--basis", "diffusion", "--times", "1e-3,abc", "--out", "OUT"],
+        ["basis", "MESH", "--k", "-2", "--out", "OUT"],
+        ["match", "MESH", "MESH", "--k", "0", "--out", "OUT"],
+        ["eval", "FOLDER", "--max-points", "-5"],
+        ["eval", "FOLDER", "--max-pairs", "-1"],
+        ["eval", "FOLDER", "--threads", "0"],
+    ],
+)
+def test_cli_bad_numbers_are_usage_errors(tmp_path, sphere2, capsys, argv):
+    """Refused by argparse (usage + 'error: argument ...'), never a traceback after the work."""
+    from torchfmap import save_mesh
+
+    mesh = str(save_mesh(sphere2, tmp_path / "s.off"))
+    argv = [{"MESH": mesh, "OUT": str(tmp_path / "o.npz"), "FOLDER": str(tmp_path)}.get(a, a) for a in argv]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2 and "error: argument" in capsys.readouterr().err

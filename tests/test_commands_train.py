@@ -1,0 +1,161 @@
+"""The learned path's commands (``torchfmap.commands_train``): ``train`` (budgets, resume, Ctrl-C,
+two stages, folders without pairs) and ``models``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torchfmap import save_mesh
+from torchfmap.cli import main
+from torchfmap.errors import ParameterError
+from torchfmap.nn.checkpoints import read_checkpoint
+
+from .conftest import _err, _identity_folder, bend, bumpy_blob
+
+
+def test_train_command_writes_and_resumes_a_checkpoint(tiny_folder, tmp_path, capsys):
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache"]
+    assert main([*args, "--max-steps", "3"]) == 0  # without --quiet: the status lines
+    first = read_checkpoint(ckpt)
+    assert first["train_state"]["step"] == 3 and "6 ordered pairs" in capsys.readouterr().out
+    assert main([*args, "--max-steps", "5", "--resume", "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
+    second = read_checkpoint(ckpt)
+    losses = [t["total"] for t in second["train_state"]["losses"]]
+    assert second["train_state"]["step"] == 5 and len(losses) == 5 and np.isfinite(losses).all()
+    assert losses[:3] == [t["total"] for t in first["train_state"]["losses"]]
+
+
+def test_resume_refuses_another_recipe_and_save_refuses_a_wrong_config(tiny_folder, tmp_path, capsys):
+    from torchfmap.nn import TrainConfig, build_model, save_checkpoint
+
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
+    assert main([*args, "--max-steps", "1"]) == 0
+    capsys.readouterr()
+    bad = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "10", "--no-cache", "--quiet", "--resume"]
+    assert main([*bad, "--max-steps", "2"]) == 2
+    assert "--k 10 (checkpoint: 8)" in capsys.readouterr().err
+    assert main([*args, "--resume", "--max-steps", "2"]) == 0  # the same recipe continues
+    net = build_model(TrainConfig(width=48))[0]
+    with pytest.raises(ParameterError, match="width: config 32, network 48"):
+        save_checkpoint(tmp_path / "x.ckpt", net, TrainConfig(width=32))
+    assert not (tmp_path / "x.ckpt").exists()
+
+
+def test_train_command_progress_counts_to_the_step_budget(tmp_path, capsys):
+    from torchfmap import save_mesh
+    from torchfmap.cli import main
+    from torchfmap.nn.checkpoints import read_checkpoint
+
+    from .conftest import bend, bumpy_blob
+
+    base = bumpy_blob(2)
+    for i, s in enumerate((0.1, 0.3)):
+        save_mesh(base.copy(bend(base.vertices, s)), tmp_path / f"blob{i}.off")
+    ckpt = tmp_path / "m.ckpt"
+    args = ["train", str(tmp_path), "--out", str(ckpt), "--k", "8", "--no-cache", "--validate-every", "0"]
+    assert main([*args, "--epochs", "2"]) == 0
+    captured = capsys.readouterr()
+    assert "budget: 2 epochs, 4 steps" in captured.out
+    assert "4/4" in captured.err  # the bar's total is the real budget: 2 epochs x 2 ordered pairs
+    assert "4 steps, 2 full epochs" in captured.out
+    state = read_checkpoint(ckpt)
+    lrs = state["scheduler"]["_last_lr"]
+    assert lrs[0] == pytest.approx(1e-3 * 0.02)  # the cosine reached its floor at the last step
+
+
+def test_train_refuses_a_folder_without_pairs_a_file_and_a_missing_folder(tmp_path, capsys):
+    one = tmp_path / "one"
+    one.mkdir()
+    save_mesh(bumpy_blob(2), one / "a.off")
+    base = ["--out", str(tmp_path / "m.ckpt"), "--no-cache", "--quiet", "--max-steps", "1", "--k", "8"]
+    assert main(["train", str(one), *base]) == 2
+    assert "no pair of shapes to train on (1 mesh: a)" in _err(capsys)
+    for target in (one / "a.off", tmp_path / "missing"):
+        assert main(["train", str(target), *base]) == 2
+        assert "is not a folder" in _err(capsys)
+
+
+def test_ctrl_c_during_train_says_where_the_checkpoint_stands_and_exits_130(tmp_path, monkeypatch, capsys):
+    import importlib
+
+    # the module: the attribute torchfmap.nn.train is the function
+    train_module = importlib.import_module("torchfmap.nn.train")
+
+    folder = tmp_path / "two"
+    folder.mkdir()
+    x = bumpy_blob(2)
+    for i, s in enumerate((0.1, 0.3)):
+        save_mesh(x.copy(bend(x.vertices, s)), folder / f"b{i}.off")
+    real = train_module.train
+
+    def one_step_then_interrupt(*args, **kwargs):
+        real(*args, **{**kwargs, "max_steps": 1})  # writes the checkpoint at step 1
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "train", one_step_then_interrupt)
+    ckpt = tmp_path / "m.ckpt"
+    args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--max-steps", "5", "--k", "8"]
+    assert main(args) == 130
+    err = _err(capsys)
+    assert "interrupted" in err and "holds step 1" in err and "--resume" in err
+
+
+def test_resume_with_a_spent_budget_is_refused(tmp_path, capsys):
+    folder = _identity_folder(tmp_path)
+    ckpt = tmp_path / "m.ckpt"
+    args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--k", "8"]
+    assert main([*args, "--max-steps", "2"]) == 0
+    capsys.readouterr()
+    assert main([*args, "--max-steps", "2", "--resume"]) == 2
+    err = _err(capsys)
+    assert "already spent its budget --max-steps 2 (done: 2 steps)" in err and "larger budget" in err
+
+
+def test_cli_trains_and_runs_two_stages_and_takes_landmarks_with_a_checkpoint(
+    permuted_files, tmp_path, capsys
+):
+    folder, x, y, perm = permuted_files
+    ckpt, tuned = tmp_path / "s2.ckpt", tmp_path / "tuned.ckpt"
+    base = ["train", str(folder), "--k", "12", "--width", "8", "--c-out", "8", "--no-cache", "--quiet"]
+    assert main([*base, "--out", str(ckpt), "--max-steps", "2", "--stages", "2"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                str(folder),
+                "--out",
+                str(tuned),
+                "--init",
+                str(ckpt),
+                "--max-steps",
+                "1",
+                "--quiet",
+                "--no-cache",
+            ]
+        )
+        == 0
+    )
+    from torchfmap.nn.checkpoints import load_checkpoint
+
+    _, config, _ = load_checkpoint(tuned)
+    assert config.stages == 2 and config.width == 8  # --init keeps the recipe
+    out = tmp_path / "m.txt"
+    lm = tmp_path / "lm.txt"
+    inv = np.argsort(perm)
+    lm.write_text(f"5 {inv[5]}\n40 {inv[40]}\n")
+    capsys.readouterr()
+    pair = [str(folder / "a0.off"), str(folder / "a1.off")]
+    assert main(["match", *pair, "--checkpoint", str(ckpt), "--out", str(out), "--landmarks", str(lm)]) == 0
+    assert "seeded by the landmarks" in capsys.readouterr().out
+    assert main(["train", str(folder), "--out", str(tuned), "--init", str(ckpt), "--resume", "--quiet"]) == 2
+    assert "--init starts a new run" in capsys.readouterr().err
+
+
+def test_models_command_lists_the_shipped_models(capsys):
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("faust_r") and "command: torchfmap train" in out and "validation:" in out
