@@ -23,7 +23,7 @@ Sets (real pairs only; no synthetic stretch):
 Methods, the same landmarks for all: ``default`` (``basis=None``: the choice among
 ``AUTO_KINDS`` by geodesic distortion), ``laplacian``, ``hybrid``, ``diffusion`` forced (raw =
 unrefined map of the same call), and pyFM (raw / ZoomOut). The default's candidates are the
-forced runs of their kinds (``tests/test_match_default.py`` checks they agree).
+forced runs of their kinds (``tests/test_pipeline.py`` checks they agree).
 
 "Choice right" is the share of pairs on which the default's refined error is within 2 % of the
 best forced kind's refined error. Times: the default's wall time over the forced eigenbasis

@@ -28,7 +28,8 @@ from torchfmap.bases import KINDS
 from torchfmap.data import icosphere, make_demo_pair
 from torchfmap.fmap import laplacian_mask
 from torchfmap.nn import BasisModule
-from torchfmap.nn.data import collate_shapes, precompute_shape, shape_item
+from torchfmap.nn.data import collate_shapes
+from torchfmap.nn.inputs import shape_arrays, shape_item
 from torchfmap.nn.modules import SpectralDiffusion
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -291,7 +292,7 @@ def _grid(n: int = 5) -> Mesh:
 
 
 def _batch(mesh: Mesh, k: int = 8, k_net: int = 12):
-    arrays = precompute_shape(mesh, k, 6, 20, k_net=k_net)
+    arrays = shape_arrays(mesh, k, 6, 20, k_net=k_net)
     return collate_shapes([shape_item(arrays, dtype=torch.float64)])
 
 

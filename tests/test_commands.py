@@ -62,16 +62,16 @@ def test_basis_command(tmp_path, capsys):
     assert main([*args, "--basis", "stack", "--k", "18", "--out", str(out), "--quiet"]) == 0
     basis = Basis.load(out)
     assert basis.k == 18 and np.abs(basis.gram() - np.eye(basis.k)).max() < 1e-10
-    assert {c.kind for c in basis.provenance} == {"diffusion", "harmonic"}
-    seeds = [c.seed for c in basis.provenance if c.kind == "harmonic"]
+    assert {c.family for c in basis.provenance} == {"diffusion", "harmonic"}
+    seeds = [c.seed for c in basis.provenance if c.family == "harmonic"]
     assert seeds[:2] == [10, 200]
-    assert {c.time for c in basis.provenance if c.kind == "diffusion"} == {0.01, 0.001}
+    assert {c.time for c in basis.provenance if c.family == "diffusion"} == {0.01, 0.001}
     # with the command's own defaults, every kind works (no landmarks needed to build one basis)
     for kind in ("harmonic", "eigen_diffusion"):
         assert main(["basis", str(mesh_path), "--kind", kind, "--k", "12", "--out", str(out), "--quiet"]) == 0
         assert Basis.load(out).k == 12
     assert main(["basis", str(mesh_path), "--out", str(out), "--quiet"]) == 0
-    assert {c.kind for c in Basis.load(out).provenance} == {"laplacian"}
+    assert {c.family for c in Basis.load(out).provenance} == {"laplacian"}
     assert (
         main(["basis", str(mesh_path), "--landmarks", str(lm), "--basis", "laplacian", "--out", str(out)])
         == 2

@@ -207,7 +207,7 @@ def test_spectral_descriptor_errors():
 
 
 def test_landmark_heat_equals_spectral_kernel(sphere2):
-    """kind='heat' is K_t(l, x) = Σ_k e^{-λ_k t} φ_k(l) φ_k(x) with the full spectrum (dense
+    """kernel='heat' is K_t(l, x) = Σ_k e^{-λ_k t} φ_k(l) φ_k(x) with the full spectrum (dense
     eigh on 162 vertices) at absolute times t·|M|; columns ordered (landmark, time). The Krylov
     heat solver's target accuracy is `tol`=1e-8 relative: compare at 1e-6 of the kernel's max."""
     L, B = laplacian(sphere2)
@@ -227,14 +227,14 @@ def test_landmark_heat_equals_spectral_kernel(sphere2):
 
 
 def test_landmark_wks_matches_definition_and_is_symmetric(blob):
-    """kind='wks': column (l, e) is Σ_k w_e(λ_k) φ_k(l) φ_k(·) with WKS weights; the kernel is
+    """kernel='wks': column (l, e) is Σ_k w_e(λ_k) φ_k(l) φ_k(·) with WKS weights; the kernel is
     symmetric (value of l's column at l' equals l''s column at l); its value at the landmark
     itself is the WKS of the landmark. Round-off only."""
     basis = laplacian_eigenbasis(blob, 30)
     lam, phi = basis.eigenvalues, basis.values
     lm = np.array([3, 100, 400])
     E = 8
-    D = landmark_descriptors(lm, kind="wks", evals=lam, evecs=phi, n_energies=E)
+    D = landmark_descriptors(lm, kernel="wks", evals=lam, evecs=phi, n_energies=E)
     assert D.shape == (blob.n_vertices, len(lm) * E)
     D3 = D.reshape(blob.n_vertices, len(lm), E)
     scale = np.abs(D).max()
@@ -256,10 +256,10 @@ def test_landmark_descriptor_errors(sphere2):
     ops = laplacian(sphere2)
     with pytest.raises(ParameterError, match="need operators"):
         landmark_descriptors([0])
-    with pytest.raises(ParameterError, match="unknown landmark descriptor kind 'bogus'"):
-        landmark_descriptors([0], kind="bogus", operators=ops)
+    with pytest.raises(ParameterError, match="unknown landmark descriptor kernel 'bogus'"):
+        landmark_descriptors([0], kernel="bogus", operators=ops)
     with pytest.raises(ParameterError, match="disagree"):
-        landmark_descriptors([0], kind="wks", evals=np.ones(3), evecs=np.ones((5, 2)))
+        landmark_descriptors([0], kernel="wks", evals=np.ones(3), evecs=np.ones((5, 2)))
     with pytest.raises(SeedError, match="out of range for a mesh of 162 vertices"):
         landmark_descriptors([sphere2.n_vertices], operators=ops)
 

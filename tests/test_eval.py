@@ -89,7 +89,7 @@ def test_shape_distance_and_retrieval():
     assert shape_distance(Q) == pytest.approx(0.0, abs=1e-12)
     assert shape_distance(2 * Q) > 1.0
     W = np.diag(np.arange(1.0, 7.0))
-    assert shape_distance(np.eye(6), W, W, kind="conformal") == pytest.approx(0.0, abs=1e-12)
+    assert shape_distance(np.eye(6), W, W, form="conformal") == pytest.approx(0.0, abs=1e-12)
     D = np.array([[0, 1, 5, 5], [1, 0, 5, 5], [5, 5, 0, 2], [5, 5, 2, 0.0]])
     assert retrieval_accuracy(D, ["a", "a", "b", "b"]) == 1.0
     assert retrieval_accuracy(D, ["a", "b", "a", "b"]) == 0.0
@@ -125,13 +125,13 @@ def test_shape_difference_closed_forms():
     Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
     np.testing.assert_allclose(shape_difference(Q), np.eye(5), atol=1e-12)
     C = rng.normal(size=(4, 5))
-    np.testing.assert_allclose(shape_difference(C, kind="area"), C.T @ C, rtol=1e-12)
+    np.testing.assert_allclose(shape_difference(C, form="area"), C.T @ C, rtol=1e-12)
     W = np.diag(rng.uniform(1, 3, 5))
-    np.testing.assert_allclose(shape_difference(Q, W, Q @ W @ Q.T, kind="conformal"), np.eye(5), atol=1e-10)
+    np.testing.assert_allclose(shape_difference(Q, W, Q @ W @ Q.T, form="conformal"), np.eye(5), atol=1e-10)
     with pytest.raises(ParameterError, match="needs W_x and W_y"):
-        shape_difference(Q, kind="conformal")
+        shape_difference(Q, form="conformal")
     with pytest.raises(ParameterError, match="unknown shape difference"):
-        shape_difference(Q, kind="volume")
+        shape_difference(Q, form="volume")
 
 
 def test_map_report_row(sphere2):

@@ -316,7 +316,7 @@ def test_point_cloud_ply_is_named_and_readable_end_to_end(tmp_path):
         load_mesh(path)
     loaded = load_points(path)
     np.testing.assert_allclose(loaded, points)
-    ops = laplacian(loaded, kind="robust")
+    ops = laplacian(loaded, scheme="robust")
     assert ops.stiffness.shape == (162, 162)
 
 
@@ -342,7 +342,7 @@ def test_nonmanifold_file_loads_with_a_warning_and_robust_operators(tmp_path):
     with pytest.raises(MeshError, match="non-manifold"):
         load_mesh(path, allow_nonmanifold=False)
     shape = prepare_shape(loaded, 6)
-    L_robust, _ = laplacian(loaded.scaled(shape.scale), kind="robust")
+    L_robust, _ = laplacian(loaded.scaled(shape.scale), scheme="robust")
     assert abs(shape.operators[0] - L_robust).max() == 0
     # the tufted Laplacian stays positive semidefinite with one zero eigenvalue per component
     lam = smallest_eigenvalues(*shape.operators, 3)

@@ -273,7 +273,7 @@ def test_feature_bases_have_exactly_k_orthonormal_corresponding_columns(kind):
     np.testing.assert_array_equal(seeds[: len(lm)], lm)
     seed_of = {int(a): int(b) for a, b in seeds}
     for cx, cy in zip(bx.columns, by.columns, strict=True):
-        assert cx.kind == cy.kind and cx.time == cy.time and seed_of[cx.seed] == cy.seed
+        assert cx.family == cy.family and cx.time == cy.time and seed_of[cx.seed] == cy.seed
 
 
 def test_exact_seeds_on_a_permuted_copy_give_the_identity_map(permuted_pair):

@@ -107,8 +107,8 @@ def test_seed_errors(blob):
         farthest_point_sampling(blob, 5, metric="manhattan")
     with pytest.raises(ParameterError, match="t=0"):
         coverage_seeds(blob, 0.0)
-    with pytest.raises(ParameterError, match="curvature kind"):
-        curvature_features(blob, 3, kind="principal")
+    with pytest.raises(ParameterError, match="curvature measure"):
+        curvature_features(blob, 3, measure="principal")
 
 
 def test_curvature_names_its_kinds():
@@ -116,7 +116,7 @@ def test_curvature_names_its_kinds():
     np.testing.assert_array_equal(curvature(mesh, "mean"), mean_curvature(mesh))
     np.testing.assert_array_equal(curvature(mesh, "abs_mean"), np.abs(mean_curvature(mesh)))
     np.testing.assert_array_equal(curvature(mesh, "gaussian"), gaussian_curvature(mesh))
-    with pytest.raises(ParameterError, match="unknown curvature kind"):
+    with pytest.raises(ParameterError, match="unknown curvature measure"):
         curvature(mesh, "max")
 
 

@@ -488,3 +488,51 @@ def test_tests_mirror_the_package(tmp_path):
     )
     missing = _folders_without_init(TESTS)
     assert not missing, f"folders of tests without __init__.py (tests/ is a package): {missing}"
+
+
+#: Public callables whose parameter ``kind`` is a basis kind: the word's one meaning
+#: (ARCHITECTURE.md, "One word, one meaning"). Any other choice has its own word.
+BASIS_KIND_PARAMETERS = {
+    "torchfmap.bases.registry.register_kind",
+    "torchfmap.kinds.hybrid.hybrid_zoomout",
+    "torchfmap.match_checks.check_unused",
+    "torchfmap.pipeline.match_bases",
+    "torchfmap.results.MatchContext",
+    "torchfmap.results.MatchContext.__init__",
+    "torchfmap.results.MatchResult",
+    "torchfmap.results.MatchResult.__init__",
+    "torchfmap.results.refine_map",
+}
+
+
+def test_kind_names_basis_kinds_only():
+    """No public function, method or class takes a ``kind`` (or ``*_kind``) parameter but the
+    basis-kind ones: a Laplacian has a ``scheme``, a column a ``family``, a mask, a shape
+    difference's ``form``, a curvature ``measure``, a landmark descriptor a ``kernel``."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    found = set()
+    for info in pkgutil.walk_packages(torchfmap.__path__, "torchfmap."):
+        if info.name.endswith("__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        for name, obj in list(vars(module).items()):
+            if name.startswith("_") or getattr(obj, "__module__", None) != module.__name__:
+                continue
+            targets = [obj]
+            if inspect.isclass(obj):
+                methods = vars(obj).values()
+                targets += [m for m in methods if inspect.isfunction(m) or isinstance(m, classmethod)]
+            for target in targets:
+                target = getattr(target, "__func__", target)
+                try:
+                    params = inspect.signature(target).parameters
+                except (TypeError, ValueError):
+                    continue
+                if any(p == "kind" or p.endswith("_kind") or p.startswith("kind_") for p in params):
+                    found.add(f"{module.__name__}.{getattr(target, '__qualname__', name)}")
+    other = sorted(found - BASIS_KIND_PARAMETERS)
+    assert not other, f"'kind' used for something else: {other}"
+    assert found == BASIS_KIND_PARAMETERS, f"stale entries: {sorted(BASIS_KIND_PARAMETERS - found)}"

@@ -78,12 +78,10 @@ def test_unchecked_training_step_reads_no_tensor_value_on_the_host():
     no bool()/int()/.item() on tensors, so no host sync on an accelerator. With the default
     (check=None on CPU) the data checks do read values."""
     from torchfmap.nn import DiffusionNet
-    from torchfmap.nn.data import precompute_shape, shape_item
+    from torchfmap.nn.inputs import shape_arrays, shape_item
     from torchfmap.nn.networks import features
 
-    items = [
-        shape_item(precompute_shape(bumpy_blob(n), 6, 6, 20, k_net=8), dtype=torch.float64) for n in (1, 2)
-    ]
+    items = [shape_item(shape_arrays(bumpy_blob(n), 6, 6, 20, k_net=8), dtype=torch.float64) for n in (1, 2)]
     x = collate_shapes(items)
     y = collate_shapes(items[::-1])
     assert x.basis.lengths.tolist() == [42, 162]

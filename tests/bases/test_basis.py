@@ -118,7 +118,7 @@ def test_long_provenance_names_survive_save(tmp_path, sphere2):
         b.values, b.mass, [Column("a-rather-long-custom-kind-name"), Column("x")], stiffness=b.stiffness
     )
     back = Basis.load(long.save(tmp_path / "long.npz"))
-    assert back.provenance[0].kind == "a-rather-long-custom-kind-name"
+    assert back.provenance[0].family == "a-rather-long-custom-kind-name"
 
 
 def test_missing_input_files_are_torchfmap_errors_with_exit_1(tmp_path, capsys):

@@ -22,7 +22,7 @@ def seeds_blob(request):
 @pytest.mark.parametrize("kind", ["cotan", "robust", "mean_value"])
 def test_interpolation_partition_of_unity(seeds_blob, kind):
     mesh, seeds = seeds_blob
-    psi = harmonic_basis(mesh, seeds, kind=kind).values
+    psi = harmonic_basis(mesh, seeds, scheme=kind).values
     assert np.array_equal(psi[seeds], np.eye(len(seeds)))  # exactly delta_ij
     assert np.abs(psi.sum(axis=1) - 1).max() < 1e-10
     assert np.linalg.matrix_rank(psi) == len(seeds)
@@ -31,7 +31,7 @@ def test_interpolation_partition_of_unity(seeds_blob, kind):
 @pytest.mark.parametrize("kind", ["robust", "mean_value"])
 def test_maximum_principle_nonnegative_weights(seeds_blob, kind):
     mesh, seeds = seeds_blob
-    psi = harmonic_basis(mesh, seeds, kind=kind).values
+    psi = harmonic_basis(mesh, seeds, scheme=kind).values
     assert psi.min() >= -1e-12 and psi.max() <= 1 + 1e-12
     assert np.array_equal(np.argmax(psi, axis=0), seeds)  # each peaks at its own seed
 
@@ -45,7 +45,7 @@ def test_cotan_on_delaunay_sphere_obeys_maximum_principle(sphere3):
 
 def test_harmonic_means_discrete_laplace_zero_off_seeds(seeds_blob):
     mesh, seeds = seeds_blob
-    L, _ = laplacian(mesh, kind="mean_value")
+    L, _ = laplacian(mesh, scheme="mean_value")
     psi = harmonic_functions(L, seeds)
     free = np.setdiff1d(np.arange(mesh.n_vertices), seeds)
     assert np.abs((L @ psi)[free]).max() < 1e-10
@@ -62,7 +62,7 @@ def test_one_factorisation_for_all_seeds(seeds_blob, monkeypatch):
 
     monkeypatch.setattr("torchfmap.bases.harmonic.factorize", counting)
     harmonic_basis(mesh, seeds)
-    harmonic_basis(mesh, seeds, kind="mean_value")
+    harmonic_basis(mesh, seeds, scheme="mean_value")
     assert calls == [True, False]  # Cholesky for cotan, LU for non-symmetric mean-value weights
 
 
@@ -86,4 +86,4 @@ def test_provenance(seeds_blob):
     mesh, seeds = seeds_blob
     basis = harmonic_basis(mesh, seeds)
     assert [c.seed for c in basis.columns] == seeds.tolist()
-    assert {c.kind for c in basis.columns} == {"harmonic"}
+    assert {c.family for c in basis.columns} == {"harmonic"}

@@ -56,7 +56,7 @@ def test_mean_value_rejected(blob):
     from torchfmap import laplacian
 
     with pytest.raises(ParameterError, match="symmetric"):
-        laplacian_eigenbasis(blob, 5, operators=laplacian(blob, kind="mean_value"))
+        laplacian_eigenbasis(blob, 5, operators=laplacian(blob, scheme="mean_value"))
 
 
 @pytest.mark.xfail(

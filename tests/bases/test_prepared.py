@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from torchfmap.bases.prepared import with_eigenpairs
+from torchfmap.operators import gradient_operator
 from torchfmap.pipeline import prepare_shape
 
 from ..conftest import SCALES, bumpy_blob
@@ -48,3 +50,18 @@ def test_prepared_shapes_live_in_the_unit_area_frame(small_bent_pair):
     L, B = prepare_shape(x, 0).operators
     given = prepare_shape(x.scaled(3.0), 0, operators=(L, 9.0 * B))
     assert given.scale == 1.0 and given.area == pytest.approx(9.0)  # the given mass's total
+
+
+def test_a_prepared_shape_derives_each_quantity_once(blob):
+    shape = prepare_shape(blob, 0)
+    calls = []
+    first = shape.derive("x", lambda: calls.append(1) or np.arange(3))
+    assert shape.derive("x", lambda: calls.append(1) or np.arange(5)) is first and calls == [1]
+    grad = shape.gradient()
+    assert shape.gradient() is grad
+    assert shape.frame is shape.frame and np.isclose(shape.frame.area, 1.0)
+    ref = gradient_operator(blob.scaled(shape.scale))
+    for key in ref:
+        np.testing.assert_allclose(grad[key], ref[key], rtol=1e-12, atol=0, err_msg=key)
+    grown = with_eigenpairs(shape, 8)
+    assert grown is shape and shape.n_eigen == 8 and shape.derive("x", None) is first

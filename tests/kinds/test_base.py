@@ -51,7 +51,7 @@ def test_seeded_pair_bases_of_a_permuted_copy_are_the_same_functions(name):
     kind = KINDS[name]
     for block_x, block_y in zip(kind.block_bases(bx), kind.block_bases(by), strict=True):
         vx, vy = block_x.values[perm], block_y.values
-        if set(block_x.kinds()) == {"laplacian"}:  # eigenfunctions: each up to its sign
+        if set(block_x.families()) == {"laplacian"}:  # eigenfunctions: each up to its sign
             vy = vy * np.sign(np.sum(vx * vy, axis=0))
         # heat kernels are solved to a relative 1e-4 (SEED_HEAT_TOL), eigenvectors to ARPACK_TOL,
         # on each shape independently
@@ -75,7 +75,7 @@ class HatKind(SeededKind):
 
 def test_a_new_kind_is_one_class_and_one_registry_line(monkeypatch):
     """Registering a kind is all ``match`` (raw and refined), its defaults and the datasets need."""
-    hat = HatKind(name="hat", summary="tent functions", w_lap=0.1, column_kinds=frozenset({"hat"}))
+    hat = HatKind(name="hat", summary="tent functions", w_lap=0.1, column_families=frozenset({"hat"}))
     monkeypatch.setitem(KINDS, "hat", hat)
     x = bumpy_blob(3)
     perm = np.random.default_rng(3).permutation(x.n_vertices)

@@ -1,4 +1,4 @@
-"""Datasets and batches (``torchfmap.nn.data``): ``precompute_shape``, the cache (corrupt entries,
+"""Datasets and batches (``torchfmap.nn.data``): the cache (corrupt entries,
 a full disk), ``ShapeDataset`` for every learned kind, ``PairDataset``, padded collation, class
 pairs."""
 
@@ -8,33 +8,20 @@ import numpy as np
 import pytest
 import torch
 
-from torchfmap import ParameterError, laplacian_eigenbasis, save_mesh
+from torchfmap import ParameterError, save_mesh
 from torchfmap._files import load_arrays
 from torchfmap.bases import KINDS
-from torchfmap.nn import PairDataset, ShapeDataset, collate_pairs, precompute_shape
+from torchfmap.nn import PairDataset, ShapeDataset, collate_pairs
 from torchfmap.nn import functional as F
 from torchfmap.nn.data import PrecomputeCache, ShapeBatch, class_pairs, mesh_key
 
 from ..conftest import LEARNED, _batch, bend, bumpy_blob
 
 
-def test_precompute_shape_unit_area_and_standardised_wks():
-    """The mesh is scaled to unit area: eigenvalues scale by the area (λ ∝ 1/area), the
-    basis is orthonormal for the unit-area mass; WKS features are standardised per column."""
-    mesh = bumpy_blob(2)
-    arrays = precompute_shape(mesh, k=6, n_wks=5, k_wks=20)
-    assert arrays["values"].shape == (mesh.n_vertices, 6) and arrays["wks"].shape == (mesh.n_vertices, 5)
-    assert arrays["mass"].sum() == pytest.approx(1.0, rel=1e-12)
-    lam_ref = laplacian_eigenbasis(mesh, 6).eigenvalues * mesh.area
-    np.testing.assert_allclose(np.sort(arrays["lam"]), lam_ref, rtol=1e-8, atol=1e-10 * lam_ref[-1])
-    np.testing.assert_allclose(arrays["wks"].mean(axis=0), 0, atol=1e-10)
-    np.testing.assert_allclose(arrays["wks"].std(axis=0), 1, rtol=1e-10)
-
-
 @pytest.fixture(scope="module")
 def two_size_datasets(tmp_path_factory):
     """Shapes of 642 and 162 vertices, with K = 8 and K = 5 (two datasets), float64.
-    (precompute_shape needs more than k_wks = 100 vertices.)"""
+    (shape_arrays needs more than k_wks = 100 vertices.)"""
     folder = tmp_path_factory.mktemp("sizes")
     big = [
         save_mesh(bumpy_blob(3).copy(bend(bumpy_blob(3).vertices, s)), folder / f"big{i}.off")
@@ -76,7 +63,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
             assert basis.valid[b].tolist() == [1.0] * k + [0.0] * (8 - k)
             torch.testing.assert_close(basis.U[b, k:, k:], torch.eye(8 - k, dtype=torch.float64))
             assert not basis.lam[b, k:].any()
-    C_xy, C_yx = F.fmap_solve(batch["x"].inputs, batch["y"].inputs, batch["x"].basis, batch["y"].basis)
+    C_xy, C_yx = F.solve_fmap(batch["x"].inputs, batch["y"].inputs, batch["x"].basis, batch["y"].basis)
     for b, (ix, iy) in enumerate(items):
         bx = F.BasisBatch(
             *(ix[n][None] for n in ("values", "mass", "lam", "U")),
@@ -86,7 +73,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
             *(iy[n][None] for n in ("values", "mass", "lam", "U")),
             torch.ones(1, iy["lam"].shape[0], dtype=torch.float64),
         )
-        ref_xy, ref_yx = F.fmap_solve(ix["inputs"][None], iy["inputs"][None], bx, by)
+        ref_xy, ref_yx = F.solve_fmap(ix["inputs"][None], iy["inputs"][None], bx, by)
         kx, ky = ix["lam"].shape[0], iy["lam"].shape[0]
         scale = ref_xy.abs().max()
         torch.testing.assert_close(C_xy[b, :ky, :kx], ref_xy[0], rtol=0, atol=1e-10 * float(scale))
@@ -164,7 +151,7 @@ def test_the_learned_path_refuses_a_classical_only_kind_by_name(tmp_path, small_
     with pytest.raises(ParameterError, match="hybrid basis is solved block-wise.*Fix: one of laplacian"):
         ShapeDataset([path], cache_dir=False, k=16, basis="hybrid", progress=False)
     with pytest.raises(ParameterError, match="hybrid basis is solved block-wise"):
-        BasisModule.from_mesh(small_blob, k=12, kind="hybrid")
+        BasisModule.from_mesh(small_blob, k=12, basis="hybrid")
 
 
 def test_cache_uses_the_same_writer_and_rebuilds_corrupt_entries(tmp_path):

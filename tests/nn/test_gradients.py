@@ -10,9 +10,10 @@ import torch
 
 from torchfmap.errors import ParameterError
 from torchfmap.nn import functional as F
-from torchfmap.nn.data import collate_shapes, precompute_shape, shape_item
-from torchfmap.nn.geometry import gradient_operator
+from torchfmap.nn.data import collate_shapes
+from torchfmap.nn.inputs import shape_arrays, shape_item
 from torchfmap.nn.networks import SpatialGradientFeatures
+from torchfmap.operators.gradient import gradient_operator
 from torchfmap.operators.laplacian import normalize_area
 
 from ..conftest import _batch, _grid, bumpy_blob
@@ -24,7 +25,7 @@ def test_spatial_gradient_in_any_edge_order_and_padded_batches_equals_the_sparse
     call), (c) a padded batch of two meshes of different sizes; so do the gradients
     (``Gᵀ ∂``, checked against scipy's transpose)."""
     meshes = [bumpy_blob(1), _grid(6)]
-    items = [shape_item(precompute_shape(m, 6, 4, 20), dtype=torch.float64) for m in meshes]
+    items = [shape_item(shape_arrays(m, 6, 4, 20), dtype=torch.float64) for m in meshes]
     batch = collate_shapes(items)
     V = batch.inputs.shape[1]
     g = torch.Generator().manual_seed(4)
@@ -33,7 +34,7 @@ def test_spatial_gradient_in_any_edge_order_and_padded_batches_equals_the_sparse
     gx, gy = F.spatial_gradient(f, batch.grad)
     ((gx + 2 * gy) * seed).sum().backward()
     for b, m in enumerate(meshes):
-        ops = gradient_operator(normalize_area(m))  # precompute_shape works at unit area
+        ops = gradient_operator(normalize_area(m))  # shape_arrays works at unit area
         n = len(m.vertices)
         edges = (ops["grad_rows"], ops["grad_cols"])
         Gx, Gy = (sp.csr_matrix((ops[w], edges), shape=(n, n)) for w in ("grad_x", "grad_y"))

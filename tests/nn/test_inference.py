@@ -91,7 +91,7 @@ def test_checkpoint_match_with_zoomout_computes_one_laplacian_and_one_eigenbasis
     net, config, _ = load_checkpoint(ckpt)
     x, y = load_mesh(tiny_folder / "blob0.ply"), load_mesh(tiny_folder / "blob1.ply")
     counts = {"laplacian": 0, "eigen": 0}
-    real_lap, real_eig = prepared.laplacian, prepared.laplacian_eigenbasis
+    real_lap, real_eig = prepared.laplacian_operators, prepared.laplacian_eigenbasis
 
     def lap(*a, **kw):
         counts["laplacian"] += 1
@@ -101,7 +101,7 @@ def test_checkpoint_match_with_zoomout_computes_one_laplacian_and_one_eigenbasis
         counts["eigen"] += 1
         return real_eig(*a, **kw)
 
-    monkeypatch.setattr(prepared, "laplacian", lap)
+    monkeypatch.setattr(prepared, "laplacian_operators", lap)
     monkeypatch.setattr(prepared, "laplacian_eigenbasis", eig)
     refined = match_with_network(net, config, x, y, refine=True)
     assert counts == {"laplacian": 2, "eigen": 2}

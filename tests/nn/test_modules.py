@@ -204,8 +204,8 @@ def test_basis_module_buffers_move_and_project(nn_setting):
 def test_random_draws_come_from_the_given_generator(nn_setting):
     """The loss's vertex samples, the augmentation and the recipe's initial weights are drawn from
     given or seeded generators; torch's global RNG state is left untouched."""
+    from torchfmap.nn.augment import random_rigid
     from torchfmap.nn.config import TrainConfig, build_model
-    from torchfmap.nn.train import random_rigid
 
     x, y, dx, dy, eig, stack = nn_setting
     tx, ty = as_batch(*eig)
@@ -244,7 +244,7 @@ def test_basis_module_from_mesh_builds_every_kind(small_blob, name):
 
     from torchfmap.nn import BasisModule
 
-    layer = BasisModule.from_mesh(small_blob, k=12, kind=name, seeds=[4, 90], dtype=torch.float32)
+    layer = BasisModule.from_mesh(small_blob, k=12, basis=name, seeds=[4, 90], dtype=torch.float32)
     assert layer.k == 12 and layer.values.dtype == torch.float32
     reference = KINDS[name].shape_basis(prepare_shape(small_blob, 0), 12, seeds=[4, 90])
     np.testing.assert_allclose(layer.values.numpy(), reference.values, atol=1e-6)
@@ -270,7 +270,7 @@ def test_layers_refuse_what_the_functions_refuse():
         torch.ones(1, 2, **d),
     )
     with pytest.raises(ParameterError, match="solver weights must be finite"):
-        F.fmap_solve(feats, feats, basis, basis, w_lap=float("nan"))
+        F.solve_fmap(feats, feats, basis, basis, w_lap=float("nan"))
     from ..conftest import _batch
 
     shape = _batch(bumpy_blob(1))

@@ -15,7 +15,8 @@ from torchfmap.errors import ParameterError
 from torchfmap.nn import RegularizedFMSolver
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
 from torchfmap.nn.config import TrainConfig
-from torchfmap.nn.data import PairDataset, ShapeDataset, collate_shapes, precompute_shape, shape_item
+from torchfmap.nn.data import PairDataset, ShapeDataset, collate_shapes
+from torchfmap.nn.inputs import shape_arrays, shape_item
 from torchfmap.nn.modules import UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNet, FeatureNetwork, check_network, features
 from torchfmap.nn.train import train
@@ -52,8 +53,7 @@ NETWORKS = {
 def _padded_batch():
     """Two shapes of 42 and 36 vertices (vertex padding), K = 6, K_net = 8, float64."""
     items = [
-        shape_item(precompute_shape(m, 6, 6, 20, k_net=8), dtype=torch.float64)
-        for m in (bumpy_blob(1), _grid(6))
+        shape_item(shape_arrays(m, 6, 6, 20, k_net=8), dtype=torch.float64) for m in (bumpy_blob(1), _grid(6))
     ]
     return collate_shapes(items)
 

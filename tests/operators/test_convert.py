@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchfmap import laplacian, scipy_to_torch, torch_to_scipy
+from torchfmap.operators import laplacian, scipy_to_torch, torch_to_scipy
 
 
 def test_scipy_torch_round_trip(blob):

@@ -85,7 +85,7 @@ def test_kernel_properties(heat_setting):
 def test_mean_value_weights_rejected(heat_setting):
     mesh, ops, seeds, times, ref = heat_setting
     with pytest.raises(ParameterError, match="symmetric Laplacian"):
-        heat_kernels(laplacian(mesh, kind="mean_value"), seeds, times)
+        heat_kernels(laplacian(mesh, scheme="mean_value"), seeds, times)
 
 
 def test_a_kernel_does_not_depend_on_the_seeds_solved_with_it():

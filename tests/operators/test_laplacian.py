@@ -60,7 +60,7 @@ def test_regular_tetrahedron_by_hand(edge):
     assert np.allclose(B.diagonal(), face_area)  # 3 faces x area/3
     fem = mass_matrix(mesh, "fem").toarray()
     assert np.allclose(np.diag(fem), face_area / 2) and np.allclose(off_diagonal_dense(fem), face_area / 6)
-    Lmv, _ = laplacian(mesh, kind="mean_value")
+    Lmv, _ = laplacian(mesh, scheme="mean_value")
     # tan(30 deg) = 1/sqrt(3), two faces per edge, divided by the edge length
     assert np.allclose(Lmv.toarray(), (4 * np.eye(4) - np.ones((4, 4))) * 2 / (S3 * edge))
 
@@ -68,7 +68,7 @@ def test_regular_tetrahedron_by_hand(edge):
 # -- structural properties ---------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["cotan", "robust"])
 def test_symmetric_psd_rows_sum_zero(blob, kind):
-    L, B = laplacian(blob, kind=kind)
+    L, B = laplacian(blob, scheme=kind)
     assert abs(L - L.T).max() < 1e-12
     assert np.abs(np.asarray(L.sum(axis=1))).max() < 1e-10
     assert (L.diagonal() > 0).all()
@@ -83,30 +83,30 @@ def off_diagonal(a):
 
 
 def test_robust_weights_nonnegative_and_equal_cotan_on_delaunay(blob, sphere3):
-    L, _ = laplacian(blob, kind="robust")
+    L, _ = laplacian(blob, scheme="robust")
     assert off_diagonal(L).max() <= 1e-14  # all weights >= 0
-    Lc, _ = laplacian(blob, kind="cotan")
+    Lc, _ = laplacian(blob, scheme="cotan")
     assert off_diagonal(Lc).max() > 0  # the jittered blob has negative cotan weights
     # an icosphere is already Delaunay: intrinsic and extrinsic cotan weights coincide
-    Lr, _ = laplacian(sphere3, kind="robust", mollify_factor=0.0)
-    Lc, _ = laplacian(sphere3, kind="cotan")
+    Lr, _ = laplacian(sphere3, scheme="robust", mollify_factor=0.0)
+    Lc, _ = laplacian(sphere3, scheme="cotan")
     assert abs(Lr - Lc).max() < 1e-8 * abs(Lc).max()
 
 
 def test_robust_on_nonmanifold_and_point_cloud(sphere3):
     v = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]])
     f = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
-    L, B = laplacian(Mesh(v, f, allow_nonmanifold=True), kind="robust")
+    L, B = laplacian(Mesh(v, f, allow_nonmanifold=True), scheme="robust")
     assert abs(L - L.T).max() < 1e-12 and np.allclose(L.sum(axis=1), 0)
-    Lp, Bp = laplacian(sphere3.vertices, kind="robust")
+    Lp, Bp = laplacian(sphere3.vertices, scheme="robust")
     vals = smallest_eigenvalues(Lp, Bp, 9)
     assert np.allclose(vals[1:4], 2, rtol=0.1) and np.allclose(vals[4:9], 6, rtol=0.1)
-    with pytest.raises(MeshError, match="kind='robust'"):
-        laplacian(sphere3.vertices, kind="cotan")
+    with pytest.raises(MeshError, match="scheme='robust'"):
+        laplacian(sphere3.vertices, scheme="cotan")
 
 
 def test_mean_value_positive_rows_sum_zero_non_symmetric(blob):
-    L, B = laplacian(blob, kind="mean_value")
+    L, B = laplacian(blob, scheme="mean_value")
     coo = L.tocoo()
     weights = -coo.data[coo.row != coo.col]
     assert weights.min() > 0  # Floater's weights are strictly positive
@@ -119,7 +119,7 @@ def test_mean_value_positive_rows_sum_zero_non_symmetric(blob):
 def test_linear_precision_on_planar_mesh(kind):
     """Cotan and mean-value weights both reproduce linear functions at interior vertices."""
     grid = planar_grid(9, jitter=0.3)
-    L, _ = laplacian(grid, kind=kind)
+    L, _ = laplacian(grid, scheme=kind)
     interior = np.setdiff1d(np.arange(grid.n_vertices), grid.boundary_vertices)
     for coord in (0, 1):
         assert np.abs(L @ grid.vertices[:, coord])[interior].max() < 1e-12
@@ -156,8 +156,8 @@ def test_sphere_eigenvalues_converge(mass):
 @pytest.mark.parametrize("kind", ["cotan", "robust", "mean_value"])
 def test_rigid_motion_invariance(blob, rng, kind):
     moved = blob.copy(blob.vertices @ random_rotation(rng).T + rng.normal(size=3) * 10)
-    L0, B0 = laplacian(blob, kind=kind)
-    L1, B1 = laplacian(moved, kind=kind)
+    L0, B0 = laplacian(blob, scheme=kind)
+    L1, B1 = laplacian(moved, scheme=kind)
     assert abs(L0 - L1).max() < 1e-9 * abs(L0).max()
     assert abs(B0 - B1).max() < 1e-9 * B0.max()
 
@@ -165,8 +165,8 @@ def test_rigid_motion_invariance(blob, rng, kind):
 @pytest.mark.parametrize("kind", ["cotan", "robust", "mean_value"])
 def test_permutation_equivariance(blob, rng, kind):
     perm = rng.permutation(blob.n_vertices)
-    L0, B0 = laplacian(blob, kind=kind)
-    L1, B1 = laplacian(blob.permuted(perm), kind=kind)
+    L0, B0 = laplacian(blob, scheme=kind)
+    L1, B1 = laplacian(blob.permuted(perm), scheme=kind)
     assert abs(L0[perm][:, perm] - L1).max() < 1e-10 * abs(L0).max()
     assert abs(B0[perm][:, perm] - B1).max() < 1e-12
 
@@ -187,9 +187,9 @@ def test_normalize_area(blob):
 
 
 def test_bad_kinds(blob):
-    with pytest.raises(ParameterError, match="unknown Laplacian kind 'fancy'"):
-        laplacian(blob, kind="fancy")
-    with pytest.raises(ParameterError, match="unknown mass kind"):
+    with pytest.raises(ParameterError, match="unknown Laplacian scheme 'fancy'"):
+        laplacian(blob, scheme="fancy")
+    with pytest.raises(ParameterError, match="unknown mass scheme"):
         laplacian(blob, mass="lumped")
 
 

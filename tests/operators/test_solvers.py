@@ -24,7 +24,7 @@ def test_factorize_backends_solve_spd(blob, backend):
 
 
 def test_factorize_complex_and_nonsymmetric(blob):
-    L, B = laplacian(blob, kind="mean_value")
+    L, B = laplacian(blob, scheme="mean_value")
     A = (L + B).astype(complex) + 1j * B
     rhs = np.ones(blob.n_vertices)
     x = factorize(A).solve(rhs)

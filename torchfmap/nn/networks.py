@@ -11,7 +11,7 @@ call a feature network as ``net(inputs, basis, grad) -> features``:
   gradient operators (a network may ignore it);
 - returns ``features (B, V, D)`` in the dtype and on the device of ``inputs``.
 
-Any ``torch.nn.Module`` with that ``forward`` plugs in (see ``tests/test_nn_networks.py``);
+Any ``torch.nn.Module`` with that ``forward`` plugs in (see ``tests/nn/test_networks.py``);
 the code that takes networks refuses other objects (:func:`check_network`) and outputs of
 another shape, dtype or device (:func:`features`).
 

@@ -1,0 +1,90 @@
+"""torchfmap.nn.inputs: the learned path's per-shape arrays, read off one PreparedShape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchfmap.bases.prepared as prepared
+from torchfmap import laplacian_eigenbasis, prepare_shape
+from torchfmap.errors import ParameterError
+from torchfmap.nn import network_inputs, shape_arrays, shape_item
+
+from ..conftest import bumpy_blob, random_rotation
+
+
+def test_network_inputs_are_computed_once_per_shape_and_setting(blob):
+    shape = prepare_shape(blob, 30)
+    first = network_inputs(shape, 8, 20)
+    assert network_inputs(shape, 8, 20) is first  # cached on the shape
+    assert network_inputs(shape, 6, 20) is not first
+    wks, xyz = first["wks"], first["xyz"]
+    assert wks.shape == (blob.n_vertices, 8) and xyz.shape == (blob.n_vertices, 3)
+    assert wks.dtype == xyz.dtype == np.float64
+    # standardised channels; coordinates centred at the area-weighted centroid, unit area
+    np.testing.assert_allclose(wks.mean(axis=0), 0, atol=1e-10)
+    np.testing.assert_allclose(wks.std(axis=0), 1, rtol=1e-10)
+    mass = shape.operators.mass.diagonal()
+    np.testing.assert_allclose(mass @ xyz, 0, atol=1e-12)
+    assert np.isclose(shape.frame.area, 1.0, rtol=1e-12)
+
+
+def test_inputs_do_not_depend_on_position_or_size(blob, rng):
+    """WKS is intrinsic and xyz is centred at unit area: a moved, scaled copy gives the same inputs
+    (xyz up to the rotation)."""
+    R = random_rotation(rng)
+    moved = blob.copy(vertices=3.0 * blob.vertices @ R.T + np.array([1.0, -2.0, 0.5]))
+    a, b = network_inputs(prepare_shape(blob, 30), 8, 20), network_inputs(prepare_shape(moved, 30), 8, 20)
+    np.testing.assert_allclose(b["wks"], a["wks"], atol=1e-6)
+    np.testing.assert_allclose(b["xyz"], a["xyz"] @ R.T, atol=1e-10)
+
+
+def test_the_eigenbasis_grows_in_place_and_the_laplacian_is_not_rebuilt(blob, monkeypatch):
+    shape = prepare_shape(blob, 10)
+    calls = []
+    monkeypatch.setattr(prepared, "laplacian_operators", lambda *a, **k: calls.append(a))
+    arrays = shape_arrays(shape, 6, 8, 40, k_net=12)
+    assert shape.n_eigen == 40 and not calls  # grown from the operators held, one decomposition
+    assert arrays["values"].shape == (blob.n_vertices, 6) and arrays["net_values"].shape[1] == 12
+    for key in ("grad_rows", "grad_cols", "grad_x", "grad_y", "grad_order_t"):
+        assert arrays[key] is shape.gradient()[key]
+
+
+def test_shape_arrays_of_a_mesh_and_of_its_prepared_shape_agree(blob):
+    a = shape_arrays(blob, 6, 8, 20, k_net=8)
+    b = shape_arrays(prepare_shape(blob, 20), 6, 8, 20, k_net=8)
+    assert a.keys() == b.keys()
+    for key in ("wks", "xyz", "mass", "lam", "grad_x", "grad_y", "vertices"):
+        np.testing.assert_allclose(a[key], b[key], rtol=1e-8, atol=1e-8, err_msg=key)
+    # eigenfunctions up to sign
+    np.testing.assert_allclose(np.abs((a["values"] * b["values"] * a["mass"][:, None]).sum(0)), 1, atol=1e-6)
+
+
+def test_items_cast_once_to_the_networks_dtype(blob):
+    item = shape_item(shape_arrays(blob, 6, 8, 20), inputs="xyz", dtype=torch.float64, name="b", index=3)
+    assert item["inputs"].dtype == torch.float64 and item["inputs"].shape == (blob.n_vertices, 3)
+    assert item["grad_rows"].dtype == torch.int64 and item["name"] == "b" and item["index"] == 3
+    assert shape_item(shape_arrays(blob, 6, 8, 20))["values"].dtype == torch.float32
+
+
+def test_bad_requests_are_refused_before_any_work(blob):
+    with pytest.raises(ParameterError, match="PreparedShape or a Mesh"):
+        shape_arrays(blob.vertices, 6)
+    with pytest.raises(ParameterError, match="unknown|classical"):
+        shape_arrays(blob, 6, basis="no_such_kind")
+    with pytest.raises(ParameterError, match="n_wks and k_wks"):
+        network_inputs(prepare_shape(blob, 0), 0)
+
+
+def test_shape_arrays_unit_area_and_standardised_wks():
+    """The mesh is scaled to unit area: eigenvalues scale by the area (λ ∝ 1/area), the
+    basis is orthonormal for the unit-area mass; WKS features are standardised per column."""
+    mesh = bumpy_blob(2)
+    arrays = shape_arrays(mesh, k=6, n_wks=5, k_wks=20)
+    assert arrays["values"].shape == (mesh.n_vertices, 6) and arrays["wks"].shape == (mesh.n_vertices, 5)
+    assert arrays["mass"].sum() == pytest.approx(1.0, rel=1e-12)
+    lam_ref = laplacian_eigenbasis(mesh, 6).eigenvalues * mesh.area
+    np.testing.assert_allclose(np.sort(arrays["lam"]), lam_ref, rtol=1e-8, atol=1e-10 * lam_ref[-1])
+    np.testing.assert_allclose(arrays["wks"].mean(axis=0), 0, atol=1e-10)
+    np.testing.assert_allclose(arrays["wks"].std(axis=0), 1, rtol=1e-10)
