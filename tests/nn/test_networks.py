@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchfmap import Mesh, save_mesh
+from torchfmap import Mesh
 from torchfmap.errors import ParameterError
 from torchfmap.nn import RegularizedFMSolver
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
@@ -21,7 +21,7 @@ from torchfmap.nn.modules import UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNet, FeatureNetwork, check_network, features
 from torchfmap.nn.train import train
 
-from ..conftest import TinyNet, _batch, _grid, as_batch, bend, bumpy_blob, random_rotation
+from ..conftest import TinyNet, _batch, _grid, _identity_folder, as_batch, bumpy_blob, random_rotation
 
 
 def test_diffusion_net_with_wks_is_invariant_to_rigid_motions():
@@ -103,11 +103,7 @@ def test_code_that_takes_networks_refuses_non_conforming_ones():
 
 
 def test_user_network_plugs_in_and_its_checkpoint_rebuilds_it(tmp_path):
-    folder = tmp_path / "meshes"
-    folder.mkdir()
-    base = bumpy_blob(2)
-    for i, s in enumerate((0.1, 0.3, 0.5)):
-        save_mesh(base.copy(bend(base.vertices, s)), folder / f"blob{i}.off")
+    folder = _identity_folder(tmp_path)
     shapes = ShapeDataset(folder, False, k=8, n_wks=6, k_net=12, dtype=torch.float64, progress=False)
     net = TinyNet(6).double()
     before = [p.detach().clone() for p in net.parameters()]

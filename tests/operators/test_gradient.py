@@ -33,4 +33,3 @@ def test_tangent_frames_are_right_handed_orthonormal_with_the_vertex_normal(blob
     np.testing.assert_allclose(frames @ frames.transpose(0, 2, 1), eye, atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-12)
     np.testing.assert_allclose(frames[:, 2], blob.vertex_normals, atol=1e-12)
-
