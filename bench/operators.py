@@ -9,7 +9,7 @@ and writes them to ``bench/results/operators.md``)::
 
 Operators (median of ``--repeats`` timed calls after one warm-up call, all in the same process):
 
-- ours: ``torchfmap.laplacian(mesh, kind, mass)`` for cotan+voronoi, cotan+barycentric, robust
+- ours: ``torchfmap.laplacian(mesh, scheme, mass)`` for cotan+voronoi, cotan+barycentric, robust
   and mean_value. Each call gets a fresh ``Mesh(V, F, validate=False)`` so no cached
   ``face_areas`` carry over between repeats; the input is the raw arrays, as for the others.
 - potpourri3d: ``pp3d.cotan_laplacian(V, F)`` + ``pp3d.vertex_areas(V, F)`` (barycentric areas).
@@ -66,9 +66,9 @@ def bench_operators(name: str, mesh: torchfmap.Mesh, repeats: int, memory: bool)
     v, f = mesh.vertices, mesh.faces
     row: dict[str, Any] = {"mesh": name, "V": mesh.n_vertices, "F": mesh.n_faces}
     results = {}
-    for col, (kind, mass) in OURS.items():
+    for col, (scheme, mass) in OURS.items():
         log(f"  {name}: {col}")
-        row[col], _, results[col] = timed(lambda k=kind, m=mass: ours(v, f, k, m), repeats, warmup=1)
+        row[col], _, results[col] = timed(lambda s=scheme, m=mass: ours(v, f, s, m), repeats, warmup=1)
     log(f"  {name}: potpourri3d")
     row["pp3d cotan+areas"], _, (Lp, areas) = timed(lambda: pp3d_cotan(v, f), repeats, warmup=1)
     log(f"  {name}: robust_laplacian")

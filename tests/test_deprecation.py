@@ -3,7 +3,9 @@ works, warns with the new name, and gives what the new name gives; both names at
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import warnings
 
 import numpy as np
 import pytest
@@ -98,10 +100,34 @@ def test_old_attribute_and_method_names_of_columns_and_bases(blob):
     col = Column("harmonic", 3)
     with pytest.warns(DeprecationWarning, match="Column.family"):
         assert col.kind == col.family == "harmonic"
+    with pytest.warns(DeprecationWarning, match=r"Column\(family=") as seen:
+        assert Column(kind="laplacian", index=2) == Column("laplacian", index=2)
+    assert seen[0].filename == __file__
+    with pytest.raises(TypeError, match="both kind="):
+        Column(family="laplacian", kind="laplacian")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert dataclasses.replace(col, seed=4) == Column("harmonic", 4)
     basis = laplacian_eigenbasis(blob, 6)
     with pytest.warns(DeprecationWarning, match="families"):
         np.testing.assert_array_equal(basis.kinds(), basis.families())
     assert list(basis.families()) == ["laplacian"] * 6
+
+
+def test_old_keywords_of_the_learned_basis_and_of_collections():
+    torch = pytest.importorskip("torch")
+    from torchfmap.collection import shape_distance_matrix
+    from torchfmap.data import icosphere
+    from torchfmap.nn import BasisModule
+
+    mesh = icosphere(2)
+    with pytest.warns(DeprecationWarning, match="basis="):
+        old = BasisModule.from_mesh(mesh, 6, kind="laplacian", dtype=torch.float64)
+    torch.testing.assert_close(old.lam, BasisModule.from_mesh(mesh, 6, basis="laplacian").lam)
+    meshes = [mesh, mesh.scaled(2.0)]
+    with pytest.warns(DeprecationWarning, match="form="):
+        old = shape_distance_matrix(meshes, k=5, kind="conformal")
+    np.testing.assert_array_equal(old, shape_distance_matrix(meshes, k=5, form="conformal"))
 
 
 def test_moved_and_renamed_module_names():
@@ -116,8 +142,9 @@ def test_moved_and_renamed_module_names():
     ]
     for module, old, new in cases:
         mod = importlib.import_module(module)
-        with pytest.warns(DeprecationWarning, match=new):
+        with pytest.warns(DeprecationWarning, match=new) as seen:
             assert getattr(mod, old) is getattr(mod, new)
+        assert seen[0].filename == __file__
     with pytest.warns(DeprecationWarning, match="torchfmap.operators.normalize_area"):
         assert tf.normalize_area is importlib.import_module("torchfmap.operators").normalize_area
 
@@ -154,14 +181,18 @@ def test_precompute_shape_is_shape_arrays(blob):
 
 
 def test_a_kind_given_its_column_families_under_the_old_name():
-    from dataclasses import replace
-
     from torchfmap.kinds import get_kind
 
     base = get_kind("harmonic")
-    with pytest.warns(DeprecationWarning, match="column_families"):
+    with pytest.warns(DeprecationWarning, match="column_families") as seen:
         old = type(base)(**{**_fields(base), "column_families": frozenset(), "column_kinds": {"harmonic"}})
-    assert old.column_families == frozenset({"harmonic"}) == replace(base).column_families
+    assert seen[0].filename == __file__
+    with pytest.warns(DeprecationWarning, match="column_families"):
+        assert base.column_kinds == base.column_families == old.column_families == frozenset({"harmonic"})
+    with warnings.catch_warnings():  # replace passes the old keyword on: silently, as not given
+        warnings.simplefilter("error")
+        assert dataclasses.replace(base, name="h2").column_families == base.column_families
+        assert dataclasses.replace(base, column_families=frozenset({"x"})).column_families == {"x"}
     with pytest.raises(tf.errors.ParameterError, match="no column families"):
         type(base)(**{**_fields(base), "column_families": frozenset()})
 

@@ -18,6 +18,11 @@ def warn_renamed(old: str, new: str, *, stacklevel: int = 3) -> None:
     warnings.warn(message, DeprecationWarning, stacklevel=stacklevel)
 
 
+def _called_name(func) -> str:
+    """How a user calls ``func``: its name, or its class's for a constructor (``Column(...)``)."""
+    return func.__qualname__.removesuffix(".__init__") if func.__name__ == "__init__" else func.__name__
+
+
 def renamed_keywords(**old_to_new: str):
     """Decorator: keyword arguments under their old names (``old=new`` pairs) are passed on under
     the new ones, with a warning; giving both raises ``TypeError``. The signature users see is the
@@ -28,9 +33,15 @@ def renamed_keywords(**old_to_new: str):
         def inner(*args, **kwargs):
             for old, new in old_to_new.items():
                 if old in kwargs:
+                    # a class's constructor is named as the class is called: Column(kind=...)
+                    name = (
+                        func.__qualname__.removesuffix(".__init__")
+                        if func.__name__ == "__init__"
+                        else func.__name__
+                    )
                     if new in kwargs:
-                        raise TypeError(f"{func.__name__}() got both {old}= (the old name) and {new}=.")
-                    warn_renamed(f"{func.__name__}({old}=...)", f"{func.__name__}({new}=...)")
+                        raise TypeError(f"{name}() got both {old}= (the old name) and {new}=.")
+                    warn_renamed(f"{name}({old}=...)", f"{name}({new}=...)")
                     kwargs[new] = kwargs.pop(old)
             return func(*args, **kwargs)
 

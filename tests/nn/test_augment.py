@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchfmap.errors import ParameterError
-from torchfmap.nn import TrainConfig, build_solver, train
+from torchfmap.nn import RegularizedFMSolver, TrainConfig, build_solver, train
 from torchfmap.nn.augment import augmentation, random_rigid
 
 
@@ -41,4 +41,33 @@ def test_the_loops_defaults_are_the_recipes():
     for name in ("epochs", "minutes", "max_steps", "batch_size", "clip_grad", "seed"):
         assert params[name].default == getattr(recipe, name), name
     assert params["augment"].default is None  # resolved by the data's inputs (above)
-    assert build_solver(recipe)[0].w_lap == recipe.w_lap
+
+
+class _Built(Exception):
+    pass
+
+
+def test_train_and_evaluate_solve_with_the_recipes_solver_when_given_none(monkeypatch):
+    """Without a solver both loops ask the recipe for one (``build_solver(TrainConfig())``, the
+    ``w_lap`` the shipped models were trained with), not the layer's classical default."""
+    import importlib
+
+    inference = importlib.import_module("torchfmap.nn.inference")
+    training = importlib.import_module("torchfmap.nn.train")  # torchfmap.nn.train is the function
+
+    from ..conftest import TinyNet
+
+    asked = []
+
+    def recipe_solver(config):
+        asked.append(config)
+        raise _Built
+
+    for module in (training, inference):
+        monkeypatch.setattr(module, "build_solver", recipe_solver)
+    with pytest.raises(_Built):
+        train(TinyNet(6), None, None, None, progress=False)
+    with pytest.raises(_Built):
+        inference.evaluate(TinyNet(6), None, [], [])
+    assert asked == [TrainConfig(), TrainConfig()]
+    assert build_solver(TrainConfig())[0].w_lap == TrainConfig.w_lap != RegularizedFMSolver().w_lap

@@ -8,6 +8,7 @@ import torch
 
 import torchfmap.bases.prepared as prepared
 from torchfmap import laplacian_eigenbasis, prepare_shape
+from torchfmap.data import icosphere
 from torchfmap.errors import ParameterError
 from torchfmap.nn import network_inputs, shape_arrays, shape_item
 
@@ -42,13 +43,42 @@ def test_inputs_do_not_depend_on_position_or_size(blob, rng):
 
 def test_the_eigenbasis_grows_in_place_and_the_laplacian_is_not_rebuilt(blob, monkeypatch):
     shape = prepare_shape(blob, 10)
-    calls = []
-    monkeypatch.setattr(prepared, "laplacian_operators", lambda *a, **k: calls.append(a))
+    laplacians, decompositions = [], []
+    eig = prepared.laplacian_eigenbasis
+    monkeypatch.setattr(prepared, "laplacian_operators", lambda *a, **k: laplacians.append(a))
+    monkeypatch.setattr(
+        prepared, "laplacian_eigenbasis", lambda *a, **k: decompositions.append(a) or eig(*a, **k)
+    )
     arrays = shape_arrays(shape, 6, 8, 40, k_net=12)
-    assert shape.n_eigen == 40 and not calls  # grown from the operators held, one decomposition
+    shape_arrays(shape, 6, 8, 40, k_net=12)  # a second call reuses all of it
+    assert shape.n_eigen == 40 and not laplacians and len(decompositions) == 1
     assert arrays["values"].shape == (blob.n_vertices, 6) and arrays["net_values"].shape[1] == 12
     for key in ("grad_rows", "grad_cols", "grad_x", "grad_y", "grad_order_t"):
-        assert arrays[key] is shape.gradient()[key]
+        np.testing.assert_array_equal(arrays[key], shape.gradient()[key])
+
+
+def test_arrays_handed_out_are_the_callers_to_change(blob):
+    """The shape's cached inputs and gradient stay as computed whatever a caller does with the
+    arrays (and the tensors of its items, which share their memory)."""
+    shape = prepare_shape(blob, 20)
+    first = shape_arrays(shape, 6, 8, 20)
+    reference = {key: first[key].copy() for key in ("wks", "xyz", "grad_x")}
+    for key in reference:
+        first[key][...] = 0
+    shape_item(first, dtype=torch.float64)["inputs"].zero_()
+    again = shape_arrays(shape, 6, 8, 20)
+    for key, value in reference.items():
+        np.testing.assert_array_equal(again[key], value, err_msg=key)
+
+
+def test_a_mesh_smaller_than_the_wks_spectrum_still_gives_arrays():
+    """The WKS takes the eigenpairs a small mesh has (V - 1); the bases must fit (k, k_net < V)."""
+    small = icosphere(1)
+    assert small.n_vertices < 100
+    arrays = shape_arrays(small, 6, 8)  # k_wks = 100 by default
+    assert arrays["wks"].shape == (small.n_vertices, 8) and np.isfinite(arrays["wks"]).all()
+    with pytest.raises(ParameterError, match="k_net=60 eigenfunctions need a mesh of more than 60"):
+        shape_arrays(small, 6, k_net=60)
 
 
 def test_shape_arrays_of_a_mesh_and_of_its_prepared_shape_agree(blob):

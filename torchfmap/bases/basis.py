@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._checks import check_count
-from .._deprecation import warn_renamed
+from .._deprecation import renamed_keywords, warn_renamed
 from .._files import load_arrays, save_arrays
 from ..errors import ParameterError
 
@@ -55,6 +55,10 @@ class Column:
         if self.family == "laplacian":
             return f"laplacian({self.index})"
         return self.family
+
+
+# ``Column(kind=...)``, the constructor keyword of earlier releases, still works (with a warning)
+Column.__init__ = renamed_keywords(kind="family")(Column.__init__)
 
 
 class Basis:

@@ -51,6 +51,10 @@ class PreparedShape:
     mesh's (``1 / sqrt(area)``: the unit-area frame; 1 for operators given by the caller), in
     which ``operators``, ``eigenbasis``, ``kernels`` and :meth:`gradient` live; ``derived``:
     per-shape quantities computed once by the layers above (:meth:`derive`), e.g. network inputs.
+
+    ``dataclasses.replace`` shares the caches (``distances``, ``kernels``, ``derived``) with the
+    copy: replace the eigenbasis that way (nothing cached depends on it), never the mesh, the
+    operators or the scale (prepare the new shape instead).
     """
 
     mesh: Mesh
@@ -59,11 +63,11 @@ class PreparedShape:
     distances: DistanceRows
     kernels: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)
     scale: float = 1.0
-    derived: dict = field(default_factory=dict)
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
 
     def derive(self, key, compute):
-        """``compute()`` on first use of ``key`` (hashable), the stored value after; the value
-        is the caller's to leave unmodified."""
+        """``compute()`` on first use of ``key`` (hashable), the stored value after (the same
+        object: callers that hand it on copy it, as :func:`~torchfmap.nn.inputs.shape_arrays`)."""
         if key not in self.derived:
             self.derived[key] = compute()
         return self.derived[key]
@@ -100,7 +104,8 @@ def prepare_shape(
     used as they are (the caller's frame, ``scale = 1``).
 
     Raises:
-        ParameterError: ``n_eigen`` negative or not below the vertex count.
+        ParameterError: ``n_eigen`` negative or not below the vertex count, or an unknown
+            Laplacian scheme.
     """
     n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
     scale = 1.0 / np.sqrt(mesh.area) if operators is None else 1.0

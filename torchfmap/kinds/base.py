@@ -25,6 +25,7 @@ Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind
 
 from __future__ import annotations
 
+import sys
 from dataclasses import InitVar, dataclass
 
 import numpy as np
@@ -221,6 +222,19 @@ class BasisKind:
         samples = feature_samples(shape_x, shape_y, basis_x.k)
         C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, mode, samples)
         return Refined(C, p2p, basis_x, basis_y, seeds)
+
+
+def _column_kinds(self) -> frozenset[str] | None:
+    """Deprecated name of :attr:`BasisKind.column_families` (reading it warns). It is also the
+    constructor's old keyword (an ``InitVar``), which ``dataclasses.replace`` reads to pass on:
+    it gets None (not given), so that a replaced kind keeps the families it is given."""
+    if sys._getframe(1).f_globals.get("__name__") == "dataclasses":
+        return None
+    warn_renamed("BasisKind.column_kinds", "BasisKind.column_families")
+    return self.column_families
+
+
+BasisKind.column_kinds = property(_column_kinds)  # after the dataclass took it as a constructor keyword
 
 
 def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -55,3 +55,9 @@ def augmentation(augment, inputs) -> str:
             "augment='none', or ShapeDataset(..., inputs='xyz')."
         )
     return augment
+
+
+def recipe_augmentation(config: TrainConfig) -> str:
+    """The augmentation a recipe trains with: ``config.augment`` for XYZ inputs, none for WKS
+    (the recipe's setting concerns coordinates only; :func:`~torchfmap.nn.train_recipe`)."""
+    return augmentation(config.augment if config.inputs == "xyz" else "none", config.inputs)

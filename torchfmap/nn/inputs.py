@@ -79,7 +79,8 @@ def shape_arrays(
     k_net: int = 0,
     basis: str = "laplacian",
 ) -> dict[str, np.ndarray]:
-    """Arrays for training and inference of one shape, in its unit-area frame, float64.
+    """Arrays for training and inference of one shape, float64, in the frame of its operators
+    (the unit-area frame, unless the shape was prepared with the caller's operators).
 
     ``shape``: a :class:`~torchfmap.PreparedShape` (``prepare_shape(mesh, n)``, its eigenbasis
     grown in place to ``max(k, k_wks, k_net)`` if it holds fewer, so that a caller who also
@@ -93,19 +94,29 @@ def shape_arrays(
       grad_x, grad_y, grad_order_t (E,)``;
     - the original ``vertices``, ``faces``.
 
+    The arrays are new (copies of what ``shape`` caches), so a caller may change them in place.
+    ``k_wks`` is capped at ``V - 1`` on small meshes.
+
     Raises:
-        ParameterError: an unknown or classical-only ``basis``, or ``shape`` neither a prepared
-            shape nor a mesh.
+        ParameterError: an unknown or classical-only ``basis``, ``shape`` neither a prepared
+            shape nor a mesh, or ``k`` / ``k_net`` not below the vertex count.
     """
     learned_kind(basis)  # refuses an unknown or classical-only kind before any work
-    k_all = max(k, k_wks, k_net)
-    if isinstance(shape, Mesh):
-        shape = prepare_shape(shape, min(k_all, shape.n_vertices - 1))
-    elif not isinstance(shape, PreparedShape):
+    if not isinstance(shape, (Mesh, PreparedShape)):
         raise ParameterError(
             f"shape must be a PreparedShape or a Mesh, got {type(shape).__name__}. "
             "Fix: shape_arrays(prepare_shape(mesh, n), ...) or shape_arrays(mesh, ...)."
         )
+    n_max = (shape if isinstance(shape, Mesh) else shape.mesh).n_vertices - 1
+    k_wks = min(k_wks, n_max)  # the WKS takes what a small mesh has
+    if max(k, k_net) > n_max:
+        raise ParameterError(
+            f"k={k} and k_net={k_net} eigenfunctions need a mesh of more than {max(k, k_net)} vertices, "
+            f"this one has {n_max + 1}. Fix: smaller k / k_net, or a finer mesh."
+        )
+    k_all = max(k, k_wks, k_net)
+    if isinstance(shape, Mesh):
+        shape = prepare_shape(shape, k_all)
     mesh = shape.mesh
     full = with_eigenpairs(shape, k_all).eigenbasis.truncated(k_all)
     # the kinds read the shape's eigenbasis: give them exactly the k_all pairs the inputs use
@@ -113,8 +124,9 @@ def shape_arrays(
     if k_net:
         net = basis_arrays(full.truncated(k_net))
         arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
-    arrays.update(network_inputs(shape, n_wks, k_wks))
-    arrays.update(shape.gradient())
+    # copies: the arrays are the caller's, the shape's cached ones stay as computed
+    arrays.update({key: a.copy() for key, a in network_inputs(shape, n_wks, k_wks).items()})
+    arrays.update({key: a.copy() for key, a in shape.gradient().items()})
     arrays["vertices"] = mesh.vertices
     arrays["faces"] = mesh.faces
     return arrays

@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from ..errors import ParameterError
-from .augment import augmentation, random_rigid
+from .augment import augmentation, random_rigid, recipe_augmentation
 from .checkpoints import read_checkpoint, save_checkpoint
 from .config import CosineBudget, TrainConfig, build_model, build_solver
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
@@ -163,7 +163,9 @@ def train(
     (lower is better) runs every ``validate_every`` steps and at the end; the best weights are
     kept in the checkpoint as ``best_state_dict``. ``checkpoint`` is written atomically at each
     epoch end, each validation and the end (by rank 0), with the network's record
-    (:func:`~torchfmap.nn.checkpoints.save_checkpoint`); ``resume=True`` continues from it
+    (:func:`~torchfmap.nn.checkpoints.save_checkpoint`; ``config`` is recorded there as it is,
+    it does not set this loop's arguments: :func:`train_recipe` trains by a config);
+    ``resume=True`` continues from it
     (weights, optimiser, scheduler, step and the time already spent). With ``world_size > 1``
     (inside an initialised process group) the network is wrapped in DistributedDataParallel
     and each rank trains on its share of the same pairs.
@@ -375,7 +377,7 @@ def train_recipe(
         max_steps=config.max_steps,
         batch_size=config.batch_size,
         clip_grad=config.clip_grad,
-        augment=config.augment if config.inputs == "xyz" else "none",
+        augment=recipe_augmentation(config),
         validate=validate,
         validate_every=validate_every,
         checkpoint=out,
