@@ -65,6 +65,21 @@ def test_time_budget_and_both_budgets_follow_the_one_further_spent(monkeypatch):
     assert both(51) == pytest.approx(cosine(0.9))
 
 
+def test_a_set_clock_replaces_the_processs_own_time(monkeypatch):
+    """DDP ranks set one agreed clock before each step: the factor then depends on it alone, not
+    on the microseconds each rank's own clock differs by."""
+    clock = [100.0]
+    monkeypatch.setattr(config_module.time, "perf_counter", lambda: clock[0])
+    a, b = CosineBudget(minutes=1.0), CosineBudget(minutes=1.0)
+    a(0), b(0)
+    clock[0] += 30.0
+    a.set_clock(15.0)
+    assert a(1) == cosine(0.25) and b(1) == pytest.approx(cosine(0.5))
+    clock[0] += 1e-6  # a rank's own drift after the agreed clock
+    b.set_clock(15.0)
+    assert b(1) == a.floor + (1 - a.floor) * 0.5 * (1 + math.cos(math.pi * 0.25)) == cosine(0.25)
+
+
 def test_resumed_schedule_keeps_its_clock_and_takes_the_new_budget(tmp_path):
     net = torch.nn.Linear(2, 2)
     opt = torch.optim.SGD(net.parameters(), lr=1.0)

@@ -117,6 +117,12 @@ class CosineBudget:
     def budget(self, value: tuple[float, int, float]) -> None:
         self.seconds, self.steps, self.floor = value
 
+    def set_clock(self, seconds: float) -> None:
+        """Set the training time spent so far to ``seconds``; the next call adds none of its own.
+        The ranks of a DDP run set one agreed clock before each step, so their learning rates,
+        hence their weights, agree to the bit (each rank's own clock differs by microseconds)."""
+        self.counted, self.last = float(seconds), None
+
     def fraction(self, step: int) -> float:
         """The part of the budget spent at ``step`` (and the time counted), in ``[0, 1]``."""
         by_time = self.counted / self.seconds if self.seconds else 0.0

@@ -109,6 +109,14 @@ class TrainState:
     best_score: float = math.inf
 
 
+def _set_schedule_clock(scheduler, seconds: float) -> None:
+    """The time-based schedules of ``scheduler`` (:class:`~torchfmap.nn.config.CosineBudget`
+    factors of a ``LambdaLR``) set to ``seconds`` of training."""
+    for factor in getattr(scheduler, "lr_lambdas", []):
+        if isinstance(factor, CosineBudget):
+            factor.set_clock(seconds)
+
+
 def train(
     net: torch.nn.Module,
     data: PairDataset,
@@ -231,6 +239,14 @@ def train(
             over_time = bool(flag.item())
         return over_time or (max_steps > 0 and state.step >= max_steps)
 
+    # ranks of a time-budgeted DDP run follow one clock: the slowest rank's time
+    shared_clock = world_size > 1 and minutes > 0
+
+    def agreed_seconds() -> float:
+        elapsed = torch.tensor([time.perf_counter() - t_start], dtype=torch.float64, device=device)
+        torch.distributed.all_reduce(elapsed, op=torch.distributed.ReduceOp.MAX)
+        return float(elapsed.item())
+
     def save() -> None:
         if checkpoint is None or not main:
             return
@@ -284,6 +300,8 @@ def train(
                 torch.nn.utils.clip_grad_norm_(net.parameters(), clip_grad)
             optimizer.step()
             if scheduler is not None:
+                if shared_clock:
+                    _set_schedule_clock(scheduler, agreed_seconds())
                 scheduler.step()
             state.step += 1
             values = torch.stack([v.detach() for v in terms.values()]).tolist()  # one host sync a step
