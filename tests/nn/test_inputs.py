@@ -62,13 +62,14 @@ def test_arrays_handed_out_are_the_callers_to_change(blob):
     arrays (and the tensors of its items, which share their memory)."""
     shape = prepare_shape(blob, 20)
     first = shape_arrays(shape, 6, 8, 20)
-    reference = {key: first[key].copy() for key in ("wks", "xyz", "grad_x")}
+    reference = {key: first[key].copy() for key in ("wks", "xyz", "grad_x", "values", "vertices")}
     for key in reference:
         first[key][...] = 0
     shape_item(first, dtype=torch.float64)["inputs"].zero_()
     again = shape_arrays(shape, 6, 8, 20)
     for key, value in reference.items():
         np.testing.assert_array_equal(again[key], value, err_msg=key)
+    np.testing.assert_array_equal(blob.vertices, reference["vertices"])  # the mesh too
 
 
 def test_a_mesh_smaller_than_the_wks_spectrum_still_gives_arrays():

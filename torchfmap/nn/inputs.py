@@ -94,7 +94,8 @@ def shape_arrays(
       grad_x, grad_y, grad_order_t (E,)``;
     - the original ``vertices``, ``faces``.
 
-    The arrays are new (copies of what ``shape`` caches), so a caller may change them in place.
+    The arrays are new (copies, not views of ``shape``'s caches, eigenbasis or mesh), so a
+    caller may change them in place.
     ``k_wks`` is capped at ``V - 1`` on small meshes.
 
     Raises:
@@ -124,12 +125,13 @@ def shape_arrays(
     if k_net:
         net = basis_arrays(full.truncated(k_net))
         arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
-    # copies: the arrays are the caller's, the shape's cached ones stay as computed
-    arrays.update({key: a.copy() for key, a in network_inputs(shape, n_wks, k_wks).items()})
-    arrays.update({key: a.copy() for key, a in shape.gradient().items()})
+    arrays.update(network_inputs(shape, n_wks, k_wks))
+    arrays.update(shape.gradient())
     arrays["vertices"] = mesh.vertices
     arrays["faces"] = mesh.faces
-    return arrays
+    # copies, all of them: the arrays are the caller's, while the shape's caches, eigenbasis and
+    # mesh (which basis values, inputs and gradient may be views of) stay as computed
+    return {key: np.array(value) for key, value in arrays.items()}
 
 
 def precompute_shape(

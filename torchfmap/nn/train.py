@@ -231,21 +231,21 @@ def train(
     t_start = time.perf_counter() - state.seconds
     main = rank == 0
 
-    def out_of_budget() -> bool:
-        over_time = minutes > 0 and time.perf_counter() - t_start >= 60 * minutes
-        if world_size > 1 and minutes > 0:  # each rank has its own clock: all stop at the same step
-            flag = torch.tensor([float(over_time)], device=device)
-            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-            over_time = bool(flag.item())
-        return over_time or (max_steps > 0 and state.step >= max_steps)
-
-    # ranks of a time-budgeted DDP run follow one clock: the slowest rank's time
+    # each rank has its own clock: the ranks of a time-budgeted DDP run follow one, the slowest
+    # rank's, so all stop at the same step and their schedules (hence weights) agree
     shared_clock = world_size > 1 and minutes > 0
 
-    def agreed_seconds() -> float:
-        elapsed = torch.tensor([time.perf_counter() - t_start], dtype=torch.float64, device=device)
-        torch.distributed.all_reduce(elapsed, op=torch.distributed.ReduceOp.MAX)
-        return float(elapsed.item())
+    def seconds_spent() -> float:
+        elapsed = time.perf_counter() - t_start
+        if not shared_clock:
+            return elapsed
+        agreed = torch.tensor([elapsed], dtype=torch.float64, device=device)
+        torch.distributed.all_reduce(agreed, op=torch.distributed.ReduceOp.MAX)
+        return float(agreed.item())
+
+    def out_of_budget() -> bool:
+        over_time = minutes > 0 and seconds_spent() >= 60 * minutes
+        return over_time or (max_steps > 0 and state.step >= max_steps)
 
     def save() -> None:
         if checkpoint is None or not main:
@@ -301,7 +301,7 @@ def train(
             optimizer.step()
             if scheduler is not None:
                 if shared_clock:
-                    _set_schedule_clock(scheduler, agreed_seconds())
+                    _set_schedule_clock(scheduler, seconds_spent())
                 scheduler.step()
             state.step += 1
             values = torch.stack([v.detach() for v in terms.values()]).tolist()  # one host sync a step
