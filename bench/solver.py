@@ -10,7 +10,7 @@ writes them to ``bench/results/solver.md``)::
 
 Inputs: random, seeded bases and features, see ``bench/_torch_inputs.py``.
 
-(1) Solver. ``fmap_solve(feat_x, feat_y, bx, by, w_desc=1, w_lap=1e-3, both=True)`` (one
+(1) Solver. ``solve_fmap(feat_x, feat_y, bx, by, w_desc=1, w_lap=1e-3, both=True)`` (one
 batched ``torch.linalg.solve`` over ``(B, K, K, K)`` per direction) against a per-row loop
 written here: the same math (project, rotate by ``U``, Laplacian mask normalised to mean 1,
 then one ``torch.linalg.solve`` of a ``(K, K)`` system per row of every batch item in a Python
@@ -71,7 +71,7 @@ from _common import (
 )
 from _torch_inputs import DTYPES, solver_inputs
 
-from torchfmap.nn.functional import BasisBatch, fmap_solve
+from torchfmap.nn.functional import BasisBatch, solve_fmap
 
 W_DESC, W_LAP = 1.0, 1e-3
 
@@ -113,7 +113,7 @@ def loop_fmap_solve(fx, fy, bx: BasisBatch, by: BasisBatch) -> tuple[torch.Tenso
 
 
 def batched_fmap_solve(fx, fy, bx: BasisBatch, by: BasisBatch) -> tuple[torch.Tensor, torch.Tensor]:
-    return fmap_solve(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True)
+    return solve_fmap(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True)
 
 
 METHODS: dict[str, Callable] = {"batched": batched_fmap_solve, "loop": loop_fmap_solve}
@@ -245,13 +245,13 @@ def run_solver(args) -> list[str]:
     if not args.no_memory:
         agree += [f"RSS peak {m} MiB" for m in METHODS] + ["RSS source"]
     return [
-        "## (1) fmap_solve (batched) vs per-row loop: forward + backward, both directions; "
+        "## (1) solve_fmap (batched) vs per-row loop: forward + backward, both directions; "
         f"median of {args.repeats} alternating rounds after 1 warm-up",
         markdown(rows, [*cols, "loop/batched", "load1 start", "load1 end"]),
         "### Agreement (batched vs loop, last round), conditioning and memory",
         markdown(rows, agree),
         "rel = max|Δ| / max|loop value|. cond: row systems of batch item 0, x -> y, in float64. "
-        "system MiB: one (B, K, K, K) tensor (fmap_solve builds one per direction). RSS peak: "
+        "system MiB: one (B, K, K, K) tensor (solve_fmap builds one per direction). RSS peak: "
         "resident high-water mark above the start of one fwd+bwd call in a fresh process.",
     ]
 

@@ -1,4 +1,4 @@
-"""Benchmark: one CPU training step (torch): FeatureNet + fmap_solve + UnsupervisedFMLoss + Adam.
+"""Benchmark: one CPU training step (torch): FeatureNet + solve_fmap + UnsupervisedFMLoss + Adam.
 
 Run by hand from the repository root (prints markdown tables to stdout, progress to stderr, and
 writes them to ``bench/results/train_step.md``)::
@@ -12,7 +12,7 @@ recipe's step against the previous recipe and the first learned path (see :func:
 
 (2) Training step. ``FeatureNet(32, 64, width=64, n_blocks=3)`` on a pair of ``--train-v``
 vertex shapes (random bases as above, Gaussian ``(B, V, 32)`` inputs): features of x and y,
-``fmap_solve`` (both directions, default weights), ``UnsupervisedFMLoss()`` (default weights,
+``solve_fmap`` (both directions, default weights), ``UnsupervisedFMLoss()`` (default weights,
 so the soft point maps ``(B, V, V)`` of the coupling term are included), backward, ``Adam``
 step (lr 1e-3). One warm-up step, then the median of ``--repeats`` steps of each phase. The
 forward phases are timed with ``time.perf_counter`` around each call; the backward is split by
@@ -43,7 +43,7 @@ from _torch_inputs import DTYPES, random_basis
 from torchfmap import load_mesh
 from torchfmap.nn import DiffusionNet, FeatureNet, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn.config import TrainConfig
-from torchfmap.nn.functional import fmap_solve
+from torchfmap.nn.functional import solve_fmap
 from torchfmap.nn.inputs import shape_arrays, shape_item
 
 
@@ -72,7 +72,7 @@ def train_step(net, loss_fn, opt, xin, yin, bx, by) -> tuple[dict[str, float], f
     t0 = time.perf_counter()
     fx, fy = net(xin, bx), net(yin, by)
     t1 = time.perf_counter()
-    C_xy, C_yx = fmap_solve(fx, fy, bx, by)
+    C_xy, C_yx = solve_fmap(fx, fy, bx, by)
     t2 = time.perf_counter()
     total = loss_fn(C_xy, C_yx, fx, fy, bx, by)["total"]
     t3 = time.perf_counter()
@@ -134,7 +134,7 @@ def run_train(args) -> list[str]:
     cols += ["backward [s]", "loss bwd [s]", "solver bwd [s]", "net bwd [s]", "adam [s]"]
     split = ["dtype", "B", "K", "net %", "solver %", "loss %", "adam %", "loss first→last", "finite"]
     return [
-        f"## (2) Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + fmap_solve + "
+        f"## (2) Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + solve_fmap + "
         f"UnsupervisedFMLoss + Adam; median of {args.repeats} steps after 1 warm-up "
         f"({torch.get_num_threads()} torch threads)",
         markdown(rows, cols),
@@ -172,7 +172,7 @@ def run_recipes(args) -> list[str]:
       compressed-row gradient operators, coupling between ``n_samples`` random vertices, both
       soft maps from one similarity matrix).
 
-    All: ``K`` eigenfunctions for the solver and the diffusion, ``fmap_solve`` both ways,
+    All: ``K`` eigenfunctions for the solver and the diffusion, ``solve_fmap`` both ways,
     backward, Adam. Steps alternate, ``--repeats`` each after one warm-up; medians and the
     ratios to the recipe.
     """
@@ -209,7 +209,7 @@ def run_recipes(args) -> list[str]:
             patch = mock.patch.object(F, "spatial_gradient", coo_spatial_gradient)
             with patch if key == "previous" else contextlib.nullcontext():
                 fx, fy = net(*args_x), net(*args_y)
-                C_xy, C_yx = fmap_solve(fx, fy, sx.basis, sy.basis)
+                C_xy, C_yx = solve_fmap(fx, fy, sx.basis, sy.basis)
                 total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis, generator=draws)["total"]
                 opts[key].zero_grad(set_to_none=True)
                 total.backward()

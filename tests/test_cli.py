@@ -70,7 +70,7 @@ def test_quiet_means_the_same_in_every_command(tmp_path, capsys):
     capsys.readouterr()
     assert (
         main(
-            ["basis", str(a), "--kind", "laplacian", "--k", "8", "--out", str(tmp_path / "a.npz"), "--quiet"]
+            ["basis", str(a), "--basis", "laplacian", "--k", "8", "--out", str(tmp_path / "a.npz"), "--quiet"]
         )
         == 0
     )

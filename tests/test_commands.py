@@ -68,7 +68,8 @@ def test_basis_command(tmp_path, capsys):
     assert {c.time for c in basis.provenance if c.family == "diffusion"} == {0.01, 0.001}
     # with the command's own defaults, every kind works (no landmarks needed to build one basis)
     for kind in ("harmonic", "eigen_diffusion"):
-        assert main(["basis", str(mesh_path), "--kind", kind, "--k", "12", "--out", str(out), "--quiet"]) == 0
+        flags = ["--basis", kind, "--k", "12", "--out", str(out), "--quiet"]
+        assert main(["basis", str(mesh_path), *flags]) == 0
         assert Basis.load(out).k == 12
     assert main(["basis", str(mesh_path), "--out", str(out), "--quiet"]) == 0
     assert {c.family for c in Basis.load(out).provenance} == {"laplacian"}

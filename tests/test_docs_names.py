@@ -120,7 +120,7 @@ def test_the_checker_flags_a_missing_name_and_accepts_real_ones():
     )
     assert found == {"torchfmap.match", "pipeline.no_such_thing", "W_LAP_SMOOTH", "fmap_to_p2p"}
     assert resolves("torchfmap.match") and resolves("fmap_to_p2p") and resolves("result.kind")
-    assert not resolves("pipeline.no_such_thing") and not resolves("fmap.refine_map")
+    assert not resolves("pipeline.no_such_thing")
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)

@@ -53,7 +53,6 @@ HOMES = {
     "prepare_shape": "torchfmap.bases.prepared",
     "seed_time": "torchfmap.kinds.base",
     "replace_seeds": "torchfmap.seeds",
-    "refine_map": "torchfmap.results",
     "hybrid_zoomout": "torchfmap.kinds.hybrid",
     "fixed_size_iterations": "torchfmap.kinds.base",
     "zoomout": "torchfmap.fmap.refine",
@@ -501,7 +500,6 @@ BASIS_KIND_PARAMETERS = {
     "torchfmap.results.MatchContext.__init__",
     "torchfmap.results.MatchResult",
     "torchfmap.results.MatchResult.__init__",
-    "torchfmap.results.refine_map",
 }
 
 

@@ -119,7 +119,6 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="basis kind (default: diffusion with --landmarks, else laplacian)",
     )
-    p.add_argument("--kind", dest="kind", choices=BASES, help=argparse.SUPPRESS)  # the old name of --basis
     p.add_argument("--k", type=positive_int, default=50, help="basis size (exactly k columns)")
     p.add_argument(
         "--allow-components", action="store_true", help="accept meshes with several connected components"

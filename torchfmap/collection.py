@@ -18,7 +18,6 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import check_count
-from ._deprecation import renamed_keywords
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import ParameterError
@@ -301,7 +300,6 @@ def evaluate_pairs(
     return [r for i in range(len(chunks)) for r in done[i]]
 
 
-@renamed_keywords(kind="form")
 def shape_distance_matrix(
     meshes: list[Mesh], *, k: int = 20, form: str = "area", progress: bool = False, **match_kwargs
 ) -> np.ndarray:

@@ -13,7 +13,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_vertex_indices
-from ._deprecation import renamed_keywords
 from .errors import ParameterError
 from .operators.heat import heat_kernels
 
@@ -88,7 +87,6 @@ def wks(
     return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
 
 
-@renamed_keywords(kind="kernel")
 def landmark_descriptors(
     landmarks,
     *,

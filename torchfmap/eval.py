@@ -20,7 +20,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._deprecation import renamed_keywords
 from .errors import ParameterError
 from .io import find_file, mesh_files, read_arrays, read_test_pairs, read_vts, shape_name
 from .mesh import Mesh
@@ -219,7 +218,6 @@ def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapR
 
 
 # -- shape comparison --------------------------------------------------------------------------
-@renamed_keywords(kind="form")
 def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> np.ndarray:
     """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``: how the
     map changes an inner-product form.
@@ -241,7 +239,6 @@ def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -
     raise ParameterError(f"unknown shape difference form {form!r}. Fix: 'area' or 'conformal'.")
 
 
-@renamed_keywords(kind="form")
 def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> float:
     """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D`` (:func:`shape_difference`, same
     ``form``): 0 for isometric shapes."""

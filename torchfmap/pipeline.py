@@ -34,7 +34,7 @@ from .quality import (
     warn_collapsed,
 )
 from .quality import warn_if_off_by_one as warn_if_off_by_one
-from .results import MatchContext, MatchResult, RefineMethod, refine_map, refine_result
+from .results import MatchContext, MatchResult, RefineMethod, refine_result
 
 P2PMode = Literal["pullback", "orthogonal"]
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
@@ -61,7 +61,6 @@ __all__ = [
     "match_bases",
     "match_descriptors",
     "prepare_shape",
-    "refine_map",
     "refine_result",
     "warn_if_off_by_one",
 ]

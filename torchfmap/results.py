@@ -9,27 +9,21 @@ from __future__ import annotations
 
 import dataclasses
 import time
-import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from ._deprecation import module_aliases
 from .bases import Basis
 from .bases.prepared import PreparedShape, with_eigenpairs
 from .errors import ParameterError
-from .fmap.refine import Refined
-from .kinds import BasisKind, get_kind
+from .kinds import BasisKind
 from .quality import distortion_anchors, geodesic_distortion
 
 #: The refinements of :func:`torchfmap.match` (``refine=``).
 RefineMethod = Literal["icp", "zoomout", "seeded"]
 
-__all__ = ["MatchContext", "MatchResult", "RefineMethod", "refine_map", "refine_result"]
-
-#: The name of earlier releases ("kind" names basis kinds only).
-__getattr__ = module_aliases(__name__, {"RefineKind": "RefineMethod"})
+__all__ = ["MatchContext", "MatchResult", "RefineMethod", "refine_result"]
 
 
 @dataclass(frozen=True)
@@ -96,19 +90,6 @@ def refine_result(result: MatchResult, refine: RefineMethod) -> MatchResult:
         result, p2p_yx=p2p, C_xy=C, basis_x=bx, basis_y=by, seeds=seeds, timings=timings,
         distortion=distortion, refined=True,
     )  # fmt: skip
-
-
-def refine_map(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, method, *, kind, **kwargs) -> Refined:
-    """Deprecated: ``get_kind(kind).refine(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y,
-    method, **kwargs)`` (:meth:`torchfmap.kinds.BasisKind.refine`; each kind owns its
-    refinement)."""
-    warnings.warn(
-        "refine_map is deprecated: each basis kind refines its own maps. Fix: "
-        "torchfmap.kinds.get_kind(kind).refine(...) with the same arguments.",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    return get_kind(kind).refine(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, method, **kwargs)
 
 
 @dataclass

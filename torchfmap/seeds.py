@@ -14,7 +14,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
-from ._deprecation import module_aliases, renamed_keywords
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver
@@ -36,9 +35,6 @@ __all__ = [
 ]
 
 CurvatureMeasure = Literal["mean", "gaussian", "abs_mean"]
-
-#: The name of earlier releases ("kind" names basis kinds only).
-__getattr__ = module_aliases(__name__, {"CurvatureKind": "CurvatureMeasure"})
 
 
 def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray:
@@ -72,7 +68,6 @@ def gaussian_curvature(mesh: Mesh) -> np.ndarray:
     return defect / np.maximum(area, 1e-300)
 
 
-@renamed_keywords(kind="measure")
 def curvature(mesh: Mesh, measure: CurvatureMeasure = "mean") -> np.ndarray:
     """``(V,)`` curvature by the given measure: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``.
 
@@ -109,7 +104,6 @@ def max_curvature_vertex(mesh: Mesh, smooth_steps: int = 2) -> int:
     return int(np.argmax(_smooth(mesh, np.abs(mean_curvature(mesh)), smooth_steps)))
 
 
-@renamed_keywords(kind="measure")
 def curvature_features(
     mesh: Mesh,
     k: int,

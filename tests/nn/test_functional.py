@@ -161,14 +161,3 @@ def test_vertex_mask_marks_the_real_vertices():
     assert mask.tolist() == [[True, True, False, False], [True, True, True, True]]
     assert vertex_mask(None, 4) is None
 
-
-def test_renamed_names_still_work_with_a_deprecation_warning():
-    """One name per concept: the batched solve is ``solve_fmap`` as in the classical path; the
-    old name warns and gives the same function."""
-    import torchfmap.nn.functional as F
-
-    with pytest.warns(DeprecationWarning, match="solve_fmap"):
-        old = F.fmap_solve
-    assert old is F.solve_fmap
-    with pytest.raises(AttributeError):
-        F.no_such_name  # noqa: B018

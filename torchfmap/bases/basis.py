@@ -17,7 +17,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._checks import check_count
-from .._deprecation import renamed_keywords, warn_renamed
 from .._files import load_arrays, save_arrays
 from ..errors import ParameterError
 
@@ -41,12 +40,6 @@ class Column:
     index: int = -1
     kept: bool = True
 
-    @property
-    def kind(self) -> str:
-        """Deprecated name of :attr:`family` ("kind" names basis kinds)."""
-        warn_renamed("Column.kind", "Column.family")
-        return self.family
-
     def label(self) -> str:
         if self.family == "diffusion":
             return f"diffusion(seed={self.seed}, t={self.time:g})"
@@ -55,10 +48,6 @@ class Column:
         if self.family == "laplacian":
             return f"laplacian({self.index})"
         return self.family
-
-
-# ``Column(kind=...)``, the constructor keyword of earlier releases, still works (with a warning)
-Column.__init__ = renamed_keywords(kind="family")(Column.__init__)
 
 
 class Basis:
@@ -134,11 +123,6 @@ class Basis:
     def families(self) -> np.ndarray:
         """``(K,)`` function family of each kept column (:attr:`Column.family`)."""
         return np.array([c.family for c in self.columns])
-
-    def kinds(self) -> np.ndarray:
-        """Deprecated name of :meth:`families`."""
-        warn_renamed("Basis.kinds()", "Basis.families()")
-        return self.families()
 
     def __repr__(self) -> str:
         counts = {}

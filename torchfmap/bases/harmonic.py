@@ -19,7 +19,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._checks import check_seeds_cover_components, check_vertex_indices, is_symmetric
-from .._deprecation import renamed_keywords
 from ..errors import SeedError
 from ..mesh import Mesh
 from ..operators.laplacian import LaplacianScheme, Operators, laplacian
@@ -59,7 +58,6 @@ def harmonic_functions(L: sp.spmatrix, seeds, *, symmetric: bool | None = None) 
     return psi
 
 
-@renamed_keywords(kind="scheme")
 def harmonic_basis(
     mesh: Mesh,
     seeds,

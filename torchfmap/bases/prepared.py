@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._checks import check_count, check_seeds_cover_components, check_vertex_indices
-from .._deprecation import renamed_keywords
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import DistanceRows
@@ -93,7 +92,6 @@ class PreparedShape:
         return 0 if self.eigenbasis is None else self.eigenbasis.k
 
 
-@renamed_keywords(laplacian_kind="laplacian")
 def prepare_shape(
     mesh: Mesh, n_eigen: int, *, operators: Operators | None = None, laplacian: str = "auto"
 ) -> PreparedShape:

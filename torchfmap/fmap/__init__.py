@@ -45,13 +45,3 @@ __all__ = [
     "zoomout",
     "zoomout_sequence",
 ]
-
-
-def __getattr__(name: str):
-    if name == "refine_map":  # removed: the fmap layer knows no basis kinds
-        raise AttributeError(
-            "torchfmap.fmap.refine_map is gone: each basis kind refines its own maps. Fix: "
-            "torchfmap.kinds.get_kind(kind).refine(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, "
-            "method, k_final=..., mode=...)."
-        )
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -22,16 +22,12 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from .._deprecation import module_aliases, renamed_keywords
 from .._lazy import torch
 from .._torch_checks import resolve_check
 from ..errors import ParameterError
 
 #: The Laplacian-commutativity masks (:func:`laplacian_mask`'s ``mask``).
 Mask = Literal["laplacian", "resolvent"]
-
-#: The names of earlier releases ("kind" names basis kinds only).
-__getattr__ = module_aliases(__name__, {"MaskKind": "Mask"})
 
 
 def as_tensor(x, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -74,7 +70,6 @@ def spectral_frame(W: torch.Tensor) -> SpectralFrame:
     return SpectralFrame(*torch.linalg.eigh(W))
 
 
-@renamed_keywords(kind="mask")
 def laplacian_mask(
     lam_x: torch.Tensor,
     lam_y: torch.Tensor,

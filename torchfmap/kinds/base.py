@@ -25,12 +25,10 @@ Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind
 
 from __future__ import annotations
 
-import sys
-from dataclasses import InitVar, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
-from .._deprecation import warn_renamed
 from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize, orthonormalize_pair
 from ..bases.prepared import PreparedShape
@@ -105,13 +103,8 @@ class BasisKind:
     #: whether ZoomOut grows the kind's eigenfunctions (the shapes then need ``k_final``
     #: eigenpairs, :func:`~torchfmap.bases.prepared.with_eigenpairs`)
     grows: bool = False
-    #: the old name of ``column_families`` (a keyword of the constructor only)
-    column_kinds: InitVar[frozenset[str] | None] = None
 
-    def __post_init__(self, column_kinds) -> None:
-        if column_kinds is not None:
-            warn_renamed("BasisKind(column_kinds=...)", "BasisKind(column_families=...)", stacklevel=4)
-            object.__setattr__(self, "column_families", frozenset(column_kinds))
+    def __post_init__(self) -> None:
         if not self.column_families:
             raise ParameterError(
                 f"kind {self.name!r} names no column families. Fix: column_families=frozenset({{...}}), the "
@@ -223,18 +216,6 @@ class BasisKind:
         C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, mode, samples)
         return Refined(C, p2p, basis_x, basis_y, seeds)
 
-
-def _column_kinds(self) -> frozenset[str] | None:
-    """Deprecated name of :attr:`BasisKind.column_families` (reading it warns). It is also the
-    constructor's old keyword (an ``InitVar``), which ``dataclasses.replace`` reads to pass on:
-    it gets None (not given), so that a replaced kind keeps the families it is given."""
-    if sys._getframe(1).f_globals.get("__name__") == "dataclasses":
-        return None
-    warn_renamed("BasisKind.column_kinds", "BasisKind.column_families")
-    return self.column_families
-
-
-BasisKind.column_kinds = property(_column_kinds)  # after the dataclass took it as a constructor keyword
 
 
 def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> tuple[np.ndarray, np.ndarray]:

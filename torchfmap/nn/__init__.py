@@ -32,7 +32,7 @@ from .data import (
 )
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
 from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
-from .inputs import network_inputs, precompute_shape, shape_arrays, shape_item
+from .inputs import network_inputs, shape_arrays, shape_item
 from .modules import (
     BasisModule,
     RegularizedFMSolver,
@@ -96,7 +96,6 @@ __all__ = [
     "features",
     "functional",
     "network_inputs",
-    "precompute_shape",
     "shape_arrays",
     "shape_item",
 ]

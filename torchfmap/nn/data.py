@@ -20,7 +20,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .._deprecation import module_aliases
 from .._files import load_arrays, save_arrays
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
@@ -30,16 +29,6 @@ from .functional import BasisBatch, GradientBatch
 from .inputs import shape_arrays, shape_item
 
 log = logging.getLogger(__name__)
-
-#: Names that moved to :mod:`torchfmap.nn.inputs` (the per-shape arrays of the learned path).
-__getattr__ = module_aliases(
-    __name__,
-    {
-        "precompute_shape": "torchfmap.nn.inputs.precompute_shape",
-        "K_WKS": "torchfmap.nn.inputs.K_WKS",
-        "SEED_TIMES": "torchfmap.nn.inputs.SEED_TIMES",
-    },
-)
 
 #: Key of the checksum array in cache entries (kept from the first cache format).
 CACHE_CHECKSUM_KEY = "__checksum__"

@@ -27,7 +27,6 @@ from typing import NamedTuple
 
 import torch
 
-from .._deprecation import module_aliases
 from .._torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
 from ..errors import ParameterError
 from ..fmap import core
@@ -379,7 +378,3 @@ def geodesic_loss(
         check_index_range(idx_y, V_y, "idx_y", "ground-truth vertices are 0-based vertices of y.")
     rows = torch.gather(pi_yx, 1, idx_y[..., None].expand(-1, -1, V_x))
     return (rows * dist_rows).sum(dim=-1).mean()
-
-
-#: The name of earlier releases: one name per concept now (the classical ``torchfmap.solve_fmap``).
-__getattr__ = module_aliases(__name__, {"fmap_solve": "solve_fmap"})

@@ -21,7 +21,6 @@ import dataclasses
 import numpy as np
 import torch
 
-from .._deprecation import warn_renamed
 from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
 from ..descriptors import wks
@@ -132,16 +131,6 @@ def shape_arrays(
     # copies, all of them: the arrays are the caller's, while the shape's caches, eigenbasis and
     # mesh (which basis values, inputs and gradient may be views of) stay as computed
     return {key: np.array(value) for key, value in arrays.items()}
-
-
-def precompute_shape(
-    mesh: Mesh, k: int = 50, n_wks: int = 32, k_wks: int = K_WKS, *, k_net=0, basis="laplacian", shape=None
-) -> dict[str, np.ndarray]:
-    """Deprecated name of :func:`shape_arrays` (``shape_arrays(shape or mesh, ...)``)."""
-    warn_renamed("torchfmap.nn.precompute_shape(mesh, shape=)", "torchfmap.nn.shape_arrays(shape or mesh)")
-    if shape is not None and (not isinstance(shape, PreparedShape) or shape.mesh is not mesh):
-        raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
-    return shape_arrays(mesh if shape is None else shape, k, n_wks, k_wks, k_net=k_net, basis=basis)
 
 
 def shape_item(

@@ -12,7 +12,6 @@ import torch
 from torch import nn
 
 from .._checks import check_lumped_mass
-from .._deprecation import renamed_keywords
 from ..bases import prepare_shape
 from ..bases.basis import Basis
 from ..errors import ParameterError
@@ -79,7 +78,6 @@ class BasisModule(nn.Module):
         return self.batch()
 
     @classmethod
-    @renamed_keywords(kind="basis")
     def from_mesh(
         cls, mesh: Mesh, k: int = 50, basis: str = "laplacian", seeds=None, times=None, dtype=torch.float64
     ) -> BasisModule:

@@ -32,7 +32,6 @@ import robust_laplacian
 import scipy.sparse as sp
 
 from .._checks import lumped_diagonal as lumped_diagonal  # public here too (re-export)
-from .._deprecation import module_aliases, renamed_keywords
 from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 
@@ -41,16 +40,6 @@ MassScheme = Literal["voronoi", "barycentric", "fem"]
 LAPLACIAN_SCHEMES = ("cotan", "robust", "mean_value")
 MASS_SCHEMES = ("voronoi", "barycentric", "fem")
 
-#: The names of earlier releases ("kind" now names basis kinds only).
-__getattr__ = module_aliases(
-    __name__,
-    {
-        "LaplacianKind": "LaplacianScheme",
-        "MassKind": "MassScheme",
-        "LAPLACIAN_KINDS": "LAPLACIAN_SCHEMES",
-        "MASS_KINDS": "MASS_SCHEMES",
-    },
-)
 
 
 class Operators(NamedTuple):
@@ -117,7 +106,6 @@ def mean_value_stiffness(mesh: Mesh) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(mesh.n_vertices, mesh.n_vertices))
 
 
-@renamed_keywords(kind="scheme")
 def mass_matrix(mesh: Mesh, scheme: MassScheme = "voronoi") -> sp.csr_matrix:
     """``(V, V)`` mass matrix; lumped (diagonal) unless ``scheme='fem'``. Sums to the area.
 
@@ -160,7 +148,6 @@ def point_cloud_laplacian(points, n_neighbors: int = 30, mollify_factor: float =
     return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
 
 
-@renamed_keywords(kind="scheme")
 def laplacian(
     mesh: Mesh | np.ndarray,
     scheme: LaplacianScheme = "cotan",
@@ -173,8 +160,7 @@ def laplacian(
 
     Args:
         mesh: a :class:`~torchfmap.Mesh`, or ``(V, 3)`` points for ``scheme='robust'``.
-        scheme: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring;
-            ``kind=`` is its old name).
+        scheme: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring).
         mass: ``'voronoi'``, ``'barycentric'`` or ``'fem'`` (ignored by ``'robust'``).
         mollify_factor, n_neighbors: passed to ``robust-laplacian``.
 
