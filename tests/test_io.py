@@ -15,7 +15,6 @@ from torchfmap.data import icosphere
 from torchfmap.io import (
     find_file,
     is_mesh_file,
-    merge_soup,
     mesh_files,
     read_index_table,
     read_landmark_pairs,
@@ -126,13 +125,6 @@ def test_stl_merges_in_first_appearance_order(tmp_path, shuffled):
     assert np.allclose(mesh.vertices[mesh.faces], shuffled.vertices[shuffled.faces], atol=1e-6)
 
 
-def test_merge_soup_order():
-    soup = np.array([[2.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 0, 0]])
-    v, f = merge_soup(soup, np.array([[0, 1, 3], [2, 1, 3]]))
-    assert v.tolist() == [[2, 0, 0], [1, 0, 0], [0, 0, 0]]
-    assert f.tolist() == [[0, 1, 2], [0, 1, 2]]
-
-
 def test_gzip_off_matches_plain(tmp_path):
     plain = data_path("tosca5k_dev", "cat0.off")
     gz = tmp_path / "cat0.off.gz"
@@ -215,7 +207,7 @@ def test_index_files_name_the_problem(tmp_path):
     with pytest.raises(TorchFmapError, match=r"m.txt:2: expected 1 integer column"):
         read_map(tmp_path / "m.txt")
     (tmp_path / "v.vts").write_text("3\n1.5\n")
-    with pytest.raises(TorchFmapError, match=r"v.vts:2: .vts must be integer"):
+    with pytest.raises(TorchFmapError, match=r"v.vts:2: '1.5' is not 1 integer vertex index"):
         read_vts(tmp_path / "v.vts")
     (tmp_path / "pairs.txt").write_text("cat0 cat1\ncat2\n")
     with pytest.raises(TorchFmapError, match=r"pairs.txt:2: a test pair needs two shape names"):
@@ -223,6 +215,27 @@ def test_index_files_name_the_problem(tmp_path):
     (tmp_path / "latin.txt").write_bytes(b"1\n\xe9\n")
     with pytest.raises(TorchFmapError, match="not UTF-8"):
         read_text(tmp_path / "latin.txt", "landmark")
+
+
+def test_landmark_files_as_users_write_them(tmp_path):
+    """A header line, commas (CSV) and semicolons are read; a word after the first line and a
+    comma-separated file of the wrong width are refused naming the line and how to write it."""
+    for text in ("source,target\n1,2\n3,4\n", "x y # header\n1 2\n3 4\n", "1;2\n3;4\n", "1, 2\n3 ,4\n"):
+        (tmp_path / "lm.txt").write_text(text)
+        np.testing.assert_array_equal(read_landmark_pairs(tmp_path / "lm.txt"), [[1, 2], [3, 4]])
+    (tmp_path / "lm.txt").write_text("1 2\nfive six\n")
+    with pytest.raises(TorchFmapError, match=r"lm.txt:2: 'five six' is not 2 integer.*only the first line may be"):
+        read_landmark_pairs(tmp_path / "lm.txt")
+    (tmp_path / "lm.txt").write_text("1,2\n3,4\n")
+    with pytest.raises(TorchFmapError, match=r"expected 1 integer column\(s\) per line \(landmark\), got 2"):
+        read_landmarks(tmp_path / "lm.txt")
+
+
+def test_an_empty_mesh_file_says_so(tmp_path):
+    for name in ("empty.off", "blank.obj", "empty.ply"):
+        (tmp_path / name).write_text("" if name != "blank.obj" else "\n \n")
+        with pytest.raises(MeshError, match=rf"'{name}' is empty .*Fix: copy or export"):
+            load_mesh(tmp_path / name)
 
 
 def test_one_based_off_faces_are_named_as_such(tmp_path):

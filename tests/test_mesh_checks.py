@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchfmap import MeshError, validate_mesh
+from torchfmap import Mesh, MeshError, MeshWarning, validate_mesh, weld_vertices
 
 from .conftest import TET_F, TET_V
 
@@ -37,3 +37,49 @@ def test_holes_reported_not_raised(sphere2):
     ring2 = np.flatnonzero((sphere2.faces == far).any(axis=1))
     rep2 = sphere2.without_faces(np.concatenate([ring, ring2])).report
     assert rep2.n_boundary_loops == 2
+
+
+def test_weld_vertices_keeps_first_appearance_order_and_maps_old_to_new():
+    soup = np.array([[2.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 0, 0]])
+    v, f, old_to_new = weld_vertices(soup, np.array([[0, 1, 3], [2, 1, 3]]), rtol=0)
+    assert v.tolist() == [[2, 0, 0], [1, 0, 0], [0, 0, 0]]
+    assert f.tolist() == [[0, 1, 2], [0, 1, 2]]
+    assert old_to_new.tolist() == [0, 1, 0, 2]
+    # within the tolerance (relative to the bounding-box diagonal, 2 here) positions are one
+    near = soup + np.array([[0, 0, 0], [0, 0, 0], [1e-10, 0, 0], [0, 0, 0]])
+    assert weld_vertices(near, [[0, 1, 3]], rtol=1e-9)[0].shape == (3, 3)
+    assert weld_vertices(near, [[0, 1, 3]], rtol=0)[0].shape == (4, 3)
+
+
+def _soup(mesh_v, mesh_f):
+    """Every face with its own three vertices (as an STL or a naive exporter writes them)."""
+    return mesh_v[mesh_f].reshape(-1, 3), np.arange(3 * len(mesh_f)).reshape(-1, 3)
+
+
+def test_a_triangle_soup_is_told_to_weld_and_welding_restores_the_mesh(sphere2):
+    v, f = _soup(sphere2.vertices, sphere2.faces)
+    with pytest.raises(MeshError, match=r"triangle soup.*weld coincident vertices.*weld_vertices"):
+        validate_mesh(v, f)
+    wv, wf, old_to_new = weld_vertices(v, f)
+    report = validate_mesh(wv, wf)
+    assert report.n_components == 1 and report.is_closed and report.n_coincident_vertices == 0
+    np.testing.assert_array_equal(wv[old_to_new], v)  # the map carries every old vertex
+
+
+def test_a_seam_of_coincident_vertices_is_reported_and_warned(sphere2):
+    """Cut the sphere's faces on one side of a great circle loose from the other by duplicating
+    the vertices they share: one component still (the poles join them), a seam reported."""
+    v, f = sphere2.vertices, sphere2.faces.copy()
+    side = v[f].mean(axis=1)[:, 0] > 0
+    shared = np.intersect1d(f[side], f[~side])
+    shared = shared[v[shared, 1] > 0.2]  # part of the circle: the mesh stays one piece
+    copies = len(v) + np.arange(len(shared))
+    remap = np.arange(len(v))
+    remap[shared] = copies
+    f[side] = remap[f[side]]
+    v2 = np.vstack([v, v[shared]])
+    report = validate_mesh(v2, f)
+    assert report.n_components == 1 and report.n_coincident_vertices == len(shared)
+    assert "coincident vertices (seams)" in report.summary()
+    with pytest.warns(MeshWarning, match=rf"{len(shared)} vertices share their position.*weld_vertices"):
+        Mesh(v2, f)

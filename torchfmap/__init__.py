@@ -34,7 +34,7 @@ from .eval import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .io import load_mesh, load_points, save_mesh
 from .kinds import KINDS
-from .mesh import Mesh, MeshReport, validate_mesh
+from .mesh import Mesh, MeshReport, validate_mesh, weld_vertices
 from .operators import (
     Factorization,
     GeodesicSolver,
@@ -111,6 +111,7 @@ __all__ = [
     "save_mesh",
     "total_area",
     "validate_mesh",
+    "weld_vertices",
     "evaluate_map",
     "fmap_to_p2p",
     "p2p_to_fmap",

@@ -35,7 +35,7 @@ from ._format_checks import check_off as _check_off
 from ._format_checks import check_stl as _check_stl
 from ._format_checks import off_header_counts as off_header_counts
 from .errors import MeshError, ParameterError, TorchFmapError
-from .mesh import Mesh
+from .mesh import Mesh, weld_vertices
 
 #: Mesh formats (without the dot), each also readable and writable as ``<format>.gz``.
 MESH_FORMATS = ("off", "ply", "obj", "stl")
@@ -113,15 +113,6 @@ def _write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return atomic_write(path, lambda fh: fh.write(data))
 
 
-def merge_soup(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Merge bit-identical vertices, keeping them in order of first appearance."""
-    uniq, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # unique rows sorted by first appearance
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return vertices[np.sort(first)], rank[inverse.ravel()][faces]
-
-
 #: Text formats: decoded here (UTF-8, else Latin-1) so a stray non-UTF-8 byte in a comment
 #: does not send trimesh looking for an optional charset detector.
 TEXT_FORMATS = ("off", "obj")
@@ -157,8 +148,13 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
     """
     path = _existing_file(path, "mesh")
     fmt, gz = _format_of(path)
+    data = _read_bytes(path, "mesh", MeshError)
+    if not data.strip():
+        raise MeshError(
+            f"{path.name!r} is empty ({len(data)} bytes): no vertices, no faces. Fix: copy or export the "
+            "mesh again."
+        )
     try:
-        data = _read_bytes(path, "mesh", MeshError)
         if fmt in TEXT_FORMATS:
             data = _decode(data)
         if fmt == "off":
@@ -171,12 +167,15 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
     except MeshError:
         raise
     except Exception as err:  # trimesh raises many types for malformed files
-        raise MeshError(f"could not parse {path.name!r} as {fmt.upper()}: {err}") from err
+        raise MeshError(
+            f"could not parse {path.name!r} as {fmt.upper()} (the parser said: {err}). Fix: check that "
+            f"the file is a {fmt.upper()} mesh (its extension names the format; open it in a viewer)."
+        ) from err
     # older trimesh returns a PointCloud (no faces) for a file without faces, even with force="mesh"
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if fmt == "stl" and len(faces):
-        vertices, faces = merge_soup(vertices, faces)
+        vertices, faces, _ = weld_vertices(vertices, faces, rtol=0)  # STL stores a soup
     if len(faces) == 0 and fmt in ("ply", "off", "obj"):
         cloud = _read_points(data, fmt)
         if points:
@@ -267,23 +266,41 @@ def read_text(path: str | os.PathLike, what: str) -> str:
         ) from err
 
 
+def _fields(line: str) -> list[str]:
+    """The fields of one line of an index table: ``#`` starts a comment; white space, commas and
+    semicolons separate (CSV files read as they are)."""
+    return _SEPARATORS.split(line.split("#", 1)[0].strip()) if line.split("#", 1)[0].strip() else []
+
+
+def _is_integer(field: str) -> bool:
+    return field.lstrip("+-").isdigit()
+
+
 def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
-    """The careful parser: names the first bad line."""
-    rows, width = [], columns
+    """The careful parser: skips a header line (the first line, when none of its fields is a
+    number, e.g. ``source,target``) and names the first bad line."""
+    rows, width, first = [], columns, True
     for number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split("#", 1)[0].split()
+        fields = _fields(line)
         if not fields:
             continue
+        if first and not any(_is_integer(f) or _is_number(f) for f in fields):
+            first = False
+            continue  # a header line
+        first = False
         width = len(fields) if width is None else width
         if len(fields) != width:
             raise TorchFmapError(
                 f"{path}:{number}: expected {width} integer column(s) per line ({what}), got "
-                f"{len(fields)}: {line.strip()!r}. Fix: one {what} entry per line."
+                f"{len(fields)}: {line.strip()!r}. Fix: {_one_entry(what, width)}."
             )
-        try:
-            rows.append([int(f) for f in fields])
-        except ValueError as err:
-            raise TorchFmapError(f"{path}:{number}: {what} must be integer vertex indices ({err}).") from err
+        if not all(_is_integer(f) for f in fields):
+            raise TorchFmapError(
+                f"{path}:{number}: {line.strip()!r} is not {width} integer vertex index(es) ({what}). "
+                f"Fix: {_one_entry(what, width)}; only the first line may be a header, comments start "
+                "with #."
+            )
+        rows.append([int(f) for f in fields])
     if not rows:
         raise TorchFmapError(f"the {what} file {str(path)!r} holds no entries. Fix: one entry per line.")
     try:
@@ -294,6 +311,23 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
 
 #: Characters that cannot appear in a table of integers (outside comments).
 _NOT_INTEGER_TEXT = re.compile(r"[^0-9\s+\-\ufeff]")
+#: Field separators of index tables: white space, commas, semicolons.
+_SEPARATORS = re.compile(r"[\s,;]+")
+
+
+def _is_number(field: str) -> bool:
+    try:
+        float(field)
+        return True
+    except ValueError:
+        return False
+
+
+def _one_entry(what: str, width: int) -> str:
+    """How an entry of a ``what`` table is written, for a fix."""
+    if width == 2:
+        return f"one {what} per line, two 0-based vertex indices 'i j' (or 'i,j')"
+    return f"one {what} entry per line, {width} integer(s) each"
 
 
 def read_index_table(path: str | os.PathLike, columns: int | None, what: str) -> np.ndarray:

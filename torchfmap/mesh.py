@@ -35,9 +35,10 @@ from .mesh_checks import (
     duplicate_faces,
     orient_faces,
     validate_mesh,
+    weld_vertices,
 )
 
-__all__ = ["Mesh", "MeshReport", "orient_faces", "validate_mesh"]
+__all__ = ["Mesh", "MeshReport", "orient_faces", "validate_mesh", "weld_vertices"]
 
 
 class Mesh:
@@ -92,6 +93,16 @@ class Mesh:
                     "than two faces); read as they are, and its operators are the intrinsic tufted "
                     "Laplacian (prepare_shape), which is right on them. Fix: repair the mesh to "
                     "silence this.",
+                    MeshWarning,
+                    stacklevel=2,
+                )
+            if report.n_coincident_vertices:
+                warnings.warn(
+                    f"{name or 'mesh'}: {report.n_coincident_vertices} vertices share their position "
+                    "with another vertex: the surface is cut along seams there, and its operators see "
+                    "a boundary where the shape has none. Fix: weld them, torchfmap.weld_vertices("
+                    "vertices, faces) (vertex indices change: remap correspondences with the map it "
+                    "returns).",
                     MeshWarning,
                     stacklevel=2,
                 )

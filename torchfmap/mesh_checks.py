@@ -1,4 +1,5 @@
-"""Mesh validation: :func:`validate_mesh` and its :class:`MeshReport`, and :func:`orient_faces`.
+"""Mesh validation: :func:`validate_mesh` and its :class:`MeshReport`, :func:`orient_faces` and
+:func:`weld_vertices`.
 
 :func:`validate_mesh` raises :class:`~torchfmap.errors.MeshError` for inputs that would give
 silently wrong operators, with a message naming the problem and the fix, and reports (without
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
+from scipy.spatial import cKDTree
 
 from .errors import MeshError, _preview
 
@@ -22,6 +24,10 @@ log = logging.getLogger(__name__)
 
 #: Faces whose area is below ``DEGENERATE_RTOL * mean_edge_length**2`` count as degenerate.
 DEGENERATE_RTOL = 1e-12
+#: Vertices closer than ``COINCIDENT_RTOL`` times the bounding-box diagonal share a position
+#: (:func:`weld_vertices`, :attr:`MeshReport.n_coincident_vertices`): far below any edge of a
+#: mesh that is not degenerate, far above float64 rounding of exported coordinates.
+COINCIDENT_RTOL = 1e-9
 #: Components with at most this fraction of boundary edges count as closed for orientation.
 CLOSED_BOUNDARY_FRACTION = 0.02
 
@@ -43,6 +49,9 @@ class MeshReport:
     #: edges shared by more than two faces (accepted with ``allow_nonmanifold``; operators of
     #: :func:`~torchfmap.bases.prepare_shape` are then the intrinsic tufted Laplacian).
     n_nonmanifold_edges: int = 0
+    #: boundary vertices at the position of another boundary vertex (a seam: the surface is cut
+    #: there, and its operators see a boundary the shape does not have); see :func:`weld_vertices`.
+    n_coincident_vertices: int = 0
 
     @property
     def is_closed(self) -> bool:
@@ -51,10 +60,53 @@ class MeshReport:
     def summary(self) -> str:
         holes = "closed" if self.is_closed else f"{self.n_boundary_loops} boundary loop(s)"
         flipped = f", {self.n_flipped_faces} faces re-oriented" if self.n_flipped_faces else ""
+        n_seam = self.n_coincident_vertices
+        seams = f", {n_seam} coincident vertices (seams)" if n_seam else ""
         return (
             f"{self.n_vertices} vertices, {self.n_faces} faces, {self.n_components} component(s), "
-            f"{holes}, Euler characteristic {self.euler_characteristic}{flipped}"
+            f"{holes}, Euler characteristic {self.euler_characteristic}{flipped}{seams}"
         )
+
+
+def coincident_groups(vertices, rtol: float = COINCIDENT_RTOL) -> np.ndarray:
+    """``(V,)`` for each vertex the first vertex (lowest index) at its position: vertices closer
+    than ``rtol`` times the bounding-box diagonal are one position (``rtol=0``: bit-identical
+    coordinates only). A vertex at a position of its own maps to itself."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    first = np.arange(len(v))
+    if len(v) < 2:
+        return first
+    if rtol == 0:
+        _, index, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+        return index[inverse.ravel()]
+    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
+    pairs = cKDTree(v).query_pairs(rtol * diag, output_type="ndarray")
+    if not len(pairs):
+        return first
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(v), len(v)))
+    _, labels = connected_components(graph, directed=False)
+    lowest = np.full(labels.max() + 1, len(v))
+    np.minimum.at(lowest, labels, first)
+    return lowest[labels]
+
+
+def weld_vertices(
+    vertices, faces, rtol: float = COINCIDENT_RTOL
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge vertices that share a position (closer than ``rtol`` times the bounding-box
+    diagonal; ``rtol=0``: bit-identical), as a triangle soup or a mesh cut along seams needs.
+
+    The kept vertices stay in their order of first appearance. Returns ``(vertices (V', 3),
+    faces (F, 3), old_to_new (V,))``: ``old_to_new[i]`` is the new index of old vertex ``i``
+    (remap correspondences and landmarks with it). Faces that collapse (two corners welded) are
+    kept, and mesh validation then names them."""
+    v, f = _as_arrays(vertices, faces)
+    first = coincident_groups(v, rtol)
+    keep = np.flatnonzero(first == np.arange(len(v)))
+    new_index = np.full(len(v), -1, dtype=np.int64)
+    new_index[keep] = np.arange(len(keep))
+    old_to_new = new_index[first]
+    return v[keep], old_to_new[f], old_to_new
 
 
 def _as_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
@@ -205,6 +257,23 @@ def validate_mesh(
     adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))
     n_comp, labels = connected_components(adj, directed=False)
     n_comp_used = len(np.unique(labels[np.unique(f)]))
+    boundary = edges[counts == 1]
+    on_boundary = np.zeros(len(v), dtype=bool)
+    on_boundary[boundary.ravel()] = True
+    first = coincident_groups(v)
+    # a seam: a boundary vertex at the position of another boundary vertex (coincident vertices
+    # inside the surface, each with its own closed fan, leave the operators as they are)
+    n_coincident = int(np.count_nonzero((first != np.arange(len(v))) & on_boundary & on_boundary[first]))
+    if n_comp_used > 1 and n_coincident and not allow_components:
+        soup = n_comp_used == len(f)
+        raise MeshError(
+            f"the mesh has {n_comp_used} connected components and {n_coincident} vertices that share "
+            "their position with another: "
+            + ("a triangle soup (every face has its own vertices)" if soup else "it is cut along seams")
+            + ". Fix: weld coincident vertices first, e.g. torchfmap.weld_vertices(vertices, faces) "
+            "(vertex indices change: remap correspondences with the map it returns), or MeshLab's "
+            "'Merge Close Vertices'."
+        )
     if n_comp_used > 1 and not allow_components:
         sizes = np.bincount(labels)
         raise MeshError(
@@ -213,7 +282,6 @@ def validate_mesh(
             "`mesh.largest_component()`, or pass allow_components=True and give every component "
             "a seed when building bases."
         )
-    boundary = edges[counts == 1]
     report = MeshReport(
         n_vertices=len(v),
         n_faces=len(f),
@@ -223,6 +291,7 @@ def validate_mesh(
         unreferenced=unref,
         euler_characteristic=int(len(v) - len(unref) - len(edges) + len(f)),
         n_nonmanifold_edges=int(np.count_nonzero(counts > 2)),
+        n_coincident_vertices=n_coincident,
     )
     if not report.is_closed:
         log.info("mesh has %d hole(s) (%d boundary edges)", report.n_boundary_loops, len(boundary))
