@@ -247,7 +247,7 @@ def test_landmark_pairs_with_swapped_columns_are_named(tmp_path, capsys):
         ("", "holds no entries"),
         ("1 2 3\n", "expected 2 integer column"),
         ("1\n", "expected 2 integer column"),
-        ("1 x\n", "must be integer"),
+        ("1 x\n", "is not 2 integer vertex index"),
     ],
 )
 def test_cli_landmark_files_give_clear_errors(tmp_path, sphere2, capsys, content, message):

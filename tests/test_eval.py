@@ -23,6 +23,7 @@ from torchfmap.eval import (
     gt_identity,
     pck_curve,
     retrieval_accuracy,
+    select_pairs,
     shape_difference,
     shape_distance,
     smoothness,
@@ -164,8 +165,46 @@ def test_discover_pairs(tmp_path, sphere2):
     np.testing.assert_array_equal(only[4].idx_y, [0, 4, 6])  # target y = a
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(ParameterError, match="fewer than two meshes"):
+    with pytest.raises(ParameterError, match="holds 0 meshes, at least two are needed"):
         list(discover_pairs(empty))
+
+
+def test_pair_protocols_are_chosen_and_said(tmp_path, sphere2):
+    for name in ("a", "b", "c"):
+        save_mesh(sphere2, tmp_path / f"{name}.off")
+    pairs, said = select_pairs(tmp_path)
+    assert pairs == [("a", "b"), ("b", "c")] and said.startswith("2 consecutive pairs of 3 meshes")
+    assert "of 6 ordered pairs: --pairs all" in said
+    pairs, said = select_pairs(tmp_path, "all")
+    assert len(pairs) == 6 == len(set(pairs)) and said == "all 6 ordered pairs of 3 meshes"
+    assert [p[:2] for p in discover_pairs(tmp_path, pairs="all")] == pairs
+    (tmp_path / "mine.txt").write_text("c b\na c\n")
+    listed = ([("c", "b"), ("a", "c")], "the 2 pairs listed in mine.txt")
+    assert select_pairs(tmp_path, tmp_path / "mine.txt") == listed
+    (tmp_path / "bad.txt").write_text("a zebra\n")
+    with pytest.raises(ParameterError, match=r"names \['zebra'\], which .* does not hold"):
+        select_pairs(tmp_path, tmp_path / "bad.txt")
+    with pytest.raises(ParameterError, match="neither a protocol nor an existing file"):
+        select_pairs(tmp_path, "every")
+
+
+def test_a_data_set_laid_out_as_shapes_test_beside_corres(tmp_path, sphere2):
+    """DUO-FM / ULRSSM data sets: meshes in shapes_train/ and shapes_test/, one corres/ beside
+    them. The data set's folder names the sub-folder to point to; the sub-folder reads the
+    corres/ beside it."""
+    for split, names in (("shapes_train", ("a", "b")), ("shapes_test", ("c", "d"))):
+        (tmp_path / split).mkdir()
+        for name in names:
+            save_mesh(sphere2, tmp_path / split / f"{name}.off")
+    (tmp_path / "corres").mkdir()
+    for name, rows in (("c", [1, 5, 7]), ("d", [2, 3, 9])):
+        np.savetxt(tmp_path / "corres" / f"{name}.vts", rows, fmt="%d")
+    with pytest.raises(ParameterError, match=r"meshes are in shapes_test, shapes_train: point to one"):
+        select_pairs(tmp_path)
+    (only,) = list(discover_pairs(tmp_path / "shapes_test"))
+    assert only[:2] == ("c", "d")
+    np.testing.assert_array_equal(only[4].idx_x, [0, 4, 6])
+    np.testing.assert_array_equal(only[4].idx_y, [1, 2, 8])
 
 
 @pytest.fixture

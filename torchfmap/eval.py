@@ -273,43 +273,103 @@ def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
     return np.stack([idx_x[rows], idx_y[rows]], axis=1)
 
 
-def discover_pairs(folder: str | os.PathLike, identity: bool | None = None):
+#: The pair protocols of :func:`discover_pairs` (or a test-pairs file's path).
+PAIR_PROTOCOLS = ("auto", "consecutive", "all")
+#: Sub-folders of a data set that hold its meshes (DUO-FM / ULRSSM layouts: ``shapes_train/``,
+#: ``shapes_test/`` or ``off/`` beside ``corres/``).
+MESH_SUBFOLDERS = ("shapes_test", "shapes_train", "off", "shapes")
+
+
+def _data_set_places(folder: Path) -> tuple[Path, ...]:
+    """Where a folder's ``corres/`` and ``test_pairs.txt`` are looked for: in it, and beside it
+    when it is a data set's mesh sub-folder (:data:`MESH_SUBFOLDERS`)."""
+    return (folder, folder.parent) if folder.name in MESH_SUBFOLDERS else (folder,)
+
+
+def _corres_folder(folder: Path) -> Path | None:
+    """The ``corres/`` of a folder's meshes (:func:`_data_set_places`), or None."""
+    return next((p / "corres" for p in _data_set_places(folder) if (p / "corres").is_dir()), None)
+
+
+def select_pairs(folder: str | os.PathLike, pairs="auto") -> tuple[list[tuple[str, str]], str]:
+    """``(pairs, protocol)``: the ordered ``(name_x, name_y)`` pairs of a folder's meshes to score,
+    and a sentence saying which they are (for a report's footer).
+
+    ``pairs``: ``'auto'`` (the folder's ``test_pairs.txt``, or for a data set's mesh sub-folder
+    such as ``shapes_test/`` the one beside it; else consecutive meshes), ``'consecutive'``
+    (mesh ``i`` -> mesh ``i + 1`` in name order),
+    ``'all'`` (every ordered pair), or the path of a test-pairs file (``'source target'`` per
+    line).
+
+    Raises:
+        ParameterError: fewer than two meshes (with the sub-folder to name, for a data set laid
+            out as ``shapes_train/`` / ``shapes_test/`` beside ``corres/``), an unknown protocol,
+            or a pairs file naming absent meshes.
+    """
+    folder = Path(folder)
+    names = [shape_name(p) for p in mesh_files(folder)]
+    if len(names) < 2:
+        subs = [d.name for d in (folder / n for n in MESH_SUBFOLDERS) if d.is_dir() and mesh_files(d)]
+        fix = (
+            f"this is a data set whose meshes are in {', '.join(subs)}: point to one, e.g. "
+            f"{folder / subs[0]} (its corres/ beside it is read)"
+            if subs
+            else "point to a folder of meshes (.off/.ply/.obj/.stl, optionally .gz)"
+        )
+        raise ParameterError(f"{folder} holds {len(names)} meshes, at least two are needed. Fix: {fix}.")
+    if pairs == "auto":
+        found = (find_file(place, "test_pairs.txt") for place in _data_set_places(folder))
+        pairs = next((f for f in found if f is not None), "consecutive")
+    n = len(names)
+    if pairs == "consecutive":
+        chosen = list(zip(names[:-1], names[1:], strict=True))
+        return chosen, (
+            f"{len(chosen)} consecutive pairs of {n} meshes in name order (of {n * (n - 1)} ordered "
+            "pairs: --pairs all for every one, or a test_pairs.txt)"
+        )
+    if pairs == "all":
+        chosen = [(a, b) for a in names for b in names if a != b]
+        return chosen, f"all {len(chosen)} ordered pairs of {n} meshes"
+    if isinstance(pairs, str) and pairs in PAIR_PROTOCOLS or not isinstance(pairs, (str, os.PathLike)):
+        raise ParameterError(f"unknown pairs {pairs!r}. Fix: 'auto', 'consecutive', 'all' or a pairs file.")
+    path = Path(pairs)
+    if not path.exists():
+        raise ParameterError(
+            f"pairs={str(pairs)!r} is neither a protocol nor an existing file. Fix: 'auto', 'consecutive', "
+            "'all', or the path of a test-pairs file ('source target' per line)."
+        )
+    chosen = read_test_pairs(path)
+    missing = sorted({m for pair in chosen for m in pair} - set(names))
+    if missing:
+        raise ParameterError(
+            f"{path.name} names {missing[:5]}, which {folder} does not hold. Fix: add the meshes or remove "
+            "those lines."
+        )
+    return chosen, f"the {len(chosen)} pairs listed in {path.name}"
+
+
+def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pairs="auto"):
     """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
 
     Meshes are the folder's :func:`~torchfmap.io.mesh_files` (``.gz`` included), named by
-    :func:`~torchfmap.io.shape_name`. ``corres/<name>.vts`` files give ``.vts`` ground truth
-    (pairs from ``test_pairs.txt``, or consecutive meshes). Without them, ``identity`` says
-    whether vertex ``i`` of one mesh is vertex ``i`` of the other: ``True`` for every pair of
-    equal vertex counts; ``None`` (default) only where the two meshes have the same face list
-    (one template, e.g. registrations); ``False`` never. Every file may be gzip-compressed
-    (``<name>.gz``).
+    :func:`~torchfmap.io.shape_name`; which pairs: :func:`select_pairs` (``pairs``).
+    ``corres/<name>.vts`` files, in the folder or, for a data set's mesh sub-folder
+    (:data:`MESH_SUBFOLDERS`, e.g. ``shapes_test/``), beside it, give ``.vts`` ground truth.
+    Without them, ``identity`` says whether vertex
+    ``i`` of one mesh is vertex ``i`` of the other: ``True`` for every pair of equal vertex counts;
+    ``None`` (default) only where the two meshes have the same face list (one template, e.g.
+    registrations); ``False`` never. Every file may be gzip-compressed (``<name>.gz``).
 
     Raises:
-        ParameterError: fewer than two meshes, a pair without ground truth (the message names
-            the fix), or a ``test_pairs.txt`` naming absent meshes.
+        ParameterError: as :func:`select_pairs`, or a pair without ground truth (the message
+            names the fix).
     """
     folder = Path(folder)
     meshes = {shape_name(p): p for p in mesh_files(folder)}
-    if len(meshes) < 2:
-        raise ParameterError(
-            f"{folder} holds fewer than two meshes. Fix: point to a folder of meshes "
-            "(.off/.ply/.obj/.stl, optionally .gz)."
-        )
-    pairs_file = find_file(folder, "test_pairs.txt")
-    if pairs_file is not None:
-        pairs = read_test_pairs(pairs_file)
-    else:
-        names = list(meshes)
-        pairs = list(zip(names[:-1], names[1:], strict=True))
-    corres = folder / "corres"
-    for a, b in pairs:
-        missing = [n for n in (a, b) if n not in meshes]
-        if missing:
-            raise ParameterError(
-                f"{pairs_file.name} names {missing}, which {folder} does not hold. Fix: add the mesh or "
-                "remove the line."
-            )
-        if corres.exists():
+    chosen, _ = select_pairs(folder, pairs)
+    corres = _corres_folder(folder)
+    for a, b in chosen:
+        if corres is not None:
             vts = {n: find_file(corres, f"{n}.vts") for n in (a, b)}
             absent = [str(corres / f"{n}.vts") for n, p in vts.items() if p is None]
             if absent:
