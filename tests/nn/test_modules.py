@@ -132,11 +132,30 @@ def test_basis_arrays(sphere2):
     """values, lumped mass and a spectral frame with U diag(lam) Uᵀ = Φᵀ L Φ (round-off)."""
     basis = laplacian_eigenbasis(sphere2, 6)
     arrays = basis_arrays(basis)
-    np.testing.assert_allclose(arrays["mass"], basis.mass.diagonal())
+    area = basis.mass.diagonal().sum()  # 4 pi: the arrays are in the unit-area frame
+    np.testing.assert_allclose(arrays["mass"], basis.mass.diagonal() / area)
+    np.testing.assert_allclose(arrays["values"], basis.values * np.sqrt(area))
     W = arrays["U"] @ np.diag(arrays["lam"]) @ arrays["U"].T
-    np.testing.assert_allclose(W, basis.projected_laplacian(), atol=1e-10 * np.abs(W).max())
+    np.testing.assert_allclose(W, area * basis.projected_laplacian(), atol=1e-10 * np.abs(W).max())
+    # still B-orthonormal, in the new mass
+    gram = arrays["values"].T @ (arrays["mass"][:, None] * arrays["values"])
+    np.testing.assert_allclose(gram, np.eye(6), atol=1e-10)
     with pytest.raises(ParameterError, match="B-orthonormal"):
         basis_arrays(harmonic_basis(sphere2, [0, 5, 9]))
+
+
+def test_layers_see_a_mesh_in_file_units_as_at_unit_area(bent_pair):
+    """A basis of a mesh in its file's units (area far from 1) reaches the layers as the basis
+    of the same mesh scaled to unit area: the layers' settings hold at any scale."""
+    x = bent_pair[0]
+    unit = basis_arrays(laplacian_eigenbasis(x.normalized(), 8))
+    for scale in (140.0, 1e-3):  # e.g. a TOSCA cat in centimetres, a scan in kilometres
+        big = basis_arrays(laplacian_eigenbasis(x.scaled(scale), 8))
+        np.testing.assert_allclose(big["mass"], unit["mass"], rtol=1e-9)
+        np.testing.assert_allclose(big["lam"], unit["lam"], rtol=1e-7, atol=1e-9 * unit["lam"].max())
+        signs = np.sign(np.sum(big["values"] * unit["values"], axis=0))
+        tol = 1e-6 * np.abs(unit["values"]).max()
+        np.testing.assert_allclose(big["values"] * signs, unit["values"], atol=tol)
 
 
 def test_basis_module_rebuilds_from_its_state_dict_and_layers_follow_the_input_dtype():

@@ -24,15 +24,36 @@ from .functional import BasisBatch
 
 
 def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
-    """Numpy arrays of a B-orthonormal basis for the torch side: values, lumped mass, frame."""
+    """Numpy arrays of a B-orthonormal basis for the torch side, in the unit-area frame of its
+    mesh: ``values (V, K)``, lumped ``mass (V,)`` summing to 1, the spectral frame ``lam (K,)``,
+    ``U (K, K)`` of ``W = Φᵀ L Φ``.
+
+    The layers' settings (diffusion times, the solver's Laplacian weight) are for shapes of unit
+    area, so a basis of a mesh of area ``A`` (e.g. in its file's units) is rescaled as
+    ``mesh.scaled(1 / sqrt(A))`` would give it: values ``x sqrt(A)``, mass ``/ A``, eigenvalues
+    ``x A`` (the cotangent stiffness is scale-free). Bases of one mesh at any scale give the same
+    arrays. Bases from :func:`~torchfmap.prepare_shape` are in that frame already.
+
+    Raises:
+        ParameterError: a basis that is not B-orthonormal, has no stiffness, or whose mass is not
+            lumped (diagonal) or has no area.
+    """
     if not basis.orthonormal:
         raise ParameterError("the basis must be B-orthonormal. Fix: orthonormalize(basis) first.")
     mass = sp.csr_matrix(basis.mass)
     check_lumped_mass(mass, "torch layers")
     if basis.stiffness is None:
         raise ParameterError("the basis needs its stiffness matrix (for W = Φᵀ L Φ).")
+    area = float(mass.diagonal().sum())
+    if not np.isfinite(area) or area <= 0:
+        raise ParameterError(f"the basis' mass sums to {area}, not an area. Fix: check its mass matrix.")
     lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
-    return {"values": basis.values, "mass": mass.diagonal().copy(), "lam": lam.numpy(), "U": U.numpy()}
+    return {
+        "values": basis.values * np.sqrt(area),
+        "mass": mass.diagonal() / area,
+        "lam": lam.numpy() * area,
+        "U": U.numpy(),
+    }
 
 
 class BasisModule(nn.Module):
