@@ -265,8 +265,8 @@ def np_mask(lam_x, lam_y, kind="laplacian", **kwargs):
 # -- the learned path --------------------------------------------------------------------------
 @pytest.fixture(scope="session")
 def nn_setting():
-    """A bent pair at 162 vertices (each of unit area), near-equal descriptors, eigenbases (7, 6) and stacks (the
-    tests of the torch layers and functions)."""
+    """A bent pair at 162 vertices (each of unit area), near-equal descriptors, eigenbases (7, 6)
+    and stacks (the tests of the torch layers and functions)."""
     x = bumpy_blob(2).normalized()  # unit area: the frame the layers work in (nn.basis_arrays)
     y = x.copy(bend(x.vertices, 0.3)).normalized()
     rng = np.random.default_rng(0)

@@ -21,6 +21,7 @@ from .bases.prepared import PreparedShape, prepare_shape
 from .errors import (
     ConvergenceError,
     CorruptFileError,
+    CostWarning,
     FileReadError,
     FileWriteError,
     MapWarning,
@@ -85,6 +86,7 @@ __all__ = [
     "MeshError",
     "MeshReport",
     "MeshWarning",
+    "CostWarning",
     "MapWarning",
     "FileReadError",
     "FileWriteError",

@@ -86,6 +86,11 @@ class MeshWarning(UserWarning):
     """A mesh property worth knowing about that does not stop the computation (e.g. holes)."""
 
 
+class CostWarning(UserWarning):
+    """A computation that was asked for and will run, but takes far longer or far more memory
+    than the usual settings (e.g. hundreds of eigenpairs of a large mesh); says why and the fix."""
+
+
 def _preview(indices, limit: int = 8) -> str:
     """Render the first few offending indices, e.g. ``[3, 17, 42, ...] (12 in all)``."""
     items = [int(i) for i in list(indices)[:limit]]

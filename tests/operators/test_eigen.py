@@ -88,3 +88,21 @@ def test_eigenpairs_are_scale_covariant(alpha):
     # ARPACK converges each pair to ARPACK_TOL relative, in both runs
     np.testing.assert_allclose(lam_s * alpha**2, lam, rtol=1e-6, atol=1e-8 * lam[-1])
     np.testing.assert_allclose(np.abs(phi_s * alpha), np.abs(phi), atol=1e-4 * np.abs(phi).max())
+
+
+def test_many_eigenpairs_of_a_large_mesh_warn_of_the_cost_and_still_run(blob, monkeypatch):
+    """Past MANY_EIGENPAIRS on a mesh beyond DENSE_LIMIT a CostWarning says what it costs and the
+    fix; the pairs are the same as without the warning (limits lowered so the blob crosses them)."""
+    import warnings
+
+    from torchfmap import CostWarning
+
+    L, B = laplacian(blob)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CostWarning)  # not at the usual sizes
+        lam_quiet, _ = eig_module.eigenpairs(L, B, 12)
+    monkeypatch.setattr(eig_module, "DENSE_LIMIT", 10)
+    monkeypatch.setattr(eig_module, "MANY_EIGENPAIRS", 8)
+    with pytest.warns(CostWarning, match=r"computing 12 eigenpairs of a \d+-vertex mesh.*Fix: a smaller k"):
+        lam, _ = eig_module.eigenpairs(L, B, 12)
+    assert np.abs(lam[1:] - lam_quiet[1:]).max() < 1e-8 * lam_quiet[-1]

@@ -10,6 +10,8 @@ result as a :class:`~torchfmap.bases.Basis`.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -17,11 +19,15 @@ import scipy.sparse.linalg as ssla
 
 from .._checks import check_symmetric, lumped_diagonal
 from .._threads import blas_threads
-from ..errors import ConvergenceError, ParameterError
+from ..errors import ConvergenceError, CostWarning, ParameterError
 from .solvers import factorize
 
 #: Below this many vertices the dense generalised eigensolver is used (exact and robust).
 DENSE_LIMIT = 1500
+#: Above this many eigenpairs of a mesh beyond :data:`DENSE_LIMIT` vertices, :func:`eigenpairs`
+#: warns (:class:`~torchfmap.errors.CostWarning`): the iterative solvers' time grows as ``V k²``,
+#: so such a call runs minutes where matching settings (``k`` up to a few hundred) run seconds.
+MANY_EIGENPAIRS = 300
 #: ARPACK's relative accuracy of the Ritz values (``eigsh(tol=...)``; 0 means machine precision).
 ARPACK_TOL = 1e-10
 
@@ -103,6 +109,14 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
         raise ParameterError(
             f"the mass matrix sums to {area!r}: the mesh's scale over- or underflows float64. Fix: "
             "rescale it first, e.g. mesh.normalized() or mesh.scaled(alpha)."
+        )
+    if n > DENSE_LIMIT and k > MANY_EIGENPAIRS:
+        warnings.warn(
+            f"computing {k} eigenpairs of a {n}-vertex mesh: the time grows as V·k², so this takes "
+            f"minutes (and {8 * n * k * 3 / 1e9:.1f} GB or more), where k <= {MANY_EIGENPAIRS} takes "
+            "seconds. Fix: a smaller k (functional maps use 30-200 eigenfunctions), or let it run.",
+            CostWarning,
+            stacklevel=2,
         )
     if solver == "auto":
         solver = auto_solver(n, k)
