@@ -12,11 +12,11 @@ import pytest
 
 import torchfmap.results
 from torchfmap import Basis, MapWarning, ParameterError, SeedError, save_mesh
-from torchfmap.bases import KINDS
 from torchfmap.bases.prepared import prepare_shape
 from torchfmap.cli import build_parser, main
 from torchfmap.data import icosphere
 from torchfmap.eval import evaluate_map, gt_identity, landmarks_from_gt
+from torchfmap.kinds import KINDS
 from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN, match, match_bases
 from torchfmap.quality import geodesic_distortion
 

@@ -14,7 +14,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
-from ._deprecation import module_aliases, renamed_keywords
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver
@@ -36,9 +35,6 @@ __all__ = [
 ]
 
 CurvatureMeasure = Literal["mean", "gaussian", "abs_mean"]
-
-#: The name of earlier releases ("kind" names basis kinds only).
-__getattr__ = module_aliases(__name__, {"CurvatureKind": "CurvatureMeasure"})
 
 
 def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray:
@@ -72,7 +68,6 @@ def gaussian_curvature(mesh: Mesh) -> np.ndarray:
     return defect / np.maximum(area, 1e-300)
 
 
-@renamed_keywords(kind="measure")
 def curvature(mesh: Mesh, measure: CurvatureMeasure = "mean") -> np.ndarray:
     """``(V,)`` curvature by the given measure: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``.
 
@@ -109,7 +104,6 @@ def max_curvature_vertex(mesh: Mesh, smooth_steps: int = 2) -> int:
     return int(np.argmax(_smooth(mesh, np.abs(mean_curvature(mesh)), smooth_steps)))
 
 
-@renamed_keywords(kind="measure")
 def curvature_features(
     mesh: Mesh,
     k: int,
@@ -345,24 +339,26 @@ def replace_seeds(
     sends them, within reason.
 
     Each seed ``s`` after the first ``n_fixed`` (the landmarks) goes to the ``y`` vertex whose
-    image under ``p2p_yx`` is geodesically nearest to ``s``, but only if that moves it less
-    than the seeds' covering radius ``sqrt(1 / S)`` and keeps the seeds distinct; otherwise it
-    stays. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
+    image under ``p2p_yx`` is geodesically nearest to ``s`` among the vertices no other seed
+    holds (so the seeds stay distinct), but only if that moves it less than the seeds'
+    covering radius ``sqrt(1 / S)``; otherwise it stays. So every seed ends within the radius
+    of where it was. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
     ``sqrt(area)`` (``normalized=True``). The map, refined in the seeds' own basis, corrects the
     small placement errors of trilateration; the radius keeps one wrong region of the map from
     dragging seeds across the shape.
     """
     radius = np.sqrt(1.0 / len(seeds))
     out = seeds.copy()
-    used = {int(v) for v in seeds[:n_fixed, 1]}
+    held = {int(v) for v in seeds[:, 1]}  # every seed's vertex on y: no seed moves onto another's
     for i in range(n_fixed, len(seeds)):  # bounded: one pass over the seeds
         s, old = int(seeds[i, 0]), int(seeds[i, 1])
+        held.discard(old)
         order = np.argsort(distances_x(s)[p2p_yx], kind="stable")
-        new = next(int(v) for v in order if int(v) not in used)
-        if distances_y(old)[new] >= radius and old not in used:
+        new = next(int(v) for v in order if int(v) not in held)
+        if distances_y(old)[new] >= radius:
             new = old
         out[i, 1] = new
-        used.add(new)
+        held.add(new)
     return out
 
 

@@ -40,6 +40,7 @@ def test_names_of_bases_of_no_kind_are_reserved():
     W_LAP_OTHER's): a kind under either name would shadow them, so it is refused, and W_LAP
     lists every name once."""
     from torchfmap.bases.registry import RESERVED_NAMES, register_kind
+
     from torchfmap.errors import ParameterError
     from torchfmap.fmap.defaults import W_LAP, W_LAP_OTHER
     from torchfmap.kinds import get_kind
