@@ -17,7 +17,6 @@ from torchfmap.descriptors import landmark_descriptors
 from torchfmap.eval import shape_difference, shape_distance
 from torchfmap.fmap.core import laplacian_mask
 from torchfmap.operators import laplacian, mass_matrix
-from torchfmap.seeds import curvature, curvature_features
 
 
 def test_renamed_keywords_pass_the_old_name_on_and_refuse_both():
@@ -70,11 +69,6 @@ def test_old_keyword_names_give_the_new_results(blob):
     with pytest.warns(DeprecationWarning, match="laplacian="):
         old = tf.prepare_shape(blob, 0, laplacian_kind="robust").operators.stiffness
     assert abs(old - tf.prepare_shape(blob, 0, laplacian="robust").operators.stiffness).max() == 0
-    with pytest.warns(DeprecationWarning, match="measure"):
-        np.testing.assert_array_equal(curvature(blob, kind="gaussian"), curvature(blob, measure="gaussian"))
-    with pytest.warns(DeprecationWarning, match="measure"):
-        old = curvature_features(blob, 4, kind="mean")
-    np.testing.assert_array_equal(old, curvature_features(blob, 4, measure="mean"))
     ops = laplacian(blob)
     with pytest.warns(DeprecationWarning, match="kernel"):
         old = landmark_descriptors([0, 7], kind="heat", operators=ops)
@@ -137,8 +131,6 @@ def test_moved_and_renamed_module_names():
         ("torchfmap.operators.laplacian", "LAPLACIAN_KINDS", "LAPLACIAN_SCHEMES"),
         ("torchfmap.operators.laplacian", "MASS_KINDS", "MASS_SCHEMES"),
         ("torchfmap.fmap.core", "MaskKind", "Mask"),
-        ("torchfmap.seeds", "CurvatureKind", "CurvatureMeasure"),
-        ("torchfmap.results", "RefineKind", "RefineMethod"),
     ]
     for module, old, new in cases:
         mod = importlib.import_module(module)
@@ -178,26 +170,3 @@ def test_precompute_shape_is_shape_arrays(blob):
         np.testing.assert_array_equal(old[key], new[key], err_msg=key)
     with pytest.warns(DeprecationWarning), pytest.raises(tf.errors.ParameterError, match="of this mesh"):
         precompute_shape(blob, 6, shape=tf.prepare_shape(blob.scaled(2.0), 20))
-
-
-def test_a_kind_given_its_column_families_under_the_old_name():
-    from torchfmap.kinds import get_kind
-
-    base = get_kind("harmonic")
-    with pytest.warns(DeprecationWarning, match="column_families") as seen:
-        old = type(base)(**{**_fields(base), "column_families": frozenset(), "column_kinds": {"harmonic"}})
-    assert seen[0].filename == __file__
-    with pytest.warns(DeprecationWarning, match="column_families"):
-        assert base.column_kinds == base.column_families == old.column_families == frozenset({"harmonic"})
-    with warnings.catch_warnings():  # replace passes the old keyword on: silently, as not given
-        warnings.simplefilter("error")
-        assert dataclasses.replace(base, name="h2").column_families == base.column_families
-        assert dataclasses.replace(base, column_families=frozenset({"x"})).column_families == {"x"}
-    with pytest.raises(tf.errors.ParameterError, match="no column families"):
-        type(base)(**{**_fields(base), "column_families": frozenset()})
-
-
-def _fields(kind) -> dict:
-    from dataclasses import fields
-
-    return {f.name: getattr(kind, f.name) for f in fields(kind)}

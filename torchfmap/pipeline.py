@@ -314,10 +314,12 @@ def match(
         w_dcomm=w_dcomm, w_lmk=w_lmk, w_prior=w_prior, p2p_mode=p2p_mode,
     )  # fmt: skip
     if basis in (None, "auto") and pairs is not None and bases is None:
-        return match_landmark_default(
+        result = match_landmark_default(
             mesh_x, mesh_y, pairs, k=k, refine=refine, k_final=k_final, times=times,
             zoomout_samples=zoomout_samples, shapes=shapes, **solve,
         )  # fmt: skip
+        warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
+        return result
     kind, together = get_kind(basis or "laplacian"), False
     if bases is not None:  # together: built as a pair at corresponding seeds (columns correspond)
         given_x, given_y, kind, together = given_bases_kind(bases, mesh_x, mesh_y, basis)
@@ -383,7 +385,8 @@ def match_landmark_default(
     :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the same
     score), so only one feature-aware refinement runs. Kinds that cannot be built on these
     meshes (e.g. too few vertices for their columns) are skipped, with the reason
-    (``skipped``); ``candidates`` holds each solved kind's result. ``landmarks``: ``(L, 2)``
+    (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
+    chosen map collapsed). ``landmarks``: ``(L, 2)``
     pairs; ``solve``: the other solver settings of :func:`solve_pair`; the rest as :func:`match`.
 
     Raises:
@@ -434,7 +437,6 @@ def match_landmark_default(
     if refine is not None and best != pref:
         candidates[best] = refined(candidates[best], get_kind(best))
     chosen = candidates[best]
-    warn_collapsed(chosen.p2p_yx, mesh_x.n_vertices, stacklevel=3)
     timings = {"prepare": prep}
     for name, c in candidates.items():
         timings |= {f"{name}:{step}": t for step, t in c.timings.items()}

@@ -1,9 +1,9 @@
 """The default weights of the functional-map solve and ZoomOut's default step: plain numbers.
 
 :func:`~torchfmap.fmap.solve_fmap` and :class:`torchfmap.nn.RegularizedFMSolver` default to
-them; a weight that depends on the kind of basis is the kind's own (``BasisKind.w_lap``,
-``w_orient``, ``p2p_mode`` in :mod:`torchfmap.kinds`), which :func:`torchfmap.match` passes
-to the solver. Nothing here knows a basis kind.
+them. A weight or point-map rule that depends on the kind of basis belongs to the kind (in
+:mod:`torchfmap.kinds`, above this layer), and :func:`torchfmap.match` passes it to the solver.
+Nothing here knows a basis kind.
 """
 
 from __future__ import annotations

@@ -340,7 +340,7 @@ def solve_fmap(
 
     Defaults are the plain numbers of :mod:`torchfmap.fmap.defaults` (those of
     :class:`torchfmap.nn.RegularizedFMSolver`); :func:`torchfmap.match` passes the weights of
-    the basis kind it solves in (``BasisKind.w_lap``, ``w_orient``).
+    the kind of basis it solves in.
 
     Args:
         basis_x, basis_y: B-orthonormal bases with stiffness (``W = Φᵀ L Φ``).
