@@ -137,8 +137,6 @@ def test_moved_and_renamed_module_names():
         with pytest.warns(DeprecationWarning, match=new) as seen:
             assert getattr(mod, old) is getattr(mod, new)
         assert seen[0].filename == __file__
-    with pytest.warns(DeprecationWarning, match="torchfmap.operators.normalize_area"):
-        assert tf.normalize_area is importlib.import_module("torchfmap.operators").normalize_area
 
 
 def test_moved_learned_path_names():

@@ -257,6 +257,18 @@ def test_the_solver_and_the_bases_know_no_basis_kind():
             assert not found, f"fmap/{path.name} names {found[0]!r}: the fmap layer takes plain weights"
 
 
+def test_the_core_does_not_import_the_experiments():
+    """``torchfmap.experimental`` holds experiments outside the core API: no other module imports
+    it, and its ``__init__`` imports none of its submodules (some need torch)."""
+    graph, _ = import_graph(include_functions=True)
+    for module, targets in graph.items():
+        if module.startswith("torchfmap.experimental"):
+            continue
+        bad = sorted(t for t in targets if t.startswith("torchfmap.experimental"))
+        assert not bad, f"{module} imports {bad}: the core does not depend on experiments"
+    assert not graph.get("torchfmap.experimental"), graph.get("torchfmap.experimental")
+
+
 def test_modules_are_short():
     long = {
         module: n

@@ -5,7 +5,6 @@ Data flow: mesh -> operators -> seeds -> bases -> descriptors -> functional map 
 as differentiable ``torch.nn.Module`` layers.
 """
 
-from ._deprecation import module_aliases
 from .bases import (
     Basis,
     Column,
@@ -120,13 +119,3 @@ __all__ = [
     "match",
 ]
 
-
-#: Names that left the top level (internals), still importable from here with a warning.
-__getattr__ = module_aliases(
-    __name__,
-    {
-        "normalize_area": "torchfmap.operators.normalize_area",
-        "scipy_to_torch": "torchfmap.operators.scipy_to_torch",
-        "torch_to_scipy": "torchfmap.operators.torch_to_scipy",
-    },
-)

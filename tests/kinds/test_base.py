@@ -113,5 +113,5 @@ def test_each_kind_returns_its_own_refiner(bent_pair, name):
         default = kind.refiner("zoomout")(*args)  # k_final: twice the start
         assert default.C_xy.shape == (32, 32)
     for bad in ("nearest", "seeded", None):
-        with pytest.raises(ParameterError, match="unknown refinement|needs a method"):
+        with pytest.raises(ParameterError, match=r"unknown refinement .*Fix: 'icp', 'zoomout'\.$"):
             kind.refiner(bad)

@@ -183,10 +183,8 @@ class BasisKind:
             ParameterError: an unknown method (:func:`~torchfmap.kinds.refiners.check_refine`).
         """
         mode = self.p2p_mode if mode is None else mode
-        if check_refine(method) == "icp":
+        if check_refine(method, optional=False) == "icp":
             return ICP(mode)
-        if method is None:
-            raise ParameterError("refiner() needs a method. Fix: 'icp' or 'zoomout'.")
         return self.zoomout_refiner(
             k_final=k_final, mode=mode, n_fixed=n_fixed, times=times, zoomout_samples=zoomout_samples,
             eigenbases=eigenbases,

@@ -44,16 +44,17 @@ FEATURE_SEED_MOVES = 2
 FEATURE_SAMPLES_PER_COLUMN = 25
 
 
-def check_refine(refine) -> str | None:
-    """``refine`` if it is a refinement of :data:`REFINE_METHODS` or None (the one check of the
-    names).
+def check_refine(refine, *, optional: bool = True) -> str | None:
+    """``refine`` if it is a refinement of :data:`REFINE_METHODS` (or None, when ``optional``:
+    no refinement); the one check of the names.
 
     Raises:
         ParameterError: any other value.
     """
-    if refine is not None and refine not in REFINE_METHODS:
-        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
-    return refine
+    if (refine is None and optional) or refine in REFINE_METHODS:
+        return refine
+    fix = "'icp', 'zoomout'" + (" or None" if optional else "")
+    raise ParameterError(f"unknown refinement {refine!r}. Fix: {fix}.")
 
 
 @dataclass(frozen=True)
