@@ -250,9 +250,10 @@ def code_state() -> str:
 def ours_settings() -> str:
     """``match``'s descriptor and weight defaults, as used here."""
     d = {n: p.default for n, p in inspect.signature(match).parameters.items()}
-    from torchfmap.fmap.defaults import W_LAP
+    from torchfmap.kinds import KINDS
 
-    d["w_lap"] = "/".join(f"{W_LAP[b]:g} ({b})" for b in W_LAP) if d["w_lap"] is None else d["w_lap"]
+    kinds = KINDS.items()
+    d["w_lap"] = "/".join(f"{k.w_lap:g} ({n})" for n, k in kinds) if d["w_lap"] is None else d["w_lap"]
     weights = ", ".join(
         f"{n}={d[n]:g}" if not isinstance(d[n], str) else f"{n}={d[n]}" for n in d if n.startswith("w_")
     )

@@ -61,7 +61,7 @@ from _pyfm import PYFM_FIT, run_pyfm
 
 import torchfmap
 from torchfmap.eval import auc
-from torchfmap.fmap.defaults import W_LAP
+from torchfmap.kinds import KINDS
 from torchfmap.pipeline import match
 
 WOLVES = ("tosca_hires_wolf/wolf0.off", "tosca_hires_wolf/wolf1.off")
@@ -223,7 +223,7 @@ def ratio_rows(rows: list[dict]) -> list[dict[str, Any]]:
 
 def settings_note(args, n_eval: int) -> str:
     ours = {key: val for key, val in match_defaults().items() if key.startswith("w_")}
-    ours["w_lap"] = ours["w_lap"] if ours["w_lap"] is not None else W_LAP["laplacian"]
+    ours["w_lap"] = ours["w_lap"] if ours["w_lap"] is not None else KINDS["laplacian"].w_lap
     lmk = args.landmarks
     return (
         f"ours: match weights {ours}, {args.n_descr} WKS from {args.k_descr} eigenpairs"

@@ -24,9 +24,9 @@ from torchfmap import (
     laplacian_eigenbasis,
     save_mesh,
 )
-from torchfmap.bases import KINDS
 from torchfmap.data import icosphere, make_demo_pair
 from torchfmap.fmap import laplacian_mask
+from torchfmap.kinds import KINDS
 from torchfmap.nn import BasisModule
 from torchfmap.nn.data import collate_shapes
 from torchfmap.nn.inputs import shape_arrays, shape_item

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from torchfmap.bases import KINDS
 from torchfmap.cli import build_parser, main
+from torchfmap.kinds import KINDS
 
 from .conftest import DEMO
 

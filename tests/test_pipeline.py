@@ -10,13 +10,12 @@ import warnings
 import numpy as np
 import pytest
 
-import torchfmap.results
 from torchfmap import Basis, MapWarning, ParameterError, SeedError, save_mesh
-from torchfmap.bases import KINDS
 from torchfmap.bases.prepared import prepare_shape
 from torchfmap.cli import build_parser, main
 from torchfmap.data import icosphere
 from torchfmap.eval import evaluate_map, gt_identity, landmarks_from_gt
+from torchfmap.kinds import KINDS
 from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN, match, match_bases
 from torchfmap.quality import geodesic_distortion
 
@@ -87,7 +86,7 @@ def test_match_steps_one_by_one_equal_match(bent_pair):
     """match() is the composition of its public steps: running them by hand gives the same map."""
     from torchfmap import MatchResult
     from torchfmap.fmap import Refined, fmap_to_p2p, solve_fmap
-    from torchfmap.fmap.defaults import W_DCOMM, W_LAP, W_ORIENT
+    from torchfmap.fmap.defaults import W_DCOMM, W_ORIENT
     from torchfmap.kinds import get_kind
     from torchfmap.pipeline import match_bases, match_descriptors, prepare_shape
 
@@ -105,7 +104,7 @@ def test_match_steps_one_by_one_equal_match(bent_pair):
         by,
         dx,
         dy,
-        w_lap=W_LAP["laplacian"],
+        w_lap=KINDS["laplacian"].w_lap,
         w_orient=W_ORIENT,
         w_dcomm=W_DCOMM,
         meshes=(x, y),
@@ -115,7 +114,7 @@ def test_match_steps_one_by_one_equal_match(bent_pair):
     p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
     np.testing.assert_array_equal(p2p, result.p2p_yx_initial)
     kind = get_kind("laplacian")
-    refined = kind.refine(C, p2p, sx, sy, bx, by, "icp", k_final=20, mode="orthogonal")
+    refined = kind.refiner("icp")(C, p2p, sx, sy, bx, by, seeds)
     assert isinstance(refined, Refined) and refined.seeds is None
     C, p2p = refined.C_xy, refined.p2p_yx
     np.testing.assert_array_equal(p2p, result.p2p_yx)
@@ -171,19 +170,23 @@ def test_forced_basis_and_no_landmarks_do_not_choose(bent_pair):
 def test_a_refinement_that_raises_the_distortion_is_dropped(bent_pair, monkeypatch):
     x, y, gt = bent_pair
     lm = landmarks_from_gt(x, gt, 8)
-    eigen = type(torchfmap.KINDS["laplacian"])  # the kind owns its refinement
-    real = eigen.refine
+    eigen = type(KINDS["laplacian"])  # the kind returns its refiner
+    real = eigen.zoomout_refiner
 
-    def scrambling(*args, **kwargs):  # a refinement that returns a scattered map
-        out = real(*args, **kwargs)
-        bad = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
-        return out._replace(p2p_yx=bad)
+    def scrambling(self, **settings):  # a refiner that returns a scattered map
+        refiner = real(self, **settings)
 
-    monkeypatch.setattr(eigen, "refine", scrambling)
+        def scattered(*args):
+            bad = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
+            return refiner(*args)._replace(p2p_yx=bad)
+
+        return scattered
+
+    monkeypatch.setattr(eigen, "zoomout_refiner", scrambling)
     result = match(x, y, landmarks=lm, k=20, basis="laplacian", refine="zoomout")
     assert not result.refined
     np.testing.assert_array_equal(result.p2p_yx, result.p2p_yx_initial)
-    monkeypatch.setattr(eigen, "refine", real)
+    monkeypatch.setattr(eigen, "zoomout_refiner", real)
     kept = match(x, y, landmarks=lm, k=20, basis="laplacian", refine="zoomout")
     assert kept.refined and kept.distortion <= result.distortion
 
@@ -199,28 +202,59 @@ def test_skipped_kinds_are_reported_not_fatal(bent_pair):
     assert result.kind in result.candidates
 
 
-def test_seeded_refinement_solves_again_at_the_seeds_its_map_agrees_on(bent_pair, capsys, tmp_path):
-    """``refine='seeded'``: stage 1 is the ZoomOut map; stage 2 is the match with the consistent
-    seeds of stage 1 as landmarks (its ``seeds`` start with them), refined; both are kept in
-    ``candidates``; landmarks are refused (the stage seeds itself); the CLI runs it."""
-    x, y, gt = bent_pair
-    result = match(x, y, k=20, refine="seeded")
-    first = result.first_stage
-    assert first is not None and first.first_stage is None and result.candidates == {}
-    np.testing.assert_array_equal(first.p2p_yx, match(x, y, k=20, refine="zoomout").p2p_yx)
-    assert result.distortion is not None and result.kind == "laplacian"  # solved with landmarks
-    errors = [evaluate_map(x, y, r.p2p_yx, gt, max_points=300)[0].mean_error for r in (first, result)]
-    assert errors[1] <= 2.0 * errors[0] + 0.01  # a second solve at agreeing seeds stays a good map
-    with pytest.raises(ParameterError, match="refine='seeded' seeds a second solve"):
-        match(x, y, k=20, refine="seeded", landmarks=landmarks_from_gt(x, gt, 4))
-    from torchfmap import save_mesh
-    from torchfmap.cli import main
+def test_match_never_calls_itself(bent_pair, monkeypatch):
+    """``match`` dispatches to one solve (``solve_pair``) or to the landmark default, which
+    solves each candidate with ``solve_pair`` on shapes prepared once: no call of ``match``
+    reaches ``match`` again, and the default prepares each shape once."""
+    import torchfmap.pipeline as pipeline
 
-    a, b = save_mesh(x, tmp_path / "x.off"), save_mesh(y, tmp_path / "y.off")
-    assert (
-        main(["match", str(a), str(b), "--k", "20", "--refine", "seeded", "--out", str(tmp_path / "m.txt")])
-        == 0
-    )
+    x, y, gt = bent_pair
+    calls, prepared = [], []
+    real_match, real_prepare = pipeline.match, pipeline.prepare_shape
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real_match(*args, **kwargs)
+
+    def counted_prepare(mesh, n_eigen, **kwargs):
+        prepared.append(mesh)
+        return real_prepare(mesh, n_eigen, **kwargs)
+
+    monkeypatch.setattr(pipeline, "match", counted)
+    monkeypatch.setattr(pipeline, "prepare_shape", counted_prepare)
+    result = pipeline.match(x, y, landmarks=landmarks_from_gt(x, gt, 6), k=16, refine="zoomout")
+    assert calls == [1] and set(result.candidates) == set(AUTO_KINDS)
+    assert len(prepared) == 2 and prepared[0] is x and prepared[1] is y
+    pipeline.match(x, y, k=16, refine="icp")
+    assert calls == [1, 1]
+
+
+def test_zoomout_of_given_eigenbases_grows_within_them(bent_pair):
+    """Eigenbases given as files (here of the robust Laplacian, as `torchfmap basis --laplacian
+    robust` saves them) are solved in their first k columns and ZoomOut grows the map within
+    *their* eigenfunctions: the refined map's bases are the given ones and its C is the given
+    bases' map of the point map (earlier, ZoomOut ran in the prepared cotan eigenbases: solved
+    in one basis, refined in another). Bases with fewer columns than k_final are refused."""
+    from torchfmap.bases import laplacian_eigenbasis
+    from torchfmap.fmap import zoomout
+    from torchfmap.operators import laplacian
+
+    x, y, gt = bent_pair
+    bx, by = (laplacian_eigenbasis(m, 40, operators=laplacian(m, scheme="robust")) for m in (x, y))
+    result = match(x, y, bases=(bx, by), k=20, refine="zoomout")
+    assert result.refined and result.C_xy.shape == (40, 40)
+    for given, used in ((bx, result.basis_x), (by, result.basis_y)):
+        np.testing.assert_array_equal(used.values, given.values)
+    raw = match(x, y, bases=(bx.truncated(20), by.truncated(20)))
+    np.testing.assert_array_equal(result.p2p_yx_initial, raw.p2p_yx)  # solved in the first k columns
+    C, p2p = zoomout(raw.C_xy, bx, by, 40)  # ZoomOut of that map in the given eigenbases
+    np.testing.assert_array_equal(result.p2p_yx, p2p)
+    np.testing.assert_array_equal(result.C_xy, C)
+    assert evaluate_map(x, y, result.p2p_yx, gt, max_points=300)[0].mean_error < 0.12
+    with pytest.raises(ParameterError, match="holds? 40.*Fix: save bases with at least 60"):
+        match(x, y, bases=(bx, by), k=30, refine="zoomout")
+    with pytest.raises(ParameterError, match="the given bases hold 40"):
+        match(x, y, bases=(bx, by), refine="zoomout")  # k = 50 by default: 100 eigenfunctions
 
 
 @pytest.fixture(scope="module")

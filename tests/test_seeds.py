@@ -178,6 +178,38 @@ def test_replace_seeds_moves_near_seeds_to_the_map_and_keeps_far_ones(permuted_p
     assert len(set(out[:, 1].tolist())) == len(out)
 
 
+def test_replace_seeds_never_moves_a_seed_beyond_the_radius(permuted_pair):
+    """A seed whose vertex another seed took stayed where the map put it, however far (it could
+    not stay): here seed A's map points at seed B's vertex one edge away, and B's own map points
+    beyond the covering radius. Now no seed moves onto another's vertex, so every seed ends
+    within the radius sqrt(1/S) of where it was, and the seeds stay distinct."""
+    from torchfmap.seeds import replace_seeds
+
+    x, y, perm, lm = permuted_pair
+    inverse = np.argsort(perm)
+    sx, sy = prepare_shape(x, 0), prepare_shape(y, 0)
+    seeds = corresponding_seeds(x, y, lm, 12, distances=(sx.distances, sy.distances))
+    radius = np.sqrt(1.0 / len(seeds))
+    a, b = len(lm), len(lm) + 1
+    (a_x, b_x), b_old = seeds[[a, b], 0], int(seeds[b, 1])
+    ring = y.edges[(y.edges == b_old).any(axis=1)].ravel()
+    a_old = int(next(v for v in ring if v != b_old and v not in set(seeds[:, 1])))
+    moved = seeds.copy()
+    moved[a, 1] = a_old  # A one edge from B
+    far_x = int(np.argmax(sx.distances(b_x)))
+    p2p = perm.copy()
+    near_b = sy.distances(b_old) < 1.2 * radius  # B's neighbourhood is mapped far from B
+    p2p[near_b] = far_x
+    p2p[inverse[a_x]] = far_x
+    p2p[b_old] = a_x  # ... and B's vertex to A's seed: A's best image
+    assert sx.distances(b_x)[far_x] > 1.2 * radius
+    out = replace_seeds(sx.distances, sy.distances, moved, p2p, len(lm))
+    np.testing.assert_array_equal(out[: len(lm)], moved[: len(lm)])
+    shift = [sy.distances(int(old))[int(new)] for old, new in zip(moved[:, 1], out[:, 1], strict=True)]
+    assert max(shift) < radius, shift
+    assert len(set(out[:, 1].tolist())) == len(out)
+
+
 def test_consistent_seeds_keep_round_trips_and_drop_the_rest():
     x = bumpy_blob(2)
     shape = prepare_shape(x, 0)

@@ -47,14 +47,17 @@ HOMES = {
     "check_finite": "torchfmap._torch_checks",
     "check_index_range": "torchfmap._torch_checks",
     "check_lengths": "torchfmap._torch_checks",
-    "get_kind": "torchfmap.bases.registry",
-    "kind_of": "torchfmap.bases.registry",
-    "register_kind": "torchfmap.bases.registry",
+    "get_kind": "torchfmap.kinds.registry",
+    "kind_of": "torchfmap.kinds.registry",
+    "register_kind": "torchfmap.kinds.registry",
+    "check_refine": "torchfmap.kinds.refiners",
     "prepare_shape": "torchfmap.bases.prepared",
     "seed_time": "torchfmap.kinds.base",
     "replace_seeds": "torchfmap.seeds",
+    "refine_result": "torchfmap.results",
+    "solve_pair": "torchfmap.pipeline",
     "hybrid_zoomout": "torchfmap.kinds.hybrid",
-    "fixed_size_iterations": "torchfmap.kinds.base",
+    "fixed_size_iterations": "torchfmap.kinds.refiners",
     "zoomout": "torchfmap.fmap.refine",
     "mesh_files": "torchfmap.io",
     "split_suffix": "torchfmap.io",
@@ -236,14 +239,34 @@ def test_seeds_and_descriptors_import_nothing_from_bases():
 
 def test_the_solver_and_the_bases_know_no_basis_kind():
     """Kinds sit above the functional-map layer (they build bases, and solve and refine maps by
-    calling it): nothing under ``bases`` or ``fmap`` reaches ``torchfmap.kinds`` (the defaults
-    read the registry ``bases.registry``, which the kinds fill)."""
+    calling it with plain weights): nothing under ``bases``, ``fmap`` or ``operators`` imports
+    ``torchfmap.kinds`` (the registry included), no registry lives under ``bases``, and no
+    ``fmap`` module names the registry ``KINDS``, a kind class or reads a kind's settings."""
     graph, _ = import_graph(include_functions=True)
     below = [m for m in graph if m.split(".")[1:2] in (["bases"], ["fmap"], ["operators"])]
-    assert "torchfmap.fmap.refine" in below and "torchfmap.bases.registry" in below
+    assert "torchfmap.fmap.refine" in below and "torchfmap.fmap.defaults" in below
+    assert "torchfmap.bases.registry" not in graph and not (ROOT / "bases" / "registry.py").exists()
     for module in below:
         bad = sorted(t for t in graph[module] if t == "torchfmap.kinds" or t.startswith("torchfmap.kinds."))
         assert not bad, f"{module} imports {bad}: a kind's behaviour belongs in torchfmap/kinds"
+    for path in sorted((ROOT / "fmap").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        words = ("KINDS", "BasisKind", "get_kind", "kind_of", "registry")
+        for word in [rf"\b{w}\b" for w in words] + [r"\bkind\.\w"]:
+            found = re.search(word, text)
+            assert not found, f"fmap/{path.name} names {found[0]!r}: the fmap layer takes plain weights"
+
+
+def test_the_core_does_not_import_the_experiments():
+    """``torchfmap.experimental`` holds experiments outside the core API: no other module imports
+    it, and its ``__init__`` imports none of its submodules (some need torch)."""
+    graph, _ = import_graph(include_functions=True)
+    for module, targets in graph.items():
+        if module.startswith("torchfmap.experimental"):
+            continue
+        bad = sorted(t for t in targets if t.startswith("torchfmap.experimental"))
+        assert not bad, f"{module} imports {bad}: the core does not depend on experiments"
+    assert not graph.get("torchfmap.experimental"), graph.get("torchfmap.experimental")
 
 
 def test_modules_are_short():
@@ -492,12 +515,14 @@ def test_tests_mirror_the_package(tmp_path):
 #: Public callables whose parameter ``kind`` is a basis kind: the word's one meaning
 #: (ARCHITECTURE.md, "One word, one meaning"). Any other choice has its own word.
 BASIS_KIND_PARAMETERS = {
-    "torchfmap.bases.registry.register_kind",
+    "torchfmap.kinds.registry.register_kind",
     "torchfmap.kinds.hybrid.hybrid_zoomout",
+    "torchfmap.kinds.hybrid.HybridZoomOut",
+    "torchfmap.kinds.hybrid.HybridZoomOut.__init__",
     "torchfmap.match_checks.check_unused",
+    "torchfmap.match_checks.check_k_final",
     "torchfmap.pipeline.match_bases",
-    "torchfmap.results.MatchContext",
-    "torchfmap.results.MatchContext.__init__",
+    "torchfmap.pipeline.solve_pair",
     "torchfmap.results.MatchResult",
     "torchfmap.results.MatchResult.__init__",
 }

@@ -22,7 +22,7 @@ from .cli_types import count, nonnegative_float, positive_float, positive_int, t
 from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match
 from .commands_train import cmd_models, cmd_train
 from .errors import TorchFmapError
-from .kinds import KINDS
+from .kinds import KINDS, REFINE_METHODS
 
 DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
 
@@ -39,7 +39,7 @@ Flags mean the same in every subcommand: --k is the basis size, --out the output
 mesh, two for a pair; eval: a FOLDER of <source>-<target>.txt pair files). Run
 'torchfmap COMMAND --help'."""
 
-#: Every basis kind of the registry (torchfmap.bases.KINDS), for the commands that take one.
+#: Every basis kind of the registry (torchfmap.kinds.KINDS), for the commands that take one.
 BASES = list(KINDS)
 LEARNED_BASES = [name for name, kind in KINDS.items() if kind.learned]
 
@@ -66,10 +66,9 @@ def _refine_flags(p: argparse.ArgumentParser) -> None:
     """The refinement and solver flags ``match`` and ``eval`` share."""
     p.add_argument(
         "--refine",
-        choices=["icp", "zoomout", "seeded"],
+        choices=list(REFINE_METHODS),
         default=None,
-        help="refinement; seeded: ZoomOut, then solved again with the seeds where that map agrees "
-        "both ways as landmarks (no --landmarks) (default: none)",
+        help="refinement (default: none)",
     )
     p.add_argument(
         "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default: 2k)"

@@ -16,12 +16,13 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import is_symmetric
-from .bases import Basis, eigenpairs, get_kind, prepare_shape
+from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
 from .errors import TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
+from .kinds import get_kind
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match, match_bases
 from .viz import plot_color_transfer, plot_pck, save_transfer_html
@@ -164,7 +165,7 @@ def cmd_match(args: argparse.Namespace) -> int:
                 f"{', '.join(ignored)} would change nothing. Fix: drop {' / '.join(ignored)} (or drop "
                 "--checkpoint for the classical pipeline)."
             )
-        if args.refine in ("icp", "seeded"):
+        if args.refine == "icp":
             raise TorchFmapError(
                 "--checkpoint refines by ZoomOut only (its second stage is the checkpoint's own). Fix: "
                 "--refine zoomout."
@@ -199,9 +200,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         bases=bases,
     )
     refined = ""
-    if args.refine == "seeded" and result.first_stage is not None:
-        refined = f", refined by ZoomOut, then solved again at {len(result.seeds)} self-found seeds"
-    elif args.refine:
+    if args.refine:
         refined = (
             f", refined by {args.refine}"
             if result.refined
@@ -269,7 +268,7 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
             "--gt-landmarks / --basis / --k-final / --w-lap (or drop --checkpoint for the classical "
             "pipeline)."
         )
-    if args.refine in ("icp", "seeded"):
+    if args.refine == "icp":
         raise TorchFmapError("--checkpoint refines by ZoomOut only. Fix: --refine zoomout.")
     from .nn.inference import CheckpointMatcher  # torch: only for this path
 

@@ -1,6 +1,6 @@
 """The checks of :func:`torchfmap.match`'s arguments that need the library's types: settings
 that would change nothing, and given bases (their meshes, their order, whether their columns
-correspond)."""
+correspond, their kind)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from .bases import Basis
 from .errors import MapWarning, ParameterError
-from .kinds import BasisKind
+from .kinds import BasisKind, get_kind, kind_of
 from .mesh import Mesh
 
 
@@ -26,6 +26,12 @@ def check_unused(kind: BasisKind, refine, k_final, times) -> None:
             f"times are the heat times of feature-aware bases; the {kind.name} basis has none, so "
             "they would change nothing. Fix: drop times, or basis='diffusion' (or another seeded kind)."
         )
+
+
+def check_k_final(kind: BasisKind, refine, k: int, k_final) -> None:
+    """Refuse a ZoomOut that would shrink: ``k_final < k`` in a kind whose ZoomOut grows."""
+    if refine == "zoomout" and kind.grows and k_final is not None and k_final < k:
+        raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
 
 
 def mass_mismatch(basis: Basis, mesh: Mesh) -> float:
@@ -74,3 +80,15 @@ def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, 
             stacklevel=3,
         )
     return bx, by, seeded and together
+
+
+def given_bases_kind(bases, mesh_x: Mesh, mesh_y: Mesh, basis) -> tuple[Basis, Basis, BasisKind, bool]:
+    """``(basis_x, basis_y, kind, together)`` of given bases (:func:`check_given_bases`): their
+    kind is ``basis`` if named, else ``'laplacian'`` for eigenfunctions only, the registered kind
+    of bases built together (:func:`~torchfmap.kinds.kind_of`), else ``'stack'``; ``together``:
+    built together at corresponding seeds, by a kind that needs them."""
+    bx, by, together = check_given_bases(bases, mesh_x, mesh_y)
+    eigen_only = all(c.family == "laplacian" for b in (bx, by) for c in b.columns if c.kept)
+    seeded = kind_of(bx) if together else None
+    kind = get_kind(basis or ("laplacian" if eigen_only else seeded or "stack"))
+    return bx, by, kind, together and kind.needs_landmarks

@@ -174,7 +174,7 @@ def map_seeds(
     ``C_yx (K_x, K_y)`` and back by ``C_xy (K_y, K_x)`` (orthogonal rule in the bases
     ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``; only the seeds' rows are converted),
     kept where they agree (:func:`~torchfmap.seeds.consistent_seeds`); no vertex of ``y``
-    twice. The seeds of both self-seeded second stages (``match(refine='seeded')``,
+    twice. The seeds of both self-seeded second stages (``experimental.seeded.seeded_match``,
     :mod:`torchfmap.nn.stages`); without landmarks, the farthest points are computed once per
     shape (cached on ``shape_x``)."""
     given = np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)

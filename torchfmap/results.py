@@ -1,8 +1,9 @@
 """What :func:`torchfmap.match` returns, and its refinement step.
 
 :class:`MatchResult` holds the map, the bases it lives in and how it was chosen;
-:func:`refine_result` refines an unrefined result (ICP or ZoomOut, as the basis kind says),
-guarded by the geodesic distortion when landmarks were given.
+:func:`refine_result` refines an unrefined result with a refiner
+(:mod:`torchfmap.kinds.refiners`, as its kind gives it: ``kind.refiner(...)``), guarded by the
+geodesic distortion when landmarks were given (:func:`keeps_refinement`).
 """
 
 from __future__ import annotations
@@ -15,80 +16,56 @@ from typing import Literal
 import numpy as np
 
 from .bases import Basis
-from .bases.prepared import PreparedShape, with_eigenpairs
+from .bases.prepared import PreparedShape
 from .errors import ParameterError
-from .kinds import BasisKind
-from .quality import distortion_anchors, geodesic_distortion
+from .fmap.refine import Refined
+from .quality import geodesic_distortion
 
-#: The refinements of :func:`torchfmap.match` (``refine=``).
-RefineMethod = Literal["icp", "zoomout", "seeded"]
+#: The refinements of :func:`torchfmap.match` (``refine=``; checked by
+#: :func:`torchfmap.kinds.refiners.check_refine`).
+RefineMethod = Literal["icp", "zoomout"]
 
-__all__ = ["MatchContext", "MatchResult", "RefineMethod", "refine_result"]
-
-
-@dataclass(frozen=True)
-class MatchContext:
-    """What :func:`refine_result` needs of the :func:`match` call that made a result."""
-
-    shape_x: PreparedShape
-    shape_y: PreparedShape
-    kind: BasisKind
-    k: int
-    k_final: int | None
-    mode: str
-    n_fixed: int
-    times: object
-    zoomout_samples: int | None
-    #: the anchors of the distortion score on ``shape_y`` (sampled once, on creation)
-    anchors: np.ndarray = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "anchors", distortion_anchors(self.shape_y))
+__all__ = ["MatchResult", "RefineMethod", "keeps_refinement", "refine_result"]
 
 
-def refine_result(result: MatchResult, refine: RefineMethod) -> MatchResult:
-    """``result`` (of :func:`match`, unrefined) refined by ``'icp'`` or ``'zoomout'``
-    (the kind's :meth:`~torchfmap.kinds.BasisKind.refine`; ZoomOut grows eigenfunctions to
-    ``k_final``, default ``2k``, in kinds that grow). With landmarks, a refinement that raises the
-    geodesic distortion is dropped: the result then keeps its map, with ``refined=False``.
+def keeps_refinement(start: float | None, refined: float | None) -> bool:
+    """The guard of every refinement with landmarks: a refined map is kept unless it raises the
+    geodesic distortion (:func:`~torchfmap.quality.geodesic_distortion`) of its start
+    (``start`` None: no landmarks, no score, always kept)."""
+    return start is None or refined <= start
+
+
+def refine_result(
+    result: MatchResult, refiner, shape_x: PreparedShape, shape_y: PreparedShape
+) -> MatchResult:
+    """``result`` (of :func:`~torchfmap.match`, unrefined) refined by ``refiner`` (called as
+    ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)``, e.g.
+    ``get_kind(result.kind).refiner('zoomout')``) on the prepared shapes it was solved on. With
+    landmarks (``result.distortion`` set), a refinement that raises the geodesic distortion is
+    dropped (:func:`keeps_refinement`): the result then keeps its map, with ``refined=False``.
 
     Raises:
-        ParameterError: ``result`` did not come from :func:`match`, was refined already, an
-            unknown refinement, or ``k_final < k`` for ZoomOut.
+        ParameterError: ``result`` was refined already; or as the refiner.
     """
-    ctx = result._context
-    if ctx is None or result.refined:
+    if result.refined:
         raise ParameterError(
             "refine_result takes an unrefined result of match(). Fix: match(..., refine=None)."
         )
-    if refine not in ("icp", "zoomout"):
-        raise ParameterError(f"unknown refinement {refine!r}. Fix: 'icp', 'zoomout' or None.")
     t0 = time.perf_counter()
-    kind = ctx.kind
-    grow = refine == "zoomout" and kind.grows
-    k_final = ctx.k_final if ctx.k_final is not None else (2 * ctx.k if grow else ctx.k)
-    if grow:
-        if k_final < ctx.k:
-            raise ParameterError(f"k_final={k_final} is below k={ctx.k}: ZoomOut grows. Fix: k_final >= k.")
-        for shape in (ctx.shape_x, ctx.shape_y):  # grown in place when ZoomOut needs more
-            with_eigenpairs(shape, k_final)
-    C, p2p, bx, by, seeds = kind.refine(
-        result.C_xy, result.p2p_yx, ctx.shape_x, ctx.shape_y, result.basis_x, result.basis_y, refine,
-        k_final=k_final, mode=ctx.mode, seeds=result.seeds, n_fixed=ctx.n_fixed,
-        times=ctx.times, zoomout_samples=ctx.zoomout_samples,
-    )  # fmt: skip
+    refined: Refined = refiner(
+        result.C_xy, result.p2p_yx, shape_x, shape_y, result.basis_x, result.basis_y, result.seeds
+    )
     timings = dict(result.timings)
-    distortion = result.distortion
-    if distortion is not None:
-        after = geodesic_distortion(ctx.shape_x, ctx.shape_y, p2p, ctx.anchors)
-        if after > distortion:  # the refinement made the map worse by the score: keep the start
-            timings["refine"] = time.perf_counter() - t0
-            return dataclasses.replace(result, timings=timings)
-        distortion = after
+    after = None
+    if result.distortion is not None:
+        after = geodesic_distortion(shape_x, shape_y, refined.p2p_yx)
     timings["refine"] = time.perf_counter() - t0
+    if not keeps_refinement(result.distortion, after):  # worse by the score: keep the start
+        return dataclasses.replace(result, timings=timings)
+    C, p2p, bx, by, seeds = refined
     return dataclasses.replace(
         result, p2p_yx=p2p, C_xy=C, basis_x=bx, basis_y=by, seeds=seeds, timings=timings,
-        distortion=distortion, refined=True,
+        distortion=after, refined=True,
     )  # fmt: skip
 
 
@@ -103,10 +80,8 @@ class MatchResult:
     (units of ``sqrt(area)``; None without landmarks) and ``refined`` whether the refinement was
     kept (a refinement that raises the distortion is dropped: ``p2p_yx`` is then the initial
     map). The landmark default also fills ``candidates``: each kind it solved in
-    (:data:`AUTO_KINDS`), by name, with its own result; ``skipped`` names the kinds that could
-    not be built on these meshes, with the reason. With ``refine='seeded'``, ``first_stage`` is
-    the stage-1 result (the ZoomOut map the seeds were read from) and ``seeds`` the seed pairs
-    ``(S, 2)`` stage 2 was solved with (as landmarks)."""
+    (:data:`~torchfmap.pipeline.AUTO_KINDS`), by name, with its own result; ``skipped`` names the
+    kinds that could not be built on these meshes, with the reason."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -120,8 +95,6 @@ class MatchResult:
     refined: bool = False
     candidates: dict[str, MatchResult] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
-    first_stage: MatchResult | None = None
-    _context: MatchContext | None = field(default=None, repr=False, compare=False)
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen

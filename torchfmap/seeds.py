@@ -339,24 +339,26 @@ def replace_seeds(
     sends them, within reason.
 
     Each seed ``s`` after the first ``n_fixed`` (the landmarks) goes to the ``y`` vertex whose
-    image under ``p2p_yx`` is geodesically nearest to ``s``, but only if that moves it less
-    than the seeds' covering radius ``sqrt(1 / S)`` and keeps the seeds distinct; otherwise it
-    stays. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
+    image under ``p2p_yx`` is geodesically nearest to ``s`` among the vertices no other seed
+    holds (so the seeds stay distinct), but only if that moves it less than the seeds'
+    covering radius ``sqrt(1 / S)``; otherwise it stays. So every seed ends within the radius
+    of where it was. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
     ``sqrt(area)`` (``normalized=True``). The map, refined in the seeds' own basis, corrects the
     small placement errors of trilateration; the radius keeps one wrong region of the map from
     dragging seeds across the shape.
     """
     radius = np.sqrt(1.0 / len(seeds))
     out = seeds.copy()
-    used = {int(v) for v in seeds[:n_fixed, 1]}
+    held = {int(v) for v in seeds[:, 1]}  # every seed's vertex on y: no seed moves onto another's
     for i in range(n_fixed, len(seeds)):  # bounded: one pass over the seeds
         s, old = int(seeds[i, 0]), int(seeds[i, 1])
+        held.discard(old)
         order = np.argsort(distances_x(s)[p2p_yx], kind="stable")
-        new = next(int(v) for v in order if int(v) not in used)
-        if distances_y(old)[new] >= radius and old not in used:
+        new = next(int(v) for v in order if int(v) not in held)
+        if distances_y(old)[new] >= radius:
             new = old
         out[i, 1] = new
-        used.add(new)
+        held.add(new)
     return out
 
 

@@ -157,3 +157,24 @@ def test_zoomout_refuses_to_shrink(sphere2):
     b = laplacian_eigenbasis(sphere2, 12)
     with pytest.raises(ParameterError, match="k_final=4 is below"):
         zoomout(np.eye(8), b, b, 4)
+
+
+def test_energy_guard_keeps_the_first_lowest_energy_map(permuted_bases):
+    """ZoomOut's one guard: offered maps are scored by ``zoomout_energy`` over the sizes, the
+    first of the lowest kept; ``replaces`` says whether it is another than the last one; a
+    disabled guard keeps nothing."""
+    from torchfmap.fmap import EnergyGuard, zoomout_energy
+
+    _, _, perm, bx, by = permuted_bases
+    sizes = [10, 20]
+    scrambled = np.random.default_rng(0).integers(0, bx.n_vertices, by.n_vertices)
+    guard = EnergyGuard(bx, by, sizes)
+    guard.offer(perm)
+    guard.offer(scrambled)
+    assert guard.p2p_yx is perm and guard.replaces(scrambled) and not guard.replaces(perm)
+    assert guard.energy == zoomout_energy(perm, bx, by, sizes) < zoomout_energy(scrambled, bx, by, sizes)
+    guard.offer(perm.copy())  # equal energy: the first is kept
+    assert guard.p2p_yx is perm
+    off = EnergyGuard(bx, by, sizes, enabled=False)
+    off.offer(perm)
+    assert off.p2p_yx is None and not off.replaces(scrambled)

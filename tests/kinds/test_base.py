@@ -10,11 +10,9 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, match
-from torchfmap.bases import KINDS, Basis, Column, kind_of, prepare_shape
-from torchfmap.bases.prepared import with_eigenpairs
+from torchfmap.bases import Basis, Column, prepare_shape
 from torchfmap.eval import Correspondence, evaluate_map, geodesic_errors, landmarks_from_gt
-from torchfmap.fmap.defaults import W_LAP, basis_kind, default_p2p_mode, default_w_lap, default_w_orient
-from torchfmap.kinds import SeededKind
+from torchfmap.kinds import ICP, KINDS, SeededKind, kind_of
 
 from ..conftest import bumpy_blob
 
@@ -31,10 +29,7 @@ def test_every_kind_builds_exactly_k_b_orthonormal_columns_and_is_recognised(sma
     assert sum(b.k for b in blocks) == k
     for block in blocks:  # B-orthonormal (block by block for a block kind such as 'hybrid')
         np.testing.assert_allclose(block.gram(), np.eye(block.k), atol=ORTHO_EPS * block.k)
-    assert kind_of(basis) == name == basis_kind(basis)
-    assert default_w_lap(basis, basis) == KINDS[name].w_lap == W_LAP[name]
-    assert default_w_orient(basis, basis) == KINDS[name].w_orient
-    assert default_p2p_mode(basis, basis) == KINDS[name].p2p_mode
+    assert kind_of(basis) == name
 
 
 @pytest.mark.parametrize("name", [n for n, kind in KINDS.items() if kind.needs_landmarks])
@@ -93,25 +88,30 @@ def test_a_new_kind_is_one_class_and_one_registry_line(monkeypatch):
 
 
 @pytest.mark.parametrize("name", ["laplacian", "hybrid", "diffusion", "eigen_diffusion"])
-def test_each_kind_refines_its_own_maps(bent_pair, name):
-    """``kind.refine``: ICP keeps the bases; ZoomOut grows them to ``k_final`` in kinds that grow
-    (``grows``) and keeps their size otherwise; a refined map of a bent pair is no worse than
-    its start (for the eigenbasis, ZoomOut's guard makes that a property)."""
+def test_each_kind_returns_its_own_refiner(bent_pair, name):
+    """``kind.refiner``: ICP keeps the bases; ZoomOut grows them to ``k_final`` in kinds that grow
+    (``grows``; eigenpairs computed in place when the shapes hold fewer) and keeps their size
+    otherwise; a refined map of a bent pair is no worse than its start (for the eigenbasis,
+    ZoomOut's guard makes that a property); the point-map rule is the kind's unless given."""
     x, y, gt = bent_pair
     lm = landmarks_from_gt(x, gt, 6)
+    kind = KINDS[name]
     start = match(x, y, landmarks=None if name == "laplacian" else lm, k=16, basis=name)
-    ctx, kind = start._context, KINDS[name]
-    if kind.grows:
-        for shape in (ctx.shape_x, ctx.shape_y):
-            with_eigenpairs(shape, 24)
-    args = (start.C_xy, start.p2p_yx, ctx.shape_x, ctx.shape_y, start.basis_x, start.basis_y)
-    icp = kind.refine(*args, "icp", k_final=24, mode=ctx.mode, seeds=start.seeds)
-    assert (icp.basis_x.k, icp.basis_y.k) == (16, 16)
-    zo = kind.refine(*args, "zoomout", k_final=24, mode=ctx.mode, seeds=start.seeds, times=ctx.times)
+    shapes = (prepare_shape(x, 16), prepare_shape(y, 16))  # fewer eigenpairs than ZoomOut needs
+    args = (start.C_xy, start.p2p_yx, *shapes, start.basis_x, start.basis_y, start.seeds)
+    icp = kind.refiner("icp")
+    assert icp == ICP(kind.p2p_mode) and kind.refiner("icp", mode="pullback").mode == "pullback"
+    refined = icp(*args)
+    assert (refined.basis_x.k, refined.basis_y.k) == (16, 16)
+    zo = kind.refiner("zoomout", k_final=24, n_fixed=len(lm), times=None)(*args)
     assert zo.basis_x.k == (24 if kind.grows else 16)
     assert zo.p2p_yx.shape == (y.n_vertices,) and zo.p2p_yx.min() >= 0 and zo.p2p_yx.max() < x.n_vertices
     if name == "laplacian":  # ZoomOut's guard keeps the lowest-energy map, never a worse start
+        assert shapes[0].n_eigen >= 24
         errors = [geodesic_errors(x, p, gt, max_points=200).mean() for p in (start.p2p_yx, zo.p2p_yx)]
         assert errors[1] <= errors[0] * 1.05
-    with pytest.raises(ParameterError, match="unknown refinement"):
-        kind.refine(*args, "nearest", k_final=24, mode=ctx.mode)
+        default = kind.refiner("zoomout")(*args)  # k_final: twice the start
+        assert default.C_xy.shape == (32, 32)
+    for bad in ("nearest", "seeded", None):
+        with pytest.raises(ParameterError, match=r"unknown refinement .*Fix: 'icp', 'zoomout'\.$"):
+            kind.refiner(bad)

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, match
-from torchfmap.bases import KINDS, prepare_shape
+from torchfmap.bases import prepare_shape
 from torchfmap.eval import Correspondence, evaluate_map
+from torchfmap.kinds import KINDS
 
 from ..conftest import bumpy_blob
 

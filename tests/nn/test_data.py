@@ -10,7 +10,7 @@ import torch
 
 from torchfmap import ParameterError, save_mesh
 from torchfmap._files import load_arrays
-from torchfmap.bases import KINDS
+from torchfmap.kinds import KINDS
 from torchfmap.nn import PairDataset, ShapeDataset, collate_pairs
 from torchfmap.nn import functional as F
 from torchfmap.nn.data import PrecomputeCache, ShapeBatch, class_pairs, mesh_key

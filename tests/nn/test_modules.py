@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from torchfmap import ParameterError, harmonic_basis, laplacian_eigenbasis
-from torchfmap.bases import KINDS, prepare_shape
+from torchfmap.bases import prepare_shape
 from torchfmap.fmap import solve_fmap
+from torchfmap.kinds import KINDS
 from torchfmap.nn import (
     BasisModule,
     RegularizedFMSolver,

@@ -9,12 +9,10 @@ from .harmonic import harmonic_basis, harmonic_functions
 from .laplacian import laplacian_eigenbasis
 from .orthonormalize import cholqr, mgs, orthonormalize, orthonormalize_pair
 from .prepared import PreparedShape, prepare_shape
-from .registry import KINDS, get_kind, kind_of, register_kind
 from .stack import basis_stack, concatenate
 
 __all__ = [
     "DEFAULT_TIMES",
-    "KINDS",
     "Basis",
     "PreparedShape",
     "Column",
@@ -26,8 +24,6 @@ __all__ = [
     "diffusion_basis",
     "eigenpairs",
     "fix_signs",
-    "get_kind",
-    "kind_of",
     "harmonic_basis",
     "harmonic_functions",
     "heat_apply",
@@ -37,6 +33,5 @@ __all__ = [
     "orthonormalize",
     "orthonormalize_pair",
     "prepare_shape",
-    "register_kind",
     "support_fraction",
 ]

@@ -11,7 +11,7 @@ from .convert import (
     values_to_p2p,
 )
 from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
-from .refine import Refined, icp_refine, zoomout, zoomout_sequence
+from .refine import EnergyGuard, Refined, icp_refine, zoomout, zoomout_energy, zoomout_sequence
 from .solver import (
     FmapProblem,
     build_problem,
@@ -22,6 +22,7 @@ from .solver import (
 )
 
 __all__ = [
+    "EnergyGuard",
     "FmapProblem",
     "build_problem",
     "check_landmark_pairs",
@@ -43,5 +44,7 @@ __all__ = [
     "spectral_frame",
     "values_to_p2p",
     "zoomout",
+    "zoomout_energy",
     "zoomout_sequence",
 ]
+

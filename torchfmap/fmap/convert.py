@@ -18,7 +18,6 @@ from scipy.spatial import cKDTree
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .defaults import default_p2p_mode
 
 #: Memory budget (bytes) of one block of the brute-force distance matrix.
 NN_BLOCK_BYTES = 128 * 2**20
@@ -128,21 +127,20 @@ def fmap_to_p2p(
     basis_x: Basis,
     basis_y: Basis,
     *,
-    mode: Literal["pullback", "orthogonal"] | None = None,
+    mode: Literal["pullback", "orthogonal"] = "pullback",
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
 ) -> np.ndarray:
     """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis).
 
     ``mode``: ``'pullback'`` (nearest neighbour of each row of ``Φ_y C_xy`` among the rows of
-    ``Φ_x``) or ``'orthogonal'`` (of each row of ``Φ_y`` among the rows of ``Φ_x C_xyᵀ``);
-    default :func:`~torchfmap.fmap.defaults.default_p2p_mode` (orthogonal for two eigenbases).
+    ``Φ_x``; valid in any basis, the default) or ``'orthogonal'`` (of each row of ``Φ_y`` among
+    the rows of ``Φ_x C_xyᵀ``; the classical choice in eigenbases, a kind's ``p2p_mode``).
 
     The nearest-neighbour search runs in float32 by default (see :func:`nearest_neighbor`):
     a vertex whose two best matches are equally good to 1e-6 may pick either.
     """
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
-    mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     ky, kx = C_xy.shape
     return values_to_p2p(
         C_xy, basis_x.values[:, :kx], basis_y.values[:, :ky], mode=mode, search=search, precision=precision

@@ -11,9 +11,8 @@ Which applies where:
   growing spans (:func:`zoomout_sequence`): more scales (large to small ``t``) or more seeds
   (harmonic spans are nested in the seed set); or iterate at a fixed size, then move the seeds.
 
-These functions know nothing of basis kinds: each kind's own refinement
-(:meth:`torchfmap.kinds.BasisKind.refine`, the refinement step of :func:`torchfmap.match` and
-of the learned path) calls them.
+These functions take bases and plain settings only; the refiners that choose among them for a
+kind of basis (``ICP``, ``ZoomOut``, ... in ``torchfmap.kinds.refiners``) call them.
 """
 
 from __future__ import annotations
@@ -25,7 +24,7 @@ import numpy as np
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
-from .defaults import default_p2p_mode, zoomout_step
+from .defaults import zoomout_step
 
 Mode = Literal["pullback", "orthogonal"]
 
@@ -37,15 +36,13 @@ def icp_refine(
     n_iter: int = 10,
     tol: float = 1e-10,
     *,
-    mode: Mode | None = None,
+    mode: Mode = "orthogonal",
 ):
     """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square.
 
     ``mode`` is the point-map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`): ``'orthogonal'``
-    is the classical choice in eigenbases; ``'pullback'`` works in any basis; default
-    :func:`~torchfmap.fmap.defaults.default_p2p_mode`.
+    (the default) is the classical choice in eigenbases; ``'pullback'`` works in any basis.
     """
-    mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     C = np.asarray(C_xy, dtype=np.float64)
     if C.shape[0] != C.shape[1]:
         raise ParameterError(f"ICP needs a square map, got {C.shape}. Fix: use the same K on both shapes.")
@@ -98,7 +95,7 @@ def zoomout(
     k_final: int,
     step: int | None = None,
     *,
-    mode: Mode | None = None,
+    mode: Mode = "orthogonal",
     subsample=None,
     guard: bool = True,
 ):
@@ -114,8 +111,8 @@ def zoomout(
     Args:
         step: eigenfunctions added per iteration (default
             :func:`~torchfmap.fmap.defaults.zoomout_step` of the start size).
-        mode: point-map conversion (default :func:`~torchfmap.fmap.defaults.default_p2p_mode`:
-            ``'orthogonal'``, the classical choice, for eigenbases).
+        mode: point-map conversion (default ``'orthogonal'``, the classical choice in
+            eigenbases).
         subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
             (nearest neighbours between samples, least-squares maps), as in the ZoomOut
             paper's accelerated variant; only the final point map uses every vertex. The cost
@@ -136,38 +133,54 @@ def zoomout(
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     samples = _check_samples(subsample, basis_x, basis_y)
-    mode = default_p2p_mode(basis_x, basis_y) if mode is None else mode
     k = min(C.shape)
     sizes = list(range(k, k_final, step)) + [k_final]
-    best = None  # (energy, p2p) of the best point map so far (guard)
-
-    def keep(p2p: np.ndarray) -> None:
-        nonlocal best
-        if guard:
-            energy = zoomout_energy(p2p, basis_x, basis_y, sizes)
-            if best is None or energy < best[0]:
-                best = (energy, p2p)
-
+    best = EnergyGuard(basis_x, basis_y, sizes, enabled=guard)
     if samples is None:
         p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
-        keep(p2p)
+        best.offer(p2p)
         while k < k_final:
             k = min(k + step, k_final)
             C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
             p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
-            keep(p2p)
+            best.offer(p2p)
     else:
         if guard:
-            keep(fmap_to_p2p(C, basis_x, basis_y, mode=mode))
+            best.offer(fmap_to_p2p(C, basis_x, basis_y, mode=mode))
         while k < k_final:
             k = min(k + step, k_final)
             C = _sample_step(C, basis_x, basis_y, k, k, samples, mode)
         p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
-        keep(p2p)
-    if best is not None and best[1] is not p2p:
-        p2p = best[1]
+        best.offer(p2p)
+    if best.replaces(p2p):
+        p2p = best.p2p_yx
         C = p2p_to_fmap(p2p, basis_x, basis_y, k_final, k_final)
     return C, p2p
+
+
+class EnergyGuard:
+    """ZoomOut's guard (the one rule of :func:`zoomout` and the hybrid kind's ZoomOut): every
+    point map offered is scored by :func:`zoomout_energy` in ``basis_x, basis_y`` over the prefix
+    ``sizes``, and the lowest-energy one is kept (the first of equal ones), so ZoomOut never
+    returns a map worse than its start by its own energy. ``enabled=False``: nothing is kept."""
+
+    def __init__(self, basis_x: Basis, basis_y: Basis, sizes, *, enabled: bool = True) -> None:
+        self.basis_x, self.basis_y, self.sizes, self.enabled = basis_x, basis_y, list(sizes), enabled
+        self.energy = np.inf
+        #: the kept point map ``(V_y,)``, None before the first offer (or when disabled)
+        self.p2p_yx: np.ndarray | None = None
+
+    def offer(self, p2p_yx: np.ndarray) -> None:
+        """Score ``p2p_yx`` and keep it if its energy is the lowest so far."""
+        if self.enabled:
+            energy = zoomout_energy(p2p_yx, self.basis_x, self.basis_y, self.sizes)
+            if self.p2p_yx is None or energy < self.energy:
+                self.energy, self.p2p_yx = energy, p2p_yx
+
+    def replaces(self, p2p_yx: np.ndarray) -> bool:
+        """Whether the kept map is another than ``p2p_yx`` (the last iterate): the caller then
+        returns the kept one, refitted at the final size."""
+        return self.p2p_yx is not None and self.p2p_yx is not p2p_yx
 
 
 def zoomout_energy(p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, sizes) -> float:
@@ -189,7 +202,7 @@ def zoomout_sequence(
     bases_x: list[Basis],
     bases_y: list[Basis],
     *,
-    mode: Mode | None = None,
+    mode: Mode = "pullback",
     subsample=None,
 ):
     """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
@@ -198,13 +211,13 @@ def zoomout_sequence(
     convert back. With ``subsample`` ``(vertices of x, vertices of y)``, only the first
     projection uses every vertex; the later steps match samples to samples and fit ``C`` by
     least squares (as :func:`zoomout`'s accelerated variant), and only the final point map
-    is computed on every vertex. Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
+    is computed on every vertex. ``mode``: the point-map conversion (default ``'pullback'``,
+    valid in any basis). Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
     """
     if len(bases_x) != len(bases_y) or not bases_x:
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
     p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
     samples = _check_samples(subsample, bases_x[0], bases_y[0])
-    mode = default_p2p_mode(bases_x[-1], bases_y[-1]) if mode is None else mode
     C = None
     for bx, by in zip(bases_x, bases_y, strict=True):
         if samples is None or C is None:
@@ -219,8 +232,8 @@ def zoomout_sequence(
 
 
 class Refined(NamedTuple):
-    """Result of a kind's refinement (:meth:`torchfmap.kinds.BasisKind.refine`): the map, the
-    bases it lives in and their seeds (or None)."""
+    """Result of a refiner (``torchfmap.kinds.refiners``): the map, the bases it lives in and
+    their seed pairs ``(S, 2)`` (or None)."""
 
     C_xy: np.ndarray
     p2p_yx: np.ndarray

@@ -38,7 +38,7 @@ from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, ParameterError
 from ..mesh import Mesh
 from . import core
-from .defaults import W_LAP_SMOOTH, W_LMK, default_w_lap, default_w_orient
+from .defaults import W_LAP_SMOOTH, W_LMK, W_ORIENT
 
 #: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
 MAX_OPERATOR_DESCRIPTORS = 16
@@ -325,7 +325,7 @@ def solve_fmap(
     desc_y: np.ndarray,
     *,
     w_desc: float = 1.0,
-    w_lap: float | None = None,
+    w_lap: float = W_LAP_SMOOTH,
     mask: core.Mask = "laplacian",
     w_dcomm: float = 0.0,
     w_orient: float | None = None,
@@ -338,18 +338,20 @@ def solve_fmap(
 ) -> np.ndarray:
     """Regularised functional map ``C_xy`` (``(K_y, K_x)``) in any B-orthonormal bases.
 
-    Defaults come from :mod:`torchfmap.fmap.defaults`, the same as :func:`torchfmap.match`
-    and :class:`torchfmap.nn.RegularizedFMSolver`: what is given is used.
+    Defaults are the plain numbers of :mod:`torchfmap.fmap.defaults` (those of
+    :class:`torchfmap.nn.RegularizedFMSolver`); :func:`torchfmap.match` passes the weights of
+    the kind of basis it solves in.
 
     Args:
         basis_x, basis_y: B-orthonormal bases with stiffness (``W = Φᵀ L Φ``).
         desc_x, desc_y: ``(V_x, D)``, ``(V_y, D)`` corresponding descriptors.
         w_desc: descriptor preservation weight.
-        w_lap: Laplacian commutativity weight (default: ``default_w_lap`` of the bases' kind);
-            ``mask='laplacian'`` or ``'resolvent'``.
+        w_lap: Laplacian commutativity weight (default
+            :data:`~torchfmap.fmap.defaults.W_LAP_SMOOTH`, for eigenbases; bases holding heat
+            kernels want ``W_LAP_KERNELS``); ``mask='laplacian'`` or ``'resolvent'``.
         w_dcomm: descriptor commutativity weight (multiplication operators).
         w_orient: orientation term weight, needs ``meshes=(mesh_x, mesh_y)`` (default:
-            ``default_w_orient`` of the bases' kind when meshes are given, else 0);
+            :data:`~torchfmap.fmap.defaults.W_ORIENT` when meshes are given, else 0);
             ``orient_reversing=True`` for mirror maps.
         landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk`` (default:
             ``W_LMK`` when landmarks are given).
@@ -367,10 +369,10 @@ def solve_fmap(
         desc_x,
         desc_y,
         w_desc=w_desc,
-        w_lap=default_w_lap(basis_x, basis_y) if w_lap is None else w_lap,
+        w_lap=w_lap,
         mask=mask,
         w_dcomm=w_dcomm,
-        w_orient=(default_w_orient(basis_x, basis_y) if meshes is not None else 0.0)
+        w_orient=(W_ORIENT if meshes is not None else 0.0)
         if w_orient is None
         else w_orient,
         orient_reversing=orient_reversing,

@@ -1,7 +1,7 @@
 """The basis kinds: how each builds a pair of bases, solves its map and refines it (see
-:mod:`.base` for what a kind holds). They sit above the functional-map layer, whose solver and
-refinements they call; the registry :data:`KINDS` they are entered in lives with the bases
-(:mod:`torchfmap.bases.registry`).
+:mod:`.base` for what a kind holds), their registry :data:`KINDS` (:mod:`.registry`) and their
+refiners (:mod:`.refiners`). They sit above the functional-map layer, whose solver and
+refinements they call with plain weights; nothing below them knows a kind.
 
 A new kind is one module in this folder and one line in the tuple below (or, from outside the
 package, :func:`register_kind`).
@@ -9,13 +9,14 @@ package, :func:`register_kind`).
 
 from __future__ import annotations
 
-from ..bases.registry import KINDS, get_kind, kind_of, learned_kind, register_kind
 from .base import BasisKind, SeededKind, relative_times, seed_time
 from .diffusion import DIFFUSION
 from .eigen_diffusion import EIGEN_DIFFUSION
 from .harmonic import HARMONIC
 from .hybrid import HYBRID
 from .laplacian import LAPLACIAN
+from .refiners import ICP, REFINE_METHODS, FixedSizeIterations, SeedMoves, ZoomOut, check_refine
+from .registry import KINDS, get_kind, kind_of, learned_kind, register_kind
 from .stack import STACK
 
 for _kind in (LAPLACIAN, HYBRID, DIFFUSION, HARMONIC, STACK, EIGEN_DIFFUSION):
@@ -23,9 +24,15 @@ for _kind in (LAPLACIAN, HYBRID, DIFFUSION, HARMONIC, STACK, EIGEN_DIFFUSION):
 del _kind
 
 __all__ = [
+    "ICP",
     "KINDS",
+    "REFINE_METHODS",
     "BasisKind",
+    "FixedSizeIterations",
+    "SeedMoves",
     "SeededKind",
+    "ZoomOut",
+    "check_refine",
     "get_kind",
     "kind_of",
     "learned_kind",

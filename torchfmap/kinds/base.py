@@ -1,23 +1,22 @@
 """What every basis kind is: the settings the pipeline reads, how it builds its functions, and
 how it refines a map in its bases.
 
-A kind is a small frozen object in the registry :data:`torchfmap.bases.KINDS`. The pipeline,
-the command line, the solver defaults, the datasets and the learned path read it instead of
-comparing strings:
+A kind is a small frozen object in the registry :data:`torchfmap.kinds.KINDS`. The pipeline,
+the command line, the datasets and the learned path read it instead of comparing strings:
 
 - ``needs_landmarks``: a *pair* of bases of this kind is built at corresponding landmarks
   (its columns then correspond one to one, and the map is pulled towards ``C = I``);
 - ``w_lap``: the Laplacian-commutativity weight of the solve (the mask is normalised to mean 1);
 - ``w_orient``: the orientation-preservation weight of the solve when it uses descriptors;
 - ``p2p_mode``: the functional map -> point map rule (``'orthogonal'`` or ``'pullback'``);
-- :meth:`BasisKind.refine`: ICP, or the kind's ZoomOut (:meth:`BasisKind.zoomout_refine`):
-  nested eigenbases grown to ``k_final`` (the eigenbasis, and the eigen block of ``hybrid``;
-  ``grows`` says so), fixed-size iterations then seeds moved to where the map puts them
-  (seeded kinds), or fixed-size iterations only (the default);
+- :meth:`BasisKind.refiner`: its refiner (:mod:`.refiners`): ICP, or the kind's ZoomOut
+  (:meth:`BasisKind.zoomout_refiner`): nested eigenbases grown to ``k_final`` (the eigenbasis,
+  and the eigen block of ``hybrid``; ``grows`` says so), fixed-size iterations then seeds moved
+  to where the map puts them (seeded kinds), or fixed-size iterations only (the default);
 - ``learned``: whether the torch layers (:mod:`torchfmap.nn`, one regularised solve per pair)
   train and predict in it;
 - ``column_families``: the :class:`~torchfmap.bases.Column` families its bases are made of, so a
-  saved or given basis is recognised (:func:`torchfmap.bases.kind_of`).
+  saved or given basis is recognised (:func:`torchfmap.kinds.kind_of`).
 
 Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind` (or of
 :class:`BasisKind`) and one line in ``kinds/__init__.py``.
@@ -35,20 +34,11 @@ from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p, nearest_neighbor
 from ..fmap.defaults import W_ORIENT
-from ..fmap.refine import Refined, icp_refine, zoomout_sequence
-from ..seeds import corresponding_seeds, farthest_point_sampling, replace_seeds
+from ..seeds import corresponding_seeds, farthest_point_sampling
+from .refiners import ICP, FixedSizeIterations, SeedMoves, check_refine
 
 #: Bound on the passes that add seeds when orthonormalisation dropped dependent columns.
 MAX_SEED_PASSES = 8
-#: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
-FEATURE_REFINE_STEPS = 5
-#: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
-FEATURE_SEED_MOVES = 2
-#: Farthest-point samples per basis column for the iterations of feature-aware refinement (the
-#: least-squares map of ``K`` columns is fitted on ``25 K`` sample rows; only the last point map
-#: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
-#: (accuracy against every-vertex iterations: ``bench/feature_accuracy.py``).
-FEATURE_SAMPLES_PER_COLUMN = 25
 
 
 def seed_time(n_seeds: int) -> float:
@@ -135,7 +125,7 @@ class BasisKind:
         return [basis]
 
     def recognises(self, basis: Basis) -> bool:
-        """Whether ``basis`` is of this kind (:func:`~torchfmap.bases.kind_of`): its kept
+        """Whether ``basis`` is of this kind (:func:`~torchfmap.kinds.kind_of`): its kept
         columns' families are exactly :attr:`column_families`."""
         return self.column_families == frozenset(c.family for c in basis.columns)
 
@@ -169,67 +159,41 @@ class BasisKind:
             return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode)
         return nearest_neighbor(pair[1], pair[0], precision="single")
 
-    def refine(
+    def refiner(
         self,
-        C_xy: np.ndarray,
-        p2p_yx: np.ndarray,
-        shape_x: PreparedShape,
-        shape_y: PreparedShape,
-        basis_x: Basis,
-        basis_y: Basis,
         method: str,
         *,
-        k_final: int,
-        mode: str,
-        seeds: np.ndarray | None = None,
+        k_final: int | None = None,
+        mode: str | None = None,
         n_fixed: int = 0,
         times=None,
         zoomout_samples: int | None = None,
-    ) -> Refined:
-        """The map refined by ``'icp'`` (in ``basis_x, basis_y``,
-        :func:`~torchfmap.fmap.icp_refine`) or ``'zoomout'`` (:meth:`zoomout_refine`, this
-        kind's own): the refinement step of :func:`torchfmap.match` and of the learned path.
-        ``seeds`` ``(S, 2)``: the corresponding seed pairs the bases were built at (the first
-        ``n_fixed`` being landmarks), or None.
+        eigenbases: tuple[Basis, Basis] | None = None,
+    ):
+        """This kind's refiner for ``method`` (:mod:`~torchfmap.kinds.refiners`): ``'icp'``
+        (:class:`~torchfmap.kinds.refiners.ICP`, any kind) or ``'zoomout'`` (the kind's own,
+        :meth:`zoomout_refiner`). ``mode``: the point-map rule (default the kind's
+        ``p2p_mode``); ``k_final``: the size ZoomOut grows eigenfunctions to (default twice the
+        start); ``n_fixed``: the leading seed pairs that are landmarks (never moved); ``times``:
+        the heat times of seeded kinds; ``zoomout_samples``: farthest-point samples per shape
+        of eigenbasis ZoomOut; ``eigenbases``: given eigenbases to grow within (None: the
+        prepared shapes' own).
 
         Raises:
-            ParameterError: an unknown method, or as the refinement.
+            ParameterError: an unknown method (:func:`~torchfmap.kinds.refiners.check_refine`).
         """
-        if method == "icp":
-            return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=mode), basis_x, basis_y, seeds)
-        if method != "zoomout":
-            raise ParameterError(f"unknown refinement {method!r}. Fix: 'icp', 'zoomout' or None.")
-        return self.zoomout_refine(
-            C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, k_final=k_final, mode=mode,
-            seeds=seeds, n_fixed=n_fixed, times=times, zoomout_samples=zoomout_samples,
+        mode = self.p2p_mode if mode is None else mode
+        if check_refine(method, optional=False) == "icp":
+            return ICP(mode)
+        return self.zoomout_refiner(
+            k_final=k_final, mode=mode, n_fixed=n_fixed, times=times, zoomout_samples=zoomout_samples,
+            eigenbases=eigenbases,
         )  # fmt: skip
 
-    def zoomout_refine(
-        self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, *, k_final, mode, seeds, n_fixed, times,
-        zoomout_samples,
-    ) -> Refined:  # fmt: skip
-        """ZoomOut in this kind (arguments as :meth:`refine`). By default the bases keep their
-        size: from the current map, ``C`` and the point map alternate
-        :data:`FEATURE_REFINE_STEPS` times (on :data:`FEATURE_SAMPLES_PER_COLUMN` ``x K``
-        farthest-point samples per shape, the last point map on every vertex)."""
-        samples = feature_samples(shape_x, shape_y, basis_x.k)
-        C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, mode, samples)
-        return Refined(C, p2p, basis_x, basis_y, seeds)
-
-
-
-def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The farthest-point samples ``(S,)`` per shape that fixed-size iterations in bases of ``k``
-    columns are fitted on (:data:`FEATURE_SAMPLES_PER_COLUMN` ``x k``, at most every vertex)."""
-    n_samples = min(FEATURE_SAMPLES_PER_COLUMN * k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
-    return tuple(farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y))
-
-
-def fixed_size_iterations(p2p_yx, bx: Basis, by: Basis, mode, samples) -> tuple[np.ndarray, np.ndarray]:
-    """``(C_xy, p2p_yx)`` after :data:`FEATURE_REFINE_STEPS` point map <-> functional map
-    alternations in ``bx, by`` (fixed size), fitted on ``samples`` (:func:`feature_samples`)."""
-    steps = FEATURE_REFINE_STEPS
-    return zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
+    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases):
+        """The refiner of ``refine='zoomout'`` in this kind (arguments as :meth:`refiner`). By
+        default the bases keep their size: :class:`~torchfmap.kinds.refiners.FixedSizeIterations`."""
+        return FixedSizeIterations(mode)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -316,25 +280,7 @@ class SeededKind(BasisKind):
             )
         return basis.truncated(k)
 
-    def zoomout_refine(
-        self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, *, k_final, mode, seeds, n_fixed, times,
-        zoomout_samples,
-    ) -> Refined:  # fmt: skip
-        """The fixed-size iterations of :meth:`BasisKind.zoomout_refine`; then, for bases built
-        at corresponding ``seeds``, :data:`FEATURE_SEED_MOVES` times: the seeds of ``y`` move to
-        where the map puts them (:func:`~torchfmap.seeds.replace_seeds`, the first ``n_fixed``
-        stay), the bases are rebuilt, the map restarts from ``C = I`` in them and alternates
-        again."""
-        samples = feature_samples(shape_x, shape_y, basis_x.k)
-        C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, mode, samples)
-        bx, by = basis_x, basis_y
-        if seeds is None:
-            return Refined(C, p2p, bx, by, seeds)
-        raw_x = self.functions(shape_x, seeds[:, 0], times)  # x's seeds never move (kernels cached)
-        for _ in range(FEATURE_SEED_MOVES):
-            seeds = replace_seeds(shape_x.distances, shape_y.distances, seeds, p2p, n_fixed)
-            raw_y = self.functions(shape_y, seeds[:, 1], times)
-            bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
-            p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=mode)
-            C, p2p = fixed_size_iterations(p2p, bx, by, mode, samples)
-        return Refined(C, p2p, bx, by, seeds)
+    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases):
+        """:class:`~torchfmap.kinds.refiners.SeedMoves` with this kind's :meth:`functions`: the
+        fixed-size iterations, then the seeds of ``y`` moved and the bases rebuilt."""
+        return SeedMoves(self.functions, mode, n_fixed, times)

@@ -18,8 +18,8 @@ preserves eigenfunctions), and the kernel block, which is identical by construct
 corresponding seeds, tells apart what the eigenbasis confuses (symmetric limbs, left and right).
 On non-isometric pairs the kernels stay correct near the seeds where eigenfunctions drift.
 
-ZoomOut (:meth:`HybridKind.zoomout_refine`, :func:`hybrid_zoomout`) grows the eigen block and
-refits both blocks from the point map at each step.
+ZoomOut (:class:`HybridZoomOut`, :func:`hybrid_zoomout`) grows the eigen block and refits both
+blocks from the point map at each step.
 """
 
 from __future__ import annotations
@@ -34,9 +34,10 @@ from ..bases.stack import concatenate
 from ..errors import ParameterError
 from ..fmap.convert import check_p2p, p2p_to_fmap
 from ..fmap.defaults import W_LAP_SMOOTH, W_ORIENT, zoomout_step
-from ..fmap.refine import Refined, zoomout_energy
+from ..fmap.refine import EnergyGuard, Refined
 from .base import BasisKind
 from .diffusion import DIFFUSION
+from .refiners import grown_eigenbases
 
 
 def join_blocks(eigen: Basis, feature: Basis) -> Basis:
@@ -159,12 +160,30 @@ class HybridKind(BasisKind):
         side_x = np.hstack([ex.values @ C_e.T, w * (fx.values @ C_f.T)])
         return side_x, np.hstack([ey.values, w * fy.values])
 
-    def zoomout_refine(
-        self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, *, k_final, mode, seeds, n_fixed, times,
-        zoomout_samples,
-    ) -> Refined:  # fmt: skip
-        """:func:`hybrid_zoomout` from ``p2p_yx`` to ``k_final`` columns in all."""
-        C, p2p, bx, by = hybrid_zoomout(p2p_yx, shape_x, shape_y, basis_x, basis_y, self, k_final)
+    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases):
+        """:class:`HybridZoomOut` to ``k_final`` columns in all (the eigen blocks of given
+        hybrid ``eigenbases``, or the shapes' own eigenbases, hold the eigenfunctions it grows
+        in)."""
+        if eigenbases is not None:
+            eigenbases = tuple(split_blocks(b)[0] for b in eigenbases)
+        return HybridZoomOut(self, k_final, eigenbases)
+
+
+@dataclass(frozen=True)
+class HybridZoomOut:
+    """The refiner of ``refine='zoomout'`` in hybrid bases: :func:`hybrid_zoomout` to
+    ``k_final`` columns in all (default: twice the start), growing the eigen block in
+    ``eigenbases`` (given ones) or the shapes' own eigenbases."""
+
+    kind: HybridKind
+    k_final: int | None = None
+    eigenbases: tuple[Basis, Basis] | None = None
+
+    def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
+        k_final = self.k_final if self.k_final is not None else 2 * basis_x.k
+        C, p2p, bx, by = hybrid_zoomout(
+            p2p_yx, shape_x, shape_y, basis_x, basis_y, self.kind, k_final, eigenbases=self.eigenbases
+        )
         return Refined(C, p2p, bx, by, seeds)
 
 
@@ -179,6 +198,7 @@ def hybrid_zoomout(
     step: int | None = None,
     *,
     guard: bool = True,
+    eigenbases: tuple[Basis, Basis] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
     """ZoomOut of a hybrid pair of bases (this module): the eigen block
     grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
@@ -186,29 +206,30 @@ def hybrid_zoomout(
     ``k_f`` columns; at each size both blocks are refitted from the point map
     (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
 
-    ``guard``: as :func:`zoomout`'s, scored by :func:`zoomout_energy` of the eigen block (the
-    feature block is not orthonormal, so it has no orthogonality energy): the start and every
-    iterate are scored over the eigen sizes and the lowest-energy point map is returned, with
-    both blocks refitted from it at the final size.
+    ``guard``: ZoomOut's :class:`~torchfmap.fmap.refine.EnergyGuard`, scored in the eigen block
+    (the feature block is not orthonormal, so it has no orthogonality energy): the start and
+    every iterate are scored over the eigen sizes and the lowest-energy point map is returned,
+    with both blocks refitted from it at the final size. ``eigenbases``: the eigenfunctions the
+    eigen block grows in (given ones); None: the shapes' own, computed in place when they hold
+    fewer than ``k_final - k_f``.
 
     Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
 
     Raises:
-        ParameterError: ``k_final`` not above the feature block, or too few eigenpairs.
+        ParameterError: ``k_final`` not above the feature block, or given ``eigenbases`` with
+            too few eigenfunctions.
     """
     (ex, fx), (_, fy) = split_blocks(basis_x), split_blocks(basis_y)
     k_e, k_f = ex.k, fx.k
     k_end = k_final - k_f
     if k_end < k_e:
         raise ParameterError(f"k_final={k_final} leaves fewer eigenfunctions than the start ({k_e}).")
-    if shape_x.n_eigen < k_end or shape_y.n_eigen < k_end:
-        raise ParameterError(f"hybrid ZoomOut needs {k_end} eigenpairs. Fix: prepare_shape(mesh, {k_end}).")
+    eig_x, eig_y = grown_eigenbases(shape_x, shape_y, eigenbases, k_end)
     step = zoomout_step(k_e) if step is None else step
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
     sizes = list(range(k_e, k_end, step)) + [k_end]
-    eig_x, eig_y = shape_x.eigenbasis, shape_y.eigenbasis
 
     def refit(p2p: np.ndarray, size: int) -> np.ndarray:
         C = np.zeros((size + k_f, size + k_f))
@@ -216,18 +237,16 @@ def hybrid_zoomout(
         C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
         return C
 
-    best = (zoomout_energy(p2p, eig_x, eig_y, sizes), p2p) if guard else None
+    best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
+    best.offer(p2p)
     for size in sizes:  # bounded: one pass per size
         bx = join_blocks(eig_x.truncated(size), fx)
         by = join_blocks(eig_y.truncated(size), fy)
         C = refit(p2p, size)
         p2p = kind.to_p2p(C, bx, by, "orthogonal")
-        if guard:
-            energy = zoomout_energy(p2p, eig_x, eig_y, sizes)
-            if energy < best[0]:
-                best = (energy, p2p)
-    if guard and best[1] is not p2p:
-        p2p = best[1]
+        best.offer(p2p)
+    if best.replaces(p2p):
+        p2p = best.p2p_yx
         C = refit(p2p, k_end)
     return C, p2p, bx, by
 

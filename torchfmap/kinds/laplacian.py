@@ -7,9 +7,8 @@ from dataclasses import dataclass
 from ..bases.prepared import with_eigenpairs
 from ..errors import ParameterError
 from ..fmap.defaults import W_LAP_SMOOTH
-from ..fmap.refine import Refined, zoomout
-from ..seeds import farthest_point_sampling
 from .base import BasisKind
+from .refiners import ZoomOut
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,22 +34,11 @@ class EigenKind(BasisKind):
         ``times`` are not used."""
         return with_eigenpairs(shape, k).eigenbasis.truncated(k)
 
-    def zoomout_refine(
-        self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, *, k_final, mode, seeds, n_fixed, times,
-        zoomout_samples,
-    ) -> Refined:  # fmt: skip
-        """ZoomOut in the prepared eigenbases, grown from ``C_xy``'s size to ``k_final``
-        (:func:`~torchfmap.fmap.zoomout`; the shapes need ``k_final`` eigenpairs), on
-        ``zoomout_samples`` farthest-point samples per shape if given."""
-        samples = None
-        if zoomout_samples is not None:
-            samples = tuple(
-                farthest_point_sampling(m, min(zoomout_samples, m.n_vertices), metric="euclidean")
-                for m in (shape_x.mesh, shape_y.mesh)
-            )
-        full_x, full_y = shape_x.eigenbasis, shape_y.eigenbasis
-        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=mode, subsample=samples)
-        return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
+    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases):
+        """:class:`~torchfmap.kinds.refiners.ZoomOut`: the eigenbases grown from the map's size to
+        ``k_final`` (the shapes' own, or the given ``eigenbases``), on ``zoomout_samples``
+        farthest-point samples per shape if given."""
+        return ZoomOut(k_final, mode, zoomout_samples, eigenbases)
 
 
 LAPLACIAN = EigenKind(

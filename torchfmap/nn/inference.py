@@ -134,7 +134,7 @@ def refine_p2p(
 ) -> np.ndarray:
     """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
     -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes. It
-    is the eigenbasis kind's own refinement (``KINDS['laplacian'].refine``, the refinement of
+    is the eigenbasis kind's own refiner (``KINDS['laplacian'].refiner('zoomout')``, that of
     :func:`torchfmap.match`), point maps by the orthogonal rule (nearest neighbours of ``Φ_y``
     in ``Φ_x C_xyᵀ``).
 
@@ -163,8 +163,8 @@ def refine_p2p(
             )
     bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
     C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
-    kind = get_kind("laplacian")
-    return kind.refine(C_xy, p2p_yx, *shapes, bx, by, "zoomout", k_final=k_final, mode="orthogonal").p2p_yx
+    refiner = get_kind("laplacian").refiner("zoomout", k_final=k_final, mode="orthogonal")
+    return refiner(C_xy, p2p_yx, *shapes, bx, by).p2p_yx
 
 
 def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, PreparedShape]:

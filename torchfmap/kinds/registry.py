@@ -1,22 +1,18 @@
-"""The registry of basis kinds: name -> kind object.
+"""The registry of basis kinds: name -> kind object (:class:`~torchfmap.kinds.BasisKind`).
 
-It lives with the bases because which kind made a basis, and which weights solve in it, are
-facts about the basis that the functional-map layer reads (:mod:`torchfmap.fmap.defaults`).
-The kinds themselves (how each builds its bases, solves and refines its maps) live above the
-solver in :mod:`torchfmap.kinds`, which registers each built-in kind here on import; a kind
-from outside the package is registered with :func:`register_kind`.
+:mod:`torchfmap.kinds` registers each built-in kind on import; a kind from outside the package
+is registered with :func:`register_kind`. Everything that asks about a kind (``match``, the
+command line's ``--basis`` choices, the datasets, the learned layers) reads it here; the
+functional-map layer below (:mod:`torchfmap.fmap`) knows no kind and takes plain weights.
 """
 
 from __future__ import annotations
 
+from ..bases.basis import Basis
 from ..errors import ParameterError
-from .basis import Basis
 
-#: Every basis kind by name (a kind object of :mod:`torchfmap.kinds`), in the order the command
-#: line lists them.
+#: Every basis kind by name, in the order the command line lists them.
 KINDS: dict = {}
-#: Names of bases of no registered kind (``fmap.defaults.basis_kind``), never a kind's name.
-RESERVED_NAMES = ("custom", "diffusion_mix")
 
 
 def register_kind(kind):
@@ -24,17 +20,11 @@ def register_kind(kind):
     returns it. Registering a name again replaces the kind.
 
     Raises:
-        ParameterError: an object without a string ``name``, or a name reserved for bases of no
-            kind (:data:`RESERVED_NAMES`).
+        ParameterError: an object without a non-empty string ``name``.
     """
     name = getattr(kind, "name", None)
     if not isinstance(name, str) or not name:
         raise ParameterError(f"a basis kind needs a non-empty string name, got {name!r}.")
-    if name in RESERVED_NAMES:
-        raise ParameterError(
-            f"{name!r} names bases of no registered kind (torchfmap.fmap.defaults.W_LAP_OTHER). "
-            "Fix: give the kind another name."
-        )
     KINDS[name] = kind
     return kind
 
@@ -71,6 +61,6 @@ def learned_kind(name):
 
 def kind_of(basis: Basis) -> str | None:
     """The first registered kind that recognises ``basis`` (``kind.recognises``: by default its
-    kept columns' kinds, e.g. ``'stack'`` for heat kernels and harmonic functions), or None for
-    other mixes."""
+    kept columns' families, e.g. ``'stack'`` for heat kernels and harmonic functions), or None
+    for other mixes."""
     return next((name for name, kind in KINDS.items() if kind.recognises(basis)), None)

@@ -1,0 +1,74 @@
+"""A self-seeded second stage for the classical path without landmarks (an experiment: measured
+1.04x worse than ZoomOut alone on FAUST_r at 2.7x the time, ``bench/seeded_refine.py``).
+
+:func:`seeded_match`: the eigenbasis map refined by ZoomOut (stage 1); seed pairs where it
+agrees both ways (:data:`SEEDED_SEEDS` farthest points of ``x`` sent to ``y`` and back by the
+orthogonal rule of ``C_xy`` and ``C_xyᵀ``, :func:`~torchfmap.quality.map_seeds`); then the pair
+solved again with those seeds as landmarks (descriptors and constraints) in the eigenbasis and
+refined by ZoomOut, guarded by the geodesic distortion (stage 2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+from ..bases.prepared import PreparedShape, prepare_shape
+from ..errors import ParameterError
+from ..mesh import Mesh
+from ..pipeline import match
+from ..quality import map_seeds
+from ..results import MatchResult
+
+#: Farthest points of ``x`` offered as seeds.
+SEEDED_SEEDS = 40
+
+
+class SeededMatch(NamedTuple):
+    """:func:`seeded_match`'s result: stage 2's map (``result.seeds``: the seed pairs ``(S, 2)``
+    it was solved with, as landmarks; timings of stage 1 prefixed ``stage1:``) and stage 1's
+    ZoomOut map (``first_stage``, the one the seeds were read from)."""
+
+    result: MatchResult
+    first_stage: MatchResult
+
+
+def seeded_match(
+    mesh_x: Mesh,
+    mesh_y: Mesh,
+    *,
+    k: int = 50,
+    k_final: int | None = None,
+    k_descriptors: int = 100,
+    shapes: tuple[PreparedShape, PreparedShape] | None = None,
+    n_seeds: int = SEEDED_SEEDS,
+    **match_kwargs,
+) -> SeededMatch:
+    """Match ``y`` to ``x`` in two stages (module docstring). ``k``, ``k_final``,
+    ``k_descriptors``, ``shapes`` and ``match_kwargs`` (descriptor and weight settings) are
+    :func:`torchfmap.match`'s, for both stages; the shapes are prepared once. Stage 2 is skipped
+    (``result`` is stage 1's) when fewer than two seeds agree.
+
+    Raises:
+        ParameterError: landmarks, bases, a basis or a refinement in ``match_kwargs`` (the stages
+            seed themselves, in the eigenbasis, refined by ZoomOut); or as :func:`~torchfmap.match`.
+    """
+    refused = sorted(set(match_kwargs) & {"landmarks", "bases", "basis", "refine"})
+    if refused:
+        raise ParameterError(
+            f"seeded_match seeds a second solve from the eigenbasis ZoomOut map; {', '.join(refused)} "
+            "would change that. Fix: drop them, or torchfmap.match(..., refine='zoomout')."
+        )
+    settings = dict(k=k, k_final=k_final, k_descriptors=k_descriptors, refine="zoomout", **match_kwargs)
+    if shapes is None:  # as match prepares them: k, ZoomOut's k_final and the descriptors' eigenpairs
+        n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
+        n_eigen = max(k, k_final or 2 * k, min(k_descriptors, n_max))
+        shapes = (prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen))
+    first = match(mesh_x, mesh_y, shapes=shapes, **settings)
+    bx, by, C = first.basis_x, first.basis_y, first.C_xy
+    seeds = map_seeds(shapes[0], C, C.T, bx.values, by.values, n_seeds)  # C_yx = C_xyᵀ
+    if len(seeds) < 2:
+        return SeededMatch(first, first)
+    second = match(mesh_x, mesh_y, landmarks=seeds, basis="laplacian", shapes=shapes, **settings)
+    timings = {f"stage1:{key}": v for key, v in first.timings.items()} | second.timings
+    return SeededMatch(dataclasses.replace(second, timings=timings, seeds=seeds), first)

@@ -1,0 +1,175 @@
+"""Refiners: small callables that refine a map in a pair of bases, one per way of refining.
+
+A kind returns its refiner (:meth:`torchfmap.kinds.BasisKind.refiner`); every refiner is called
+the same way, ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)`` ->
+:class:`~torchfmap.fmap.Refined`, and is used by :func:`torchfmap.match` (through
+:func:`torchfmap.results.refine_result`) and by the learned path:
+
+- :class:`ICP`: orthogonal ``C`` and nearest neighbours, bases kept (any kind);
+- :class:`ZoomOut`: eigenbases grown to ``k_final`` (the eigenbasis kind), in the shapes' own
+  eigenpairs or in given eigenbases;
+- :class:`FixedSizeIterations`: point map <-> functional map at fixed size (kinds whose bases do
+  not nest);
+- :class:`SeedMoves`: fixed-size iterations, then the seeds of ``y`` moved to where the map
+  puts them and the bases rebuilt (kinds built at corresponding seeds).
+
+The refinement names of ``match(refine=...)`` are checked in one place, :func:`check_refine`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bases.basis import Basis
+from ..bases.orthonormalize import orthonormalize_pair
+from ..bases.prepared import PreparedShape, with_eigenpairs
+from ..errors import ParameterError
+from ..fmap.convert import fmap_to_p2p
+from ..fmap.refine import Refined, icp_refine, zoomout, zoomout_sequence
+from ..seeds import farthest_point_sampling, replace_seeds
+
+#: The refinements of :func:`torchfmap.match` (``refine=``; None: no refinement).
+REFINE_METHODS = ("icp", "zoomout")
+#: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
+FEATURE_REFINE_STEPS = 5
+#: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
+FEATURE_SEED_MOVES = 2
+#: Farthest-point samples per basis column for the iterations of feature-aware refinement (the
+#: least-squares map of ``K`` columns is fitted on ``25 K`` sample rows; only the last point map
+#: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
+#: (accuracy against every-vertex iterations: ``bench/feature_accuracy.py``).
+FEATURE_SAMPLES_PER_COLUMN = 25
+
+
+def check_refine(refine, *, optional: bool = True) -> str | None:
+    """``refine`` if it is a refinement of :data:`REFINE_METHODS` (or None, when ``optional``:
+    no refinement); the one check of the names.
+
+    Raises:
+        ParameterError: any other value.
+    """
+    if (refine is None and optional) or refine in REFINE_METHODS:
+        return refine
+    fix = "'icp', 'zoomout'" + (" or None" if optional else "")
+    raise ParameterError(f"unknown refinement {refine!r}. Fix: {fix}.")
+
+
+@dataclass(frozen=True)
+class ICP:
+    """ICP in the bases as they are (:func:`~torchfmap.fmap.icp_refine`, point maps by ``mode``)."""
+
+    mode: str = "orthogonal"
+
+    def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x: Basis, basis_y: Basis, seeds=None) -> Refined:
+        return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=self.mode), basis_x, basis_y, seeds)
+
+
+def check_eigenbases(eigenbases: tuple[Basis, Basis], k_final: int) -> tuple[Basis, Basis]:
+    """Given eigenbases ``(basis_x, basis_y)`` that a ZoomOut to ``k_final`` grows within.
+
+    Raises:
+        ParameterError: fewer than ``k_final`` columns (a ZoomOut in another basis would refine
+            a map solved in these in different functions).
+    """
+    have = min(b.k for b in eigenbases)
+    if have < k_final:
+        raise ParameterError(
+            f"ZoomOut grows given eigenbases within their own eigenfunctions: it needs {k_final} "
+            f"(k_final), the given bases hold {have}. Fix: save bases with at least {k_final} "
+            "eigenfunctions (torchfmap basis --k), a smaller k or k_final, or refine='icp'."
+        )
+    return tuple(eigenbases)
+
+
+def grown_eigenbases(shape_x: PreparedShape, shape_y: PreparedShape, eigenbases, k_final: int):
+    """The eigenbases a ZoomOut grows in, holding at least ``k_final`` columns: the given
+    ``eigenbases`` (:func:`check_eigenbases`), else the shapes' own (eigenpairs computed in
+    place when they hold fewer)."""
+    if eigenbases is None:
+        return tuple(with_eigenpairs(s, k_final).eigenbasis for s in (shape_x, shape_y))
+    return check_eigenbases(eigenbases, k_final)
+
+
+@dataclass(frozen=True)
+class ZoomOut:
+    """ZoomOut in eigenbases (:func:`~torchfmap.fmap.zoomout`), grown from ``C_xy``'s size to
+    ``k_final`` (default: twice that size) in ``eigenbases`` (given ones, whose first columns
+    ``basis_x, basis_y`` are) or, when None, the shapes' own eigenbases; on ``samples``
+    farthest-point samples per shape if given. Returns the map in the grown bases (no seeds)."""
+
+    k_final: int | None = None
+    mode: str = "orthogonal"
+    samples: int | None = None
+    eigenbases: tuple[Basis, Basis] | None = None
+
+    def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
+        k_final = self.k_final if self.k_final is not None else 2 * min(np.shape(C_xy))
+        full_x, full_y = grown_eigenbases(shape_x, shape_y, self.eigenbases, k_final)
+        samples = None
+        if self.samples is not None:
+            samples = tuple(
+                farthest_point_sampling(m, min(self.samples, m.n_vertices), metric="euclidean")
+                for m in (shape_x.mesh, shape_y.mesh)
+            )
+        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples)
+        return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
+
+
+def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The farthest-point samples ``(S,)`` per shape that fixed-size iterations in bases of ``k``
+    columns are fitted on (:data:`FEATURE_SAMPLES_PER_COLUMN` ``x k``, at most every vertex)."""
+    n_samples = min(FEATURE_SAMPLES_PER_COLUMN * k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
+    return tuple(farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y))
+
+
+def fixed_size_iterations(p2p_yx, bx: Basis, by: Basis, mode, samples) -> tuple[np.ndarray, np.ndarray]:
+    """``(C_xy, p2p_yx)`` after :data:`FEATURE_REFINE_STEPS` point map <-> functional map
+    alternations in ``bx, by`` (fixed size), fitted on ``samples`` (:func:`feature_samples`)."""
+    steps = FEATURE_REFINE_STEPS
+    return zoomout_sequence(p2p_yx, [bx] * steps, [by] * steps, mode=mode, subsample=samples)
+
+
+@dataclass(frozen=True)
+class FixedSizeIterations:
+    """The bases keep their size: from the current map, ``C`` and the point map alternate
+    :data:`FEATURE_REFINE_STEPS` times (on :data:`FEATURE_SAMPLES_PER_COLUMN` ``x K``
+    farthest-point samples per shape, the last point map on every vertex)."""
+
+    mode: str = "pullback"
+
+    def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
+        samples = feature_samples(shape_x, shape_y, basis_x.k)
+        C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, self.mode, samples)
+        return Refined(C, p2p, basis_x, basis_y, seeds)
+
+
+@dataclass(frozen=True)
+class SeedMoves:
+    """:class:`FixedSizeIterations`; then, for bases built at corresponding ``seeds`` ``(S, 2)``,
+    :data:`FEATURE_SEED_MOVES` times: the seeds of ``y`` move to where the map puts them
+    (:func:`~torchfmap.seeds.replace_seeds`, the first ``n_fixed``, the landmarks, stay), the
+    bases are rebuilt by ``functions(shape, seeds (S,), times)`` (a seeded kind's raw
+    functions), the map restarts from ``C = I`` in them and alternates again."""
+
+    functions: Callable
+    mode: str = "pullback"
+    n_fixed: int = 0
+    times: tuple | None = None
+
+    def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
+        samples = feature_samples(shape_x, shape_y, basis_x.k)
+        C, p2p = fixed_size_iterations(p2p_yx, basis_x, basis_y, self.mode, samples)
+        bx, by = basis_x, basis_y
+        if seeds is None:
+            return Refined(C, p2p, bx, by, seeds)
+        raw_x = self.functions(shape_x, seeds[:, 0], self.times)  # x's seeds never move (kernels cached)
+        for _ in range(FEATURE_SEED_MOVES):
+            seeds = replace_seeds(shape_x.distances, shape_y.distances, seeds, p2p, self.n_fixed)
+            raw_y = self.functions(shape_y, seeds[:, 1], self.times)
+            bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
+            p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=self.mode)
+            C, p2p = fixed_size_iterations(p2p, bx, by, self.mode, samples)
+        return Refined(C, p2p, bx, by, seeds)
