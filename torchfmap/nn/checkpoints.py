@@ -22,7 +22,7 @@ import torch
 
 from .._files import load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
-from .config import TrainConfig, build_model, network_kwargs
+from .config import RETIRED_FIELDS, TrainConfig, build_model, network_kwargs
 from .networks import DiffusionNet
 from .shipped import resolve_checkpoint
 
@@ -236,6 +236,7 @@ def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
         raise ParameterError(
             f"the checkpoint's config is a {type(cfg).__name__}, not a dict. Fix: re-save it."
         )
+    cfg = {k: v for k, v in cfg.items() if k not in RETIRED_FIELDS}
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(cfg) - names)
     if unknown:
@@ -258,3 +259,15 @@ def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConf
     ckpt = read_checkpoint(path)
     config = _config(ckpt["config"], legacy="network" not in ckpt)
     return load_network(ckpt, best), config, ckpt
+
+
+def read_recipe(path) -> TrainConfig:
+    """The recipe a checkpoint (a path or a shipped model's name) was trained by, without
+    building its network: ``read_recipe(path).to_json('recipe.json')`` gives the file
+    ``torchfmap train FOLDER --config recipe.json`` trains by again (``torchfmap models --recipe``).
+
+    Raises:
+        ParameterError / CorruptFileError: as :func:`load_checkpoint`.
+    """
+    ckpt = read_checkpoint(path)
+    return _config(ckpt["config"], legacy="network" not in ckpt)

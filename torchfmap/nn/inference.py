@@ -14,6 +14,7 @@ from .._checks import check_landmark_pairs
 from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
 from ..eval import geodesic_errors
+from ..experimental.stages import StageTwo, two_stage_p2p
 from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
 from ..kinds import get_kind
 from ..mesh import Mesh
@@ -23,7 +24,6 @@ from .data import ShapeBatch, ShapeDataset, collate_pairs
 from .inputs import K_WKS, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
-from .stages import StageTwo, two_stage_p2p
 from .train import pair_loss
 
 #: Eigenfunctions the ZoomOut refinement of the learned path starts from and grows to
@@ -193,9 +193,8 @@ def _network_p2p(
 
 
 def _stage(config: TrainConfig, landmarks) -> StageTwo | None:
-    """The second stage a checkpoint runs: its own (``config.stages == 2``), or one seeded by
-    user ``landmarks``."""
-    return StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 or landmarks is not None else None
+    """The second stage seeded by user ``landmarks`` (None without)."""
+    return StageTwo() if landmarks is not None else None
 
 
 def _refines(refine) -> bool:

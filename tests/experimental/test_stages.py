@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torchfmap.nn.stages import StageTwo, stage_two_loss, two_stage_p2p
 
 from torchfmap import prepare_shape
 from torchfmap.errors import ParameterError
 from torchfmap.nn.data import ShapeDataset, collate_pairs
 from torchfmap.nn.modules import RegularizedFMSolver, UnsupervisedFMLoss
-from torchfmap.nn.stages import StageTwo, stage_two_loss, two_stage_p2p
 from torchfmap.nn.train import forward_pair, pair_loss
 from torchfmap.seeds import farthest_point_sampling
 
