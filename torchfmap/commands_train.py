@@ -48,7 +48,8 @@ def _recipe(args: argparse.Namespace):
     given = {n: getattr(args, n) for n in RECIPE_FLAGS if getattr(args, n, None) is not None}
     bounds = {"epochs": args.epochs, "minutes": args.minutes, "max_steps": args.max_steps}
     if any(bounds.values()):  # the command line's budget, whole
-        given.update(epochs=None, minutes=0.0, max_steps=0, **{k: v for k, v in bounds.items() if v})
+        unbounded = {"epochs": None, "minutes": 0.0, "max_steps": 0}
+        given.update(unbounded | {k: v for k, v in bounds.items() if v})
     asked = {**(TrainConfig.read_json(args.config) if args.config else {}), **given}
     if args.init:
         if args.resume:
