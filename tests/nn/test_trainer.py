@@ -112,6 +112,8 @@ def test_a_trainer_refuses_an_unknown_augmentation_device_or_budget(tmp_path):
         Trainer(net, PairDataset(shapes), loss, opt, device="tpu")
     with pytest.raises(ParameterError, match="needs a budget"):
         Trainer(net, PairDataset(shapes), loss, opt, config=TrainConfig(epochs=None), device="cpu")
+    with pytest.raises(ParameterError, match="width: config 48, network 8"):  # before any training
+        Trainer(net, PairDataset(shapes), loss, opt, device="cpu", checkpoint=tmp_path / "x.ckpt")
 
 
 @pytest.mark.slow

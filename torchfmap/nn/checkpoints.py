@@ -98,6 +98,17 @@ def _check_config_fits(record: dict, cfg) -> None:
         )
 
 
+def check_config_fits(net: torch.nn.Module, config: TrainConfig | dict) -> None:
+    """Refuse, before any training, a recipe ``config`` that does not describe the recipe network
+    ``net`` (a :class:`~torchfmap.nn.networks.DiffusionNet` built otherwise): its checkpoint
+    would be refused at the first save.
+
+    Raises:
+        ParameterError: the fields that differ, and the fix.
+    """
+    _check_config_fits(network_record(net), asdict(config) if isinstance(config, TrainConfig) else config)
+
+
 def save_checkpoint(
     path, net: torch.nn.Module, config: TrainConfig | dict, *, net_kwargs: dict | None = None, **extra
 ) -> Path:

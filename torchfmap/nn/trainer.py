@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from ..errors import ParameterError
 from .augment import augment_batch, augmentation
-from .checkpoints import read_checkpoint, save_checkpoint
+from .checkpoints import check_config_fits, read_checkpoint, save_checkpoint
 from .config import CosineBudget, TrainConfig, build_model, build_solver
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .devices import resolve_device
@@ -63,7 +63,8 @@ class Trainer:
 
     Raises:
         ParameterError: a network that does not follow the protocol, a config without a budget,
-            an unknown augmentation or device.
+            an unknown augmentation or device, or (with a checkpoint) a recipe network that the
+            config does not describe.
     """
 
     def __init__(
@@ -94,6 +95,8 @@ class Trainer:
         self.extra_losses = list(extra_losses)
         self.validate_fn, self.validate_every = validate, validate_every
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
+        if self.checkpoint is not None:
+            check_config_fits(net, self.config)  # now, not at the first save
         self.state, self.best_state = TrainState(), None
         ddp = torch.distributed.is_available() and torch.distributed.is_initialized()
         self.world_size = torch.distributed.get_world_size() if ddp else 1
