@@ -55,5 +55,5 @@ def augment_batch(batch: dict, augment: str, generator: torch.Generator) -> dict
     if augment == "none":
         return batch
     rotate = augment == "rigid"
-    move = lambda s: s._replace(inputs=random_rigid(s.inputs, generator, rotate=rotate))  # noqa: E731
-    return {**batch, "x": move(batch["x"]), "y": move(batch["y"])}
+    moved = [batch[s]._replace(inputs=random_rigid(batch[s].inputs, generator, rotate=rotate)) for s in "xy"]
+    return {**batch, "x": moved[0], "y": moved[1]}
