@@ -7,7 +7,7 @@ Run by hand from the repository root (one training job on the machine; it is the
 
 Trains the shipped model's recipe (``torchfmap models``: WKS 128 inputs, DiffusionNet width 128
 with 256 features, K = 100, K_net = 128, gradient clipping 1, Adam 1e-3 with the cosine schedule
-over ``--minutes``) on FAUST_r ``tr_reg_000..069`` through :func:`torchfmap.nn.train.train`, and
+over ``--minutes``) on FAUST_r ``tr_reg_000..069`` through :class:`torchfmap.nn.Trainer`, and
 every ``--every`` steps scores the network on the first ``--val-pairs`` of the 40 validation pairs
 among ``tr_reg_070..079`` (``bench/learned.py``'s ``faust_val``): mean geodesic error / sqrt(area)
 of the raw functional-map point maps (500 ground-truth points per pair), next to the
@@ -33,7 +33,8 @@ from torchfmap.io import read_vts
 from torchfmap.nn.config import TrainConfig, build_solver
 from torchfmap.nn.data import ShapeDataset, class_pairs
 from torchfmap.nn.inference import predict_p2p
-from torchfmap.nn.train import train_recipe, unsupervised_score
+from torchfmap.nn.train import unsupervised_score
+from torchfmap.nn.trainer import Trainer
 
 RECIPE = dict(k=100, n_wks=128, k_net=128, width=128, c_out=256, clip_grad=1.0)
 
@@ -92,7 +93,10 @@ def main() -> None:
         model.train()
         return score
 
-    state, _ = train_recipe(config, shapes, pairs, validate=validate, validate_every=args.every)
+    trainer = Trainer.from_config(
+        config, shapes, pairs, device="cpu", validate=validate, validate_every=args.every
+    )
+    state = trainer.fit()
     if curve:
         curve[-1]["step"] = state.step  # the validation at the end
     report = Report(args.name)

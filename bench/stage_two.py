@@ -1,4 +1,4 @@
-"""Benchmark: the self-seeded second stage of the learned path (``torchfmap.nn.stages``) against
+"""Benchmark: the self-seeded second stage of the learned path (``torchfmap.experimental.stages``) against
 stage 1, raw and after ZoomOut, on validation pairs, with the time per pair.
 
 Run by hand from the repository root::
@@ -29,12 +29,12 @@ from _common import Report, log
 from learned import PairErrors, dev_set
 
 from torchfmap.bases import prepare_shape
+from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
 from torchfmap.mesh import Mesh
 from torchfmap.nn.checkpoints import load_checkpoint
 from torchfmap.nn.config import build_solver
 from torchfmap.nn.data import ShapeDataset, collate_pairs
 from torchfmap.nn.inference import REFINE_K_FINAL, predict_p2p, refine_p2p
-from torchfmap.nn.stages import StageTwo, two_stage_p2p
 from torchfmap.nn.train import pair_loss
 
 
@@ -43,19 +43,17 @@ def step_times(net, config, shapes, pairs) -> tuple[float, float]:
     both stages, on the same ``pairs``, after one untimed warm-up pass of each (shapes of the
     second stage prepared then, as in training after the first epoch)."""
     solver, loss_fn = build_solver(config)
-    stage = StageTwo(n_seeds=config.stage_seeds)
+    stage = StageTwoLoss(shapes.mesh)
     batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
     generator = torch.Generator().manual_seed(0)
     net.train()
     out = []
-    for with_stage in (None, stage):
+    for extra in ((), (stage,)):
         for timed in (False, True):
             t0 = time.perf_counter()
             for batch in batches:
                 net.zero_grad()
-                terms = pair_loss(
-                    net, solver, loss_fn, batch, generator, stage=with_stage, mesh_of=shapes.mesh
-                )
+                terms = pair_loss(net, solver, loss_fn, batch, generator, extra)
                 terms["total"].backward()
             if timed:
                 out.append((time.perf_counter() - t0) / len(batches))

@@ -1,36 +1,35 @@
 """Unsupervised training on TOSCA (dev split) with the reference recipe
-(``torchfmap.nn.train_recipe``: everything from ``TrainConfig``, the same code as ``torchfmap
-train`` and each DDP rank), then errors on the test pairs. A network, loss or optimiser of your
-own goes through ``torchfmap.nn.train`` (README, "Learning").
+(``torchfmap.nn.Trainer.from_config``: everything from ``TrainConfig``, the same code as
+``torchfmap train`` and each DDP rank), then errors on the test pairs. A network, loss or
+optimiser of your own goes through the ``Trainer`` constructor (README, "Learning").
 
 Trains on every mesh of ``../shared/data/tosca5k_dev`` (pairs within classes, no ground truth),
 keeps the weights with the best validation score (the mean unsupervised loss on the test
-pairs, no ground truth), then prints the mean geodesic error of the test pairs before and
-after training. This is transductive: the test shapes are among the (unsupervised) training
-shapes, as in ``torchfmap train FOLDER``.
+pairs, no ground truth), then prints the mean geodesic error of the test pairs before training
+and with the best weights. The checkpoint stays whole (best weights, optimiser, schedule: it
+resumes); the errors are recorded in it. This is transductive: the test shapes are among the
+(unsupervised) training shapes, as in ``torchfmap train FOLDER``.
 
     python examples/train.py --minutes 5 --out examples/out/fmnet.ckpt
-    python examples/train.py --minutes 5 --device cuda            # any torch device
+    python examples/train.py --minutes 5 --device cuda            # cpu, cuda or auto
     python examples/train.py --epochs 1 --world-size 2            # DDP (gloo on CPU, NCCL on GPUs)
 """
 
 from __future__ import annotations
 
 import argparse
-import socket
 import time
-from dataclasses import asdict
 from pathlib import Path
-
-import torch
 
 from torchfmap.eval import gt_from_vts
 from torchfmap.io import mesh_files, read_test_pairs, read_vts
-from torchfmap.nn.checkpoints import save_checkpoint
-from torchfmap.nn.config import TrainConfig, build_model, build_solver
+from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.config import Budget, TrainConfig, build_model, build_solver
 from torchfmap.nn.data import ShapeDataset
+from torchfmap.nn.devices import resolve_device
 from torchfmap.nn.inference import evaluate
-from torchfmap.nn.train import ddp_worker, train_recipe, unsupervised_score
+from torchfmap.nn.train import unsupervised_score
+from torchfmap.nn.trainer import Trainer, spawn_ddp
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tosca5k_dev"
 
@@ -44,47 +43,47 @@ def test_pairs(names: list[str], folder: Path, limit: int) -> tuple[list, list]:
     return pairs, gts
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--minutes", type=float, default=5.0)
     parser.add_argument("--epochs", type=int, default=None, help="default: the time budget alone")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     parser.add_argument("--cache", type=Path, default=None, help="default: the per-user cache")
     parser.add_argument("--out", type=Path, default=Path("examples/out/fmnet.ckpt"))
     parser.add_argument("--eval-pairs", type=int, default=8)
+    parser.add_argument("--validate-every", type=int, default=100)
     parser.add_argument("--world-size", type=int, default=1, help="> 1: DDP over that many processes")
-    args = parser.parse_args()
+    parser.add_argument("--config", type=Path, default=None, help="a recipe file (TrainConfig as JSON)")
+    args = parser.parse_args(argv)
     if not args.data.exists():
         raise SystemExit(f"data folder {args.data} not found: this example needs ../shared/data/tosca5k_dev")
-    config = TrainConfig(epochs=args.epochs, minutes=args.minutes)
+    recipe = TrainConfig.from_json(args.config) if args.config else TrainConfig()
+    config = recipe.with_budget(Budget(epochs=args.epochs, minutes=args.minutes))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.world_size > 1:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
         files = mesh_files(args.data)
-        torch.multiprocessing.spawn(
-            ddp_worker,
-            args=(args.world_size, port, files, args.cache, asdict(config), args.out),
-            nprocs=args.world_size,
-        )
-        print(f"DDP run finished; checkpoint {args.out}")
+        weights = spawn_ddp(config, files, args.out, world_size=args.world_size, cache_dir=args.cache)
+        print(f"DDP run over {len(weights)} ranks finished; checkpoint {args.out}")
         return
+    device = resolve_device(args.device)
     shapes = ShapeDataset(args.data, args.cache, **config.dataset_kwargs())
     pairs, gts = test_pairs(shapes.names, args.data, args.eval_pairs)
     solver, loss_fn = build_solver(config)
     untrained, _, _ = build_model(config)  # the recipe's network before training (same seed)
-    before = evaluate(untrained, shapes, pairs, gts, solver, device=args.device)
-    validate = unsupervised_score(shapes, pairs, solver, loss_fn, device=args.device)  # no ground truth
+    before = evaluate(untrained.to(device), shapes, pairs, gts, solver, device=device)
+    validate = unsupervised_score(shapes, pairs, solver, loss_fn, device=device)  # no ground truth
+    trainer = Trainer.from_config(
+        config, shapes, device=device, validate=validate, validate_every=args.validate_every,
+        checkpoint=args.out,
+    )  # fmt: skip
     t0 = time.perf_counter()
-    state, net = train_recipe(
-        config, shapes, out=args.out, validate=validate, validate_every=100, device=args.device
-    )
-    after = evaluate(net, shapes, pairs, gts, solver, device=args.device)
-    save_checkpoint(args.out, net, config, train_state=asdict(state), error_before=before, error_after=after)
+    state = trainer.fit()
+    best = load_checkpoint(args.out)[0]  # the weights of the best validation score
+    after = evaluate(best.to(device), shapes, pairs, gts, solver, device=device)
+    trainer.save(error_before=before, error_after=after)  # the whole checkpoint again, with the errors
     print(f"trained {state.step} steps ({state.epoch} epochs) in {time.perf_counter() - t0:.0f} s")
     print(f"mean geodesic error on {len(pairs)} test pairs: untrained {before:.4f} -> trained {after:.4f}")
 

@@ -1,5 +1,5 @@
-"""The learned path's commands (``torchfmap.commands_train``): ``train`` (budgets, resume, Ctrl-C,
-two stages, folders without pairs) and ``models``."""
+"""The learned path's commands (``torchfmap.commands_train``): ``train`` (budgets, resume, init,
+recipe files, devices, Ctrl-C, folders without pairs) and ``models``."""
 
 from __future__ import annotations
 
@@ -80,23 +80,21 @@ def test_train_refuses_a_folder_without_pairs_a_file_and_a_missing_folder(tmp_pa
 
 
 def test_ctrl_c_during_train_says_where_the_checkpoint_stands_and_exits_130(tmp_path, monkeypatch, capsys):
-    import importlib
-
-    # the module: the attribute torchfmap.nn.train is the function
-    train_module = importlib.import_module("torchfmap.nn.train")
+    from torchfmap.nn import Budget, Trainer
 
     folder = tmp_path / "two"
     folder.mkdir()
     x = bumpy_blob(2)
     for i, s in enumerate((0.1, 0.3)):
         save_mesh(x.copy(bend(x.vertices, s)), folder / f"b{i}.off")
-    real = train_module.train
+    real = Trainer.fit
 
-    def one_step_then_interrupt(*args, **kwargs):
-        real(*args, **{**kwargs, "max_steps": 1})  # writes the checkpoint at step 1
+    def one_step_then_interrupt(self, progress=True):
+        self.budget = Budget(steps=1)
+        real(self, progress)  # writes the checkpoint at step 1
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(train_module, "train", one_step_then_interrupt)
+    monkeypatch.setattr(Trainer, "fit", one_step_then_interrupt)
     ckpt = tmp_path / "m.ckpt"
     args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--max-steps", "5", "--k", "8"]
     assert main(args) == 130
@@ -115,47 +113,71 @@ def test_resume_with_a_spent_budget_is_refused(tmp_path, capsys):
     assert "already spent its budget --max-steps 2 (done: 2 steps)" in err and "larger budget" in err
 
 
-def test_cli_trains_and_runs_two_stages_and_takes_landmarks_with_a_checkpoint(
-    permuted_files, tmp_path, capsys
-):
-    folder, x, y, perm = permuted_files
-    ckpt, tuned = tmp_path / "s2.ckpt", tmp_path / "tuned.ckpt"
-    base = ["train", str(folder), "--k", "12", "--width", "8", "--c-out", "8", "--no-cache", "--quiet"]
-    assert main([*base, "--out", str(ckpt), "--max-steps", "2", "--stages", "2"]) == 0
-    assert (
-        main(
-            [
-                "train",
-                str(folder),
-                "--out",
-                str(tuned),
-                "--init",
-                str(ckpt),
-                "--max-steps",
-                "1",
-                "--quiet",
-                "--no-cache",
-            ]
-        )
-        == 0
-    )
-    from torchfmap.nn.checkpoints import load_checkpoint
-
-    _, config, _ = load_checkpoint(tuned)
-    assert config.stages == 2 and config.width == 8  # --init keeps the recipe
-    out = tmp_path / "m.txt"
-    lm = tmp_path / "lm.txt"
-    inv = np.argsort(perm)
-    lm.write_text(f"5 {inv[5]}\n40 {inv[40]}\n")
-    capsys.readouterr()
-    pair = [str(folder / "a0.off"), str(folder / "a1.off")]
-    assert main(["match", *pair, "--checkpoint", str(ckpt), "--out", str(out), "--landmarks", str(lm)]) == 0
-    assert "seeded by the landmarks" in capsys.readouterr().out
-    assert main(["train", str(folder), "--out", str(tuned), "--init", str(ckpt), "--resume", "--quiet"]) == 2
+def test_init_and_resume_take_a_budget_given_now_whole(tmp_path, capsys):
+    """One budget rule: a budget on the command line replaces the whole budget, with --init as
+    with --resume (--init once kept the checkpoint's other limits, e.g. its minutes); without
+    one --init starts the recipe's default budget and --resume keeps the run's."""
+    folder = _identity_folder(tmp_path)
+    base = ["train", str(folder), "--no-cache", "--quiet", "--validate-every", "0"]
+    first = tmp_path / "first.ckpt"
+    recipe = ["--k", "8", "--width", "8"]
+    assert main([*base, "--out", str(first), *recipe, "--minutes", "80", "--max-steps", "1"]) == 0
+    tuned = tmp_path / "tuned.ckpt"
+    assert main([*base, "--out", str(tuned), "--init", str(first), "--epochs", "1"]) == 0
+    config = read_checkpoint(tuned)["config"]
+    assert (config["epochs"], config["minutes"], config["max_steps"]) == (1, 0.0, 0)
+    assert config["width"] == 8 and config["k"] == 8  # --init keeps the recipe
+    again = tmp_path / "again.ckpt"
+    assert main([*base, "--out", str(again), "--init", str(first), "--max-steps", "1", "--k", "8"]) == 0
+    assert read_checkpoint(again)["config"]["epochs"] is None
+    assert main([*base, "--out", str(first), "--resume", "--max-steps", "2"]) == 0
+    config = read_checkpoint(first)["config"]
+    assert (config["epochs"], config["minutes"], config["max_steps"]) == (None, 0.0, 2)
+    assert main([*base, "--out", str(tuned), "--init", str(first), "--resume"]) == 2
     assert "--init starts a new run" in capsys.readouterr().err
+
+
+def test_a_recipe_file_trains_with_flags_overriding_it_and_a_checkpoint_gives_it_back(tmp_path, capsys):
+    from torchfmap.nn import TrainConfig
+
+    folder = _identity_folder(tmp_path)
+    recipe = tmp_path / "recipe.json"
+    TrainConfig(k=8, width=8, c_out=8, n_blocks=1, epochs=None, max_steps=3, lr=2e-3).to_json(recipe)
+    ckpt = tmp_path / "m.ckpt"
+    base = ["train", str(folder), "--no-cache", "--quiet", "--validate-every", "0", "--out", str(ckpt)]
+    assert main([*base, "--config", str(recipe), "--max-steps", "2", "--width", "16"]) == 0
+    saved = read_checkpoint(ckpt)
+    assert saved["train_state"]["step"] == 2 and saved["config"]["lr"] == 2e-3
+    assert saved["config"]["width"] == 16 and saved["config"]["n_blocks"] == 1
+    capsys.readouterr()
+    assert main(["models", "--recipe", str(ckpt)]) == 0
+    back = tmp_path / "back.json"
+    back.write_text(capsys.readouterr().out)
+    assert TrainConfig.from_json(back) == TrainConfig(**saved["config"])
+    again = tmp_path / "again.ckpt"
+    assert main([*base[:-1], str(again), "--config", str(back)]) == 0  # reproduces the recipe
+    assert read_checkpoint(again)["config"] == saved["config"]
+    recipe.write_text('{"k": 8, "stages": 2}')
+    assert main([*base, "--config", str(recipe)]) == 2
+    err = _err(capsys)
+    assert "the recipe file" in err and "keys 'stages'" in err and "Fix: use its fields only" in err
+
+
+def test_device_cuda_without_cuda_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    folder = _identity_folder(tmp_path)
+    args = ["train", str(folder), "--out", str(tmp_path / "m.ckpt"), "--no-cache", "--max-steps", "1"]
+    assert main([*args, "--device", "cuda"]) == 2
+    err = _err(capsys)
+    assert "no CUDA device" in err and "Fix: --device cpu" in err and not (tmp_path / "m.ckpt").exists()
+    assert main([*args, "--device", "auto", "--k", "8", "--validate-every", "0"]) == 0
+    assert "on cpu; budget: 1 steps" in capsys.readouterr().out
 
 
 def test_models_command_lists_the_shipped_models(capsys):
     assert main(["models"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("faust_r") and "command: torchfmap train" in out and "validation:" in out
+    assert "torchfmap models --recipe faust_r" in out

@@ -9,9 +9,11 @@ import importlib
 import torchfmap.nn as tnn
 
 HOMES = {
-    "checkpoints": ("load_checkpoint", "save_checkpoint", "read_checkpoint"),
-    "config": ("TrainConfig", "build_model", "build_solver", "CosineBudget"),
-    "train": ("train", "train_recipe", "TrainState"),
+    "checkpoints": ("load_checkpoint", "save_checkpoint", "read_checkpoint", "read_recipe"),
+    "config": ("TrainConfig", "Budget", "build_model", "build_solver", "CosineBudget"),
+    "train": ("TrainState", "unsupervised_score"),
+    "trainer": ("Trainer",),
+    "devices": ("resolve_device",),
     "inference": (
         "CheckpointMatcher",
         "match_with_network",

@@ -94,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _sub(sub, "demo", "run on the demo pair shipped in the package")
     p.set_defaults(func=cmd_demo)
     p = _sub(sub, "models", "list the pretrained models shipped in the package, with their provenance")
+    p.add_argument("--recipe", metavar="CKPT", help="print the recipe (JSON) of a checkpoint or shipped name")
     p.set_defaults(func=cmd_models)
     p = _sub(sub, "info", "validate a mesh and summarise its operators")
     p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
@@ -282,15 +283,32 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="checkpoint (written atomically during training)")
     p.add_argument(
-        "--minutes", type=positive_float, default=0.0, help="time budget of the whole run (default: none)"
+        "--config",
+        metavar="RECIPE.json",
+        help="the recipe (TrainConfig fields as JSON; `torchfmap models --recipe CKPT` prints a "
+        "checkpoint's); flags given here override its values",
+    )
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default="auto",
+        help="where the network, solver and loss run (auto: cuda when available; the precompute "
+        "stays float64 on the CPU)",
+    )
+    p.add_argument(
+        "--minutes",
+        type=positive_float,
+        default=None,
+        help="time budget of the whole run; any of --minutes / --epochs / --max-steps given replaces "
+        "the whole budget (of the recipe file, --init or --resume)",
     )
     p.add_argument(
         "--epochs",
         type=positive_int,
         default=None,
-        help="epochs of all ordered pairs (default: 5 when no other budget is given)",
+        help="epochs of all ordered pairs (default: 5 when no budget is given)",
     )
-    p.add_argument("--max-steps", type=count, default=0, help="optimiser steps (default: 0: no limit)")
+    p.add_argument("--max-steps", type=count, default=None, help="optimiser steps (default, or 0: no limit)")
     p.add_argument(
         "--basis",
         choices=LEARNED_BASES,
@@ -307,14 +325,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--inputs", choices=["wks", "xyz"], default=None, help="per-vertex network inputs (default: wks)"
-    )
-    p.add_argument(
-        "--stages",
-        type=int,
-        choices=[1, 2],
-        default=None,
-        help="2: also train the self-seeded second stage (eigenbasis + heat kernels at the seeds "
-        "where the stage-1 map agrees both ways); inference then runs it (default: 1)",
     )
     p.add_argument(
         "--augment",
@@ -336,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=positive_int, default=None, help="network width (default: 48)")
     p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default: 64)")
     p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default: 1e-3)")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
     p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")

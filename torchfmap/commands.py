@@ -178,9 +178,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p = match_with_network(
             net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine, landmarks=landmarks
         )
-        stages = "2 stages" + (", seeded by the landmarks" if landmarks is not None else "")
-        stages = stages if config.stages == 2 or landmarks is not None else "1 stage"
-        how = f"with {args.checkpoint} ({stages}, adapt {args.adapt} steps, refine {args.refine or '-'}"
+        how = f"with {args.checkpoint} (adapt {args.adapt} steps, refine {args.refine or '-'}"
         return _write_map(args, src, tgt, p2p, f"{how}, {time.perf_counter() - t0:.2f} s)")
     if args.adapt:
         raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")

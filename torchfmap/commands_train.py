@@ -10,11 +10,19 @@ from pathlib import Path
 
 from .errors import TorchFmapError
 
+#: ``TrainConfig`` fields that ``torchfmap train`` takes as flags (``--k``, ``--n-wks``, ...).
+RECIPE_FLAGS = (
+    "k", "basis", "inputs", "augment", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad", "seed",
+)  # fmt: skip
+
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from .nn.checkpoints import read_checkpoint  # torch: only for this command
+    from .nn.checkpoints import read_checkpoint, read_recipe  # torch: only for this command
     from .nn.shipped import shipped_models
 
+    if args.recipe:  # the recipe file that `torchfmap train --config` trains by again
+        print(read_recipe(args.recipe).to_json(), end="")
+        return 0
     models = shipped_models()
     if not models:
         print("no models shipped in this installation")
@@ -24,100 +32,84 @@ def cmd_models(args: argparse.Namespace) -> int:
         print(f"{name}  ({path.stat().st_size / 1e6:.1f} MB, {cfg.get('basis')} basis K={cfg.get('k')})")
         for key, value in ckpt.get("provenance", {}).items():
             print(f"  {key}: {value}")
+        print(f"  recipe: torchfmap models --recipe {name} > r.json; torchfmap train FOLDER --config r.json")
     return 0
 
 
-def cmd_train(args: argparse.Namespace) -> int:
+def _recipe(args: argparse.Namespace):
+    """The run's :class:`~torchfmap.nn.TrainConfig` and its budget's source: the defaults (or,
+    with ``--init``, the checkpoint's recipe with the default budget: a new run), then the
+    ``--config`` file, then the flags; with ``--resume`` of an existing checkpoint, its recipe,
+    which the file and flags must not contradict. A budget given (flags, else the file) replaces
+    the whole budget, with ``--init`` and ``--resume`` alike."""
+    from .nn.checkpoints import read_checkpoint, read_recipe
+    from .nn.config import BUDGET_FIELDS, TrainConfig
 
-    from .nn.checkpoints import load_checkpoint
-    from .nn.config import TrainConfig, build_solver
-    from .nn.data import ShapeDataset, class_pairs
-    from .nn.stages import StageTwo
-    from .nn.train import total_steps, train_recipe, unsupervised_score
-
-    budget = {
-        name: value
-        for name, value in (("epochs", args.epochs), ("minutes", args.minutes), ("max_steps", args.max_steps))
-        if value
-    }
-    recipe = {
-        name: getattr(args, name)
-        for name in (
-            "k",
-            "basis",
-            "inputs",
-            "augment",
-            "stages",
-            "n_wks",
-            "k_net",
-            "width",
-            "c_out",
-            "lr",
-            "clip_grad",
-        )
-        if getattr(args, name, None) is not None
-    }
-    config = TrainConfig(seed=args.seed, **budget, **recipe)
-    init = None
+    given = {n: getattr(args, n) for n in RECIPE_FLAGS if getattr(args, n, None) is not None}
+    bounds = {"epochs": args.epochs, "minutes": args.minutes, "max_steps": args.max_steps}
+    if any(bounds.values()):  # the command line's budget, whole
+        unbounded = {"epochs": None, "minutes": 0.0, "max_steps": 0}
+        given.update(unbounded | {k: v for k, v in bounds.items() if v})
+    asked = {**(TrainConfig.read_json(args.config) if args.config else {}), **given}
     if args.init:
         if args.resume:
             raise TorchFmapError("--init starts a new run and --resume continues one. Fix: drop one.")
-        init_net, init_config, _ = load_checkpoint(args.init)
-        config = TrainConfig(**{**vars(init_config), "seed": args.seed, **budget, **recipe})
-        if not budget:
-            config.epochs, config.minutes, config.max_steps = TrainConfig.epochs, 0.0, 0
-        init = init_net.state_dict()
-    if args.resume and Path(args.out).exists():
-        _, saved_config, ckpt = load_checkpoint(args.out)
-        saved = vars(saved_config)
-        differ = {n: (v, saved[n]) for n, v in recipe.items() if saved.get(n) != v}
-        if differ:
-            said = ", ".join(
-                f"--{n.replace('_', '-')} {v} (checkpoint: {old})" for n, (v, old) in differ.items()
-            )
-            raise TorchFmapError(
-                f"--resume continues the recipe of {args.out}, which differs from {said}. Fix: drop "
-                "those flags to continue it, or train a new checkpoint (another --out)."
-            )
-        if budget:  # a budget given now replaces the saved one (it is the whole run's)
-            saved.update(epochs=None, minutes=0.0, max_steps=0)
-        config = TrainConfig(**{**saved, **budget})
-        _check_budget_left(config, ckpt.get("train_state") or {}, args.out)
-    # the budget: what was given (epochs unbounded then unless given), else the recipe's epochs
-    epochs = config.epochs if (args.epochs or not (config.minutes or config.max_steps)) else None
-    config.epochs = epochs  # recorded as it runs (None: bounded by time or steps only)
+        base = read_recipe(args.init).with_budget(TrainConfig().budget)
+        return base.updated(asked, "the recipe")
+    if not (args.resume and Path(args.out).exists()):
+        return TrainConfig().updated(asked, "the recipe")
+    saved = read_recipe(args.out)
+    recipe = {n: v for n, v in asked.items() if n not in BUDGET_FIELDS}
+    differ = {n: (v, getattr(saved, n)) for n, v in recipe.items() if getattr(saved, n) != v}
+    if differ:
+        said = ", ".join(f"--{n.replace('_', '-')} {v} (checkpoint: {old})" for n, (v, old) in differ.items())
+        raise TorchFmapError(
+            f"--resume continues the recipe of {args.out}, which differs from {said}. Fix: drop "
+            "those settings to continue it, or train a new checkpoint (another --out)."
+        )
+    config = saved.updated({n: v for n, v in asked.items() if n in BUDGET_FIELDS}, "the recipe")
+    state = read_checkpoint(args.out).get("train_state") or {}
+    spent = config.budget.spent(state.get("step", 0), state.get("seconds", 0.0), state.get("epoch", 0))
+    if spent:
+        raise TorchFmapError(
+            f"--resume: the run in {args.out} has already spent its budget {', '.join(spent)}; a budget "
+            "covers the whole run, across resumes, so this would train nothing. Fix: give a larger "
+            "budget (e.g. twice as many minutes or steps), or start a new --out."
+        )
+    return config
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from .nn.checkpoints import load_checkpoint
+    from .nn.config import build_solver
+    from .nn.data import ShapeDataset, class_pairs
+    from .nn.devices import resolve_device
+    from .nn.train import unsupervised_score
+    from .nn.trainer import Trainer
+
+    device = resolve_device(args.device)
+    config = _recipe(args)
+    init = load_checkpoint(args.init)[0].state_dict() if args.init else None
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
     pairs = class_pairs(shapes.names, within=args.pairs == "classes")
-    steps = total_steps(-(-len(pairs) // config.batch_size), epochs, config.max_steps) or 0
-    limits = [f"{epochs} epochs" if epochs else "", f"{steps} steps" if steps else ""]
-    limits.append(f"{config.minutes:g} minutes" if config.minutes else "")
+    validate = None
+    if args.validate_every:  # the unsupervised loss (full soft maps) on a fixed spread of training pairs
+        picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+        validate = unsupervised_score(shapes, picked, *build_solver(config), device=device)
+    trainer = Trainer.from_config(
+        config, shapes, pairs, init=init, device=device, validate=validate,
+        validate_every=args.validate_every, checkpoint=args.out,
+    )  # fmt: skip
+    if args.resume:
+        trainer.resume()
     say = (lambda *_: None) if args.quiet else print
     say(
-        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k}); "
-        f"budget: {', '.join(x for x in limits if x)} (whichever comes first; cosine learning rate over it)"
+        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k}) "
+        f"on {device}; budget: {config.budget.describe(trainer.batches_per_epoch)} (whichever comes first; "
+        "cosine learning rate over it)"
     )
-    # validation: the unsupervised loss (full soft maps) on a fixed spread of training pairs
-    picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
-    solver, loss_fn = build_solver(config)
-    stage = StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 else None
-    validate = (
-        unsupervised_score(shapes, picked, solver, loss_fn, stage=stage) if args.validate_every else None
-    )
-    result, interrupted = _train_or_interrupted(
-        train_recipe,
-        args.out,
-        config,
-        shapes,
-        pairs,
-        out=args.out,
-        resume=args.resume,
-        init=init,
-        validate=validate,
-        validate_every=args.validate_every,
-        progress=not args.quiet,
-    )
-    state = result[0] if result else None
+    state, interrupted = _fit_or_interrupted(trainer, progress=not args.quiet)
     if interrupted:
         print(interrupted, file=sys.stderr)
         return 130
@@ -128,37 +120,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_budget_left(config, state: dict, out) -> None:
-    """Refuse a ``--resume`` whose budget (the whole run's) the saved run has already spent:
-    it would train nothing."""
-    step, seconds, epoch = state.get("step", 0), state.get("seconds", 0.0), state.get("epoch", 0)
-    spent = [
-        f"--max-steps {config.max_steps} (done: {step} steps)"
-        if config.max_steps and step >= config.max_steps
-        else "",
-        f"--minutes {config.minutes:g} (done: {seconds / 60:.1f} min)"
-        if config.minutes and seconds >= 60 * config.minutes
-        else "",
-        f"--epochs {config.epochs} (done: {epoch})" if config.epochs and epoch >= config.epochs else "",
-    ]
-    spent = [x for x in spent if x]
-    if spent:
-        raise TorchFmapError(
-            f"--resume: the run in {out} has already spent its budget {', '.join(spent)}; a budget "
-            "covers the whole run, across resumes, so this would train nothing. Fix: give a larger "
-            "budget (e.g. twice as many minutes or steps), or start a new --out."
-        )
+def _fit_or_interrupted(trainer, progress: bool):
+    """``(trainer.fit(progress), None)``, or on Ctrl-C ``(None, message)`` saying which step the
+    trainer's checkpoint holds (it is written atomically, so it is always a whole one)."""
+    from .nn.checkpoints import read_checkpoint
 
-
-def _train_or_interrupted(train, checkpoint, *args, **kwargs):
-    """``(train(*args, **kwargs), None)``, or on Ctrl-C ``(None, message)`` saying which step the
-    checkpoint at ``checkpoint`` holds (it is written atomically, so it is always a whole one)."""
-    out = checkpoint
+    out = trainer.checkpoint
     try:
-        return train(*args, **kwargs), None
+        return trainer.fit(progress=progress), None
     except KeyboardInterrupt:
-        from .nn.checkpoints import read_checkpoint
-
         try:
             step = read_checkpoint(out)["train_state"]["step"]
         except (TorchFmapError, OSError, KeyError, TypeError):

@@ -175,3 +175,14 @@ def test_checkpoints_refuse_networks_they_cannot_rebuild_and_load_old_files(tmp_
     stacked = replace(config, basis="stack")  # a new checkpoint's 'stack' is the stack kind
     assert load_checkpoint(save_checkpoint(tmp_path / "stack.ckpt", net, stacked))[1].basis == "stack"
     assert type(again) is DiffusionNet and again.init_kwargs == net.init_kwargs
+
+
+def test_a_checkpoints_recipe_reads_back_without_its_network(tmp_path):
+    """``read_recipe``: the config a checkpoint records, as a ``TrainConfig`` (the retired
+    ``stages`` / ``stage_seeds`` of older files dropped), written back as a recipe file."""
+    from torchfmap.nn import TrainConfig, read_recipe
+
+    recipe = read_recipe("smal_r")
+    assert recipe.k == 100 and recipe.minutes == 60.0 and recipe.epochs is None
+    recipe.to_json(tmp_path / "smal_r.json")
+    assert TrainConfig.from_json(tmp_path / "smal_r.json") == recipe

@@ -14,12 +14,12 @@ from torchfmap import Mesh
 from torchfmap.errors import ParameterError
 from torchfmap.nn import RegularizedFMSolver
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
-from torchfmap.nn.config import TrainConfig
+from torchfmap.nn.config import Budget, TrainConfig
 from torchfmap.nn.data import PairDataset, ShapeDataset, collate_shapes
 from torchfmap.nn.inputs import shape_arrays, shape_item
 from torchfmap.nn.modules import UnsupervisedFMLoss
 from torchfmap.nn.networks import DiffusionNet, FeatureNet, FeatureNetwork, check_network, features
-from torchfmap.nn.train import train
+from torchfmap.nn.trainer import Trainer
 
 from ..conftest import TinyNet, _batch, _grid, _identity_folder, as_batch, bumpy_blob, random_rotation
 
@@ -89,7 +89,7 @@ class WrongDtype(TinyNet):
 def test_code_that_takes_networks_refuses_non_conforming_ones():
     """``len`` passed the old ``isinstance(net, FeatureNetwork)`` check; now a non-module, a
     forward without ``grad`` and an output in another dtype are refused, by the functions that
-    take networks (train, features)."""
+    take networks (Trainer, features)."""
     for bad in (len, lambda inputs, basis, grad: inputs):
         with pytest.raises(ParameterError, match="must be a torch.nn.Module"):
             check_network(bad)
@@ -97,7 +97,7 @@ def test_code_that_takes_networks_refuses_non_conforming_ones():
         check_network(TwoArguments())
     opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
     with pytest.raises(ParameterError, match="must be a torch.nn.Module"):
-        train(len, None, UnsupervisedFMLoss(), opt, progress=False)
+        Trainer(len, None, UnsupervisedFMLoss(), opt)
     with pytest.raises(ParameterError, match="returned"):
         features(WrongDtype(6, 5).double(), _padded_batch())
 
@@ -108,16 +108,18 @@ def test_user_network_plugs_in_and_its_checkpoint_rebuilds_it(tmp_path):
     net = TinyNet(6).double()
     before = [p.detach().clone() for p in net.parameters()]
     opt = torch.optim.Adam(net.parameters(), lr=1e-2)
-    loss = UnsupervisedFMLoss(n_samples=100)  # sampled coupling: draws from train's generator
+    loss = UnsupervisedFMLoss(n_samples=100)  # sampled coupling: draws from the trainer's generator
     ckpt = tmp_path / "tiny.ckpt"
-    state = train(net, PairDataset(shapes), loss, opt, max_steps=3, checkpoint=ckpt, progress=False)
+    run = TrainConfig(k=8, n_wks=6, k_net=12).with_budget(Budget(steps=3))  # the loop's settings
+    trainer = Trainer(net, PairDataset(shapes), loss, opt, config=run, device="cpu", checkpoint=ckpt)
+    state = trainer.fit(progress=False)
     assert state.step == 3 and all(np.isfinite(t["total"]) for t in state.losses)
     assert any(not torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
     # the checkpoint records the class and its arguments: load_checkpoint rebuilds a TinyNet
     record = read_checkpoint(ckpt)["network"]
     assert record == {"class": f"{TinyNet.__module__}:TinyNet", "kwargs": {"c_in": 6, "c_out": 8}}
     loaded, config, _ = load_checkpoint(ckpt)
-    assert type(loaded) is TinyNet and config == TrainConfig() and not loaded.training
+    assert type(loaded) is TinyNet and config == run and not loaded.training
     for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True):
         assert a.dtype == b.dtype and torch.equal(a, b)
     batch = collate_shapes([shapes[0]])
@@ -127,9 +129,8 @@ def test_user_network_plugs_in_and_its_checkpoint_rebuilds_it(tmp_path):
     again = TinyNet(6).double()
     again.load_state_dict(dict(zip(again.state_dict(), before, strict=True)))
     opt = torch.optim.Adam(again.parameters(), lr=1e-2)
-    repeat = train(
-        again, PairDataset(shapes), UnsupervisedFMLoss(n_samples=100), opt, max_steps=3, progress=False
-    )
+    loss = UnsupervisedFMLoss(n_samples=100)
+    repeat = Trainer(again, PairDataset(shapes), loss, opt, config=run, device="cpu").fit(progress=False)
     assert [t["total"] for t in repeat.losses] == [t["total"] for t in state.losses]
 
 

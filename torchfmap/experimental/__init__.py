@@ -1,5 +1,6 @@
 """Experiments kept available and tested, but not part of the core API: methods measured not
 to pay against the core's own (their benchmarks in ``bench/`` say by how much), kept as
-options and measured negatives. Nothing here is imported by the core; import each submodule
-by name (e.g. ``torchfmap.experimental.seeded``): this package imports none of them.
+options and measured negatives. Nothing in the core imports them, and this package imports
+none of its submodules: import each by name, e.g. :mod:`torchfmap.experimental.seeded`
+(classical) or :mod:`torchfmap.experimental.stages` (torch).
 """

@@ -14,13 +14,14 @@ Shape checks always run.
 Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
 :mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.inputs`
 (a shape's arrays, read off its :class:`~torchfmap.PreparedShape`), :mod:`~torchfmap.nn.data`,
-:mod:`~torchfmap.nn.config` (the reference recipe), :mod:`~torchfmap.nn.train` (the loop, DDP),
-:mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
+:mod:`~torchfmap.nn.config` (the reference recipe and its budget), :mod:`~torchfmap.nn.train`
+(the losses of a pair batch), :mod:`~torchfmap.nn.trainer` (the loop, DDP),
+:mod:`~torchfmap.nn.devices`, :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
 """
 
 from . import functional
-from .checkpoints import load_checkpoint, read_checkpoint, save_checkpoint
-from .config import CosineBudget, TrainConfig, build_model, build_solver
+from .checkpoints import load_checkpoint, read_checkpoint, read_recipe, save_checkpoint
+from .config import Budget, CosineBudget, TrainConfig, build_model, build_solver
 from .data import (
     PairDataset,
     PrecomputeCache,
@@ -30,6 +31,7 @@ from .data import (
     collate_pairs,
     collate_shapes,
 )
+from .devices import resolve_device
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
 from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
 from .inputs import network_inputs, shape_arrays, shape_item
@@ -50,15 +52,18 @@ from .networks import (
     features,
 )
 from .shipped import shipped_models
-from .train import TrainState, train, train_recipe
+from .train import TrainState, unsupervised_score
+from .trainer import Trainer
 
 __all__ = [
     "BasisBatch",
     "BasisModule",
+    "Budget",
     "CheckpointMatcher",
     "CosineBudget",
     "TrainConfig",
     "TrainState",
+    "Trainer",
     "adapt",
     "build_model",
     "build_solver",
@@ -67,11 +72,12 @@ __all__ = [
     "match_with_network",
     "predict_p2p",
     "read_checkpoint",
+    "read_recipe",
     "refine_p2p",
     "save_checkpoint",
     "shipped_models",
-    "train",
-    "train_recipe",
+    "resolve_device",
+    "unsupervised_score",
     "DiffusionNet",
     "FeatureNet",
     "FeatureNetwork",

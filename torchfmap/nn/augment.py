@@ -1,13 +1,12 @@
 """Augmentation of XYZ inputs during training: random rigid motions and scalings
-(:func:`random_rigid`), and the rule of which one :func:`~torchfmap.nn.train` applies
-(:func:`augmentation`)."""
+(:func:`random_rigid`), and the rule of which one training applies (:func:`augmentation`)."""
 
 from __future__ import annotations
 
 import torch
 
 from ..errors import ParameterError
-from .config import AUGMENTS, TrainConfig
+from .config import AUGMENTS
 
 
 def random_rigid(
@@ -35,29 +34,26 @@ def random_rigid(
     return xyz @ (s * q).to(xyz)
 
 
-def augmentation(augment, inputs) -> str:
-    """The augmentation :func:`~torchfmap.nn.train` applies to a dataset whose inputs are
-    ``inputs`` (``'xyz'``, ``'wks'``, or None when unknown): None gives the recipe's
-    (:class:`~torchfmap.nn.TrainConfig`) for XYZ inputs and ``"none"`` for others (WKS is
-    invariant to rigid motions and scale); True / False are ``"rigid"`` / ``"none"``.
+def augmentation(augment: str, inputs: str | None) -> str:
+    """The one rule of which augmentation training applies (:class:`~torchfmap.nn.trainer.Trainer`,
+    from :attr:`TrainConfig.augment <torchfmap.nn.TrainConfig>`): ``augment`` for XYZ inputs,
+    ``"none"`` for any other (``'wks'``, or None when the data's inputs are unknown): the setting
+    moves coordinates, and WKS is invariant to rigid motions and scale.
 
     Raises:
-        ParameterError: an unknown augmentation, or one asked of inputs that are not XYZ.
+        ParameterError: an unknown augmentation.
     """
-    if augment is None:
-        return TrainConfig.augment if inputs == "xyz" else "none"
-    augment = {True: "rigid", False: "none"}.get(augment, augment)
     if augment not in AUGMENTS:
-        raise ParameterError(f"augment must be one of {AUGMENTS} or a bool, got {augment!r}.")
-    if augment != "none" and inputs not in ("xyz", None):
-        raise ParameterError(
-            f"augment={augment!r} moves XYZ inputs, but the data's inputs are {inputs!r}. Fix: "
-            "augment='none', or ShapeDataset(..., inputs='xyz')."
-        )
-    return augment
+        raise ParameterError(f"augment must be one of {AUGMENTS}, got {augment!r}.")
+    return augment if inputs == "xyz" else "none"
 
 
-def recipe_augmentation(config: TrainConfig) -> str:
-    """The augmentation a recipe trains with: ``config.augment`` for XYZ inputs, none for WKS
-    (the recipe's setting concerns coordinates only; :func:`~torchfmap.nn.train_recipe`)."""
-    return augmentation(config.augment if config.inputs == "xyz" else "none", config.inputs)
+def augment_batch(batch: dict, augment: str, generator: torch.Generator) -> dict:
+    """``batch`` (:func:`~torchfmap.nn.data.collate_pairs`) with the inputs of both sides moved
+    by :func:`random_rigid` (``augment``: ``"rigid"`` or ``"scale"``, as :func:`augmentation`
+    resolved it; ``"none"``: the batch itself)."""
+    if augment == "none":
+        return batch
+    rotate = augment == "rigid"
+    moved = [batch[s]._replace(inputs=random_rigid(batch[s].inputs, generator, rotate=rotate)) for s in "xy"]
+    return {**batch, "x": moved[0], "y": moved[1]}

@@ -22,7 +22,7 @@ import torch
 
 from .._files import load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
-from .config import TrainConfig, build_model, network_kwargs
+from .config import RETIRED_FIELDS, TrainConfig, build_model, network_kwargs
 from .networks import DiffusionNet
 from .shipped import resolve_checkpoint
 
@@ -96,6 +96,17 @@ def _check_config_fits(record: dict, cfg) -> None:
             f"the config does not describe the network being saved ({said}). Fix: save the config the "
             "network was built from (build_model(config)), or correct those fields."
         )
+
+
+def check_config_fits(net: torch.nn.Module, config: TrainConfig | dict) -> None:
+    """Refuse, before any training, a recipe ``config`` that does not describe the recipe network
+    ``net`` (a :class:`~torchfmap.nn.networks.DiffusionNet` built otherwise): its checkpoint
+    would be refused at the first save.
+
+    Raises:
+        ParameterError: the fields that differ, and the fix.
+    """
+    _check_config_fits(network_record(net), asdict(config) if isinstance(config, TrainConfig) else config)
 
 
 def save_checkpoint(
@@ -236,6 +247,7 @@ def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
         raise ParameterError(
             f"the checkpoint's config is a {type(cfg).__name__}, not a dict. Fix: re-save it."
         )
+    cfg = {k: v for k, v in cfg.items() if k not in RETIRED_FIELDS}
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(cfg) - names)
     if unknown:
@@ -258,3 +270,15 @@ def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConf
     ckpt = read_checkpoint(path)
     config = _config(ckpt["config"], legacy="network" not in ckpt)
     return load_network(ckpt, best), config, ckpt
+
+
+def read_recipe(path) -> TrainConfig:
+    """The recipe a checkpoint (a path or a shipped model's name) was trained by, without
+    building its network: ``read_recipe(path).to_json('recipe.json')`` gives the file
+    ``torchfmap train FOLDER --config recipe.json`` trains by again (``torchfmap models --recipe``).
+
+    Raises:
+        ParameterError / CorruptFileError: as :func:`load_checkpoint`.
+    """
+    ckpt = read_checkpoint(path)
+    return _config(ckpt["config"], legacy="network" not in ckpt)

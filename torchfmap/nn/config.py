@@ -1,13 +1,18 @@
-"""The reference training recipe: its settings (:class:`TrainConfig`, saved in checkpoints), the
+"""The reference training recipe: its settings (:class:`TrainConfig`, saved in checkpoints and
+read from a recipe file, :meth:`TrainConfig.from_json`), its budget (:class:`Budget`), the
 model it builds (:func:`build_model`) and its learning-rate schedule over the budget
 (:class:`CosineBudget`)."""
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import json
 import math
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
@@ -17,16 +22,78 @@ from .networks import DiffusionNet
 
 #: Augmentations of XYZ inputs (:attr:`TrainConfig.augment`).
 AUGMENTS = ("rigid", "scale", "none")
+#: The :class:`TrainConfig` fields that make up its :class:`Budget`.
+BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
+#: Fields of earlier recipes that checkpoints may hold and loading drops: the self-seeded second
+#: stage left the core recipe for :mod:`torchfmap.experimental.stages` (the network it was
+#: trained with is the same; every shipped model has ``stages=1``).
+RETIRED_FIELDS = ("stages", "stage_seeds")
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How long a training run lasts, the whole run's (across resumes): ``epochs`` full passes
+    over the pairs (None: not bounded by epochs), ``minutes`` of training (0: no limit) and
+    ``steps`` optimiser steps (0: no limit); whichever ends first stops it. The loop
+    (:class:`~torchfmap.nn.trainer.Trainer`), the schedule (:class:`CosineBudget`), the command
+    line's summary and its ``--resume`` / ``--init`` all read this one object.
+
+    Raises:
+        ParameterError: no bound at all, or a negative or non-finite one.
+    """
+
+    epochs: int | None = None
+    minutes: float = 0.0
+    steps: int = 0
+
+    def __post_init__(self) -> None:
+        if self.epochs is not None and (isinstance(self.epochs, bool) or not isinstance(self.epochs, int)
+                                        or self.epochs < 1):  # fmt: skip
+            raise ParameterError(f"epochs must be an integer >= 1 or None, got {self.epochs!r}.")
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
+            raise ParameterError(f"steps must be an integer >= 0, got {self.steps!r}.")
+        if not (isinstance(self.minutes, (int, float)) and math.isfinite(self.minutes) and self.minutes >= 0):
+            raise ParameterError(f"minutes must be finite and >= 0, got {self.minutes!r}.")
+        if self.epochs is None and not self.minutes and not self.steps:
+            raise ParameterError("training needs a budget. Fix: epochs, minutes and/or steps (max_steps).")
+
+    def step_bound(self, batches_per_epoch: int) -> int | None:
+        """``min(steps, epochs x batches_per_epoch)`` over the bounds that are set; None when the
+        budget is time alone."""
+        bounds = [b for b in (self.steps, (self.epochs or 0) * batches_per_epoch) if b]
+        return min(bounds) if bounds else None
+
+    def spent(self, step: int = 0, seconds: float = 0.0, epoch: int = 0) -> list[str]:
+        """The bounds a run at ``step``, ``seconds`` and full ``epoch`` has reached, in the
+        command line's terms (empty: budget left)."""
+        return [
+            text
+            for text, done in (
+                (f"--max-steps {self.steps} (done: {step} steps)", self.steps and step >= self.steps),
+                (f"--minutes {self.minutes:g} (done: {seconds / 60:.1f} min)",
+                 self.minutes and seconds >= 60 * self.minutes),
+                (f"--epochs {self.epochs} (done: {epoch})", self.epochs and epoch >= self.epochs),
+            )  # fmt: skip
+            if done
+        ]
+
+    def describe(self, batches_per_epoch: int) -> str:
+        """``'2 epochs, 4 steps, 1.5 minutes'``: the bounds set, the step bound included."""
+        steps = self.step_bound(batches_per_epoch)
+        parts = [f"{self.epochs} epochs" if self.epochs else "", f"{steps} steps" if steps else ""]
+        parts.append(f"{self.minutes:g} minutes" if self.minutes else "")
+        return ", ".join(p for p in parts if p)
 
 
 @dataclass
 class TrainConfig:
-    """The reference recipe (saved in checkpoints): data, network, solver, loss and optimiser.
+    """The reference recipe (saved in checkpoints, read from a recipe file by
+    :meth:`from_json`): data, network, solver, loss, optimiser, budget and the loop's settings.
 
-    ``augment`` (XYZ inputs only): ``"rigid"`` a random rotation and scaling per step,
-    ``"scale"`` a scaling only (for data sets whose shapes are aligned alike), ``"none"``.
-    ``stages``: 1, or 2 for the self-seeded second stage (:mod:`torchfmap.nn.stages`) at
-    ``stage_seeds`` farthest points, trained with stage 1 and run by inference.
+    ``epochs`` / ``minutes`` / ``max_steps``: the :class:`Budget` (:attr:`budget`).
+    ``augment`` (XYZ inputs only; :func:`~torchfmap.nn.augment.augmentation`): ``"rigid"`` a
+    random rotation and scaling per step, ``"scale"`` a scaling only (for data sets whose shapes
+    are aligned alike), ``"none"``.
     """
 
     k: int = 50
@@ -41,22 +108,116 @@ class TrainConfig:
     gradients: bool = True
     lr: float = 1e-3
     clip_grad: float = 0.0
-    epochs: int = 5
+    epochs: int | None = 5
     minutes: float = 0.0
     max_steps: int = 0
     batch_size: int = 1
     w_lap: float = 1e-3
     seed: int = 0
     augment: str = "rigid"
-    stages: int = 1
-    stage_seeds: int = 40
     loss_weights: dict = field(
         default_factory=lambda: {"w_bij": 1.0, "w_orth": 1.0, "w_couple": 1.0, "n_samples": 1000, "tau": 0.07}
     )
 
+    @property
+    def budget(self) -> Budget:
+        """The run's :class:`Budget` (``max_steps`` is its ``steps``)."""
+        return Budget(self.epochs, self.minutes, self.max_steps)
+
+    def with_budget(self, budget: Budget) -> TrainConfig:
+        """A copy whose whole budget is ``budget`` (the bounds it leaves unset are unbounded)."""
+        return dataclasses.replace(self, epochs=budget.epochs, minutes=budget.minutes, max_steps=budget.steps)
+
     def dataset_kwargs(self) -> dict:
         """Keyword arguments of :class:`~torchfmap.nn.data.ShapeDataset` for this recipe."""
         return dict(k=self.k, n_wks=self.n_wks, k_net=self.k_net, basis=self.basis, inputs=self.inputs)
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "the recipe") -> TrainConfig:
+        """The recipe of ``values`` (field name -> value), the defaults elsewhere:
+        ``TrainConfig().updated(values)``."""
+        return cls().updated(values, where)
+
+    def updated(self, values: dict, where: str = "the recipe") -> TrainConfig:
+        """A copy with ``values`` (field name -> value) replacing its own. A budget key given
+        (``epochs``, ``minutes``, ``max_steps``) replaces the whole budget: the bounds not given
+        are unbounded (one rule for recipe files, ``--resume`` and ``--init``).
+
+        Raises:
+            ParameterError: an unknown key (the nearest field named), a value of the wrong type,
+                or a budget without bounds.
+        """
+        if not isinstance(values, dict):
+            raise ParameterError(
+                f"{where} must be a JSON object of TrainConfig fields, got {type(values).__name__}. Fix: "
+                '{"k": 50, ...}, as TrainConfig.to_json writes.'
+            )
+        names = {f.name: f for f in dataclasses.fields(self)}
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            near = {k: difflib.get_close_matches(k, names, 1) for k in unknown}
+            hints = [f"{k!r} (did you mean {m[0]!r}?)" if m else repr(k) for k, m in near.items()]
+            raise ParameterError(
+                f"{where} has keys {', '.join(hints)} that TrainConfig does not know. Fix: use its "
+                f"fields only: {', '.join(names)}."
+            )
+        default = type(self)()
+        for key, value in values.items():
+            _check_type(key, value, getattr(default, key), where)
+        if any(k in values for k in BUDGET_FIELDS):
+            values = {"epochs": None, "minutes": 0.0, "max_steps": 0, **values}
+        config = dataclasses.replace(self, **values)
+        config.budget  # noqa: B018 -- refuses a budget without bounds now, not at the first step
+        return config
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike) -> TrainConfig:
+        """The recipe in the JSON file ``path``, the defaults elsewhere (:meth:`read_json`,
+        :meth:`from_dict`)."""
+        return cls.from_dict(cls.read_json(path), where=f"the recipe file {path}")
+
+    @classmethod
+    def read_json(cls, path: str | os.PathLike) -> dict:
+        """The values of the recipe file ``path`` (a JSON object of field -> value, as
+        :meth:`to_json` writes), checked by :meth:`updated`'s rules, for :meth:`updated`.
+
+        Raises:
+            ParameterError: a file that is not JSON, or as :meth:`updated`.
+        """
+        try:
+            values = json.loads(Path(path).read_text(encoding="utf-8"))
+        except json.JSONDecodeError as err:
+            raise ParameterError(
+                f"the recipe file {path} is not JSON ({err}). Fix: write it as TrainConfig.to_json does "
+                "(`torchfmap models --recipe CKPT` prints a checkpoint's)."
+            ) from None
+        except OSError as err:
+            raise ParameterError(
+                f"cannot read the recipe file {path} ({err.strerror}). Fix: check the path."
+            ) from None
+        cls().updated(values, where=f"the recipe file {path}")
+        return values
+
+    def to_json(self, path: str | os.PathLike | None = None) -> str:
+        """The recipe as JSON text (every field), written to ``path`` too when given."""
+        text = json.dumps(dataclasses.asdict(self), indent=2) + "\n"
+        if path is not None:
+            Path(path).write_text(text, encoding="utf-8")
+        return text
+
+
+def _check_type(key: str, value, default, where: str) -> None:
+    """Refuse a recipe value whose type is not the field's (an int for a float is fine; epochs
+    may be None)."""
+    if key == "epochs" and value is None:
+        return
+    kind = type(default)
+    ok = isinstance(value, kind) and not (kind is int and isinstance(value, bool))
+    ok = ok or (kind is float and isinstance(value, int) and not isinstance(value, bool))
+    if not ok:
+        raise ParameterError(
+            f"{where}: {key} must be {kind.__name__}, got {value!r}. Fix: e.g. {json.dumps({key: default})}."
+        )
 
 
 def network_kwargs(config: TrainConfig) -> dict:
@@ -84,37 +245,45 @@ def build_solver(config: TrainConfig) -> tuple[RegularizedFMSolver, Unsupervised
 
 
 class CosineBudget:
-    """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over the training budget.
+    """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over a :class:`Budget`.
 
-    The budget is ``steps`` optimiser steps and/or ``minutes`` of training (0: not bounded by
-    it; at least one must be set); the schedule follows whichever is further spent,
-    ``frac = max(step / steps, seconds / (60 minutes))``, so it reaches ``floor`` exactly when
-    training stops. Time is counted between its calls in this process; ``LambdaLR.state_dict``
-    saves the time counted so far, and after ``load_state_dict`` in another process the clock
-    continues from there (the gap between the runs is not counted); the step comes from the
-    scheduler, which is saved with it.
+    The schedule follows whichever bound is further spent, ``frac = max(step / step_bound,
+    seconds / (60 minutes))`` (the step bound: :meth:`Budget.step_bound` of
+    ``batches_per_epoch``, needed when the budget has epochs), so it reaches ``floor`` exactly
+    when training stops. Time is counted between its calls in this process; ``LambdaLR.state_dict``
+    saves the time counted so far (plain numbers), and after ``load_state_dict`` in another
+    process the clock continues from there (the gap between the runs is not counted); the step
+    comes from the scheduler, which is saved with it.
 
     Raises:
-        ParameterError: no budget, or a negative or non-finite one.
+        ParameterError: a budget with epochs and no ``batches_per_epoch``, or ``floor`` outside
+            ``[0, 1]``.
     """
 
-    def __init__(self, minutes: float = 0.0, steps: int = 0, floor: float = 0.02) -> None:
-        if not (math.isfinite(minutes) and minutes >= 0) or steps < 0:
-            raise ParameterError(f"the budget must be finite and >= 0, got {minutes} minutes, {steps} steps.")
-        if not minutes and not steps:
-            raise ParameterError("the schedule needs a budget. Fix: minutes > 0 and/or steps > 0.")
+    def __init__(self, budget: Budget, batches_per_epoch: int | None = None, floor: float = 0.02) -> None:
+        if not isinstance(budget, Budget):
+            raise ParameterError(
+                f"CosineBudget follows a Budget, got {type(budget).__name__}. Fix: Budget(steps=...)."
+            )
+        if budget.epochs is not None and not batches_per_epoch:
+            raise ParameterError(
+                "a budget in epochs needs the batches of an epoch. Fix: "
+                "CosineBudget(budget, batches_per_epoch=...)."
+            )
         if not 0 <= floor <= 1:
             raise ParameterError(f"floor must be in [0, 1], got {floor}.")
-        self.seconds, self.steps, self.floor = 60.0 * minutes, int(steps), floor
+        steps = budget.step_bound(batches_per_epoch or 0) or 0
+        self.seconds, self.steps, self.floor = 60.0 * budget.minutes, int(steps), floor
         self.counted, self.last, self.pid = 0.0, None, os.getpid()
 
     @property
-    def budget(self) -> tuple[float, int, float]:
-        """``(seconds, steps, floor)``: the budget (settable, e.g. after ``load_state_dict``)."""
+    def bounds(self) -> tuple[float, int, float]:
+        """``(seconds, steps, floor)``: what the factor follows (settable: a resumed run puts
+        its own back after ``load_state_dict`` restored the saved one)."""
         return self.seconds, self.steps, self.floor
 
-    @budget.setter
-    def budget(self, value: tuple[float, int, float]) -> None:
+    @bounds.setter
+    def bounds(self, value: tuple[float, int, float]) -> None:
         self.seconds, self.steps, self.floor = value
 
     def set_clock(self, seconds: float) -> None:
@@ -136,8 +305,3 @@ class CosineBudget:
         self.last, self.pid = now, os.getpid()
         frac = self.fraction(step)
         return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * frac))
-
-
-def CosineByTime(minutes: float, floor: float = 0.02) -> CosineBudget:
-    """:class:`CosineBudget` over a time budget only (the name of earlier releases)."""
-    return CosineBudget(minutes=minutes, floor=floor)

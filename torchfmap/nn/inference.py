@@ -10,7 +10,6 @@ import copy
 import numpy as np
 import torch
 
-from .._checks import check_landmark_pairs
 from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
 from ..eval import geodesic_errors
@@ -23,7 +22,6 @@ from .data import ShapeBatch, ShapeDataset, collate_pairs
 from .inputs import K_WKS, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
-from .stages import StageTwo, two_stage_p2p
 from .train import pair_loss
 
 #: Eigenfunctions the ZoomOut refinement of the learned path starts from and grows to
@@ -178,24 +176,13 @@ def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, Prep
 
 
 def _network_p2p(
-    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes, stage=None,
-    landmarks=None,
+    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes,
 ) -> np.ndarray:  # fmt: skip
-    """One pair's ``p2p_yx``: adapt (optional), predict (stage 1, or both stages with
-    ``stage``), refine (optional)."""
+    """One pair's ``p2p_yx``: adapt (optional), predict, refine (optional)."""
     if adapt_steps:
         net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
-    if stage is not None and mode == "fmap":
-        p2p = two_stage_p2p(net, solver, items[0], items[1], *shapes, stage, device, landmarks)[1]
-    else:
-        p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
+    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
     return refine_p2p(meshes[0], meshes[1], p2p, shapes=shapes) if refine else p2p
-
-
-def _stage(config: TrainConfig, landmarks) -> StageTwo | None:
-    """The second stage a checkpoint runs: its own (``config.stages == 2``), or one seeded by
-    user ``landmarks``."""
-    return StageTwo(n_seeds=config.stage_seeds) if config.stages == 2 or landmarks is not None else None
 
 
 def _refines(refine) -> bool:
@@ -231,21 +218,23 @@ def match_with_network(
     """``p2p_yx`` of two meshes with a trained network: no dataset folder, no cache.
 
     Precomputes both shapes as in training (:func:`~torchfmap.nn.inputs.shape_arrays`),
-    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`;
-    with the self-seeded second stage, :func:`~torchfmap.nn.stages.two_stage_p2p`, when the
-    checkpoint was trained with it or ``landmarks`` ``(L, 2)`` (source, target vertex pairs)
-    are given, which then seed it first) and, with ``refine='zoomout'`` (the name
+    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`)
+    and, with ``refine='zoomout'`` (the name
     :func:`torchfmap.match` takes; True is the older form), refines with ZoomOut
     (:func:`refine_p2p`).
 
     Raises:
         ParameterError: ``adapt_steps < 0``, an unknown ``mode`` or refinement, or landmarks
-            outside the meshes.
+            (the learned path takes none: the landmark-seeded second stage is
+            :func:`torchfmap.experimental.stages.two_stage_p2p`).
     """
     _check_inference(adapt_steps, mode)
     refine = _refines(refine)
     if landmarks is not None:
-        landmarks = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
+        raise ParameterError(
+            "a trained network matches without landmarks. Fix: drop them (--landmarks), or seed the "
+            "second stage with them: torchfmap.experimental.stages.two_stage_p2p."
+        )
     (ix, sx), (iy, sy) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
     ix["index"], iy["index"] = 0, 1
     solver, loss_fn = build_solver(config)
@@ -261,8 +250,6 @@ def match_with_network(
         mode=mode,
         device=device,
         shapes=(sx, sy),
-        stage=_stage(config, landmarks),
-        landmarks=landmarks,
     )
 
 
@@ -308,12 +295,11 @@ class CheckpointMatcher:
     def _load(self) -> tuple:
         net, config, _ = load_checkpoint(self.checkpoint)
         solver, loss_fn = build_solver(config)
-        self._stage = _stage(config, None)
         return net, config, solver, loss_fn
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_model=None, _items={}, _shapes={}, _stage=None)  # loaded again in each process
+        state.update(_model=None, _items={}, _shapes={})  # loaded again in each process
         return state
 
     def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:
@@ -335,5 +321,4 @@ class CheckpointMatcher:
             mode=self.mode,
             device="cpu",
             shapes=(self._shapes[key_x], self._shapes[key_y]),
-            stage=self._stage,
         )

@@ -1,6 +1,6 @@
-"""The self-seeded second stage (``torchfmap.nn.stages``): bases that are B-orthonormal and start
-with the stage-1 eigenbasis, an exact map of a vertex-permuted copy through both stages,
-gradients through stage 2 in training."""
+"""The self-seeded second stage (``torchfmap.experimental.stages``): bases that are B-orthonormal
+and start with the stage-1 eigenbasis, an exact map of a vertex-permuted copy through both
+stages, gradients through stage 2 in training as a plug-in loss of the core loop."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import torch
 
 from torchfmap import prepare_shape
 from torchfmap.errors import ParameterError
+from torchfmap.experimental.stages import StageTwo, StageTwoLoss, stage_two_loss, two_stage_p2p
 from torchfmap.nn.data import ShapeDataset, collate_pairs
 from torchfmap.nn.modules import RegularizedFMSolver, UnsupervisedFMLoss
-from torchfmap.nn.stages import StageTwo, stage_two_loss, two_stage_p2p
-from torchfmap.nn.train import forward_pair, pair_loss
+from torchfmap.nn.train import ExtraLoss, forward_pair, pair_loss
 from torchfmap.seeds import farthest_point_sampling
 
 from ..conftest import bend, bumpy_blob
@@ -78,7 +78,9 @@ def test_training_differentiates_through_stage_two(permuted_files):
     )
     batch = collate_pairs([(shapes[0], shapes[1])])
     stage = StageTwo(n_seeds=10)
-    terms = pair_loss(net, solver, loss_fn, batch, stage=stage, mesh_of=shapes.mesh)
+    plug_in = StageTwoLoss(shapes.mesh, stage)
+    assert isinstance(plug_in, ExtraLoss)
+    terms = pair_loss(net, solver, loss_fn, batch, extra_losses=[plug_in])
     assert {"stage2_total", "stage2_bij"} <= set(terms)
     out = forward_pair(net, solver, batch)
     first = loss_fn(out.C_xy, out.C_yx, out.feat_x, out.feat_y, batch["x"].basis, batch["y"].basis)
@@ -90,3 +92,24 @@ def test_training_differentiates_through_stage_two(permuted_files):
     two = collate_pairs([(shapes[0], shapes[1])] * 2)
     with pytest.raises(ParameterError, match="batches of one pair"):
         stage_two_loss(stage, solver, loss_fn, forward_pair(net, solver, two), two, shapes.mesh)
+
+
+def test_too_few_consistent_seeds_add_nothing_and_the_trainer_takes_the_plug_in(permuted_files):
+    """A step whose stage-1 map agrees at fewer than ``min_seeds`` seeds trains stage 1 alone
+    (a zero term); the core loop trains with the plug-in without knowing what it is."""
+    from torchfmap.nn import Budget, TrainConfig, Trainer
+
+    folder, *_ = permuted_files
+    config = TrainConfig(k=12, n_wks=8, k_net=16, width=8, c_out=8, n_blocks=1).with_budget(Budget(steps=2))
+    files = [folder / "a0.off", folder / "a1.off"]
+    shapes = ShapeDataset(files, False, **config.dataset_kwargs(), progress=False)
+    net, solver = InputsAsFeatures(), RegularizedFMSolver(w_lap=1e-3)
+    loss_fn = UnsupervisedFMLoss(n_samples=0)
+    batch = collate_pairs([(shapes[0], shapes[1])])
+    out = forward_pair(net, solver, batch)
+    picky = StageTwoLoss(shapes.mesh, StageTwo(n_seeds=8, min_seeds=8))
+    picky.stage.seeds = lambda *args, **kwargs: np.zeros((2, 2), dtype=np.int64)  # 2 < min_seeds
+    assert picky(out, batch, solver=solver, loss_fn=loss_fn)["total"].item() == 0.0
+    trainer = Trainer.from_config(config, shapes, device="cpu", extra_losses=[StageTwoLoss(shapes.mesh)])
+    state = trainer.fit(progress=False)
+    assert state.step == 2 and all("stage2_total" in t for t in state.losses)

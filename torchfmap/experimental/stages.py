@@ -1,5 +1,8 @@
-"""The self-seeded second stage of the learned path: feature-aware bases built where the
-first-stage map is sure of itself, and the same features solved again in them.
+"""The self-seeded second stage of the learned path (an experiment, outside the core API):
+feature-aware bases built where the first-stage map is sure of itself, and the same features
+solved again in them. Trained as a plug-in loss of the core loop
+(``Trainer(..., extra_losses=[StageTwoLoss(shapes.mesh)])``, :class:`StageTwoLoss`), run at
+inference by :func:`two_stage_p2p`.
 
 Stage 1 is the eigenbasis map of the network's features. Its seeds: farthest points ``s`` of
 ``x``, their images ``t`` on ``y`` by the stage-1 map ``x -> y``, kept where the map ``y -> x``
@@ -16,8 +19,9 @@ add localised functions that are the same on both shapes where stage 1 was right
 round-trip test keeps a seed out where it was not. The seeds come from the detached stage-1
 map, so training differentiates through stage 2's solve, not through the seeding.
 
-(A second stage in the diffusion kernels alone, without the eigen block, measured worse than
-stage 1 on FAUST_r validation pairs at 40-160 seeds: ``bench/stage_two.py``, README.)
+(Measured with ``bench/stage_two.py``: on FAUST_r validation pairs about 0.97x the error of
+stage 1 at about 3x its time per pair, nothing gained after ZoomOut; in the diffusion kernels
+alone, without the eigen block, worse than stage 1 at 40-160 seeds. Hence not in the core.)
 
 Seeds need only a few rows of each stage-1 point map, not all of them: the round trip is
 evaluated for the seeds alone.
@@ -25,6 +29,7 @@ evaluated for the seeds alone.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,10 +43,10 @@ from ..errors import ParameterError
 from ..fmap.convert import values_to_p2p
 from ..kinds import seed_time
 from ..mesh import Mesh
+from ..nn.data import collate_pairs
+from ..nn.modules import BasisModule
+from ..nn.networks import check_network, features
 from ..quality import map_seeds
-from .data import collate_pairs
-from .modules import BasisModule
-from .networks import check_network, features
 
 #: Farthest-point seeds of ``x`` offered to the second stage (columns of its bases at most).
 STAGE2_SEEDS = 40
@@ -199,3 +204,26 @@ def stage_two_loss(
         return None
     C_xy, C_yx, Bx, By = second[3]
     return loss_fn(C_xy, C_yx, out.feat_x, out.feat_y, Bx, By, generator=generator)
+
+
+@dataclass
+class StageTwoLoss:
+    """The second stage as a plug-in loss of the core loop
+    (:class:`~torchfmap.nn.train.ExtraLoss`; ``Trainer(..., extra_losses=[StageTwoLoss(shapes.mesh)])``):
+    :func:`stage_two_loss` with the trainer's solver and loss, its terms logged as
+    ``stage2_<term>``. ``mesh_of(dataset index) -> Mesh``: the dataset's meshes
+    (:meth:`~torchfmap.nn.data.ShapeDataset.mesh`); ``stage``: the settings and per-shape state.
+    A step whose stage-1 map has too few consistent seeds adds zeros (it trains stage 1 only).
+    Batches of one pair (``TrainConfig.batch_size == 1``).
+    """
+
+    mesh_of: Callable[[int], Mesh]
+    stage: StageTwo = field(default_factory=StageTwo)
+    name: str = "stage2"
+
+    def __call__(self, out, batch: dict, *, solver, loss_fn, generator=None) -> dict:
+        second = stage_two_loss(self.stage, solver, loss_fn, out, batch, self.mesh_of, generator)
+        if second is None:
+            ref = out.C_xy.sum() * 0  # zeros on the graph's device and dtype
+            return {"total": ref}
+        return second

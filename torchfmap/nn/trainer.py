@@ -1,0 +1,339 @@
+"""The training loop: :class:`Trainer` (fit / step / validate / save / resume, DDP inside an
+initialised process group), the one way to train in torchfmap: ``torchfmap train``, DDP ranks
+(:func:`ddp_worker`, started by :func:`spawn_ddp`) and ``examples/train.py`` all build one by
+:meth:`Trainer.from_config`, and any network, loss and optimiser of the caller's go through its
+constructor."""
+
+from __future__ import annotations
+
+import os
+import socket
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from ..errors import ParameterError
+from .augment import augment_batch, augmentation
+from .checkpoints import check_config_fits, read_checkpoint, save_checkpoint
+from .config import CosineBudget, TrainConfig, build_model, build_solver
+from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
+from .devices import resolve_device
+from .networks import check_network
+from .train import ExtraLoss, TrainState, pair_loss
+
+#: Progress bar of a time budget: seconds of the budget, no rate (steps and epochs in the postfix).
+TIME_BAR = "{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}{postfix}]"
+
+
+def _cosine_factors(scheduler) -> list[CosineBudget]:
+    return [f for f in getattr(scheduler, "lr_lambdas", []) if isinstance(f, CosineBudget)]
+
+
+class Trainer:
+    """Unsupervised training of ``net`` on the pairs of ``data`` (a
+    :class:`~torchfmap.nn.data.PairDataset`).
+
+    ``net`` follows the :class:`~torchfmap.nn.networks.FeatureNetwork` protocol; ``loss_fn`` is
+    called as ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=...)`` and returns
+    a dict of terms with ``'total'`` (as :class:`~torchfmap.nn.UnsupervisedFMLoss`);
+    ``extra_losses``: plug-in terms added to it (:class:`~torchfmap.nn.train.ExtraLoss`).
+    ``config`` (:class:`~torchfmap.nn.TrainConfig`, default the recipe's) sets the loop: its
+    :class:`~torchfmap.nn.config.Budget`, batch size, gradient clipping (0: none), augmentation
+    (:func:`~torchfmap.nn.augment.augmentation` of the data's inputs) and seed, and is recorded
+    in the checkpoint; ``solver=None``: the config's (:func:`~torchfmap.nn.build_solver`).
+    ``scheduler`` steps after each optimiser step (:meth:`from_config`: the cosine over the
+    budget). ``device`` (:func:`~torchfmap.nn.devices.resolve_device`; ``'auto'``: CUDA when
+    available): the network, the solver and the loss run there, every batch is moved there;
+    the datasets' precompute stays float64 on the CPU. ``validate(net) -> score`` (lower is
+    better, e.g. :func:`~torchfmap.nn.train.unsupervised_score`) runs every ``validate_every``
+    steps and at the end; the best weights are kept. ``checkpoint``: the file :meth:`save`
+    writes (atomically, at each epoch end, each validation and the end) and :meth:`resume`
+    reads. Inside an initialised ``torch.distributed`` process group of more than one rank the
+    network is wrapped in DistributedDataParallel, each rank trains on its share of the pairs,
+    the ranks follow one clock (the slowest rank's) and only rank 0 writes.
+
+    Randomness comes from generators the trainer owns, seeded ``seed + epoch`` when
+    :meth:`fit` starts (so a resumed run re-seeds from its epoch): a CPU one shuffles the
+    pairs, one on ``device`` draws the loss's samples and the augmentation.
+
+    Raises:
+        ParameterError: a network that does not follow the protocol, a config without a budget,
+            an unknown augmentation or device, or (with a checkpoint) a recipe network that the
+            config does not describe.
+    """
+
+    def __init__(
+        self,
+        net: torch.nn.Module,
+        data: PairDataset,
+        loss_fn,
+        optimizer: torch.optim.Optimizer,
+        *,
+        config: TrainConfig | None = None,
+        solver=None,
+        scheduler=None,
+        device: str | torch.device = "auto",
+        extra_losses: Sequence[ExtraLoss] = (),
+        validate: Callable[[torch.nn.Module], float] | None = None,
+        validate_every: int = 0,
+        checkpoint: str | os.PathLike | None = None,
+    ) -> None:
+        check_network(net)
+        self.config = config if config is not None else TrainConfig()
+        self.budget = self.config.budget
+        self.shapes = getattr(data, "shapes", None)
+        self.augment = augmentation(self.config.augment, getattr(self.shapes, "inputs", None))
+        self.device = resolve_device(device)
+        self.net = net.to(self.device)
+        self.solver = solver if solver is not None else build_solver(self.config)[0]
+        self.loss_fn, self.optimizer, self.scheduler = loss_fn, optimizer, scheduler
+        self.extra_losses = list(extra_losses)
+        self.validate_fn, self.validate_every = validate, validate_every
+        self.checkpoint = None if checkpoint is None else Path(checkpoint)
+        if self.checkpoint is not None:
+            check_config_fits(net, self.config)  # now, not at the first save
+        self.state, self.best_state = TrainState(), None
+        ddp = torch.distributed.is_available() and torch.distributed.is_initialized()
+        self.world_size = torch.distributed.get_world_size() if ddp else 1
+        self.rank = torch.distributed.get_rank() if ddp else 0
+        self.model, sampler = net, None
+        if self.world_size > 1:
+            ids = [self.device] if self.device.type == "cuda" else None
+            self.model = torch.nn.parallel.DistributedDataParallel(net, device_ids=ids)
+            sampler = torch.utils.data.distributed.DistributedSampler(
+                data, num_replicas=self.world_size, rank=self.rank, shuffle=True, seed=self.config.seed
+            )
+        self.sampler = sampler
+        self.shuffle = torch.Generator()
+        self.draws = torch.Generator(device=self.device)
+        self.loader = torch.utils.data.DataLoader(
+            data, batch_size=self.config.batch_size, shuffle=sampler is None, sampler=sampler,
+            collate_fn=collate_pairs, generator=self.shuffle,
+        )  # fmt: skip
+        self._t_start = time.perf_counter()
+
+    @classmethod
+    def from_config(
+        cls, config: TrainConfig, shapes: ShapeDataset, pairs=None, *, init: dict | None = None, **kwargs
+    ) -> Trainer:
+        """The reference recipe, all of it read from ``config``: the network, solver and loss of
+        :func:`~torchfmap.nn.build_model`, Adam at ``config.lr`` and the cosine schedule over
+        the budget (:class:`~torchfmap.nn.config.CosineBudget`), on ``pairs`` of ``shapes``
+        (default :func:`~torchfmap.nn.data.class_pairs`). ``init``: a state dict the network
+        starts from (fine-tuning). ``kwargs``: the constructor's (device, extra_losses,
+        validate, validate_every, checkpoint).
+
+        Raises:
+            ParameterError: weights ``init`` that do not fit the recipe's network, or as the
+                constructor.
+        """
+        pairs = class_pairs(shapes.names) if pairs is None else list(pairs)
+        net, solver, loss_fn = build_model(config)
+        if init is not None:
+            try:
+                net.load_state_dict(init)
+            except RuntimeError as err:
+                raise ParameterError(
+                    f"the initial weights do not fit the recipe's network ({str(err).splitlines()[0]}). Fix: "
+                    "keep the network settings of the checkpoint (--width, --c-out, --inputs, --n-wks)."
+                ) from None
+        opt = torch.optim.Adam(net.parameters(), lr=config.lr)
+        trainer = cls(net, PairDataset(shapes, pairs), loss_fn, opt, config=config, solver=solver, **kwargs)
+        trainer.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            opt, CosineBudget(config.budget, trainer.batches_per_epoch)
+        )
+        return trainer
+
+    @property
+    def batches_per_epoch(self) -> int:
+        """Batches of one epoch (of this rank's share under DDP)."""
+        return len(self.loader)
+
+    @property
+    def main(self) -> bool:
+        """Whether this process writes (rank 0)."""
+        return self.rank == 0
+
+    def seconds_spent(self) -> float:
+        """Seconds of training of the whole run; under DDP with a time budget, the slowest
+        rank's (one all-reduce), so the ranks stop at the same step and schedule alike."""
+        elapsed = time.perf_counter() - self._t_start
+        if self.world_size == 1 or not self.budget.minutes:
+            return elapsed
+        agreed = torch.tensor([elapsed], dtype=torch.float64, device=self.device)
+        torch.distributed.all_reduce(agreed, op=torch.distributed.ReduceOp.MAX)
+        return float(agreed.item())
+
+    def out_of_budget(self) -> bool:
+        """Whether the budget's time or step bound is reached (epochs end the loop itself)."""
+        over_time = self.budget.minutes > 0 and self.seconds_spent() >= 60 * self.budget.minutes
+        return over_time or (self.budget.steps > 0 and self.state.step >= self.budget.steps)
+
+    def resume(self) -> bool:
+        """Continue the run saved in :attr:`checkpoint` when it exists: weights, optimiser,
+        scheduler (its clock and step; the bounds stay this run's), the state (step, time
+        spent, losses) and the best weights. Returns whether it did."""
+        if self.checkpoint is None or not self.checkpoint.exists():
+            return False
+        ckpt = read_checkpoint(self.checkpoint, map_location=self.device)
+        self.net.load_state_dict(ckpt["state_dict"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        if self.scheduler is not None and ckpt.get("scheduler") is not None:
+            bounds = [(f, f.bounds) for f in _cosine_factors(self.scheduler)]
+            self.scheduler.load_state_dict(ckpt["scheduler"])
+            for f, b in bounds:
+                f.bounds = b
+        self.state = TrainState(**ckpt["train_state"])
+        self.best_state = ckpt.get("best_state_dict")
+        return True
+
+    def save(self, path: str | os.PathLike | None = None, **extra) -> Path | None:
+        """Write the checkpoint (rank 0 only; ``path`` default :attr:`checkpoint`): weights, the
+        config, optimiser, scheduler, state, best weights and ``extra`` values, atomically
+        (:func:`~torchfmap.nn.checkpoints.save_checkpoint`). None when nothing was written."""
+        path = self.checkpoint if path is None else Path(path)
+        if path is None or not self.main:
+            return None
+        return save_checkpoint(
+            path, self.net, self.config,
+            optimizer=self.optimizer.state_dict(),
+            scheduler=None if self.scheduler is None else self.scheduler.state_dict(),
+            train_state=asdict(self.state), best_state_dict=self.best_state, **extra,
+        )  # fmt: skip
+
+    def validate(self) -> float | None:
+        """Run ``validate`` once (None without one): the score is recorded with the step, and
+        the weights are kept as the best when it is the lowest so far."""
+        if self.validate_fn is None:
+            return None
+        score = float(self.validate_fn(self.net))
+        self.net.train()
+        self.state.scores.append((self.state.step, score))
+        if score < self.state.best_score:
+            self.state.best_score = score
+            self.best_state = {k: v.detach().cpu().clone() for k, v in self.net.state_dict().items()}
+        return score
+
+    def step(self, batch: dict) -> dict[str, float]:
+        """One optimiser step on a collated batch: moved to the device, augmented, its loss
+        (plug-in terms included) backpropagated, the gradient clipped, the optimiser and the
+        schedule stepped. Returns the loss terms (floats), also appended to the state."""
+        batch = {**batch, "x": batch["x"].to(self.device), "y": batch["y"].to(self.device)}
+        batch = augment_batch(batch, self.augment, self.draws)
+        terms = pair_loss(self.model, self.solver, self.loss_fn, batch, self.draws, self.extra_losses)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        if self.config.clip_grad > 0:
+            torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.config.clip_grad)
+        self.optimizer.step()
+        if self.scheduler is not None:
+            if self.world_size > 1 and self.budget.minutes:
+                for factor in _cosine_factors(self.scheduler):
+                    factor.set_clock(self.seconds_spent())
+            self.scheduler.step()
+        self.state.step += 1
+        values = torch.stack([v.detach() for v in terms.values()]).tolist()  # one host sync a step
+        self.state.losses.append(dict(zip(terms, values, strict=True)))
+        return self.state.losses[-1]
+
+    def _bar(self, progress: bool):
+        bound = self.budget.step_bound(self.batches_per_epoch)
+        by_time = self.budget.minutes > 0 and bound is None
+        total = round(60 * self.budget.minutes) if by_time else bound
+        return by_time, tqdm(
+            total=total,
+            initial=min(round(self.state.seconds), total) if by_time else self.state.step,
+            disable=not progress or not self.main,
+            unit="s" if by_time else "step",
+            bar_format=TIME_BAR if by_time else None,  # seconds: no "s/s" rate
+        )
+
+    def fit(self, progress: bool = True) -> TrainState:
+        """Train until the budget is spent (the whole run's: a resumed run counts the steps and
+        time of the earlier ones); returns the :class:`~torchfmap.nn.train.TrainState`. The
+        progress bar counts steps up to the step bound, or seconds of a time budget alone."""
+        epochs, state = self.budget.epochs, self.state
+        self.shuffle.manual_seed(self.config.seed + state.epoch)
+        self.draws.manual_seed(self.config.seed + state.epoch)
+        self._t_start = time.perf_counter() - state.seconds
+        self.net.train()
+        stop = self.out_of_budget()
+        by_time, bar = self._bar(progress)
+        last_tick = state.seconds
+        while (epochs is None or state.epoch < epochs) and not stop:
+            if self.sampler is not None:
+                self.sampler.set_epoch(state.epoch)
+            t_epoch = time.perf_counter()
+            for batch in self.loader:
+                loss = self.step(batch)["total"]
+                if by_time:
+                    now = time.perf_counter() - self._t_start
+                    bar.update(min(round(now), bar.total) - min(round(last_tick), bar.total))
+                    last_tick = now
+                else:
+                    bar.update()
+                bar.set_postfix(step=state.step, full_epochs=state.epoch, loss=f"{loss:.3f}")
+                if self.validate_every and state.step % self.validate_every == 0:
+                    self.validate()
+                    self.save()
+                if self.out_of_budget():
+                    stop = True
+                    break
+            else:
+                state.epoch += 1
+                state.epoch_seconds.append(time.perf_counter() - t_epoch)
+            state.seconds = time.perf_counter() - self._t_start
+            self.save()
+        bar.close()
+        if self.validate_fn is not None and (not state.scores or state.scores[-1][0] != state.step):
+            self.validate()
+        state.seconds = time.perf_counter() - self._t_start
+        self.save()
+        return state
+
+
+def ddp_worker(
+    rank: int, world_size: int, port: int, files, cache_dir, config_dict: dict, out_path, weights_dir
+) -> None:
+    """One rank of a DDP run of the reference recipe (gloo on CPU, NCCL with one GPU per rank):
+    :meth:`Trainer.from_config` of ``config_dict`` on the same pairs as one process; rank 0
+    shows progress and writes the checkpoint ``out_path``; each rank writes its final weights
+    to ``weights_dir/rank{r}.pt`` (:func:`spawn_ddp`'s temporary folder)."""
+    cuda = torch.cuda.is_available() and torch.cuda.device_count() >= world_size
+    device = torch.device(f"cuda:{rank}") if cuda else torch.device("cpu")
+    os.environ.setdefault("MASTER_ADDR", "127.0.0.1")
+    os.environ["MASTER_PORT"] = str(port)
+    torch.distributed.init_process_group("nccl" if cuda else "gloo", rank=rank, world_size=world_size)
+    try:
+        config = TrainConfig(**config_dict)
+        shapes = ShapeDataset(
+            files, cache_dir, **config.dataset_kwargs(), rank=rank, world_size=world_size, progress=False
+        )
+        trainer = Trainer.from_config(config, shapes, device=device, checkpoint=out_path)
+        trainer.fit(progress=rank == 0)
+        torch.save(trainer.net.state_dict(), Path(weights_dir) / f"rank{rank}.pt")
+    finally:
+        torch.distributed.destroy_process_group()
+
+
+def spawn_ddp(config: TrainConfig, files, out, *, world_size: int = 2, cache_dir=None) -> list[dict]:
+    """Train the recipe ``config`` on the meshes ``files`` with DistributedDataParallel over
+    ``world_size`` processes (:func:`ddp_worker`), checkpoint ``out``; returns each rank's final
+    state dict (on the CPU; they agree when the ranks stayed in step). The ranks' weights go
+    through a temporary folder removed at the end, also on failure: only the checkpoint is left
+    beside ``out``."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with tempfile.TemporaryDirectory(prefix="torchfmap-ddp-") as weights:
+        torch.multiprocessing.spawn(
+            ddp_worker,
+            args=(world_size, port, [str(f) for f in files], cache_dir, asdict(config), str(out), weights),
+            nprocs=world_size,
+        )
+        return [torch.load(Path(weights) / f"rank{r}.pt", map_location="cpu") for r in range(world_size)]
