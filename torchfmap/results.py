@@ -125,7 +125,8 @@ class MatchResult:
     (:data:`AUTO_KINDS`), by name, with its own result; ``skipped`` names the kinds that could
     not be built on these meshes, with the reason. With ``refine='seeded'``, ``first_stage`` is
     the stage-1 result (the ZoomOut map the seeds were read from) and ``seeds`` the seed pairs
-    ``(S, 2)`` stage 2 was solved with (as landmarks)."""
+    ``(S, 2)`` stage 2 was solved with (as landmarks). ``model`` names the trained network that
+    made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`)."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -140,6 +141,7 @@ class MatchResult:
     candidates: dict[str, MatchResult] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     first_stage: MatchResult | None = None
+    model: str | None = None
     _context: MatchContext | None = field(default=None, repr=False, compare=False)
 
     def scores(self) -> str:

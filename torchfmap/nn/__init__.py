@@ -15,7 +15,8 @@ Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
 :mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.inputs`
 (a shape's arrays, read off its :class:`~torchfmap.PreparedShape`), :mod:`~torchfmap.nn.data`,
 :mod:`~torchfmap.nn.config` (the reference recipe), :mod:`~torchfmap.nn.train` (the loop, DDP),
-:mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
+:mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference` (:class:`LearnedMatcher`: a
+trained network called like :func:`torchfmap.match`), :mod:`~torchfmap.nn.devices`.
 """
 
 from . import functional
@@ -30,8 +31,9 @@ from .data import (
     collate_pairs,
     collate_shapes,
 )
+from .devices import resolve_device
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
-from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
+from .inference import LearnedMatcher, adapt, evaluate, predict_p2p
 from .inputs import network_inputs, precompute_shape, shape_arrays, shape_item
 from .modules import (
     BasisModule,
@@ -43,7 +45,6 @@ from .modules import (
 )
 from .networks import (
     DiffusionNet,
-    FeatureNet,
     FeatureNetwork,
     SpatialGradientFeatures,
     check_network,
@@ -55,8 +56,8 @@ from .train import TrainState, train, train_recipe
 __all__ = [
     "BasisBatch",
     "BasisModule",
-    "CheckpointMatcher",
     "CosineBudget",
+    "LearnedMatcher",
     "TrainConfig",
     "TrainState",
     "adapt",
@@ -64,16 +65,14 @@ __all__ = [
     "build_solver",
     "evaluate",
     "load_checkpoint",
-    "match_with_network",
     "predict_p2p",
     "read_checkpoint",
-    "refine_p2p",
+    "resolve_device",
     "save_checkpoint",
     "shipped_models",
     "train",
     "train_recipe",
     "DiffusionNet",
-    "FeatureNet",
     "FeatureNetwork",
     "FmapPair",
     "GradientBatch",
