@@ -9,7 +9,8 @@ For each pair (the first ``--pairs`` of the set's 40, ``learned.dev_set``) and e
 a copy of the network is adapted on the pair by the unsupervised loss (``adapt``: both
 directions, no ground truth), then the pair is predicted (functional map, orthogonal rule) and
 refined by ZoomOut (``LearnedMatcher``: the model's k -> 2k eigenfunctions). Rows: mean
-geodesic error x100 raw / refined and the seconds per pair that the adaptation adds (wall time of ``adapt``, this process, 1 thread).
+geodesic error x100 raw / refined and the seconds per pair that the adaptation adds (wall time
+of ``adapt``, this process, 1 thread).
 Writes ``bench/results/adapt_<name>.md``.
 """
 

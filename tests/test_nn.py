@@ -12,14 +12,8 @@ HOMES = {
     "checkpoints": ("load_checkpoint", "save_checkpoint", "read_checkpoint"),
     "config": ("TrainConfig", "build_model", "build_solver", "CosineBudget"),
     "train": ("train", "train_recipe", "TrainState"),
-    "inference": (
-        "CheckpointMatcher",
-        "match_with_network",
-        "predict_p2p",
-        "adapt",
-        "refine_p2p",
-        "evaluate",
-    ),
+    "inference": ("LearnedMatcher", "predict_p2p", "adapt", "evaluate"),
+    "devices": ("resolve_device",),
     "shipped": ("shipped_models",),
 }
 

@@ -10,13 +10,12 @@ import torch
 
 from torchfmap import ParameterError
 from torchfmap.nn import (
-    CheckpointMatcher,
+    LearnedMatcher,
     TrainConfig,
     TrainState,
     build_model,
     build_solver,
     load_checkpoint,
-    match_with_network,
     shipped_models,
     train,
     train_recipe,
@@ -36,7 +35,7 @@ def test_recipe_pieces_without_a_network():
     assert "faust_r" in shipped_models()
     net, config, ckpt = load_checkpoint("faust_r")
     assert "provenance" in ckpt and callable(train) and callable(train_recipe)
-    assert callable(match_with_network) and CheckpointMatcher("faust_r").checkpoint == "faust_r"
+    assert LearnedMatcher.from_checkpoint("faust_r", device="cpu").checkpoint == "faust_r"
 
 
 def cosine(frac: float, floor: float = 0.02) -> float:
