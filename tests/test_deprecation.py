@@ -116,7 +116,6 @@ def test_old_attribute_and_method_names_of_columns_and_bases(blob):
 
 def test_old_keywords_of_the_learned_basis_and_of_collections():
     torch = pytest.importorskip("torch")
-    from torchfmap.collection import shape_distance_matrix
     from torchfmap.data import icosphere
     from torchfmap.nn import BasisModule
 
@@ -124,10 +123,6 @@ def test_old_keywords_of_the_learned_basis_and_of_collections():
     with pytest.warns(DeprecationWarning, match="basis="):
         old = BasisModule.from_mesh(mesh, 6, kind="laplacian", dtype=torch.float64)
     torch.testing.assert_close(old.lam, BasisModule.from_mesh(mesh, 6, basis="laplacian").lam)
-    meshes = [mesh, mesh.scaled(2.0)]
-    with pytest.warns(DeprecationWarning, match="form="):
-        old = shape_distance_matrix(meshes, k=5, kind="conformal")
-    np.testing.assert_array_equal(old, shape_distance_matrix(meshes, k=5, form="conformal"))
 
 
 def test_moved_and_renamed_module_names():

@@ -64,7 +64,8 @@ def test_nearest_rows_is_the_float64_brute_force_search_in_blocks():
     expected = nearest_neighbor(query, reference, search="brute", precision="double")
     q, r = torch.as_tensor(query), torch.as_tensor(reference)
     for block_bytes in (3 * 8 * 40, 2**30):
-        np.testing.assert_array_equal(inference._nearest_rows(q, r, block_bytes=block_bytes).numpy(), expected)
+        found = inference._nearest_rows(q, r, block_bytes=block_bytes)
+        np.testing.assert_array_equal(found.numpy(), expected)
     with pytest.raises(ParameterError, match="one dtype"):
         inference._nearest_rows(q, r.float())
     with pytest.raises(ParameterError, match=r"\(M, D\)"):
