@@ -190,7 +190,8 @@ class LearnedMatcher:
     :func:`~torchfmap.fmap.fmap_to_p2p`), in float64 from the shapes' float64 basis values.
 
     Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
-    and its recipe. It keeps nothing between calls: shapes are reused only when the caller
+    and its recipe. A checkpoint trained with a second stage (``config.stages == 2``, an
+    experiment) is matched by its first stage. It keeps nothing between calls: shapes are reused only when the caller
     passes them (``shapes=``, as :func:`torchfmap.collection.evaluate_pairs` does). It pickles
     (for a process pool or a cluster executor): one built from a checkpoint as the checkpoint's
     name and its settings, the network loaded again where it is unpickled.
