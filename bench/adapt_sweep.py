@@ -8,8 +8,9 @@ Run by hand from the repository root (needs the remeshed sets, ``bench/make_reme
 For each pair (the first ``--pairs`` of the set's 40, ``learned.dev_set``) and each (steps, lr),
 a copy of the network is adapted on the pair by the unsupervised loss (``adapt``: both
 directions, no ground truth), then the pair is predicted (functional map, orthogonal rule) and
-refined by ZoomOut (50 -> 200 eigenfunctions). Rows: mean geodesic error x100 raw / refined and
-the seconds per pair that the adaptation adds (wall time of ``adapt``, this process, 1 thread).
+refined by ZoomOut (``LearnedMatcher``: the model's k -> 2k eigenfunctions). Rows: mean
+geodesic error x100 raw / refined and the seconds per pair that the adaptation adds (wall time
+of ``adapt``, this process, 1 thread).
 Writes ``bench/results/adapt_<name>.md``.
 """
 
@@ -28,7 +29,7 @@ from torchfmap.mesh import Mesh
 from torchfmap.nn.checkpoints import load_checkpoint
 from torchfmap.nn.config import build_model
 from torchfmap.nn.data import ShapeDataset
-from torchfmap.nn.inference import adapt, predict_p2p, refine_p2p
+from torchfmap.nn.inference import LearnedMatcher, adapt, predict_p2p
 
 
 def main() -> None:
@@ -54,14 +55,15 @@ def main() -> None:
         my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
         for j, m in ((a, pe.mesh_x), (b, my)):
             if j not in eig:
-                eig[j] = prepare_shape(m, 200).eigenbasis
+                eig[j] = prepare_shape(m, 0)  # grown by the matcher
         for n in steps:
             for lr in lrs if n else lrs[:1]:
                 t0 = time.perf_counter()
                 tuned = adapt(net, solver, loss_fn, x, y, steps=n, lr=lr) if n else net
                 seconds = time.perf_counter() - t0
                 raw = predict_p2p(tuned, solver, x, y)
-                ref = refine_p2p(pe.mesh_x, my, raw, bases=(eig[a], eig[b]))
+                matcher = LearnedMatcher(tuned, config, device="cpu")
+                ref = matcher(eig[a].mesh, eig[b].mesh, refine="zoomout", shapes=(eig[a], eig[b])).p2p_yx
                 results.setdefault((n, lr), []).append((pe.mean(raw), pe.mean(ref), seconds))
         log(
             f"pair {i + 1}: "

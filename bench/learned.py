@@ -19,8 +19,8 @@ normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), aver
 Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
 process), the trained network's map from the functional map (``fmap``: orthogonal point-map rule, and
 with the pull-back rule for comparison) and from nearest
-neighbours in feature space (``features``), ZoomOut (``refine_p2p``: 50 -> 200 eigenfunctions,
-eigenbases computed once per shape and reused by its pairs),
+neighbours in feature space (``features``), ZoomOut (``LearnedMatcher(..., refine='zoomout')``:
+from the model's k to 2k eigenfunctions, each mesh prepared once and reused by its pairs),
 and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
 adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
 errors on the same pairs. The loss curve of each checkpoint (total per step, moving mean) goes to
@@ -43,7 +43,7 @@ from torchfmap.mesh import Mesh
 from torchfmap.nn.checkpoints import load_checkpoint
 from torchfmap.nn.config import build_model
 from torchfmap.nn.data import ShapeDataset
-from torchfmap.nn.inference import adapt, predict_p2p, refine_p2p
+from torchfmap.nn.inference import LearnedMatcher, adapt, predict_p2p
 from torchfmap.operators import GeodesicSolver
 
 #: FAUST_r validation meshes (never trained on by the shipped model: it trains on 000-069).
@@ -193,10 +193,14 @@ def run_checkpoint(
 
     eigen: dict[int, object] = {}  # ZoomOut's eigenbases, once per shape (not per pair)
 
-    def eigenbasis(i: int, mesh: Mesh):
+    def prepared(i: int, mesh: Mesh):
         if i not in eigen:
-            eigen[i] = prepare_shape(mesh, min(200, mesh.n_vertices - 1)).eigenbasis
+            eigen[i] = prepare_shape(mesh, 0)  # grown by the matcher
         return eigen[i]
+
+    def zoomout(network, shapes):  # the prepared shapes' own meshes: the meshes they were prepared for
+        matcher = LearnedMatcher(network, config, device="cpu")
+        return matcher(shapes[0].mesh, shapes[1].mesh, refine="zoomout", shapes=shapes).p2p_yx
 
     for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):
         x, y = shapes[a], shapes[b]
@@ -210,14 +214,14 @@ def run_checkpoint(
             add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
             add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
         if not args.no_refine:
-            bases = (eigenbasis(a, mx), eigenbasis(b, my))
-            add("trained, fmap + zoomout", lambda: refine_p2p(mx, my, base, bases=bases), pe)  # noqa: B023
+            bases = (prepared(a, mx), prepared(b, my))
+            add("trained, fmap + zoomout", lambda: zoomout(net, bases), pe)  # noqa: B023
         if args.adapt and i < args.adapt_pairs:
             add("trained, fmap (adapt subset)", lambda: base, pe)  # noqa: B023
             tuned = adapt(net, solver, loss_fn, x, y, steps=args.adapt, lr=args.adapt_lr)
-            adapted = add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
+            add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
             if not args.no_refine:
-                add(f"adapt {args.adapt} + zoomout", lambda: refine_p2p(mx, my, adapted, bases=bases), pe)  # noqa: B023
+                add(f"adapt {args.adapt} + zoomout", lambda: zoomout(tuned, bases), pe)  # noqa: B023
         log(
             f"{label} pair {i + 1}/{len(pairs)}: "
             + ", ".join(f"{m} {np.mean(e):.4f}" for m, e in errors.items())

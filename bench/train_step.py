@@ -41,7 +41,8 @@ from _common import Report, data_path, int_list, load1, load_note, log, markdown
 from _torch_inputs import DTYPES, random_basis
 
 from torchfmap import load_mesh
-from torchfmap.nn import DiffusionNet, FeatureNet, UnsupervisedFMLoss, collate_shapes
+from torchfmap.experimental.networks import FeatureNet
+from torchfmap.nn import DiffusionNet, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn.config import TrainConfig
 from torchfmap.nn.functional import solve_fmap
 from torchfmap.nn.inputs import shape_arrays, shape_item

@@ -2,8 +2,9 @@
 
     python examples/infer.py model.ckpt SRC.off TGT.ply --out map.txt [--adapt 10] [--refine] [--png t.png]
 
-No dataset folder and no cache: both meshes are precomputed in memory as in training. Writes one
-line per target vertex: the 0-based index of its source vertex (the ``torchfmap match`` format).
+No dataset folder and no cache: each mesh is prepared once in memory, as in training
+(:class:`torchfmap.nn.LearnedMatcher`). Writes one line per target vertex: the 0-based index of
+its source vertex (the ``torchfmap match`` format).
 """
 
 from __future__ import annotations
@@ -12,8 +13,7 @@ import argparse
 from pathlib import Path
 
 from torchfmap.io import load_mesh, write_map
-from torchfmap.nn.checkpoints import load_checkpoint
-from torchfmap.nn.inference import match_with_network
+from torchfmap.nn import LearnedMatcher
 
 
 def main() -> None:
@@ -26,11 +26,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--adapt", type=int, default=0, help="test-time adaptation steps on this pair")
     parser.add_argument("--refine", action="store_true", help="ZoomOut in the eigenbases")
+    parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     parser.add_argument("--png", type=Path)
     args = parser.parse_args()
-    net, config, _ = load_checkpoint(args.checkpoint)
+    matcher = LearnedMatcher.from_checkpoint(args.checkpoint, device=args.device, adapt_steps=args.adapt)
     src, tgt = load_mesh(args.source), load_mesh(args.target)
-    p2p = match_with_network(net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine)
+    p2p = matcher(src, tgt, refine="zoomout" if args.refine else None).p2p_yx
     write_map(args.out, p2p)
     print(f"{args.target.name} -> {args.source.name}: {len(p2p)} vertices -> {args.out}")
     if args.png:

@@ -45,6 +45,53 @@ def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_result
         collection.evaluate_pairs(pairs, threads=0)
 
 
+def test_evaluate_pairs_hands_its_prepared_shapes_to_any_matcher(tmp_path):
+    """One matcher protocol: ``matcher(mesh_x, mesh_y, shapes=(sx, sy), **settings)`` returning a
+    result with ``p2p_yx``. Every mesh is prepared once and the same prepared shape is handed to
+    each pair it takes part in; the settings reach the matcher; settings (or landmarks) the
+    matcher does not take are refused before any work; ``match`` is the default."""
+    from torchfmap import PreparedShape, save_mesh
+    from torchfmap.collection import evaluate_pairs
+    from torchfmap.eval import discover_pairs
+
+    x = bumpy_blob(2)
+    for i, amount in enumerate((0.05, 0.2, 0.35)):
+        save_mesh(x.copy(bend(x.vertices, amount)), tmp_path / f"m{i}.off")
+    pairs = list(discover_pairs(tmp_path))
+    calls = []
+
+    def matcher(mesh_x, mesh_y, *, shapes, k):
+        assert all(isinstance(s, PreparedShape) for s in shapes)
+        assert shapes[0].mesh is mesh_x and shapes[1].mesh is mesh_y
+        calls.append((mesh_x.name, mesh_y.name, shapes, k))
+        return match(mesh_x, mesh_y, k=k, shapes=shapes)
+
+    results = evaluate_pairs(pairs, matcher=matcher, k=12, threads=1)
+    assert [(a, b, k) for a, b, _, k in calls] == [("m0", "m1", 12), ("m1", "m2", 12)]
+    assert calls[0][2][1] is calls[1][2][0]  # m1: one prepared shape for both of its pairs
+    default = evaluate_pairs(pairs, k=12, threads=1)
+    for r1, r2 in zip(results, default, strict=True):
+        np.testing.assert_array_equal(r1.errors, r2.errors)
+    with pytest.raises(ParameterError, match="does not take landmarks, w_lap"):
+        evaluate_pairs(pairs, matcher=matcher, k=12, w_lap=1.0, gt_landmarks=3)
+    with pytest.raises(ParameterError, match="does not take kk"):
+        evaluate_pairs(pairs, kk=3)
+
+
+def test_saved_maps_are_found_by_the_meshes_names(tmp_path):
+    from torchfmap import Mesh
+    from torchfmap.collection import MapFiles, SavedMap
+
+    x = bumpy_blob(1)
+    (tmp_path / "a-b.txt").write_text("\n".join(map(str, range(x.n_vertices))) + "\n")
+    a, b = Mesh(x.vertices, x.faces, name="a"), Mesh(x.vertices, x.faces, name="b")
+    saved = MapFiles(tmp_path)(a, b)
+    assert isinstance(saved, SavedMap) and saved.path.name == "a-b.txt"
+    np.testing.assert_array_equal(saved.p2p_yx, np.arange(x.n_vertices))
+    with pytest.raises(ParameterError, match="found by the meshes' names"):
+        MapFiles(tmp_path)(a, Mesh(x.vertices, x.faces))
+
+
 def test_evaluate_pairs_runs_with_the_given_threads_and_restores_them(tmp_path, monkeypatch):
     """``threads`` limits BLAS (threadpoolctl) and torch while the pairs run, and the caller's
     settings come back afterwards, also when a pair raises."""

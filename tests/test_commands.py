@@ -334,6 +334,8 @@ def test_match_command_with_checkpoint(tiny_folder, tmp_path, capsys):
                 "1",
                 "--refine",
                 "zoomout",
+                "--device",
+                "cpu",
             ]
         )
         == 0
@@ -341,27 +343,55 @@ def test_match_command_with_checkpoint(tiny_folder, tmp_path, capsys):
     p2p = np.loadtxt(out, dtype=np.int64)
     assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
     assert all(line.strip().isdigit() for line in out.read_text().splitlines())
+    assert "adapt 1 steps, refine zoomout 8 -> 16, device cpu" in capsys.readouterr().out
+    from torchfmap.io import load_mesh
+    from torchfmap.nn import LearnedMatcher
+
+    matcher = LearnedMatcher.from_checkpoint(ckpt, device="cpu", adapt_steps=1)
+    np.testing.assert_array_equal(p2p, matcher(load_mesh(src), load_mesh(tgt), refine="zoomout").p2p_yx)
 
 
-def test_match_with_checkpoint_refuses_flags_it_would_ignore(tiny_folder, tmp_path, capsys):
+def test_match_and_eval_refuse_the_same_flags_with_a_checkpoint(tiny_folder, tmp_path, capsys):
+    """One rule for both commands (bug 3: ``eval --checkpoint`` ignored ``--k`` that ``match``
+    refused, and refused ``--landmarks`` that ``match`` took): flags the checkpoint fixes are
+    refused with the fix, landmarks too (the learned matcher takes none: the classical ``match
+    --landmarks`` does), refinement is ZoomOut or none, ``--k-final`` needs ZoomOut, and
+    ``--adapt`` / ``--device`` need a checkpoint."""
     ckpt = tmp_path / "model.ckpt"
     args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
     assert main([*args, "--max-steps", "1"]) == 0
+    (tmp_path / "lm.txt").write_text("0 0\n5 5\n")
+    (tmp_path / "lms").mkdir()
     pair = [str(tiny_folder / "blob0.ply"), str(tiny_folder / "blob1.ply")]
-    base = ["match", *pair, "--checkpoint", str(ckpt), "--out", str(tmp_path / "m.txt")]
-    for extra, flag in (
-        (["--k", "10"], "--k"),
-        (["--basis", "laplacian"], "--basis"),
-        (["--k-final", "20"], "--k-final"),
-        (["--w-lap", "0.5"], "--w-lap"),
-        (["--times", "0.01"], "--times"),
-        (["--p2p-mode", "pullback"], "--p2p-mode"),
-    ):
+    match = ["match", *pair, "--checkpoint", str(ckpt), "--out", str(tmp_path / "m.txt")]
+    evaluate = ["eval", str(tiny_folder), "--checkpoint", str(ckpt)]
+    shared = [
+        (["--k", "10"], "--k would change nothing"),
+        (["--basis", "laplacian"], "--basis would change nothing"),
+        (["--w-lap", "0.5"], "--w-lap would change nothing"),
+        (["--refine", "icp"], "ZoomOut only"),
+        (["--k-final", "20"], "without --refine zoomout it changes nothing"),
+    ]
+    cases = [(match, extra, message) for extra, message in shared]
+    cases += [(evaluate, extra, message) for extra, message in shared]
+    cases += [
+        (match, ["--bases", "a.npz", "b.npz"], "--bases would change nothing"),
+        (match, ["--times", "0.01"], "--times would change nothing"),
+        (match, ["--p2p-mode", "pullback"], "--p2p-mode would change nothing"),
+        (match, ["--landmarks", str(tmp_path / "lm.txt")], "--landmarks would not be used"),
+        (evaluate, ["--landmarks", str(tmp_path / "lms")], "--landmarks would not be used"),
+        (evaluate, ["--gt-landmarks", "3"], "--gt-landmarks would not be used"),
+        (match[:3] + match[5:], ["--adapt", "2"], "--adapt is a setting of a trained network"),
+        (evaluate[:2], ["--device", "cpu"], "--device is a setting of a trained network"),
+    ]
+    for base, extra, message in cases:
         capsys.readouterr()
-        assert main([*base, *extra]) == 2
-        assert f"{flag} would change nothing" in capsys.readouterr().err
-    assert main([*base, "--refine", "icp"]) == 2
-    assert "ZoomOut only" in capsys.readouterr().err
+        assert main([*base, *extra]) == 2, (base[0], extra)
+        err = capsys.readouterr().err
+        assert message in err and "Fix:" in err, (base[0], extra, err)
+    landmark_err = "drop --checkpoint: the classical pipeline takes them (torchfmap match --landmarks)"
+    assert main([*match, "--landmarks", str(tmp_path / "lm.txt")]) == 2
+    assert landmark_err in capsys.readouterr().err
 
 
 def test_eval_on_a_folder_of_gzipped_meshes(tmp_path, capsys):
@@ -447,14 +477,14 @@ def test_eval_scores_saved_maps_and_passes_its_match_settings(tmp_path, monkeypa
 def test_eval_command_with_checkpoint_prepares_each_mesh_once_and_pools_agree(
     tiny_folder, tmp_path, capsys, monkeypatch
 ):
-    """``torchfmap eval --checkpoint``: each mesh is precomputed once per process, the maps are
-    those of ``match_with_network`` pair by pair, a pool of 2 gives the same table, and settings
-    the network path would ignore are refused."""
-    import torchfmap.nn.inference as inference
+    """``torchfmap eval --checkpoint``: ``evaluate_pairs`` prepares each mesh once and hands the
+    prepared shapes to the learned matcher (one Laplacian per mesh in all), the maps are the
+    matcher's pair by pair, and a pool of 2 gives the same table."""
+    import torchfmap.bases.prepared as prepared
     from torchfmap.collection import evaluate_pairs
     from torchfmap.eval import discover_pairs, evaluate_map
     from torchfmap.io import load_mesh
-    from torchfmap.nn.checkpoints import load_checkpoint
+    from torchfmap.nn import LearnedMatcher
 
     ckpt = tmp_path / "model.ckpt"
     train = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
@@ -463,41 +493,29 @@ def test_eval_command_with_checkpoint_prepares_each_mesh_once_and_pools_agree(
     pairs = list(discover_pairs(tiny_folder))
     assert len(pairs) >= 2
     made = []
-    real = inference._prepared
-    matcher = inference.CheckpointMatcher(ckpt)
-    monkeypatch.setattr(
-        inference, "_prepared", lambda m, config, refine: made.append(m) or real(m, config, refine)
-    )
-    results = evaluate_pairs(pairs, threads=1, matcher=matcher)
+    real = prepared.laplacian_operators
+    matcher = LearnedMatcher.from_checkpoint(ckpt, device="cpu")
+    monkeypatch.setattr(prepared, "laplacian_operators", lambda *a, **kw: made.append(1) or real(*a, **kw))
+    results = evaluate_pairs(pairs, threads=1, matcher=matcher, refine="zoomout")
     monkeypatch.undo()
     assert len(made) == len({p for pair in pairs for p in pair[2:4]})  # once per mesh
-    net, config, _ = load_checkpoint(ckpt)
     for (_, _, pa, pb, gt), result in zip(pairs, results, strict=True):
         x, y = load_mesh(pa), load_mesh(pb)
-        p2p = inference.match_with_network(net, config, x, y)
+        p2p = matcher(x, y, refine="zoomout").p2p_yx
         np.testing.assert_array_equal(result.errors, evaluate_map(x, y, p2p, gt)[1])
 
     def table(*extra):
-        assert (
-            main(["eval", str(tiny_folder), "--checkpoint", str(ckpt), "--threads", "1", "--quiet", *extra])
-            == 0
-        )
+        flags = ["--checkpoint", str(ckpt), "--threads", "1", "--quiet", "--device", "cpu", *extra]
+        assert main(["eval", str(tiny_folder), *flags]) == 0
         lines = capsys.readouterr().out.splitlines()
-        return [line.rsplit("|", 2)[0] for line in lines if line.startswith("| ")]  # without the time
+        return [line.rsplit("|", 2)[0] for line in lines if line.startswith("| ")], lines[-1]
 
-    one = table()
-    assert len(one) == len(pairs) + 2 and table("--workers", "2") == one
-    assert len(table("--refine", "zoomout", "--adapt", "1")) == len(pairs) + 2
-    for bad, message in (
-        (["--gt-landmarks", "3"], "without landmarks"),
-        (["--basis", "laplacian"], "own basis"),
-        (["--refine", "icp"], "ZoomOut only"),
-    ):
-        assert main(["eval", str(tiny_folder), "--checkpoint", str(ckpt), *bad]) == 2
-        assert message in capsys.readouterr().err
-    assert main(["eval", str(tiny_folder), "--adapt", "2"]) == 2
-    assert "--adapt tunes a trained network" in capsys.readouterr().err
-    with pytest.raises(ParameterError, match="a matcher matches pairs by itself, so gt_landmarks, k"):
+    one, title = table()
+    assert len(one) == len(pairs) + 2 and table("--workers", "2")[0] == one
+    rows, title = table("--refine", "zoomout", "--k-final", "12", "--adapt", "1")
+    assert len(rows) == len(pairs) + 2
+    assert "adapt 1 steps, refine zoomout 8 -> 12, device cpu" in title
+    with pytest.raises(ParameterError, match="does not take k, landmarks"):
         evaluate_pairs(pairs, matcher=matcher, gt_landmarks=2, k=8)
 
 

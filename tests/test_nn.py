@@ -14,14 +14,7 @@ HOMES = {
     "train": ("TrainState", "unsupervised_score"),
     "trainer": ("Trainer",),
     "devices": ("resolve_device",),
-    "inference": (
-        "CheckpointMatcher",
-        "match_with_network",
-        "predict_p2p",
-        "adapt",
-        "refine_p2p",
-        "evaluate",
-    ),
+    "inference": ("LearnedMatcher", "predict_p2p", "adapt", "evaluate"),
     "shipped": ("shipped_models",),
 }
 

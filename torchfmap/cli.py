@@ -81,6 +81,24 @@ def _refine_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _checkpoint_flags(p: argparse.ArgumentParser, what: str) -> None:
+    """The trained-network flags ``match`` and ``eval`` share (checked alike by
+    :func:`torchfmap.commands._learned_matcher`)."""
+    p.add_argument(
+        "--checkpoint",
+        help=f"a network trained by 'torchfmap train' (a path, or a shipped name, see 'torchfmap "
+        f"models'): {what}",
+    )
+    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default=None,
+        help="where the network, its solver and the point-map search run (with --checkpoint; default: "
+        "auto, CUDA when available); operators and eigenbases stay on the CPU",
+    )
+
+
 def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
     return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_DefaultsFormatter)
 
@@ -167,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--k",
         type=positive_int,
         default=None,
-        help="basis size, every basis has exactly k columns (default: 50; with --checkpoint the network's)",
+        help="basis size, every basis has exactly k columns (default: 50; --checkpoint fixes its own)",
     )
     _refine_flags(p)
     p.add_argument(
@@ -199,8 +217,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="the meshes' vertical axis in --png and --html (not detected: y for y-up meshes such as "
         "FAUST or TOSCA)",
     )
-    p.add_argument("--checkpoint", help="a network trained by 'torchfmap train': its features replace WKS")
-    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
+    _checkpoint_flags(
+        p,
+        "match with it instead of the classical pipeline (its own basis and k; no --landmarks, --k, "
+        "--basis, --bases, --w-lap, --times, --p2p-mode)",
+    )
     p.add_argument(
         "--quiet",
         action="store_true",
@@ -222,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)"
     )
-    p.add_argument("--k", type=positive_int, default=50, help="basis size")
+    p.add_argument("--k", type=positive_int, default=None, help="basis size (default: 50)")
     _refine_flags(p)
     p.add_argument(
         "--landmarks",
@@ -264,12 +285,11 @@ def build_parser() -> argparse.ArgumentParser:
         "identical results with any --workers",
     )
     p.add_argument("--dask", metavar="ADDRESS", help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
-    p.add_argument(
-        "--checkpoint",
-        help="match with a network trained by 'torchfmap train' (a path or a shipped name, see "
-        "'torchfmap models') instead of the classical pipeline; each mesh precomputed once per worker",
+    _checkpoint_flags(
+        p,
+        "match with it instead of the classical pipeline (its own basis and k; no --landmarks, "
+        "--gt-landmarks, --k, --basis, --w-lap); each mesh prepared once per worker",
     )
-    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
     p.add_argument(
         "--quiet",
         action="store_true",

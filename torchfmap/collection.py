@@ -1,12 +1,19 @@
 """Evaluating a collection of pairs: each mesh prepared once, pairs matched and scored against
 ground truth, in one process, a local process pool or any ``concurrent.futures`` executor.
 
+Any *matcher* matches the pairs: a callable ``matcher(mesh_x, mesh_y, *, shapes=(shape_x,
+shape_y), **settings)`` returning a result with ``p2p_yx (V_y,)``: :func:`torchfmap.match`
+(the default) and :class:`torchfmap.nn.LearnedMatcher` (both return a
+:class:`~torchfmap.results.MatchResult`), or :class:`MapFiles` (saved maps). Each mesh is
+prepared once (:func:`~torchfmap.prepare_shape`) and its prepared shape handed to the matcher.
+
 The pool's workers keep the shapes they prepared for their next chunks (a store set by the
 pool's initializer in the worker only, gone with the pool).
 """
 
 from __future__ import annotations
 
+import inspect
 import multiprocessing
 import os
 import time
@@ -74,32 +81,46 @@ class _PairFiles:
         return found
 
 
+class SavedMap(NamedTuple):
+    """What :class:`MapFiles` returns for a pair: the map ``p2p_yx (V_y,)`` read from ``path``."""
+
+    p2p_yx: np.ndarray
+    path: Path
+
+
 class MapFiles(_PairFiles):
     """A matcher for :func:`evaluate_pairs` that reads saved maps instead of matching: the map of
-    ``(x, y)`` is ``folder/<name_x>-<name_y>.txt`` (or ``.txt.gz``), as ``torchfmap match --out``
+    ``(x, y)`` is ``folder/<name_x>-<name_y>.txt`` (or ``.txt.gz``; the names are the meshes'
+    ``name``, as :func:`~torchfmap.io.load_mesh` sets them), as ``torchfmap match --out``
     writes it (line i: the source vertex of target vertex i; :func:`~torchfmap.io.read_map`).
     Picklable (it holds the folder only).
 
     Raises (when called):
-        ParameterError: no map file for a pair (the expected name is given), or a map that does
-            not fit the meshes (:func:`~torchfmap.io.read_map` and the evaluation's checks).
+        ParameterError: an unnamed mesh, no map file for a pair (the expected name is given), or
+            a map that does not fit the meshes (:func:`~torchfmap.io.read_map` and the
+            evaluation's checks).
     """
 
     what = "saved map"
 
-    def __call__(self, mesh_x, mesh_y, path_x, path_y) -> np.ndarray:
+    def __call__(self, mesh_x: Mesh, mesh_y: Mesh, *, shapes=None) -> SavedMap:
+        if not (mesh_x.name and mesh_y.name):
+            raise ParameterError(
+                "saved maps are found by the meshes' names, and a mesh has none. Fix: load the meshes "
+                "with load_mesh (named after their files), or set Mesh(..., name=...)."
+            )
         path = self.path(
-            path_x,
-            path_y,
+            mesh_x.name,
+            mesh_y.name,
             "write it with `torchfmap match SOURCE TARGET --out` there, or drop --maps to match here.",
         )
         p2p = read_map(path)
         if len(p2p) != mesh_y.n_vertices:
             raise ParameterError(
-                f"{path.name} has {len(p2p)} lines but {shape_name(path_y)} has {mesh_y.n_vertices} "
+                f"{path.name} has {len(p2p)} lines but {mesh_y.name} has {mesh_y.n_vertices} "
                 "vertices. Fix: one line per target vertex (the map target -> source)."
             )
-        return p2p
+        return SavedMap(p2p, path)
 
 
 class LandmarkFiles(_PairFiles):
@@ -140,10 +161,12 @@ def _evaluate_chunk(
 ) -> list[PairResult]:
     """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
     :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
-    (``shapes``: path -> (mesh, PreparedShape), filled here); ``on_pair()`` is called after
-    each pair. ``matcher(x, y, path_x, path_y) -> p2p_yx`` replaces :func:`~torchfmap.match`."""
+    (``shapes``: path -> (mesh, PreparedShape), filled here) and handed to
+    ``matcher(x, y, shapes=(sx, sy), **match_kwargs)`` (None: :func:`~torchfmap.match`), with
+    ``landmarks=`` when ``gt_landmarks`` gives them; ``on_pair()`` is called after each pair."""
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
+    matcher = match if matcher is None else matcher
     with thread_limit(threads):
         out = []
         rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
@@ -153,15 +176,13 @@ def _evaluate_chunk(
                     mesh = load_mesh(path)
                     shapes[path] = (mesh, prepare_shape(mesh, 0))
             (x, sx), (y, sy) = shapes[pa], shapes[pb]
+            settings = match_kwargs
             if isinstance(gt_landmarks, LandmarkFiles):
-                landmarks = gt_landmarks(pa, pb)
-            else:
-                landmarks = landmarks_from_gt(x, gt, gt_landmarks) if gt_landmarks else None
+                settings = {**settings, "landmarks": gt_landmarks(pa, pb)}
+            elif gt_landmarks:
+                settings = {**settings, "landmarks": landmarks_from_gt(x, gt, gt_landmarks)}
             t0 = time.perf_counter()
-            if matcher is None:
-                p2p = match(x, y, landmarks=landmarks, shapes=(sx, sy), **match_kwargs).p2p_yx
-            else:
-                p2p = matcher(x, y, pa, pb)
+            p2p = matcher(x, y, shapes=(sx, sy), **settings).p2p_yx
             seconds = time.perf_counter() - t0
             # errors are geodesic on x, from its ground-truth points: pairs with the same source
             # reuse its prefactored solver and the rows already solved (kept for one source at a time)
@@ -172,6 +193,23 @@ def _evaluate_chunk(
             if on_pair is not None:
                 on_pair()
         return out
+
+
+def _check_matcher(matcher, settings: dict) -> None:
+    """Refuse, before any work, settings that ``matcher`` does not take (named, with the fix)."""
+    try:
+        parameters = inspect.signature(matcher).parameters
+    except (TypeError, ValueError):  # a callable without a signature: its own errors will do
+        return
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    unknown = sorted(set(settings) - set(parameters))
+    if unknown:
+        name = getattr(matcher, "__name__", type(matcher).__name__)
+        raise ParameterError(
+            f"the matcher {name} does not take {', '.join(unknown)}. Fix: drop them, or pass the "
+            "settings this matcher takes (with no matcher, match()'s)."
+        )
 
 
 def _chunk_costs(pairs: list) -> np.ndarray:
@@ -233,23 +271,21 @@ def evaluate_pairs(
             ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
             (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
             compare runs with different ``workers`` bit for bit.
-        matcher: ``matcher(mesh_x, mesh_y, path_x, path_y) -> p2p_yx`` matches each pair instead
-            of :func:`~torchfmap.match` (e.g. a trained network:
-            :class:`torchfmap.nn.inference.CheckpointMatcher`); with workers or an executor it
-            must pickle. Takes no landmarks and no ``match_kwargs``.
-        match_kwargs: passed to :func:`~torchfmap.match` (``basis``, ``k``, ``refine``, ...).
+        matcher: ``matcher(mesh_x, mesh_y, *, shapes=(shape_x, shape_y), **match_kwargs)``
+            returning a result with ``p2p_yx`` matches each pair (None: :func:`~torchfmap.match`;
+            e.g. a trained network, :class:`torchfmap.nn.LearnedMatcher`, or saved maps,
+            :class:`MapFiles`); with workers or an executor it must pickle.
+        match_kwargs: passed to the matcher (for :func:`~torchfmap.match`: ``basis``, ``k``,
+            ``refine``, ...; for a learned matcher: ``refine``, ``k_final``).
 
     Raises:
-        ParameterError: ``workers < 1`` or ``threads < 1``; a ``matcher`` with ``gt_landmarks``
-            or ``match_kwargs``.
+        ParameterError: ``workers < 1`` or ``threads < 1``; ``match_kwargs`` (or landmarks,
+            with ``gt_landmarks``) that the matcher does not take.
     """
     pairs = list(pairs)
-    if matcher is not None and (gt_landmarks or match_kwargs):
-        extra = ", ".join((["gt_landmarks"] if gt_landmarks else []) + sorted(match_kwargs))
-        raise ParameterError(
-            f"a matcher matches pairs by itself, so {extra} would be ignored. Fix: drop them, or "
-            "drop the matcher (for match() settings)."
-        )
+    _check_matcher(match if matcher is None else matcher, {
+        **match_kwargs, **({"landmarks": None} if gt_landmarks else {})
+    })  # fmt: skip
     workers = check_count(workers, 1, 4096, "workers")
     if threads is not None:
         threads = check_count(threads, 1, 4096, "threads")

@@ -2,8 +2,8 @@
 :func:`torchfmap.cli.build_parser` (which parses the flags and calls them).
 
 Files are read and written through :mod:`torchfmap.io`. The learning path (``match
---checkpoint``, ``train``) imports torch and :mod:`torchfmap.nn` inside its command only, so the
-classical commands start without torch.
+--checkpoint``, ``eval --checkpoint``, ``train``) imports torch and :mod:`torchfmap.nn` inside its
+command only, so the classical commands start without torch.
 """
 
 from __future__ import annotations
@@ -145,43 +145,71 @@ def cmd_basis(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Flags a checkpoint fixes (its basis, size and solver), refused with ``--checkpoint`` by
+#: ``match`` and ``eval`` alike (those a command has).
+CHECKPOINT_FIXES = ("k", "basis", "bases", "w_lap", "times", "p2p_mode")
+
+
+def _learned_matcher(args: argparse.Namespace):
+    """The :class:`~torchfmap.nn.LearnedMatcher` of ``--checkpoint`` after the one check of the
+    flags that ``match`` and ``eval`` share: flags the checkpoint fixes (:data:`CHECKPOINT_FIXES`)
+    and landmarks (the learned matcher takes none) are refused, refinement is ZoomOut or none;
+    without ``--checkpoint``, ``--adapt`` and ``--device`` are refused. None without
+    ``--checkpoint``."""
+    if not args.checkpoint:
+        for flag, value in (("--adapt", args.adapt), ("--device", args.device)):
+            if value:
+                raise TorchFmapError(
+                    f"{flag} is a setting of a trained network. Fix: pass --checkpoint too (the "
+                    "classical pipeline runs on the CPU and is not trained)."
+                )
+        return None
+    fixed = [f"--{n.replace('_', '-')}" for n in CHECKPOINT_FIXES if getattr(args, n, None) is not None]
+    if fixed:
+        raise TorchFmapError(
+            f"--checkpoint matches in the network's own basis with its own settings, so "
+            f"{', '.join(fixed)} would change nothing. Fix: drop {' / '.join(fixed)} (or drop "
+            "--checkpoint for the classical pipeline)."
+        )
+    given = (("--landmarks", args.landmarks), ("--gt-landmarks", getattr(args, "gt_landmarks", 0)))
+    landmarks = [flag for flag, value in given if value]
+    if landmarks:
+        raise TorchFmapError(
+            f"--checkpoint matches without landmarks, so {' / '.join(landmarks)} would not be used. Fix: "
+            f"drop {' / '.join(landmarks)}, or drop --checkpoint: the classical pipeline takes them "
+            "(torchfmap match --landmarks)."
+        )
+    if args.refine not in (None, "zoomout"):
+        raise TorchFmapError("--checkpoint refines by ZoomOut only. Fix: --refine zoomout (or no --refine).")
+    if args.k_final is not None and args.refine != "zoomout":
+        raise TorchFmapError(
+            "--k-final is the size ZoomOut grows to; without --refine zoomout it changes nothing. "
+            "Fix: --refine zoomout, or drop --k-final."
+        )
+    from .nn import LearnedMatcher  # torch: only for this path
+
+    device = args.device or "auto"
+    return LearnedMatcher.from_checkpoint(args.checkpoint, device=device, adapt_steps=args.adapt)
+
+
+def _learned_how(matcher, args: argparse.Namespace, grown: int | None = None) -> str:
+    """What a learned match ran, in words (the status line and the plot title); ``grown``: the
+    size ZoomOut reached (default: as asked, before any cap for small meshes)."""
+    refine = "-"
+    if args.refine:
+        k = matcher.config.k
+        refine = f"zoomout {k} -> {grown or args.k_final or 2 * k}"
+    return f"{args.checkpoint} (adapt {args.adapt} steps, refine {refine}, device {matcher.device})"
+
+
 def cmd_match(args: argparse.Namespace) -> int:
     src = load_mesh(args.source, allow_components=args.allow_components)
     tgt = load_mesh(args.target, allow_components=args.allow_components)
-    t0 = time.perf_counter()
-    if args.checkpoint:
-        ignored = [
-            flag
-            for flag, value in (
-                ("--k", args.k), ("--basis", args.basis), ("--bases", args.bases),
-                ("--k-final", args.k_final), ("--w-lap", args.w_lap), ("--times", args.times),
-                ("--p2p-mode", args.p2p_mode),
-            )
-            if value is not None
-        ]  # fmt: skip
-        if ignored:
-            raise TorchFmapError(
-                f"--checkpoint matches in the network's own basis with its own settings, so "
-                f"{', '.join(ignored)} would change nothing. Fix: drop {' / '.join(ignored)} (or drop "
-                "--checkpoint for the classical pipeline)."
-            )
-        if args.refine == "icp":
-            raise TorchFmapError(
-                "--checkpoint refines by ZoomOut only (its second stage is the checkpoint's own). Fix: "
-                "--refine zoomout."
-            )
-        from .nn.checkpoints import load_checkpoint  # torch: only for this path
-        from .nn.inference import match_with_network
-
-        net, config, _ = load_checkpoint(args.checkpoint)
-        landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
-        p2p = match_with_network(
-            net, config, src, tgt, adapt_steps=args.adapt, refine=args.refine, landmarks=landmarks
-        )
-        how = f"with {args.checkpoint} (adapt {args.adapt} steps, refine {args.refine or '-'}"
-        return _write_map(args, src, tgt, p2p, f"{how}, {time.perf_counter() - t0:.2f} s)")
-    if args.adapt:
-        raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
+    matcher = _learned_matcher(args)
+    if matcher is not None:
+        result = matcher(src, tgt, refine=args.refine, k_final=args.k_final)
+        how = _learned_how(matcher, args, result.basis_x.k)
+        return _write_map(args, src, tgt, result.p2p_yx, f"with {how}, {sum(result.timings.values()):.2f} s")
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
     bases = tuple(Basis.load(path) for path in args.bases) if args.bases else None
     result = match(
@@ -235,44 +263,35 @@ def _dask_executor(address: str):
 
 def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
     """``evaluate_pairs`` settings of ``torchfmap eval`` and the plot's title: the classical
-    pipeline's, or a trained network's (``--checkpoint``)."""
+    pipeline's, or a trained network's (``--checkpoint``, checked as ``match`` checks it)."""
     if args.landmarks and args.gt_landmarks:
         raise TorchFmapError("--landmarks and --gt-landmarks both give landmarks. Fix: pass one of them.")
     if args.maps:
-        if args.checkpoint or args.gt_landmarks or args.landmarks or args.basis or args.refine or args.adapt:
+        matching = (args.checkpoint, args.gt_landmarks, args.landmarks, args.basis, args.refine, args.adapt)
+        if any(matching) or args.device:
             raise TorchFmapError(
                 "--maps scores saved maps, so it takes no matching options. Fix: drop --checkpoint, "
-                "--gt-landmarks, --landmarks, --basis, --refine and --adapt (or drop --maps to match here)."
+                "--gt-landmarks, --landmarks, --basis, --refine, --adapt and --device (or drop --maps "
+                "to match here)."
             )
         return {"matcher": MapFiles(args.maps)}, f"saved maps in {args.maps}"
-    if not args.checkpoint:
-        if args.adapt:
-            raise TorchFmapError("--adapt tunes a trained network. Fix: pass --checkpoint too.")
-        settings = dict(
-            gt_landmarks=LandmarkFiles(args.landmarks) if args.landmarks else args.gt_landmarks,
-            basis=args.basis,
-            k=args.k,
-            refine=args.refine,
-            k_final=args.k_final,
-            w_lap=args.w_lap,
-        )
-        lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
-        lm += f", landmarks from {args.landmarks}" if args.landmarks else ""
-        basis = args.basis or ("auto" if lm else "laplacian")
-        return settings, f"{basis} basis, k={args.k}, refine {args.refine or '-'}{lm}"
-    if args.gt_landmarks or args.landmarks or args.basis or args.k_final or args.w_lap is not None:
-        raise TorchFmapError(
-            "--checkpoint matches with the network's own basis and without landmarks. Fix: drop "
-            "--gt-landmarks / --basis / --k-final / --w-lap (or drop --checkpoint for the classical "
-            "pipeline)."
-        )
-    if args.refine == "icp":
-        raise TorchFmapError("--checkpoint refines by ZoomOut only. Fix: --refine zoomout.")
-    from .nn.inference import CheckpointMatcher  # torch: only for this path
-
-    matcher = CheckpointMatcher(args.checkpoint, adapt_steps=args.adapt, refine=args.refine == "zoomout")
-    title = f"{args.checkpoint} (adapt {args.adapt}, refine {args.refine or '-'})"
-    return {"matcher": matcher}, title
+    matcher = _learned_matcher(args)
+    if matcher is not None:
+        settings = {"matcher": matcher, "refine": args.refine, "k_final": args.k_final}
+        return settings, _learned_how(matcher, args)
+    k = 50 if args.k is None else args.k
+    settings = dict(
+        gt_landmarks=LandmarkFiles(args.landmarks) if args.landmarks else args.gt_landmarks,
+        basis=args.basis,
+        k=k,
+        refine=args.refine,
+        k_final=args.k_final,
+        w_lap=args.w_lap,
+    )
+    lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
+    lm += f", landmarks from {args.landmarks}" if args.landmarks else ""
+    basis = args.basis or ("auto" if lm else "laplacian")
+    return settings, f"{basis} basis, k={k}, refine {args.refine or '-'}{lm}"
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

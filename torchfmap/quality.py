@@ -175,7 +175,7 @@ def map_seeds(
     ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``; only the seeds' rows are converted),
     kept where they agree (:func:`~torchfmap.seeds.consistent_seeds`); no vertex of ``y``
     twice. The seeds of both self-seeded second stages (``experimental.seeded.seeded_match``,
-    :mod:`torchfmap.nn.stages`); without landmarks, the farthest points are computed once per
+    :mod:`torchfmap.experimental.stages`); without landmarks, the farthest points are computed once per
     shape (cached on ``shape_x``)."""
     given = np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
     n = min(n_seeds + len(given), shape_x.mesh.n_vertices)

@@ -81,7 +81,8 @@ class MatchResult:
     kept (a refinement that raises the distortion is dropped: ``p2p_yx`` is then the initial
     map). The landmark default also fills ``candidates``: each kind it solved in
     (:data:`~torchfmap.pipeline.AUTO_KINDS`), by name, with its own result; ``skipped`` names the
-    kinds that could not be built on these meshes, with the reason."""
+    kinds that could not be built on these meshes, with the reason. ``model`` names the trained network
+    that made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`)."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -95,6 +96,7 @@ class MatchResult:
     refined: bool = False
     candidates: dict[str, MatchResult] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
+    model: str | None = None
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen

@@ -12,6 +12,7 @@ import torch
 from torchfmap import ParameterError
 from torchfmap.nn import (
     Budget,
+    LearnedMatcher,
     TrainConfig,
     build_model,
     build_solver,
@@ -72,6 +73,7 @@ def test_a_recipe_file_round_trips_and_refuses_unknown_keys_and_wrong_types(tmp_
         TrainConfig.from_json(path)
     with pytest.raises(ParameterError, match="cannot read"):
         TrainConfig.from_json(tmp_path / "missing.json")
+    assert LearnedMatcher.from_checkpoint("faust_r", device="cpu").checkpoint == "faust_r"
 
 
 def cosine(frac: float, floor: float = 0.02) -> float:

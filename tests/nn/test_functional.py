@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchfmap import ParameterError, laplacian_eigenbasis
-from torchfmap.nn import BasisModule, FeatureNet, collate_shapes
+from torchfmap.nn import BasisModule, collate_shapes
 from torchfmap.nn import functional as F
 from torchfmap.nn.functional import BasisBatch
 
@@ -127,8 +127,6 @@ def test_bad_inputs(nn_setting):
         F.solve_fmap(fx, fy[..., :3], tx, ty)
     with pytest.raises(ParameterError, match=r"k=9 is outside \[1, 7\]"):
         BasisModule(eig[0]).truncated(9)
-    with pytest.raises(ParameterError, match="NaN or inf"):
-        FeatureNet(5, 4).double()(bad, tx)
     from torchfmap import harmonic_basis
 
     with pytest.raises(ParameterError, match="B-orthonormal"):

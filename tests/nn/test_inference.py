@@ -1,22 +1,49 @@
-"""Inference (``torchfmap.nn.inference``): point-map rules, ZoomOut of network maps (prepared
-shapes reused, scale invariance), refinement names as in match."""
+"""Inference (``torchfmap.nn.inference``): point-map rules of dataset items, the learned matcher
+(a ``MatchResult`` like ``match``'s, float64 point maps searched on the device, ZoomOut sized
+from the model's k, one Laplacian and one eigendecomposition per mesh, prepared shapes reused,
+pickling, refinement names as in ``match``, device plumbing) and CPU-vs-CUDA maps where CUDA
+exists."""
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
+import torch
 
-from torchfmap.cli import main
-from torchfmap.nn.config import TrainConfig, build_model
+import torchfmap.nn.inference as inference
+from torchfmap import Mesh, prepare_shape
+from torchfmap.errors import ParameterError
+from torchfmap.fmap import nearest_neighbor, values_to_p2p
+from torchfmap.nn import LearnedMatcher, TrainConfig, build_model, save_checkpoint
 from torchfmap.nn.data import ShapeDataset
+from torchfmap.results import MatchResult
 
 from ..conftest import _agree, bumpy_blob
+
+#: A small recipe: k = 8 solver functions, 12 network eigenfunctions (meshes of 162 vertices).
+TINY = TrainConfig(k=8, k_net=12, n_wks=8, width=8, c_out=8, n_blocks=1)
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    net = build_model(TINY)[0]
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt", net, TINY)
+
+
+@pytest.fixture(scope="module")
+def permuted():
+    """``x`` and a vertex-permuted copy ``y`` (y vertex i is x vertex ``perm[i]``)."""
+    mesh_x = bumpy_blob(2)
+    perm = np.random.default_rng(0).permutation(mesh_x.n_vertices)
+    mesh_y = Mesh(mesh_x.vertices[perm], np.argsort(perm)[mesh_x.faces], name="y")
+    return mesh_x, mesh_y, perm
 
 
 def test_predict_p2p_point_map_rules(tmp_path, blob_files):
     """Both point-map rules give valid maps; the orthogonal rule is the pull-back rule applied
     to the transpose (for an orthogonal C they coincide up to ties); unknown rules are refused."""
-    from torchfmap.errors import ParameterError
     from torchfmap.nn.inference import predict_p2p
 
     shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
@@ -29,67 +56,95 @@ def test_predict_p2p_point_map_rules(tmp_path, blob_files):
         predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode="nearest")
 
 
-def test_refine_p2p_reuses_prepared_shapes_and_refuses_wrong_ones():
-    """With the meshes prepared once and passed in (reused across pairs), ZoomOut gives exactly
-    the map it computes itself; the true map of a vertex-permuted copy is kept; shapes of
-    another mesh or with too few eigenpairs are refused."""
-    from torchfmap import Mesh, prepare_shape
-    from torchfmap.errors import ParameterError
-    from torchfmap.nn.inference import refine_p2p
-
-    mesh_x = bumpy_blob(2)
-    perm = np.random.default_rng(0).permutation(mesh_x.n_vertices)
-    inv = np.argsort(perm)
-    mesh_y = Mesh(mesh_x.vertices[perm], inv[mesh_x.faces])  # y vertex i is x vertex perm[i]
-    noisy = perm.copy()
-    flip = np.random.default_rng(1).choice(len(noisy), len(noisy) // 10, replace=False)
-    noisy[flip] = noisy[np.roll(flip, 1)]
-    kw = dict(k0=10, k_final=30)
-    own = refine_p2p(mesh_x, mesh_y, noisy, **kw)
-    same = (prepare_shape(mesh_x, 30), prepare_shape(mesh_y, 30))
-    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=same), own)
-    more = (prepare_shape(mesh_x, 40), prepare_shape(mesh_y, 40))  # truncated to 30
-    np.testing.assert_array_equal(refine_p2p(mesh_x, mesh_y, perm, **kw, shapes=more), perm)
-    assert (refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=more) == perm).mean() > (noisy == perm).mean()
-    with pytest.raises(ParameterError, match="eigenpairs"):
-        refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=(more[0], prepare_shape(mesh_y, 20)))
-    with pytest.raises(ParameterError, match="prepare_shape"):
-        refine_p2p(mesh_x, mesh_y, noisy, **kw, shapes=(prepare_shape(bumpy_blob(1), 30), more[1]))
+def test_nearest_rows_is_the_float64_brute_force_search_in_blocks():
+    """The device search gives the indices of the numpy float64 brute force, whatever the block
+    size (here blocks of 3 rows, and one block); inputs of another shape or dtype are refused."""
+    rng = np.random.default_rng(1)
+    query, reference = rng.normal(size=(50, 7)), rng.normal(size=(40, 7))
+    expected = nearest_neighbor(query, reference, search="brute", precision="double")
+    q, r = torch.as_tensor(query), torch.as_tensor(reference)
+    for block_bytes in (3 * 8 * 40, 2**30):
+        found = inference._nearest_rows(q, r, block_bytes=block_bytes)
+        np.testing.assert_array_equal(found.numpy(), expected)
+    with pytest.raises(ParameterError, match="one dtype"):
+        inference._nearest_rows(q, r.float())
+    with pytest.raises(ParameterError, match=r"\(M, D\)"):
+        inference._nearest_rows(q, r[:, :3])
 
 
-def test_the_learned_path_names_its_refinement_as_match_does():
-    """``refine='zoomout'`` / None, as in ``torchfmap.match`` (True / False: the older form);
-    other refinements are refused before any work."""
-    from torchfmap.data import demo_pair_paths
-    from torchfmap.errors import ParameterError
-    from torchfmap.io import load_mesh
-    from torchfmap.nn import CheckpointMatcher, load_checkpoint, match_with_network
+def test_learned_matcher_returns_a_match_result_with_float64_maps(permuted):
+    """The result is ``match``'s type: the map, ``C_xy (k, k)`` in the model's bases of ``k``
+    columns, the network's map as ``p2p_yx_initial``, the basis kind, the model's name and the
+    timings. The point map is the orthogonal rule in float64 on the float64 basis values (the
+    float32 rule on the same values may differ only at near ties)."""
+    mesh_x, mesh_y, _ = permuted
+    net = build_model(TINY)[0]
+    result = LearnedMatcher(net, TINY, name="tiny", device="cpu")(mesh_x, mesh_y)
+    assert isinstance(result, MatchResult)
+    assert result.p2p_yx.shape == (mesh_y.n_vertices,) and result.p2p_yx.dtype == np.int64
+    assert result.C_xy.shape == (8, 8) and result.C_xy.dtype == np.float64
+    assert result.basis_x.k == result.basis_y.k == 8 and result.basis_x.values.dtype == np.float64
+    assert result.kind == "laplacian" and result.model == "tiny" and not result.refined
+    assert set(result.timings) == {"prepare", "adapt", "network+fmap", "p2p"}
+    np.testing.assert_array_equal(result.p2p_yx_initial, result.p2p_yx)
+    rule = values_to_p2p(result.C_xy, result.basis_x.values, result.basis_y.values, mode="orthogonal",
+                         precision="double")  # fmt: skip
+    np.testing.assert_array_equal(result.p2p_yx, rule)
 
-    net, config, _ = load_checkpoint("faust_r")
-    x, y = (load_mesh(p) for p in demo_pair_paths()[:2])
-    with pytest.raises(ParameterError, match="refines by ZoomOut only"):
-        match_with_network(net, config, x, y, refine="icp")
-    with pytest.raises(ParameterError, match="refines by ZoomOut only"):
-        CheckpointMatcher("faust_r", refine="seeded")
-    assert CheckpointMatcher("faust_r", refine="zoomout").refine is True
-    assert CheckpointMatcher("faust_r").refine is False
+
+def test_zoomout_grows_from_the_models_k_to_2k_capped_for_small_meshes(permuted, monkeypatch):
+    """ZoomOut starts from the network's map at the model's ``k`` and grows to ``k_final``
+    (default ``2k``); on meshes of V vertices both are capped at V - 1. The true map of a
+    permuted copy is a fixed point of ZoomOut, so refining it keeps it."""
+    mesh_x, mesh_y, perm = permuted
+    seen = []
+    real = inference._zoomout
+
+    def spy(p2p, shapes, k0, k_final):
+        seen.append((k0, k_final))
+        return real(p2p, shapes, k0, k_final)
+
+    monkeypatch.setattr(inference, "_zoomout", spy)
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    result = matcher(mesh_x, mesh_y, refine="zoomout")
+    assert seen == [(8, 16)] and result.C_xy.shape == (16, 16) and result.basis_x.k == 16
+    assert result.refined and "refine" in result.timings
+    matcher(mesh_x, mesh_y, refine="zoomout", k_final=30)
+    assert seen[-1] == (8, 30)
+    big = TrainConfig(**{**TINY.__dict__, "k": 100})  # 2k = 200 > 161 = V - 1
+    matcher = LearnedMatcher(build_model(big)[0], big, device="cpu")
+    assert matcher(mesh_x, mesh_y, refine="zoomout").basis_x.k == 161 and seen[-1] == (100, 161)
+    monkeypatch.undo()
+    shapes = (prepare_shape(mesh_x, 16), prepare_shape(mesh_y, 16))
+    assert (inference._zoomout(perm, shapes, 8, 16).p2p_yx == perm).all()
 
 
-def test_checkpoint_match_with_zoomout_computes_one_laplacian_and_one_eigenbasis_per_shape(
-    tiny_folder, tmp_path, monkeypatch
-):
-    """``match --checkpoint M --refine zoomout``: the network's inputs, its bases and ZoomOut's
-    eigenbasis all come from one prepared shape per mesh."""
+def test_the_learned_matcher_names_its_refinement_as_match_does(permuted):
+    """``refine='zoomout'`` or None, as in ``torchfmap.match``; True / False and other
+    refinements are refused, as are ``k_final`` without ZoomOut or below ``k``, before any
+    work; so is a negative ``adapt_steps``."""
+    mesh_x, mesh_y, _ = permuted
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    for refine in ("icp", "seeded", True, False):
+        with pytest.raises(ParameterError, match="refines by ZoomOut only"):
+            matcher(mesh_x, mesh_y, refine=refine)
+    with pytest.raises(ParameterError, match="without refine='zoomout' it changes nothing"):
+        matcher(mesh_x, mesh_y, k_final=20)
+    with pytest.raises(ParameterError, match="below the model's k=8"):
+        matcher(mesh_x, mesh_y, refine="zoomout", k_final=5)
+    with pytest.raises(ParameterError, match="adapt_steps"):
+        LearnedMatcher(build_model(TINY)[0], TINY, adapt_steps=-1)
+
+
+def test_one_laplacian_and_one_eigendecomposition_per_mesh_and_given_shapes_reused(permuted, monkeypatch):
+    """With ZoomOut, the network's inputs, its bases and ZoomOut's eigenbasis all come from one
+    prepared shape per mesh; given prepared shapes (eigenpairs 0, as ``evaluate_pairs`` makes
+    them) cost no Laplacian and one eigendecomposition each, and give the same map; shapes of
+    other meshes are refused."""
     import torchfmap.bases.prepared as prepared
-    from torchfmap.io import load_mesh
-    from torchfmap.nn.checkpoints import load_checkpoint
-    from torchfmap.nn.inference import match_with_network
 
-    ckpt = tmp_path / "model.ckpt"
-    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--quiet"]
-    assert main([*args, "--max-steps", "1"]) == 0
-    net, config, _ = load_checkpoint(ckpt)
-    x, y = load_mesh(tiny_folder / "blob0.ply"), load_mesh(tiny_folder / "blob1.ply")
+    mesh_x, mesh_y, _ = permuted
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
     counts = {"laplacian": 0, "eigen": 0}
     real_lap, real_eig = prepared.laplacian_operators, prepared.laplacian_eigenbasis
 
@@ -103,21 +158,103 @@ def test_checkpoint_match_with_zoomout_computes_one_laplacian_and_one_eigenbasis
 
     monkeypatch.setattr(prepared, "laplacian_operators", lap)
     monkeypatch.setattr(prepared, "laplacian_eigenbasis", eig)
-    refined = match_with_network(net, config, x, y, refine=True)
+    own = matcher(mesh_x, mesh_y, refine="zoomout")
     assert counts == {"laplacian": 2, "eigen": 2}
     monkeypatch.undo()
-    assert refined.shape == (y.n_vertices,)
-    pair = [str(tiny_folder / "blob0.ply"), str(tiny_folder / "blob1.ply")]
-    out = str(tmp_path / "m.txt")
-    flags = ["--checkpoint", str(ckpt), "--refine", "zoomout", "--out", out, "--quiet"]
-    assert main(["match", *pair, *flags]) == 0
-    np.testing.assert_array_equal(np.loadtxt(tmp_path / "m.txt", dtype=np.int64), refined)
+    shapes = (prepare_shape(mesh_x, 0), prepare_shape(mesh_y, 0))
+    monkeypatch.setattr(prepared, "laplacian_operators", lap)
+    monkeypatch.setattr(prepared, "laplacian_eigenbasis", eig)
+    again = matcher(mesh_x, mesh_y, refine="zoomout", shapes=shapes)
+    assert counts == {"laplacian": 2, "eigen": 4}
+    matcher(mesh_x, mesh_y, refine="zoomout", shapes=shapes)  # reused: nothing computed again
+    assert counts == {"laplacian": 2, "eigen": 4}
+    monkeypatch.undo()
+    np.testing.assert_array_equal(again.p2p_yx, own.p2p_yx)
+    with pytest.raises(ParameterError, match="of these meshes"):
+        matcher(mesh_x, mesh_y, shapes=(shapes[1], shapes[0]))
 
 
-def test_learned_path_zoomout_of_a_scaled_target_is_the_same_map(small_bent_pair):
-    from torchfmap.nn.inference import refine_p2p
+def test_the_matcher_pickles_as_its_checkpoint_and_settings(tiny_checkpoint, permuted):
+    """Built from a checkpoint, the pickle holds its name and settings, not the weights; the
+    copy reloads the network and gives the same map. Built from a network, the network
+    travels (on the CPU) and the copy gives the same map too."""
+    mesh_x, mesh_y, _ = permuted
+    matcher = LearnedMatcher.from_checkpoint(tiny_checkpoint, device="cpu", adapt_steps=1)
+    data = pickle.dumps(matcher)
+    assert len(data) < 2000 and b"state_dict" not in data
+    copy = pickle.loads(data)
+    assert (copy.checkpoint, copy.adapt_steps, copy.device) == (tiny_checkpoint, 1, torch.device("cpu"))
+    np.testing.assert_array_equal(copy(mesh_x, mesh_y).p2p_yx, matcher(mesh_x, mesh_y).p2p_yx)
+    built = LearnedMatcher(build_model(TINY)[0], TINY, name="mine", device="cpu")
+    copy = pickle.loads(pickle.dumps(built))
+    assert copy.name == "mine" and copy.checkpoint is None
+    np.testing.assert_array_equal(copy(mesh_x, mesh_y).p2p_yx, built(mesh_x, mesh_y).p2p_yx)
+    with pytest.raises(ParameterError, match="no checkpoint file"):
+        LearnedMatcher.from_checkpoint("no_such_model")
 
+
+class _DeviceSpy(torch.nn.Module):
+    """Wraps a network and records the device of every input it is called with."""
+
+    def __init__(self, net) -> None:
+        super().__init__()
+        self.net, self.devices = net, []
+
+    def forward(self, inputs, basis, grad):
+        self.devices.append(inputs.device)
+        return self.net(inputs, basis, grad)
+
+
+def test_network_solver_and_point_map_search_run_on_the_matchers_device(permuted, monkeypatch):
+    """The device plumbing on the CPU: ``device`` resolves once, the network's parameters, its
+    inputs and both point-map search tensors are on it, operators and eigenbases stay float64
+    numpy. With ``torch.device('meta')`` (no data, any machine) the network is moved there."""
+    mesh_x, mesh_y, _ = permuted
+    spy = _DeviceSpy(build_model(TINY)[0])
+    matcher = LearnedMatcher(spy, TINY, device="cpu")
+    searched = []
+    real = inference._nearest_rows
+
+    def search(query, reference, **kw):
+        searched.append((query.device, reference.device, query.dtype))
+        return real(query, reference, **kw)
+
+    monkeypatch.setattr(inference, "_nearest_rows", search)
+    result = matcher(mesh_x, mesh_y)
+    assert spy.devices == [torch.device("cpu")] * 2
+    assert searched == [(torch.device("cpu"), torch.device("cpu"), torch.float64)]
+    assert isinstance(result.basis_x.values, np.ndarray)
+    meta = LearnedMatcher(build_model(TINY)[0], TINY, device=torch.device("meta"))
+    assert meta.device.type == "meta" and all(p.is_meta for p in meta.net.parameters())
+
+
+def test_zoomout_of_a_scaled_target_is_the_same_map(small_bent_pair):
+    """Shapes are prepared in their unit-area frames: a target at 1000x scale gives the same
+    learned map and the same ZoomOut (up to near ties)."""
     x, y, _ = small_bent_pair
-    start = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
-    ref = refine_p2p(x, y, start, k0=10, k_final=30)
-    assert _agree(refine_p2p(x, y.scaled(1e3), start, k0=10, k_final=30), ref) >= 0.99
+    config = TrainConfig(**{**TINY.__dict__, "k": 10, "k_net": 10})
+    matcher = LearnedMatcher(build_model(config)[0], config, device="cpu")
+    ref = matcher(x, y, refine="zoomout", k_final=30)
+    scaled = matcher(x, y.scaled(1e3), refine="zoomout", k_final=30)
+    assert _agree(scaled.p2p_yx_initial, ref.p2p_yx_initial) >= 0.99
+    assert _agree(scaled.p2p_yx, ref.p2p_yx) >= 0.99
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_and_cpu_maps_agree():
+    """A shipped model on the demo pair on CUDA and on the CPU: the same eigenbases (CPU float64)
+    and float32 networks whose sums run in another order, so features differ by float32
+    round-off and only near-tied vertices may match differently (the ZoomOut map, from the
+    network's map, likewise)."""
+    from torchfmap.data import demo_pair_paths
+    from torchfmap.io import load_mesh
+
+    x, y = (load_mesh(p) for p in demo_pair_paths()[:2])
+    cpu = LearnedMatcher.from_checkpoint("faust_r", device="cpu")
+    cuda = LearnedMatcher.from_checkpoint("faust_r", device="cuda")
+    shapes = (prepare_shape(x, 0), prepare_shape(y, 0))
+    a, b = (m(x, y, shapes=shapes) for m in (cpu, cuda))
+    assert b.timings and np.abs(b.C_xy - a.C_xy).max() < 1e-3 * np.abs(a.C_xy).max()
+    assert _agree(b.p2p_yx, a.p2p_yx) >= 0.99
+    a, b = (m(x, y, refine="zoomout", shapes=shapes) for m in (cpu, cuda))
+    assert _agree(b.p2p_yx, a.p2p_yx) >= 0.99

@@ -12,16 +12,15 @@ import torch
 
 from torchfmap import Mesh
 from torchfmap.errors import ParameterError
-from torchfmap.nn import RegularizedFMSolver
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
 from torchfmap.nn.config import Budget, TrainConfig
 from torchfmap.nn.data import PairDataset, ShapeDataset, collate_shapes
 from torchfmap.nn.inputs import shape_arrays, shape_item
 from torchfmap.nn.modules import UnsupervisedFMLoss
-from torchfmap.nn.networks import DiffusionNet, FeatureNet, FeatureNetwork, check_network, features
+from torchfmap.nn.networks import DiffusionNet, FeatureNetwork, check_network, features
 from torchfmap.nn.trainer import Trainer
 
-from ..conftest import TinyNet, _batch, _grid, _identity_folder, as_batch, bumpy_blob, random_rotation
+from ..conftest import TinyNet, _batch, _grid, _identity_folder, bumpy_blob, random_rotation
 
 
 def test_diffusion_net_with_wks_is_invariant_to_rigid_motions():
@@ -45,7 +44,6 @@ def test_diffusion_net_with_wks_is_invariant_to_rigid_motions():
 
 NETWORKS = {
     "DiffusionNet": lambda: DiffusionNet(6, 5, width=8, n_blocks=1),
-    "FeatureNet": lambda: FeatureNet(6, 5, width=8, n_blocks=1),
     "TinyNet": lambda: TinyNet(6, 5),
 }
 
@@ -132,16 +130,3 @@ def test_user_network_plugs_in_and_its_checkpoint_rebuilds_it(tmp_path):
     loss = UnsupervisedFMLoss(n_samples=100)
     repeat = Trainer(again, PairDataset(shapes), loss, opt, config=run, device="cpu").fit(progress=False)
     assert [t["total"] for t in repeat.losses] == [t["total"] for t in state.losses]
-
-
-def test_feature_net_and_unsupervised_loss_backward(nn_setting):
-    x, y, dx, dy, eig, stack = nn_setting
-    tx, ty = as_batch(*eig)
-    net = FeatureNet(5, 8, width=16, n_blocks=2).double()
-    fx, fy = net(torch.tensor(dx)[None], tx), net(torch.tensor(dy)[None], ty)
-    C_xy, C_yx = RegularizedFMSolver()(fx, fy, tx, ty)
-    terms = UnsupervisedFMLoss(w_lap=1.0)(C_xy, C_yx, fx, fy, tx, ty)
-    terms["total"].backward()
-    grads = [p.grad for p in net.parameters()]
-    assert all(g is not None and torch.isfinite(g).all() for g in grads)
-    assert set(terms) == {"bij", "orth", "lap", "couple", "total"}

@@ -16,7 +16,8 @@ Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
 (a shape's arrays, read off its :class:`~torchfmap.PreparedShape`), :mod:`~torchfmap.nn.data`,
 :mod:`~torchfmap.nn.config` (the reference recipe and its budget), :mod:`~torchfmap.nn.train`
 (the losses of a pair batch), :mod:`~torchfmap.nn.trainer` (the loop, DDP),
-:mod:`~torchfmap.nn.devices`, :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`.
+:mod:`~torchfmap.nn.devices`, :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`
+(:class:`LearnedMatcher`: a trained network called like :func:`torchfmap.match`).
 """
 
 from . import functional
@@ -33,7 +34,7 @@ from .data import (
 )
 from .devices import resolve_device
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
-from .inference import CheckpointMatcher, adapt, evaluate, match_with_network, predict_p2p, refine_p2p
+from .inference import LearnedMatcher, adapt, evaluate, predict_p2p
 from .inputs import network_inputs, shape_arrays, shape_item
 from .modules import (
     BasisModule,
@@ -45,7 +46,6 @@ from .modules import (
 )
 from .networks import (
     DiffusionNet,
-    FeatureNet,
     FeatureNetwork,
     SpatialGradientFeatures,
     check_network,
@@ -59,8 +59,8 @@ __all__ = [
     "BasisBatch",
     "BasisModule",
     "Budget",
-    "CheckpointMatcher",
     "CosineBudget",
+    "LearnedMatcher",
     "TrainConfig",
     "TrainState",
     "Trainer",
@@ -69,17 +69,14 @@ __all__ = [
     "build_solver",
     "evaluate",
     "load_checkpoint",
-    "match_with_network",
     "predict_p2p",
     "read_checkpoint",
     "read_recipe",
-    "refine_p2p",
     "save_checkpoint",
     "shipped_models",
     "resolve_device",
     "unsupervised_score",
     "DiffusionNet",
-    "FeatureNet",
     "FeatureNetwork",
     "FmapPair",
     "GradientBatch",

@@ -1,33 +1,35 @@
-"""Inference with a trained network: point maps of dataset items (:func:`predict_p2p`),
-unsupervised test-time adaptation (:func:`adapt`), evaluation with the classical metrics
-(:func:`evaluate`), ZoomOut refinement in the eigenbases (:func:`refine_p2p`) and matching two
-meshes without a dataset (:func:`match_with_network`)."""
+"""Inference with a trained network: matching two meshes (:class:`LearnedMatcher`, called like
+:func:`torchfmap.match` and returning its :class:`~torchfmap.results.MatchResult`), point maps
+of dataset items (:func:`predict_p2p`), unsupervised test-time adaptation (:func:`adapt`) and
+evaluation of a dataset's pairs with the classical metrics (:func:`evaluate`)."""
 
 from __future__ import annotations
 
 import copy
+import os
+import time
 
 import numpy as np
 import torch
 
-from ..bases.prepared import PreparedShape, prepare_shape
+from ..bases.basis import Basis
+from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
 from ..eval import geodesic_errors
-from ..fmap.convert import nearest_neighbor, p2p_to_fmap, values_to_p2p
+from ..fmap.convert import NN_BLOCK_BYTES, nearest_neighbor, p2p_to_fmap, values_to_p2p
+from ..fmap.refine import Refined
 from ..kinds import get_kind
+from ..match_checks import check_unused
 from ..mesh import Mesh
+from ..results import MatchResult
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs
-from .inputs import K_WKS, shape_arrays, shape_item
+from .devices import resolve_device
+from .inputs import K_WKS, SEED_TIMES, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .train import pair_loss
-
-#: Eigenfunctions the ZoomOut refinement of the learned path starts from and grows to
-#: (:func:`refine_p2p`'s ``k0`` and ``k_final``; the published recipe's 50 -> 200).
-REFINE_K_START = 50
-REFINE_K_FINAL = 200
 
 
 def _pair(x: dict, y: dict, device) -> tuple[ShapeBatch, ShapeBatch]:
@@ -121,204 +123,234 @@ def evaluate(
     return float(np.mean(errors))
 
 
-def refine_p2p(
-    mesh_x: Mesh,
-    mesh_y: Mesh,
-    p2p_yx: np.ndarray,
-    k0: int = REFINE_K_START,
-    k_final: int = REFINE_K_FINAL,
-    *,
-    shapes: tuple[PreparedShape, PreparedShape] | None = None,
-) -> np.ndarray:
-    """ZoomOut in the Laplacian eigenbases from a point map: ``p2p_yx`` -> ``C_xy (k0, k0)``
-    -> ``k_final``; returns the refined ``p2p_yx``. Both sizes are capped for small meshes. It
-    is the eigenbasis kind's own refiner (``KINDS['laplacian'].refiner('zoomout')``, that of
-    :func:`torchfmap.match`), point maps by the orthogonal rule (nearest neighbours of ``Φ_y``
-    in ``Φ_x C_xyᵀ``).
-
-    ``shapes``: the meshes prepared once (``prepare_shape(mesh, n)``, unit-area frames, ``n >=
-    k_final`` eigenpairs), to reuse them across pairs and with the network's inputs; prepared
-    here when None.
+def _nearest_rows(
+    query: torch.Tensor, reference: torch.Tensor, *, block_bytes: int = NN_BLOCK_BYTES
+) -> torch.Tensor:
+    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for each row of
+    ``query (M, D)``, on their device and in their dtype: :func:`~torchfmap.fmap.nearest_neighbor`'s
+    brute force (``|r|² - 2 q·r``, ties to the lowest index) in blocks of at most ``block_bytes``
+    of distances, so memory is bounded whatever ``M`` and ``N``.
 
     Raises:
-        ParameterError: ``shapes`` that are not of these meshes, or hold fewer than ``k_final``
-            eigenpairs.
+        ParameterError: not ``(M, D)`` and ``(N, D)`` tensors of one dtype and device.
     """
-    k_final = min(k_final, mesh_x.n_vertices - 1, mesh_y.n_vertices - 1)
-    k0 = min(k0, k_final)
-    if shapes is None:
-        # in each mesh's unit-area frame, so meshes at different scales refine alike
-        shapes = tuple(prepare_shape(m, k_final) for m in (mesh_x, mesh_y))
-    for name, shape, mesh in (("x", shapes[0], mesh_x), ("y", shapes[1], mesh_y)):
-        if (
-            not isinstance(shape, PreparedShape)
-            or shape.mesh.n_vertices != mesh.n_vertices
-            or (shape.n_eigen < k_final)
-        ):
-            raise ParameterError(
-                f"shapes[{name}] must be mesh_{name} prepared with >= {k_final} eigenpairs "
-                f"({mesh.n_vertices} vertices). Fix: prepare_shape(mesh_{name}, {k_final})."
-            )
-    bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
-    C_xy = p2p_to_fmap(p2p_yx, bx, by, k0, k0)
-    refiner = get_kind("laplacian").refiner("zoomout", k_final=k_final, mode="orthogonal")
-    return refiner(C_xy, p2p_yx, *shapes, bx, by).p2p_yx
-
-
-def _prepared(mesh: Mesh, config: TrainConfig, refine: bool) -> tuple[dict, PreparedShape]:
-    """``(dataset item, prepared shape)`` of ``mesh``: one Laplacian and one eigendecomposition,
-    serving the network's inputs and bases and, with ``refine``, ZoomOut."""
-    need = max(config.k, config.k_net, K_WKS, REFINE_K_FINAL if refine else 0)
-    shape = prepare_shape(mesh, min(need, mesh.n_vertices - 1))
-    arrays = shape_arrays(shape, config.k, config.n_wks, k_net=config.k_net, basis=config.basis)
-    item = shape_item(arrays, config.inputs, name=mesh.name or "")
-    return item, shape
-
-
-def _network_p2p(
-    net, solver, loss_fn, items, meshes, *, adapt_steps, adapt_lr, refine, mode, device, shapes,
-) -> np.ndarray:  # fmt: skip
-    """One pair's ``p2p_yx``: adapt (optional), predict, refine (optional)."""
-    if adapt_steps:
-        net = adapt(net, solver, loss_fn, items[0], items[1], steps=adapt_steps, lr=adapt_lr, device=device)
-    p2p = predict_p2p(net, solver, items[0], items[1], mode=mode, device=device)
-    return refine_p2p(meshes[0], meshes[1], p2p, shapes=shapes) if refine else p2p
-
-
-def _refines(refine) -> bool:
-    """Whether a learned map is refined: ``refine`` is ``'zoomout'`` or None, as in
-    :func:`torchfmap.match` (True / False: the older form)."""
-    if refine in (None, False, True, "zoomout"):
-        return bool(refine)
-    raise ParameterError(
-        f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
-    )
-
-
-def _check_inference(adapt_steps: int, mode: str) -> None:
-    if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
-        raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
-    if mode not in ("fmap", "features"):
-        raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
-
-
-def match_with_network(
-    net,
-    config: TrainConfig,
-    mesh_x: Mesh,
-    mesh_y: Mesh,
-    *,
-    adapt_steps: int = 0,
-    adapt_lr: float = 1e-4,
-    refine: str | None = None,
-    mode: str = "fmap",
-    device="cpu",
-    landmarks=None,
-) -> np.ndarray:
-    """``p2p_yx`` of two meshes with a trained network: no dataset folder, no cache.
-
-    Precomputes both shapes as in training (:func:`~torchfmap.nn.inputs.shape_arrays`),
-    optionally adapts the network to the pair (:func:`adapt`), predicts (:func:`predict_p2p`)
-    and, with ``refine='zoomout'`` (the name
-    :func:`torchfmap.match` takes; True is the older form), refines with ZoomOut
-    (:func:`refine_p2p`).
-
-    Raises:
-        ParameterError: ``adapt_steps < 0``, an unknown ``mode`` or refinement, or landmarks
-            (the learned path takes none: the landmark-seeded second stage is
-            :func:`torchfmap.experimental.stages.two_stage_p2p`).
-    """
-    _check_inference(adapt_steps, mode)
-    refine = _refines(refine)
-    if landmarks is not None:
+    if (
+        query.dim() != 2 or reference.dim() != 2 or query.shape[1] != reference.shape[1]
+        or query.dtype != reference.dtype or query.device != reference.device
+    ):  # fmt: skip
         raise ParameterError(
-            "a trained network matches without landmarks. Fix: drop them (--landmarks), or seed the "
-            "second stage with them: torchfmap.experimental.stages.two_stage_p2p."
+            f"query {tuple(query.shape)} ({query.dtype}, {query.device}) and reference "
+            f"{tuple(reference.shape)} ({reference.dtype}, {reference.device}) must be (M, D) and "
+            "(N, D) of one dtype on one device."
         )
-    (ix, sx), (iy, sy) = (_prepared(m, config, refine) for m in (mesh_x, mesh_y))
-    ix["index"], iy["index"] = 0, 1
-    solver, loss_fn = build_solver(config)
-    return _network_p2p(
-        net,
-        solver,
-        loss_fn,
-        (ix, iy),
-        (mesh_x, mesh_y),
-        adapt_steps=adapt_steps,
-        adapt_lr=adapt_lr,
-        refine=refine,
-        mode=mode,
-        device=device,
-        shapes=(sx, sy),
-    )
+    squared = (reference * reference).sum(dim=1)
+    block = max(1, int(block_bytes // (query.element_size() * max(1, len(reference)))))
+    out = torch.empty(len(query), dtype=torch.int64, device=query.device)
+    for start in range(0, len(query), block):
+        q = query[start : start + block]
+        out[start : start + len(q)] = torch.addmm(squared[None, :], q, reference.T, alpha=-2.0).argmin(dim=1)
+    return out
 
 
-class CheckpointMatcher:
-    """Matches pairs of meshes with a trained network, for collections
-    (:func:`torchfmap.collection.evaluate_pairs` ``matcher=``; ``torchfmap eval --checkpoint``).
+def _zoomout_sizes(k: int, k_final: int | None, n_vertices: tuple[int, int]) -> tuple[int, int]:
+    """``(k0, k_final)`` of a learned map's ZoomOut: from the model's ``k`` to ``k_final``
+    (None: ``2k``), both capped at ``V - 1`` of the smaller mesh.
 
-    Calling ``matcher(mesh_x, mesh_y, key_x, key_y)`` returns ``p2p_yx (V_y,)`` as
-    :func:`match_with_network` would, but each mesh is precomputed once (and, with ``refine``,
-    its ZoomOut eigenbasis computed once) per process, keyed by ``key_*`` (e.g. its path). The
-    object pickles as its checkpoint name and settings only, so a process pool or a cluster
-    executor can take it: each process loads the network on its first call and keeps its own
-    shapes.
+    Raises:
+        ParameterError: ``k_final < k``.
+    """
+    if k_final is not None and k_final < k:
+        raise ParameterError(
+            f"k_final={k_final} is below the model's k={k}: ZoomOut grows. Fix: k_final >= {k}."
+        )
+    cap = min(n_vertices) - 1
+    return min(k, cap), min(2 * k if k_final is None else k_final, cap)
+
+
+def _zoomout(p2p_yx: np.ndarray, shapes: tuple[PreparedShape, ...], k0: int, k_final: int) -> Refined:
+    """ZoomOut of ``p2p_yx`` in the shapes' eigenbases, from ``(k0, k0)`` to ``k_final``: the
+    eigenbasis kind's refinement, as :func:`torchfmap.match` refines (the one call site of the
+    learned path)."""
+    bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
+    C_xy = p2p_to_fmap(p2p_yx, bx, by)
+    refiner = get_kind("laplacian").refiner("zoomout", k_final=k_final, mode="orthogonal")
+    return refiner(C_xy, p2p_yx, *shapes, bx, by)
+
+
+class LearnedMatcher:
+    """Matches meshes with a trained network, called like :func:`torchfmap.match`.
+
+    ``matcher(mesh_x, mesh_y)`` returns the :class:`~torchfmap.results.MatchResult` of the pair:
+    each mesh is prepared once (:func:`~torchfmap.prepare_shape`: one Laplacian and one
+    eigendecomposition, float64 on the CPU, serving the network's inputs
+    (:func:`~torchfmap.nn.inputs.shape_arrays`), its basis and ZoomOut); the network (adapted to
+    the pair first when ``adapt_steps > 0``, :func:`adapt`) and the solver run on ``device``,
+    and so does the point map: nearest neighbours of the rows of ``Φ_y`` among those of
+    ``Φ_x C_xyᵀ`` (:func:`_nearest_rows`; the orthogonal rule of
+    :func:`~torchfmap.fmap.fmap_to_p2p`), in float64 from the shapes' float64 basis values.
+
+    Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
+    and its recipe. It keeps nothing between calls: shapes are reused only when the caller
+    passes them (``shapes=``, as :func:`torchfmap.collection.evaluate_pairs` does). It pickles
+    (for a process pool or a cluster executor): one built from a checkpoint as the checkpoint's
+    name and its settings, the network loaded again where it is unpickled.
 
     Args:
-        checkpoint: a path written by ``torchfmap train`` or a shipped model's name
-            (:func:`~torchfmap.nn.shipped.resolve_checkpoint`); read here, so a bad one raises now.
-        adapt_steps, adapt_lr, refine, mode: as :func:`match_with_network`.
+        net: a :class:`~torchfmap.nn.networks.FeatureNetwork` (moved to ``device``).
+        config: its :class:`~torchfmap.nn.TrainConfig` (basis kind and size ``k``, inputs,
+            solver weights).
+        name: what the result's ``model`` names.
+        device: ``'auto'`` / ``'cpu'`` / ``'cuda'`` / a :class:`torch.device`
+            (:func:`~torchfmap.nn.devices.resolve_device`).
+        adapt_steps, adapt_lr: unsupervised test-time adaptation per pair (0: none).
 
     Raises:
-        CorruptFileError, ParameterError: an unreadable checkpoint or an unknown name (as
-            :func:`~torchfmap.nn.checkpoints.load_checkpoint`), ``adapt_steps < 0`` or an
-            unknown ``mode``.
+        ParameterError: ``adapt_steps`` not an integer >= 0, an unknown or absent device, or a
+            network that does not follow the protocol.
     """
 
     def __init__(
         self,
-        checkpoint,
+        net: torch.nn.Module,
+        config: TrainConfig,
         *,
+        name: str = "network",
+        device: str | torch.device | None = "auto",
         adapt_steps: int = 0,
         adapt_lr: float = 1e-4,
-        refine: str | None = None,
-        mode="fmap",
-    ):
-        _check_inference(adapt_steps, mode)
-        refine = _refines(refine)
-        self.checkpoint = checkpoint
-        self.adapt_steps, self.adapt_lr, self.refine, self.mode = adapt_steps, adapt_lr, refine, mode
-        self._model = self._load()
-        self._items: dict = {}
-        self._shapes: dict = {}
+    ) -> None:
+        if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
+            raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
+        check_network(net)
+        self.device_setting = device
+        self.device = resolve_device(device)
+        self.net = net.to(self.device).eval()
+        self.config = config
+        self.name = str(name)
+        self.adapt_steps, self.adapt_lr = int(adapt_steps), float(adapt_lr)
+        self.checkpoint: str | os.PathLike | None = None
+        self.solver, self.loss_fn = build_solver(config)
 
-    def _load(self) -> tuple:
-        net, config, _ = load_checkpoint(self.checkpoint)
-        solver, loss_fn = build_solver(config)
-        return net, config, solver, loss_fn
+    @classmethod
+    def from_checkpoint(
+        cls,
+        name_or_path: str | os.PathLike,
+        *,
+        device: str | torch.device | None = "auto",
+        adapt_steps: int = 0,
+        adapt_lr: float = 1e-4,
+    ) -> LearnedMatcher:
+        """The matcher of a checkpoint written by ``torchfmap train`` or of a shipped model's
+        name (:func:`~torchfmap.nn.shipped.resolve_checkpoint`), read now (its best weights).
+
+        Raises:
+            CorruptFileError, ParameterError: an unreadable checkpoint or an unknown name (as
+                :func:`~torchfmap.nn.checkpoints.load_checkpoint`), or as the constructor.
+        """
+        net, config, _ = load_checkpoint(name_or_path)
+        settings = dict(device=device, adapt_steps=adapt_steps, adapt_lr=adapt_lr)
+        matcher = cls(net, config, name=os.fspath(name_or_path), **settings)
+        matcher.checkpoint = name_or_path
+        return matcher
 
     def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state.update(_model=None, _items={}, _shapes={})  # loaded again in each process
-        return state
+        settings = {"device": self.device_setting, "adapt_steps": self.adapt_steps, "adapt_lr": self.adapt_lr}
+        if self.checkpoint is not None:  # loaded again where it is unpickled
+            return {"checkpoint": self.checkpoint, "settings": settings}
+        net = copy.deepcopy(self.net).cpu()  # a CPU copy: it may be unpickled where there is no GPU
+        return {"net": net, "config": self.config, "settings": {**settings, "name": self.name}}
 
-    def __call__(self, mesh_x: Mesh, mesh_y: Mesh, key_x, key_y) -> np.ndarray:
-        if self._model is None:
-            self._model = self._load()
-        net, config, solver, loss_fn = self._model
-        for key, mesh in ((key_x, mesh_x), (key_y, mesh_y)):
-            if key not in self._items:
-                self._items[key], self._shapes[key] = _prepared(mesh, config, self.refine)
-        return _network_p2p(
-            net,
-            solver,
-            loss_fn,
-            (self._items[key_x], self._items[key_y]),
-            (mesh_x, mesh_y),
-            adapt_steps=self.adapt_steps,
-            adapt_lr=self.adapt_lr,
-            refine=self.refine,
-            mode=self.mode,
-            device="cpu",
-            shapes=(self._shapes[key_x], self._shapes[key_y]),
+    def __setstate__(self, state: dict) -> None:
+        if "checkpoint" in state:
+            loaded = LearnedMatcher.from_checkpoint(state["checkpoint"], **state["settings"])
+            self.__dict__.update(loaded.__dict__)
+        else:
+            self.__init__(state["net"], state["config"], **state["settings"])
+
+    def __repr__(self) -> str:
+        return (
+            f"LearnedMatcher({self.name!r}, k={self.config.k}, basis={self.config.basis!r}, "
+            f"device={str(self.device)!r}, adapt_steps={self.adapt_steps})"
         )
+
+    def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
+        """``(dataset item, solver basis)`` of one prepared shape: the network's arrays
+        (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) and the float64
+        basis the map is solved in (the same kind's ``shape_basis`` shape_arrays reads)."""
+        cfg = self.config
+        arrays = shape_arrays(shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
+        dtype = next(self.net.parameters()).dtype
+        item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
+        return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES)
+
+    def __call__(
+        self,
+        mesh_x: Mesh,
+        mesh_y: Mesh,
+        *,
+        refine: str | None = None,
+        k_final: int | None = None,
+        shapes: tuple[PreparedShape, PreparedShape] | None = None,
+    ) -> MatchResult:
+        """The map ``y -> x`` of the pair: ``p2p_yx (V_y,)``, ``C_xy`` and the bases it lives in
+        (the model's basis of ``k`` columns; with ZoomOut the eigenbases of ``k_final``),
+        ``p2p_yx_initial`` (the network's map), ``kind`` (the model's basis kind), ``model``
+        (``name``) and ``timings`` (seconds: ``prepare``, ``adapt``, ``network+fmap``, ``p2p``,
+        ``refine``).
+
+        Args:
+            refine: ``'zoomout'`` (from the network's map, in the eigenbases, from the model's
+                ``k`` eigenfunctions to ``k_final``; default ``2k``; both capped at ``V - 1`` of
+                the smaller mesh) or None.
+            shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse across
+                pairs (their eigenbases are grown in place when the call needs more).
+
+        Raises:
+            ParameterError: another refinement, ``k_final`` without ZoomOut or below ``k``,
+                ``shapes`` not of these meshes, or meshes too small for the model's ``k``.
+        """
+        if refine not in (None, "zoomout"):
+            raise ParameterError(
+                f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
+            )
+        check_unused(get_kind("laplacian"), refine, k_final, None)
+        cfg = self.config
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
+        k0, k_final = _zoomout_sizes(cfg.k, k_final, sizes) if refine else (cfg.k, None)
+        need = min(max(cfg.k, cfg.k_net, K_WKS, k_final or 0), min(sizes) - 1)  # one eigendecomposition
+        if shapes is None:
+            shapes = (prepare_shape(mesh_x, need), prepare_shape(mesh_y, need))
+        else:
+            shapes = tuple(with_eigenpairs(s, need) for s in check_prepared(shapes, (mesh_x, mesh_y)))
+        (ix, bx), (iy, by) = (self._items(s, i) for i, s in enumerate(shapes))
+        timings["prepare"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        net = self.net
+        if self.adapt_steps:
+            net = adapt(net, self.solver, self.loss_fn, ix, iy, steps=self.adapt_steps, lr=self.adapt_lr,
+                        device=self.device)  # fmt: skip
+        timings["adapt"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            sx, sy = _pair(ix, iy, self.device)
+            solver = self.solver.to(self.device)
+            C = _solve_xy(solver, features(net, sx), features(net, sy), sx.basis, sy.basis)[0]
+        timings["network+fmap"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        C = C.to(torch.float64)
+        phi_x, phi_y = (torch.as_tensor(b.values, dtype=torch.float64, device=self.device) for b in (bx, by))
+        p2p = _nearest_rows(phi_y, phi_x @ C.T).cpu().numpy()
+        C_xy = C.cpu().numpy()
+        timings["p2p"] = time.perf_counter() - t0
+        result = MatchResult(p2p, C_xy, bx, by, p2p, timings, kind=cfg.basis, model=self.name)
+        if refine is None:
+            return result
+        t0 = time.perf_counter()
+        refined = _zoomout(p2p, shapes, k0, k_final)
+        timings["refine"] = time.perf_counter() - t0
+        return MatchResult(
+            refined.p2p_yx, refined.C_xy, refined.basis_x, refined.basis_y, p2p, timings, kind=cfg.basis,
+            refined=True, model=self.name,
+        )  # fmt: skip

@@ -18,7 +18,7 @@ another shape, dtype or device (:func:`features`).
 **Checkpoints** record the network's class (``module:qualname``) and its constructor
 arguments, so :func:`~torchfmap.nn.checkpoints.load_checkpoint` can rebuild it. A network gives
 its arguments as an ``init_kwargs`` dict attribute (plain values only: numbers, strings, bools,
-None, lists, tuples and dicts of those), as :class:`DiffusionNet` and :class:`FeatureNet` do,
+None, lists, tuples and dicts of those), as :class:`DiffusionNet` does,
 or the caller passes ``net_kwargs`` to :func:`~torchfmap.nn.checkpoints.save_checkpoint`.
 """
 
@@ -200,46 +200,4 @@ class DiffusionNet(nn.Module):
         h = self.lift(inputs)
         for block in self.blocks:
             h = block(h, basis, grad)
-        return self.head(h)
-
-
-class FeatureNet(nn.Module):
-    """The first learned path's network (kept as a baseline: ``bench/train_step.py``): spectral
-    diffusion in any basis and MLPs, no gradient features.
-
-    ``forward(inputs (B, V, C_in), basis, grad=None) -> (B, V, C_out)`` (the
-    :class:`FeatureNetwork` protocol; ``grad`` is ignored): a linear lift, ``n_blocks`` residual
-    blocks of [learned spectral diffusion, MLP on (x, diffused x)], a linear head. ``check``:
-    refuse non-finite inputs (a data check; None: on CPU inputs only). ``init_kwargs`` holds the
-    constructor arguments.
-    """
-
-    def __init__(
-        self, c_in: int, c_out: int = 64, width: int = 64, n_blocks: int = 3, check: bool | None = None
-    ) -> None:
-        super().__init__()
-        self.init_kwargs = dict(c_in=c_in, c_out=c_out, width=width, n_blocks=n_blocks, check=check)
-        self.check = check
-        self.lift = nn.Linear(c_in, width)
-        self.diffusions = nn.ModuleList(SpectralDiffusion(width) for _ in range(n_blocks))
-        self.mlps = nn.ModuleList(
-            nn.Sequential(nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, width))
-            for _ in range(n_blocks)
-        )
-        self.head = nn.Linear(width, c_out)
-
-    def forward(
-        self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch | None = None
-    ) -> torch.Tensor:
-        """``inputs (B, V, C_in)`` -> features ``(B, V, C_out)`` in ``inputs``' dtype.
-
-        Raises:
-            ParameterError: with ``check``, non-finite inputs.
-        """
-        basis = F.basis_like(basis, inputs)
-        if resolve_check(self.check, inputs):
-            check_finite(inputs, "FeatureNet inputs", "check the precomputed inputs.")
-        h = self.lift(inputs)
-        for diffuse, mlp in zip(self.diffusions, self.mlps, strict=True):
-            h = h + mlp(torch.cat([h, diffuse(h, basis)], dim=-1))
         return self.head(h)

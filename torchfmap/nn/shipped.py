@@ -1,7 +1,8 @@
 """Pretrained models shipped in the package (``torchfmap/nn/models/*.ckpt``), resolved by name.
 
-``torchfmap match --checkpoint faust_r``, :func:`~torchfmap.nn.checkpoints.load_checkpoint`
-and ``torchfmap eval --checkpoint`` take a shipped name wherever they take a path; a file of
+``torchfmap match --checkpoint faust_r``, ``torchfmap eval --checkpoint``,
+:meth:`~torchfmap.nn.LearnedMatcher.from_checkpoint` and
+:func:`~torchfmap.nn.checkpoints.load_checkpoint` take a shipped name wherever they take a path; a file of
 that name in the working directory wins over the shipped model. Each shipped checkpoint holds
 its ``provenance`` (command, data, commit, validation score); ``torchfmap models`` lists them.
 Nothing is downloaded: the files are in the package.
