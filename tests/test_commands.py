@@ -532,3 +532,20 @@ def test_cli_eval_and_info_edge_cases(tmp_path, capsys):
     assert "does not hold" in capsys.readouterr().err
     tet = Mesh(np.eye(4, 3) + [0.1, 0.2, 0.3], [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
     assert main(["info", str(save_mesh(tet, tmp_path / "tet.off"))]) == 0
+
+
+def test_eval_pairs_protocol_is_chosen_and_said_in_the_footer(tmp_path, sphere2, capsys):
+    from torchfmap import save_mesh
+
+    for name in ("a", "b", "c"):
+        save_mesh(sphere2, tmp_path / f"{name}.off")
+    assert main(["eval", str(tmp_path), "--k", "6", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("| a | b |") + out.count("| b | c |") == 2 and "| a | c |" not in out
+    assert "Pairs: 2 consecutive pairs of 3 meshes in name order (of 6 ordered pairs: --pairs all" in out
+    assert main(["eval", str(tmp_path), "--k", "6", "--pairs", "all", "--max-pairs", "4", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("\n| ") - out.count("| **all**") == 4  # pair rows (the header opens the output)
+    assert "Pairs: all 6 ordered pairs of 3 meshes, the first 4 (--max-pairs)." in out
+    assert main(["eval", str(tmp_path), "--pairs", "every", "--quiet"]) == 2
+    assert "neither a protocol nor an existing file" in capsys.readouterr().err

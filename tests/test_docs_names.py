@@ -1,4 +1,4 @@
-"""README.md and ARCHITECTURE.md against the code: every name they cite in backticks that looks
+"""README.md and docs/*.md against the code: every name they cite in backticks that looks
 like code (a dotted path, a call, a class or a constant) exists in torchfmap (or is an external
 library's, a builtin, or a field of the object it is read from)."""
 
@@ -17,7 +17,7 @@ import pytest
 import torchfmap
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", ROOT / "ARCHITECTURE.md"]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: Prefixes of names that belong to other libraries (or to Python / math notation).
 EXTERNAL = {
     "torch", "np", "numpy", "scipy", "trimesh", "potpourri3d", "pymeshlab", "plotly", "matplotlib",

@@ -1,5 +1,5 @@
-"""The README runs: every ``python`` block (each on its own, in a fresh namespace: a reader may
-paste any one) and every ``bash`` block (each line through the shell, from a copy of the repository's
+"""The README and the guides in docs/ run: every ``python`` block (each on its own, in a fresh
+namespace: a reader may paste any one) and every ``bash`` block (each line through the shell, from a copy of the repository's
 layout), verbatim. A block preceded by ``<!-- readme-test: skip: REASON -->`` is not run (an
 install, the test command itself, minutes-long training or benchmarks); a block that reads
 ``../shared/data`` skips when that folder is absent."""
@@ -19,10 +19,18 @@ SHARED = REPO.parent / "shared"
 BLOCK = re.compile(r"(<!-- readme-test: skip: (?P<why>.*?) -->\n)?```(?P<lang>\w+)\n(?P<body>.*?)```", re.S)
 
 
+#: The documents whose blocks run: the README first, then the guides (a guide's block may use
+#: a file an earlier README block wrote).
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+
+
 def readme_blocks() -> list[tuple[str, str, str | None]]:
-    """``(language, code, skip reason or None)`` of every fenced block, in order."""
-    text = (REPO / "README.md").read_text(encoding="utf-8")
-    return [(m["lang"], m["body"], m["why"]) for m in BLOCK.finditer(text)]
+    """``(language, code, skip reason or None)`` of every fenced block of :data:`DOCS`, in order."""
+    blocks = []
+    for doc in DOCS:
+        text = doc.read_text(encoding="utf-8")
+        blocks += [(m["lang"], m["body"], m["why"]) for m in BLOCK.finditer(text)]
+    return blocks
 
 
 def shell_commands(body: str) -> list[str]:

@@ -25,7 +25,7 @@ OPTIONAL_IMPORTS = {
     "pymeshlab",
     "plotly",
 }
-#: Most lines a module of torchfmap may have (ARCHITECTURE.md rule 7: split at ~400).
+#: Most lines a module of torchfmap may have (docs/architecture.md rule 7: split at ~400).
 MAX_MODULE_LINES = 450
 #: Shared checks and file helpers: the only module allowed to define each name.
 HOMES = {
@@ -276,7 +276,7 @@ def test_modules_are_short():
         if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
     }
     assert not long, (
-        f"modules over {MAX_MODULE_LINES} lines (split them by concept, ARCHITECTURE.md rule 7): "
+        f"modules over {MAX_MODULE_LINES} lines (split them by concept, docs/architecture.md rule 7): "
         + ", ".join(f"{m} ({n})" for m, n in sorted(long.items()))
     )
 
@@ -445,7 +445,7 @@ def test_operator_numerics_live_in_operators_and_stay_importable_from_bases():
 CONCEPT_TESTS = {
     "test_structure.py": "the package's structure: the import DAG, lazy imports, module sizes, one home "
     "per shared helper, error classes in one module, and this layout of the tests",
-    "test_docs_names.py": "README.md and ARCHITECTURE.md against the code: every name they cite exists",
+    "test_docs_names.py": "README.md and docs/*.md against the code: every name they cite exists",
     "test_readme.py": "the README's code blocks run as a reader would paste them",
     "test_api_coverage.py": "every public callable of every package is exercised by some test file",
     "test_properties.py": "property-based runs (hypothesis) of random meshes through the eigenbasis, "
@@ -513,7 +513,7 @@ def test_tests_mirror_the_package(tmp_path):
 
 
 #: Public callables whose parameter ``kind`` is a basis kind: the word's one meaning
-#: (ARCHITECTURE.md, "One word, one meaning"). Any other choice has its own word.
+#: (docs/architecture.md, "One word, one meaning"). Any other choice has its own word.
 BASIS_KIND_PARAMETERS = {
     "torchfmap.kinds.registry.register_kind",
     "torchfmap.kinds.hybrid.hybrid_zoomout",

@@ -20,7 +20,7 @@ from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
 from .errors import TorchFmapError
-from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve
+from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve, select_pairs
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .kinds import get_kind
 from .operators import GeodesicSolver, available_backends, laplacian
@@ -298,7 +298,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     settings, title = _eval_method(args)
     # absolute paths: workers of a cluster may run in another folder
     identity = {None: None, "identity": True, "files": False}[args.gt]
-    pairs = list(discover_pairs(Path(args.folder).resolve(), identity))[: args.max_pairs or None]
+    folder = Path(args.folder).resolve()
+    _, protocol = select_pairs(folder, args.pairs)  # refuses a bad --pairs before any work
+    pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
+    if args.max_pairs and len(pairs) == args.max_pairs:
+        protocol += f", the first {len(pairs)} (--max-pairs)"
     results = evaluate_pairs(
         pairs,
         max_points=args.max_points,
@@ -322,7 +326,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     errors = np.concatenate(all_errors)
     print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
     print(
-        f"\n{title}. Errors: geodesic distance on the source to the true match / sqrt(area); AUC: "
+        f"\n{title}. Pairs: {protocol}. Errors: geodesic distance on the source to the true match "
+        "/ sqrt(area); AUC: "
         "area under the PCK curve up to 0.25; coverage: fraction of source vertices the map "
         "reaches; time: matching only (preparing shapes and scoring excluded)."
     )
