@@ -1,8 +1,9 @@
 """The README and the guides in docs/ run: every ``python`` block (each on its own, in a fresh
-namespace: a reader may paste any one) and every ``bash`` block (each line through the shell, from a copy of the repository's
-layout), verbatim. A block preceded by ``<!-- readme-test: skip: REASON -->`` is not run (an
-install, the test command itself, minutes-long training or benchmarks); a block that reads
-``../shared/data`` skips when that folder is absent."""
+namespace: a reader may paste any one) and every ``bash`` block (each line through the shell,
+from a copy of the repository's layout), verbatim. A block preceded by
+``<!-- readme-test: skip: REASON -->`` is not run (an install, the test command itself,
+minutes-long training or benchmarks); a block that reads ``../shared/data`` skips when that
+folder is absent."""
 
 from __future__ import annotations
 
