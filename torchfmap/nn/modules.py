@@ -258,7 +258,7 @@ class UnsupervisedFMLoss(nn.Module):
         if generator is None:
             raise ParameterError(
                 f"the coupling term samples {self.n_samples} random vertices and needs a generator. Fix: "
-                "loss(..., generator=torch.Generator().manual_seed(0)) (train() passes its own), or "
+                "loss(..., generator=torch.Generator().manual_seed(0)) (the Trainer passes its own), or "
                 "n_samples=0."
             )
         idx = torch.randperm(V, generator=generator, device=generator.device)[: self.n_samples]
