@@ -263,13 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="use N ground-truth pairs per pair as landmarks (0: none)",
     )
-    p.add_argument(
-        "--pairs",
-        default="auto",
-        metavar="auto|consecutive|all|FILE",
-        help="which pairs: the folder's test_pairs.txt, else consecutive meshes (auto); mesh i -> i+1 "
-        "in name order (consecutive); every ordered pair (all); or a file of 'source target' lines",
-    )
+    pairs = "which pairs: test_pairs.txt else consecutive (auto); i -> i+1 by name; all ordered; a file"
+    p.add_argument("--pairs", default="auto", metavar="auto|consecutive|all|FILE", help=pairs)
     p.add_argument("--max-pairs", type=count, default=0, help="at most this many pairs (0: all)")
     p.add_argument(
         "--max-points",
