@@ -4,8 +4,10 @@ sizes, as ``torchfmap basis SRC TGT --landmarks`` writes them for any real pair.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from torchfmap import match, prepare_shape
+from torchfmap import Mesh, ParameterError, match, prepare_shape
+from torchfmap.match_checks import check_meshes
 from torchfmap.pipeline import match_bases
 from torchfmap.seeds import farthest_point_sampling
 
@@ -23,3 +25,17 @@ def test_given_bases_of_meshes_of_different_sizes_solve_and_refine():
     result = match(x, y, bases=(bx, by), refine="icp")
     assert result.p2p_yx.shape == (y.n_vertices,) and result.kind == "diffusion"
     assert result.p2p_yx.max() < x.n_vertices
+
+
+def test_what_is_not_a_mesh_is_named_with_how_to_make_one(tmp_path):
+    x = bumpy_blob(1)
+    with pytest.raises(ParameterError, match=r"mesh_x is a str, not a torchfmap Mesh.*load_mesh\('a.off'\)"):
+        match("a.off", x)
+    with pytest.raises(ParameterError, match=r"mesh_y is a PosixPath.*load_mesh"):
+        check_meshes(x, tmp_path / "b.off")
+    soup = type("Trimeshish", (), {"vertices": x.vertices, "faces": x.faces})()
+    with pytest.raises(ParameterError, match=r"Mesh\(m.vertices, m.faces\)"):
+        check_meshes(soup, x)
+    with pytest.raises(ParameterError, match=r"is a ndarray.*Mesh\(vertices \(V, 3\), faces"):
+        check_meshes(x.vertices, x)
+    check_meshes(x, Mesh(x.vertices, x.faces))  # meshes pass

@@ -182,8 +182,9 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             return cloud, np.zeros((0, 3), dtype=np.int64)
         if n := len(cloud):
             raise MeshError(
-                f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh. Fix: "
-                f"read it with torchfmap.io.load_points({path.name!r}) and build its operators with "
+                f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh, and matching "
+                "needs a triangle mesh. Fix: mesh it first (e.g. screened Poisson reconstruction in "
+                f"MeshLab); its operators alone come from torchfmap.io.load_points({path.name!r}) and "
                 "laplacian(points, scheme='robust')."
             )
     return vertices, faces

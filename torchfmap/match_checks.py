@@ -4,6 +4,7 @@ correspond, their kind)."""
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import numpy as np
@@ -12,6 +13,25 @@ from .bases import Basis
 from .errors import MapWarning, ParameterError
 from .kinds import BasisKind, get_kind, kind_of
 from .mesh import Mesh
+
+
+def check_meshes(mesh_x, mesh_y) -> None:
+    """Refuse inputs that are not :class:`~torchfmap.Mesh` objects, naming how to make one (a
+    path is loaded with ``load_mesh``; vertex and face arrays become ``Mesh(vertices, faces)``).
+
+    Raises:
+        ParameterError: ``mesh_x`` or ``mesh_y`` is not a Mesh.
+    """
+    for mesh, name in ((mesh_x, "mesh_x"), (mesh_y, "mesh_y")):
+        if isinstance(mesh, Mesh):
+            continue
+        if isinstance(mesh, (str, os.PathLike)):
+            fix = f"load it first: torchfmap.load_mesh({str(mesh)!r})"
+        elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            fix = "wrap it: torchfmap.Mesh(m.vertices, m.faces) (vertex order is kept)"
+        else:
+            fix = "torchfmap.load_mesh(path) or torchfmap.Mesh(vertices (V, 3), faces (F, 3))"
+        raise ParameterError(f"{name} is a {type(mesh).__name__}, not a torchfmap Mesh. Fix: {fix}.")
 
 
 def check_unused(kind: BasisKind, refine, k_final, times) -> None:

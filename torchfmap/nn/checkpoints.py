@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from .._files import load_checked_bytes, save_checked_bytes
+from .._files import CHECKED_MAGIC, load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
 from .config import RETIRED_FIELDS, TrainConfig, build_model, network_kwargs
 from .networks import DiffusionNet
@@ -126,6 +126,24 @@ def save_checkpoint(
     return save_checked_bytes(path, buffer.getvalue())
 
 
+def _refuse_foreign(file) -> None:
+    """A file without torchfmap's header (e.g. another project's ``torch.save``): said as such,
+    with what to do with foreign weights (unreadable files are left to the verified reader)."""
+    try:
+        with open(file, "rb") as fh:
+            head = fh.read(len(CHECKED_MAGIC))
+    except OSError:
+        return
+    if head != CHECKED_MAGIC:
+        raise CorruptFileError(
+            f"{str(file)!r} is not a torchfmap checkpoint: it lacks the header torchfmap writes (a "
+            "file of torch.save, such as another project's weights?). Nothing in it was read. Fix: "
+            "a checkpoint of `torchfmap train` or save_checkpoint(); for foreign weights, load them "
+            "into your network yourself (net.load_state_dict(torch.load(path, weights_only=True))) "
+            "and match with LearnedMatcher(net, config)."
+        )
+
+
 def read_checkpoint(path, map_location="cpu") -> dict:
     """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
     and plain containers only: a file cannot run code). ``path`` may be a shipped model's name
@@ -138,6 +156,7 @@ def read_checkpoint(path, map_location="cpu") -> dict:
         ParameterError: neither a file nor a shipped name.
     """
     file = resolve_checkpoint(path)
+    _refuse_foreign(file)
     payload = load_checked_bytes(file, "checkpoint")
     fix = "Fix: pass a file written by `torchfmap train` or save_checkpoint()."
     try:
