@@ -39,3 +39,29 @@ def test_what_is_not_a_mesh_is_named_with_how_to_make_one(tmp_path):
     with pytest.raises(ParameterError, match=r"is a ndarray.*Mesh\(vertices \(V, 3\), faces"):
         check_meshes(x.vertices, x)
     check_meshes(x, Mesh(x.vertices, x.faces))  # meshes pass
+
+
+def _cut(mesh: Mesh, axis: int = 2) -> Mesh:
+    """The faces of ``mesh`` above the plane through its centroid (a part, vertices re-indexed)."""
+    keep = mesh.vertices[mesh.faces].mean(axis=1)[:, axis] > mesh.vertices[:, axis].mean()
+    part, _ = Mesh(mesh.vertices, mesh.faces[keep], allow_unreferenced=True).referenced()
+    return part
+
+
+def test_a_part_matched_to_a_whole_shape_is_warned_with_the_fix():
+    import warnings
+
+    from torchfmap.errors import MapWarning
+    from torchfmap.match_checks import boundary_length, warn_if_partial
+
+    whole, part = bumpy_blob(2), _cut(bumpy_blob(2))
+    assert boundary_length(whole) == 0 and boundary_length(part) > 1.0
+    assert boundary_length(part.scaled(30.0)) == pytest.approx(boundary_length(part))  # scale-free
+    with pytest.warns(MapWarning, match=r"mesh_y looks partial: its boundary is .* ratio 0\.\d+.*landmarks"):
+        match(whole, part, k=8)
+    with pytest.warns(MapWarning, match="mesh_x looks partial"):
+        warn_if_partial(part, whole)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MapWarning)
+        warn_if_partial(whole, whole.scaled(3.0))  # whole shapes, any units: no word
+        warn_if_partial(part, _cut(bumpy_blob(2), axis=1))  # two parts: no word either

@@ -34,6 +34,40 @@ def check_meshes(mesh_x, mesh_y) -> None:
         raise ParameterError(f"{name} is a {type(mesh).__name__}, not a torchfmap Mesh. Fix: {fix}.")
 
 
+#: A mesh whose boundary is at least this long (in units of ``sqrt(area)``) looks cut: a closed
+#: shape has none, small holes of scans a few hundredths, a plane cut through a body about 1.
+PARTIAL_BOUNDARY = 0.5
+
+
+def boundary_length(mesh: Mesh) -> float:
+    """Total length of ``mesh``'s boundary edges over ``sqrt(area)`` (scale-free; 0 if closed)."""
+    edges = mesh.boundary_edges
+    if not len(edges):
+        return 0.0
+    lengths = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
+    return float(lengths.sum() / np.sqrt(mesh.area))
+
+
+def warn_if_partial(mesh_x: Mesh, mesh_y: Mesh, *, stacklevel: int = 3) -> None:
+    """Warn (:class:`~torchfmap.errors.MapWarning`) when one mesh looks like a part of the other
+    (a long boundary, :data:`PARTIAL_BOUNDARY`, where the other has little): a full-shape
+    functional map assumes both shapes whole, and its map of a part can be near-random. The
+    warning gives the boundary lengths and the area ratio, and what helps."""
+    bx, by = boundary_length(mesh_x), boundary_length(mesh_y)
+    which, cut, other = ("mesh_y", by, bx) if by >= bx else ("mesh_x", bx, by)
+    if cut < PARTIAL_BOUNDARY or other > 0.5 * cut:
+        return
+    ratio = min(mesh_x.area, mesh_y.area) / max(mesh_x.area, mesh_y.area)
+    warnings.warn(
+        f"{which} looks partial: its boundary is {cut:.2f} sqrt(area) long against {other:.2f} for the "
+        f"other mesh (area ratio {ratio:.2f}, if both are in the same units). A full-shape map "
+        "assumes both shapes whole; on a part it can be near-random. Fix: give a few landmarks "
+        "(landmarks=..., --landmarks), which anchor the map on the part.",
+        MapWarning,
+        stacklevel=stacklevel,
+    )
+
+
 def check_unused(kind: BasisKind, refine, k_final, times) -> None:
     """Refuse settings that would change nothing in this call (a silent no-op misleads)."""
     if k_final is not None and refine != "zoomout":

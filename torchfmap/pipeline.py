@@ -28,7 +28,7 @@ from .fmap import check_landmark_pairs, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_eigenbases, check_refine
-from .match_checks import check_k_final, check_meshes, check_unused, given_bases_kind
+from .match_checks import check_k_final, check_meshes, check_unused, given_bases_kind, warn_if_partial
 from .mesh import Mesh
 from .quality import OFF_BY_ONE_RATIO, geodesic_distortion, landmark_distortion, warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
@@ -302,6 +302,7 @@ def match(
     """
     t0 = time.perf_counter()
     check_meshes(mesh_x, mesh_y)
+    warn_if_partial(mesh_x, mesh_y)
     refine = check_refine(refine)
     pairs = None
     if landmarks is not None and len(np.atleast_1d(landmarks)):

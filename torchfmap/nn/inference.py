@@ -19,7 +19,7 @@ from ..eval import geodesic_errors
 from ..fmap.convert import NN_BLOCK_BYTES, nearest_neighbor, p2p_to_fmap, values_to_p2p
 from ..fmap.refine import Refined
 from ..kinds import get_kind
-from ..match_checks import check_meshes, check_unused
+from ..match_checks import check_meshes, check_unused, warn_if_partial
 from ..mesh import Mesh
 from ..results import MatchResult
 from .checkpoints import load_checkpoint
@@ -311,6 +311,7 @@ class LearnedMatcher:
                 ``shapes`` not of these meshes, or meshes too small for the model's ``k``.
         """
         check_meshes(mesh_x, mesh_y)
+        warn_if_partial(mesh_x, mesh_y)
         if refine not in (None, "zoomout"):
             raise ParameterError(
                 f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
