@@ -181,3 +181,43 @@ def test_models_command_lists_the_shipped_models(capsys):
     out = capsys.readouterr().out
     assert out.startswith("faust_r") and "command: torchfmap train" in out and "validation:" in out
     assert "torchfmap models --recipe faust_r" in out
+
+
+def test_the_validation_loss_is_explained_against_the_untrained_network_and_an_unmoved_one_warned(
+    tiny_folder, tmp_path, capsys
+):
+    """The summary says what the score is and the untrained reference (validated at step 0);
+    with a learning rate of 1e-12 nothing moves, and a warning says so with the fix."""
+    ckpt = tmp_path / "model.ckpt"
+    args = ["train", str(tiny_folder), "--out", str(ckpt), "--k", "8", "--no-cache", "--max-steps", "2"]
+    assert main([*args, "--validate-every", "1", "--validate-pairs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "best validation loss" in out and "the unsupervised loss on 2 fixed training pairs" in out
+    assert "untrained" in out and "% lower)" in out
+    scores = read_checkpoint(ckpt)["train_state"]["scores"]
+    assert [step for step, _ in scores] == [0, 1, 2]  # the untrained network's score first
+    assert main([*args, "--validate-every", "1", "--lr", "1e-12", "--out", str(tmp_path / "still.ckpt")]) == 0
+    err = capsys.readouterr().err
+    assert "lowered the validation loss only from" in err and "Fix: train longer" in err
+
+
+def test_a_checkpoint_exists_before_the_first_step(tmp_path, monkeypatch):
+    """Interrupted before its first step, training has still left a whole, resumable checkpoint."""
+    from torchfmap.nn import Trainer
+
+    folder = tmp_path / "two"
+    folder.mkdir()
+    x = bumpy_blob(2)
+    for i, s in enumerate((0.1, 0.3)):
+        save_mesh(x.copy(bend(x.vertices, s)), folder / f"b{i}.off")
+
+    def interrupt(self, batch):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "step", interrupt)
+    ckpt = tmp_path / "m.ckpt"
+    args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--max-steps", "5", "--k", "8"]
+    assert main(args) == 130
+    assert read_checkpoint(ckpt)["train_state"]["step"] == 0
+    monkeypatch.undo()
+    assert main([*args, "--resume"]) == 0 and read_checkpoint(ckpt)["train_state"]["step"] == 5

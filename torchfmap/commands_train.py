@@ -93,7 +93,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
     pairs = class_pairs(shapes.names, within=args.pairs == "classes")
-    validate = None
+    validate, picked = None, []
     if args.validate_every:  # the unsupervised loss (full soft maps) on a fixed spread of training pairs
         picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
         validate = unsupervised_score(shapes, picked, *build_solver(config), device=device)
@@ -114,10 +114,36 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(interrupted, file=sys.stderr)
         return 130
     last = state.losses[-1]["total"] if state.losses else float("nan")
-    best = f"; best validation score {state.best_score:.4g}" if state.scores else ""
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
-    say(f"{summary}{best} -> {args.out}")
+    say(f"{summary}{_validation_summary(state, len(picked))} -> {args.out}")
     return 0
+
+
+#: A trained network whose best validation loss is above this fraction of the untrained one has
+#: barely moved: ``train`` warns.
+UNMOVED = 0.9
+
+
+def _validation_summary(state, n_pairs: int) -> str:
+    """What the validation score means, against the untrained network's (step 0); warns on
+    stderr when training did not move it."""
+    if not state.scores:
+        return ""
+    text = (
+        f"; best validation loss {state.best_score:.4g} (the unsupervised loss on {n_pairs} fixed "
+        "training pairs, lower is better"
+    )
+    untrained = state.scores[0][1] if state.scores[0][0] == 0 else None
+    if untrained is None or not untrained > 0:
+        return text + ")"
+    if state.best_score > UNMOVED * untrained:
+        print(
+            f"torchfmap: warning: training lowered the validation loss only from {untrained:.4g} "
+            f"(untrained) to {state.best_score:.4g}: the network is close to untrained and its maps "
+            "will be too. Fix: train longer (--minutes / --epochs), or check the meshes and --pairs.",
+            file=sys.stderr,
+        )
+    return text + f"; untrained {untrained:.4g}, {100 * (1 - state.best_score / untrained):.0f} % lower)"
 
 
 def _fit_or_interrupted(trainer, progress: bool):

@@ -87,13 +87,13 @@ def test_from_config_reads_the_recipe_whole_and_resume_continues_the_run(tmp_pat
 def test_validation_keeps_the_best_weights_and_step_returns_the_terms(tmp_path):
     files = _two_blobs(tmp_path / "m")
     shapes = ShapeDataset(files, False, **TINY.dataset_kwargs(), progress=False)
-    scores = iter([3.0, 1.0, 2.0])
+    scores = iter([5.0, 3.0, 1.0, 2.0])  # the untrained network's at step 0, then one a step
     trainer = Trainer.from_config(
         TINY.with_budget(Budget(steps=3)), shapes, device="cpu", validate=lambda net: next(scores),
         validate_every=1, checkpoint=tmp_path / "v.ckpt",
     )  # fmt: skip
     state = trainer.fit(progress=False)
-    assert [s for _, s in state.scores] == [3.0, 1.0, 2.0] and state.best_score == 1.0
+    assert state.scores == [(0, 5.0), (1, 3.0), (2, 1.0), (3, 2.0)] and state.best_score == 1.0
     best = read_checkpoint(tmp_path / "v.ckpt")["best_state_dict"]
     assert any(not torch.equal(best[k], v) for k, v in trainer.net.state_dict().items())
     batch = next(iter(trainer.loader))

@@ -262,6 +262,9 @@ class Trainer:
         self.draws.manual_seed(self.config.seed + state.epoch)
         self._t_start = time.perf_counter() - state.seconds
         self.net.train()
+        if state.step == 0 and not state.scores:
+            self.validate()  # the untrained network's score: the reference a trained one is read against
+        self.save()  # a whole, resumable checkpoint from the start, before the first step
         stop = self.out_of_budget()
         by_time, bar = self._bar(progress)
         last_tick = state.seconds
