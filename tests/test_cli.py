@@ -115,3 +115,16 @@ def test_cli_output_paths_are_checked_before_the_work(tmp_path, sphere2, capsys)
     for out, message in ((tmp_path / "missing" / "m.txt", "no folder"), (tmp_path, "is a folder")):
         code = main(["match", path, path, "--k", "5", "--out", str(out)])
         assert code == 2 and message in capsys.readouterr().err
+
+
+def test_match_out_dash_writes_the_map_to_stdout_and_status_to_stderr(tmp_path, capsys, monkeypatch):
+    from torchfmap.data import demo_pair_paths
+
+    monkeypatch.chdir(tmp_path)
+    a, b, _ = demo_pair_paths()
+    assert main(["match", str(a), str(b), "--k", "10", "--out", str(tmp_path / "m.txt"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["match", str(a), str(b), "--k", "10", "--out", "-"]) == 0
+    out, err = capsys.readouterr()
+    assert out == (tmp_path / "m.txt").read_text() and "-> stdout" in err
+    assert not (tmp_path / "-").exists()

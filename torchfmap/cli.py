@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-components", action="store_true", help="accept meshes with several connected components"
     )
-    p.add_argument("--out", required=True, help="output: line i = source vertex of target vertex i (0-based)")
+    p.add_argument("--out", required=True, help="map file: line i = source of target vertex i; -: stdout")
     p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
     p.add_argument(
         "--html",
@@ -398,6 +398,7 @@ def check_outputs(args: argparse.Namespace) -> None:
     folder, an existing folder as the file; ``--png`` without matplotlib, ``--html`` without
     plotly installed."""
     values = [(flag, v) for flag in ("out", "png", "html") for v in _as_list(getattr(args, flag, None))]
+    values = [(flag, v) for flag, v in values if not (flag == "out" and v == "-" and args.command == "match")]
     for flag, value in values:
         path = os.path.abspath(value)
         folder = os.path.dirname(path)

@@ -9,6 +9,8 @@ command only, so the classical commands start without torch.
 from __future__ import annotations
 
 import argparse
+import functools
+import sys
 import time
 from pathlib import Path
 
@@ -241,10 +243,18 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
     """Write the map file (:func:`~torchfmap.io.write_map`: atomic, line i: source vertex of
-    target vertex i, ``.gz`` compressed), report, and draw ``--png`` / ``--html``."""
-    write_map(args.out, p2p)
-    say = (lambda *_: None) if getattr(args, "quiet", False) else print
-    say(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {args.out}")
+    target vertex i, ``.gz`` compressed; ``--out -``: the same lines on stdout, the status lines
+    then on stderr), report, and draw ``--png`` / ``--html``."""
+    to_stdout = args.out == "-"
+    if to_stdout:
+        sys.stdout.write("".join(f"{int(i)}\n" for i in p2p))
+        sys.stdout.flush()
+    else:
+        write_map(args.out, p2p)
+    quiet = getattr(args, "quiet", False)
+    say = (lambda *_: None) if quiet else functools.partial(print, file=sys.stderr if to_stdout else None)
+    where = "stdout" if to_stdout else args.out
+    say(f"matched {tgt.n_vertices} target vertices to {src.name} {how} -> {where}")
     if args.png:
         say(f"colour transfer -> {plot_color_transfer(src, tgt, p2p, args.png, up=args.up)}")
     if args.html:
