@@ -291,3 +291,66 @@ def test_retrieval_on_two_synthetic_classes():
     D = shape_distance_matrix(shapes, k=10, k_descriptors=30)
     assert np.allclose(D, D.T) and np.all(np.diag(D) == 0)
     assert retrieval_accuracy(D, ["blob"] * 3 + ["sphere"] * 3) == 1.0
+
+
+def test_ctrl_c_in_one_process_keeps_the_pairs_scored_before_it(tmp_path):
+    from torchfmap.collection import evaluate_pairs
+    from torchfmap.errors import EvaluationInterrupted
+    from torchfmap.eval import discover_pairs
+
+    pairs = list(discover_pairs(_identity_folder(tmp_path), pairs="all"))  # 6 pairs
+    calls = []
+
+    def interrupted_at_the_third(x, y, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return match(x, y, k=6, **kwargs)
+
+    with pytest.raises(EvaluationInterrupted, match="interrupted after 2 of 6 pairs") as stop:
+        evaluate_pairs(pairs, matcher=interrupted_at_the_third)
+    assert [(r.source, r.target) for r in stop.value.finished] == [p[:2] for p in pairs[:2]]
+    assert isinstance(stop.value, KeyboardInterrupt)  # a caller's Ctrl-C handling still sees it
+
+
+@pytest.mark.slow
+def test_ctrl_c_with_two_workers_exits_promptly_and_prints_the_finished_rows(tmp_path):
+    """The command with a pool of 2 processes: Ctrl-C after the first chunks are in ends it within
+    a few seconds (the workers are terminated, not waited for), exit 130, and the rows scored so
+    far are printed with a footer saying so."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from torchfmap import save_mesh
+
+    x = bumpy_blob(2)
+    for i in range(6):
+        save_mesh(x.copy(bend(x.vertices, 0.05 + 0.1 * i)), tmp_path / f"m{i}.off")
+    cmd = [sys.executable, "-m", "torchfmap", "eval", str(tmp_path), "--pairs", "all", "--workers", "2"]
+    cmd += ["--threads", "1", "--k", "10", "--refine", "zoomout"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 240
+    while not re.search(r"\b([1-9]\d*)/30\b", "".join(err)) and time.monotonic() < deadline:
+        assert proc.poll() is None, "".join(err)
+        time.sleep(0.1)
+    if proc.poll() is not None or not re.search(r"\b([1-9]\d*)/30\b", "".join(err)):
+        proc.kill()
+        pytest.fail(f"no chunk finished in time: {''.join(err)[-500:]}")
+    done = int(re.findall(r"\b([1-9]\d*)/30\b", "".join(err))[-1])
+    if done == 30:
+        pytest.skip("every pair finished before the signal")
+    t0 = time.monotonic()
+    os.kill(proc.pid, signal.SIGINT)
+    out, _ = proc.communicate(timeout=30)
+    took = time.monotonic() - t0
+    assert proc.returncode == 130 and took < 3.0, (proc.returncode, took)
+    rows = [line for line in out.splitlines() if re.match(r"\| m\d \| m\d \|", line)]
+    assert len(rows) >= done and "interrupted after" in out and "| **all** |" in out

@@ -16,6 +16,7 @@ from __future__ import annotations
 import inspect
 import multiprocessing
 import os
+import signal
 import time
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -27,7 +28,7 @@ from tqdm import tqdm
 from ._checks import check_count
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
-from .errors import ParameterError
+from .errors import EvaluationInterrupted, ParameterError
 from .eval import evaluate_map, landmarks_from_gt, shape_distance
 from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
 from .mesh import Mesh
@@ -147,6 +148,19 @@ def pool_threads(workers: int) -> int:
 def _init_pool_worker() -> None:
     global _POOL_SHAPES
     _POOL_SHAPES = {}
+    # Ctrl-C reaches the whole process group: the parent alone answers it (it stops the pool
+    # and keeps the finished rows), so a worker does not die mid-pair with a traceback
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """End a local pool now: pending chunks cancelled, running workers terminated (a chunk in
+    flight is lost; the pairs scored so far are kept by the caller)."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.join(timeout=2.0)
 
 
 def _evaluate_chunk(
@@ -158,17 +172,19 @@ def _evaluate_chunk(
     on_pair=None,
     threads=None,
     matcher=None,
+    results: list | None = None,
 ) -> list[PairResult]:
     """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
     :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
     (``shapes``: path -> (mesh, PreparedShape), filled here) and handed to
     ``matcher(x, y, shapes=(sx, sy), **match_kwargs)`` (None: :func:`~torchfmap.match`), with
-    ``landmarks=`` when ``gt_landmarks`` gives them; ``on_pair()`` is called after each pair."""
+    ``landmarks=`` when ``gt_landmarks`` gives them; ``on_pair()`` is called after each pair.
+    Results are appended to ``results`` (a new list when None), which is returned."""
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
     matcher = match if matcher is None else matcher
     with thread_limit(threads):
-        out = []
+        out = [] if results is None else results
         rows = None  # distance rows of the current source mesh, shared by its consecutive pairs
         for a, b, pa, pb, gt in pairs:
             for path in (pa, pb):
@@ -281,6 +297,9 @@ def evaluate_pairs(
     Raises:
         ParameterError: ``workers < 1`` or ``threads < 1``; ``match_kwargs`` (or landmarks,
             with ``gt_landmarks``) that the matcher does not take.
+        EvaluationInterrupted: Ctrl-C (a ``KeyboardInterrupt``): a local pool is stopped at once
+            (its workers ignore the signal and are terminated) and the exception's ``finished``
+            holds the pairs scored until then.
     """
     pairs = list(pairs)
     _check_matcher(match if matcher is None else matcher, {
@@ -293,16 +312,14 @@ def evaluate_pairs(
         threads = pool_threads(workers)
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if executor is None and workers == 1:
+        finished: list[PairResult] = []
         try:
             return _evaluate_chunk(
-                pairs,
-                gt_landmarks,
-                max_points,
-                match_kwargs,
-                on_pair=bar.update,
-                threads=threads,
-                matcher=matcher,
-            )
+                pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update, threads=threads,
+                matcher=matcher, results=finished,
+            )  # fmt: skip
+        except KeyboardInterrupt:
+            raise EvaluationInterrupted(finished, len(pairs)) from None
         finally:
             bar.close()
     own = executor is None
@@ -329,6 +346,14 @@ def evaluate_pairs(
             i = futures[future]
             done[i] = future.result()
             bar.update(len(chunks[i]))
+    except KeyboardInterrupt:
+        if own:
+            _stop_pool(pool)
+        else:
+            for future in futures:
+                future.cancel()
+        finished = [r for i in sorted(done) for r in done[i]]
+        raise EvaluationInterrupted(finished, len(pairs)) from None
     finally:
         bar.close()
         if own:

@@ -21,7 +21,7 @@ from ._checks import is_symmetric
 from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
-from .errors import TorchFmapError
+from .errors import EvaluationInterrupted, TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve, select_pairs
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .kinds import get_kind
@@ -313,35 +313,44 @@ def cmd_eval(args: argparse.Namespace) -> int:
     pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
     if args.max_pairs and len(pairs) == args.max_pairs:
         protocol += f", the first {len(pairs)} (--max-pairs)"
-    results = evaluate_pairs(
-        pairs,
-        max_points=args.max_points,
-        workers=args.workers,
-        threads=args.threads,
-        executor=_dask_executor(args.dask) if args.dask else None,
-        progress=not args.quiet,
-        **settings,
-    )
-    rows = [(r.source, r.target, r.report, r.seconds) for r in results]
-    curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
-    all_errors = [r.errors for r in results]
-    print(
-        "| source | target | mean err | median | AUC | coverage | time [s] |\n|---|---|---|---|---|---|---|"
-    )
-    for a, b, rep, dt in rows:
-        print(
-            f"| {a} | {b} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
-            f"{rep.coverage:.3f} | {dt:.2f} |"
+    try:
+        results = evaluate_pairs(
+            pairs,
+            max_points=args.max_points,
+            workers=args.workers,
+            threads=args.threads,
+            executor=_dask_executor(args.dask) if args.dask else None,
+            progress=not args.quiet,
+            **settings,
         )
-    errors = np.concatenate(all_errors)
+    except EvaluationInterrupted as stop:  # the pairs scored before Ctrl-C are shown, then 130
+        if stop.finished:
+            _print_table(stop.finished, title, f"{protocol}; {stop} (Ctrl-C)", None)
+        print(f"torchfmap: {stop} (Ctrl-C)", file=sys.stderr)
+        return 130
+    _print_table(results, title, protocol, args.png)
+    return 0
+
+
+def _print_table(results, title: str, protocol: str, png) -> None:
+    """The ``eval`` table of ``results`` (one row a pair, then all pairs), its footer and, with
+    ``png``, the PCK plot."""
+    print("| source | target | mean err | median | AUC | coverage | time [s] |")
+    print("|---|---|---|---|---|---|---|")
+    for r in results:
+        rep = r.report
+        print(
+            f"| {r.source} | {r.target} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
+            f"{rep.coverage:.3f} | {r.seconds:.2f} |"
+        )
+    errors = np.concatenate([r.errors for r in results])
     print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
     print(
         f"\n{title}. Pairs: {protocol}. Errors: geodesic distance on the source to the true match "
-        "/ sqrt(area); AUC: "
-        "area under the PCK curve up to 0.25; coverage: fraction of source vertices the map "
-        "reaches; time: matching only (preparing shapes and scoring excluded)."
+        "/ sqrt(area); AUC: area under the PCK curve up to 0.25; coverage: fraction of source "
+        "vertices the map reaches; time: matching only (preparing shapes and scoring excluded)."
     )
-    if args.png:
+    if png:
+        curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
         curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}
-        print(f"PCK plot -> {plot_pck(curves, args.png, title=title)}")
-    return 0
+        print(f"PCK plot -> {plot_pck(curves, png, title=title)}")

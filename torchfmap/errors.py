@@ -78,6 +78,15 @@ def file_write_error(err: OSError, message: str) -> FileWriteError:
     return _joined(FileWriteError, err, message)
 
 
+class EvaluationInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`torchfmap.collection.evaluate_pairs`: ``finished`` holds the
+    :class:`~torchfmap.collection.PairResult` of every pair scored before it, in pair order."""
+
+    def __init__(self, finished: list, total: int) -> None:
+        super().__init__(f"interrupted after {len(finished)} of {total} pairs")
+        self.finished, self.total = finished, total
+
+
 class MapWarning(UserWarning):
     """A computed map that is valid but suspicious (e.g. collapsed onto a few vertices)."""
 
