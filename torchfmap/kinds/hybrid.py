@@ -81,9 +81,6 @@ class HybridKind(BasisKind):
 
     feature_share: float = 0.3
     feature_weight: float = 1.0
-    seeding: str = "spread"
-    landmark_times: tuple = (0.005, 0.02, 0.08)
-    refit: bool = True
 
     def blocks(self, k: int) -> tuple[int, int]:
         """``(k_e, k_f)`` of a basis of ``k`` columns.
@@ -114,14 +111,7 @@ class HybridKind(BasisKind):
                 "the hybrid basis builds its feature block at corresponding landmarks. Fix: pass "
                 "landmarks (pairs of vertices), or use basis='laplacian'."
             )
-        if self.seeding == "landmarks":
-            lm = np.asarray(landmarks)
-            fx, fy = DIFFUSION.seed_bases(shape_x, shape_y, lm, self.landmark_times)
-            k_f = min(fx.k, fy.k, k - 1)
-            fx, fy, seeds = fx.truncated(k_f), fy.truncated(k_f), lm
-            k_e = k - k_f
-        else:
-            fx, fy, seeds = DIFFUSION.pair_bases(shape_x, shape_y, k_f, landmarks, times)
+        fx, fy, seeds = DIFFUSION.pair_bases(shape_x, shape_y, k_f, landmarks, times)
         ex, ey = (with_eigenpairs(s, k_e).eigenbasis.truncated(k_e) for s in (shape_x, shape_y))
         return join_blocks(ex, fx), join_blocks(ey, fy), seeds
 
@@ -234,7 +224,7 @@ def hybrid_zoomout(
     def refit(p2p: np.ndarray, size: int) -> np.ndarray:
         C = np.zeros((size + k_f, size + k_f))
         C[:size, :size] = p2p_to_fmap(p2p, eig_x, eig_y, size, size)
-        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f) if kind.refit else np.eye(k_f)
+        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f)
         return C
 
     best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
