@@ -62,7 +62,8 @@ def ground_truth(folder: Path, names: list[str], limit: int) -> tuple[list, list
 
 def main(argv: list[str] | None = None) -> dict:
     """Run the example; returns ``{'steps', 'error_before', 'error_after', 'score_untrained',
-    'best_score', 'out'}`` (errors None without a ground truth)."""
+    'best_score', 'out'}`` (errors None without a ground truth; with ``--world-size`` > 1 only
+    ``'out'``)."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
