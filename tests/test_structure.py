@@ -450,6 +450,7 @@ CONCEPT_TESTS = {
     "test_api_coverage.py": "every public callable of every package is exercised by some test file",
     "test_properties.py": "property-based runs (hypothesis) of random meshes through the eigenbasis, "
     "the diffusion basis, the solver, evaluation and save/load under one bounded example budget",
+    "test_examples.py": "the numbered scripts of examples/ run on the demo pair and do what they promise",
 }
 TESTS = Path(__file__).resolve().parent
 

@@ -1,10 +1,9 @@
 """The training loop (``torchfmap.nn.trainer``): a short run on dev data, the recipe read whole
-from its config, resuming, 2-process DDP on the CPU (nothing left beside the checkpoint),
-``examples/train.py`` keeping its checkpoint whole, and CUDA against CPU where CUDA exists."""
+from its config, resuming, 2-process DDP on the CPU (nothing left beside the checkpoint), and
+CUDA against CPU where CUDA exists (``tests/test_examples.py`` runs ``examples/04_train.py``)."""
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from pathlib import Path
 
@@ -25,7 +24,6 @@ from torchfmap.nn.trainer import spawn_ddp
 
 from ..conftest import bend, bumpy_blob, data_path
 
-REPO = Path(__file__).resolve().parents[2]
 TINY = TrainConfig(k=8, n_wks=6, k_net=16, width=8, c_out=8, n_blocks=1)
 
 
@@ -146,38 +144,6 @@ def test_ddp_ranks_agree_follow_the_time_budget_and_leave_only_the_checkpoint(tm
         assert torch.equal(w0[key], w1[key]), key
     untrained = build_model(config)[0].state_dict()
     assert any(not torch.equal(w0[k], untrained[k]) for k in w0)  # it did train
-
-
-def _example():
-    spec = importlib.util.spec_from_file_location("example_train", REPO / "examples" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_training_example_leaves_a_whole_resumable_checkpoint(tmp_path):
-    """``examples/train.py`` once overwrote the checkpoint the loop had written with the last
-    weights alone: the best weights, optimiser and schedule were lost and ``--resume`` failed."""
-    folder = tmp_path / "data"
-    files = _two_blobs(folder)
-    (folder / "test_pairs.txt").write_text("a0 a1\n")
-    (folder / "corres").mkdir()
-    ids = "\n".join(str(i + 1) for i in range(bumpy_blob(2).n_vertices))
-    for name in ("a0", "a1"):
-        (folder / "corres" / f"{name}.vts").write_text(ids + "\n")
-    recipe = tmp_path / "recipe.json"
-    TINY.to_json(recipe)
-    out = tmp_path / "out" / "m.ckpt"
-    _example().main([
-        "--data", str(folder), "--epochs", "2", "--device", "cpu", "--out", str(out),
-        "--cache", str(tmp_path / "c"), "--validate-every", "1", "--config", str(recipe),
-    ])  # fmt: skip
-    ckpt = read_checkpoint(out)
-    assert {"optimizer", "scheduler", "best_state_dict", "error_before", "error_after"} <= set(ckpt)
-    assert ckpt["best_state_dict"] is not None and ckpt["train_state"]["step"] == 4
-    shapes = ShapeDataset(files, False, **TINY.dataset_kwargs(), progress=False)
-    resumed = Trainer.from_config(TINY.with_budget(Budget(epochs=3)), shapes, device="cpu", checkpoint=out)
-    assert resumed.resume() and resumed.fit(progress=False).step == 6
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

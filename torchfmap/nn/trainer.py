@@ -1,6 +1,6 @@
 """The training loop: :class:`Trainer` (fit / step / validate / save / resume, DDP inside an
 initialised process group), the one way to train in torchfmap: ``torchfmap train``, DDP ranks
-(:func:`ddp_worker`, started by :func:`spawn_ddp`) and ``examples/train.py`` all build one by
+(:func:`ddp_worker`, started by :func:`spawn_ddp`) and ``examples/04_train.py`` all build one by
 :meth:`Trainer.from_config`, and any network, loss and optimiser of the caller's go through its
 constructor."""
 
