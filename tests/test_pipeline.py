@@ -207,10 +207,11 @@ def test_match_never_calls_itself(bent_pair, monkeypatch):
     solves each candidate with ``solve_pair`` on shapes prepared once: no call of ``match``
     reaches ``match`` again, and the default prepares each shape once."""
     import torchfmap.pipeline as pipeline
+    import torchfmap.solve as solve
 
     x, y, gt = bent_pair
     calls, prepared = [], []
-    real_match, real_prepare = pipeline.match, pipeline.prepare_shape
+    real_match, real_prepare = pipeline.match, solve.prepare_shape
 
     def counted(*args, **kwargs):
         calls.append(1)
@@ -221,7 +222,7 @@ def test_match_never_calls_itself(bent_pair, monkeypatch):
         return real_prepare(mesh, n_eigen, **kwargs)
 
     monkeypatch.setattr(pipeline, "match", counted)
-    monkeypatch.setattr(pipeline, "prepare_shape", counted_prepare)
+    monkeypatch.setattr(solve, "prepare_shape", counted_prepare)
     result = pipeline.match(x, y, landmarks=landmarks_from_gt(x, gt, 6), k=16, refine="zoomout")
     assert calls == [1] and set(result.candidates) == set(AUTO_KINDS)
     assert len(prepared) == 2 and prepared[0] is x and prepared[1] is y

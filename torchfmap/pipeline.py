@@ -13,40 +13,25 @@ kept). Evaluating whole collections is :mod:`torchfmap.collection`.
 
 from __future__ import annotations
 
-import dataclasses
 import time
-from typing import Literal
 
 import numpy as np
 
 from ._checks import check_count
 from .bases import Basis
-from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
-from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
+from .bases.prepared import PreparedShape, prepare_shape
 from .errors import ParameterError
-from .fmap import check_landmark_pairs, solve_fmap
-from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
+from .fmap import check_landmark_pairs
+from .fmap.defaults import W_DCOMM, W_LMK
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_eigenbases, check_refine
+from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
 from .match_checks import check_k_final, check_meshes, check_unused, given_bases_kind, warn_if_partial
 from .mesh import Mesh
-from .quality import OFF_BY_ONE_RATIO, geodesic_distortion, landmark_distortion, warn_collapsed
+from .quality import OFF_BY_ONE_RATIO, landmark_distortion, warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
 from .results import MatchResult, RefineMethod, refine_result
-
-P2PMode = Literal["pullback", "orthogonal"]
-#: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
-#: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
-#: ``hybrid``. ``diffusion`` is not a candidate: its maps are built by trilateration from the
-#: landmarks, so they preserve geodesic distances by construction and score a lower distortion
-#: than maps with lower error (bench/landmark_default.py: chosen on 1 of 6 near-isometric pairs
-#: at 7 landmarks, 1.24x the eigenbasis's error there).
-AUTO_KINDS = ("laplacian", "hybrid")
-#: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
-#: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): on
-#: near-isometric pairs the scores of good maps differ by discretisation noise, and there the
-#: eigenbasis is the better basis.
-AUTO_MARGIN = 0.1
+from .solve import P2PMode, match_bases, match_descriptors, prepare_shapes, solve_pair
 
 __all__ = [
     "AUTO_KINDS",
@@ -64,154 +49,6 @@ __all__ = [
     "solve_pair",
     "warn_if_off_by_one",
 ]
-
-
-def match_descriptors(
-    shape_x: PreparedShape,
-    shape_y: PreparedShape,
-    landmarks: np.ndarray | None = None,
-    *,
-    n_descriptors: int = 20,
-    k_descriptors: int = 100,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(V_x, D)``, ``(V_y, D)`` descriptors of :func:`match`, normalised (unit B-norm columns).
-
-    ``n_descriptors`` WKS columns (evenly subsampled from
-    :data:`~torchfmap.descriptors.WKS_ENERGIES` energies computed on the first
-    ``k_descriptors`` eigenpairs of each prepared shape), then, with ``landmarks`` ``(L, 2)``,
-    two heat kernels per landmark (:func:`~torchfmap.descriptors.landmark_descriptors`).
-
-    Raises:
-        ParameterError: ``n_descriptors < 1`` or shapes prepared without eigenpairs.
-    """
-    if n_descriptors < 1:
-        raise ParameterError(f"n_descriptors must be >= 1, got {n_descriptors}.")
-    out = []
-    for s, shape in enumerate((shape_x, shape_y)):
-        if shape.eigenbasis is None:
-            raise ParameterError("WKS descriptors need eigenpairs. Fix: prepare_shape(mesh, n_eigen > 0).")
-        eig = shape.eigenbasis.truncated(min(k_descriptors, shape.eigenbasis.k))
-        step = max(1, WKS_ENERGIES // n_descriptors)
-        parts = [wks(eig.eigenvalues, eig.values)[:, ::step][:, :n_descriptors]]
-        if landmarks is not None:
-            parts.append(landmark_descriptors(landmarks[:, s], operators=shape.operators))
-        out.append(normalize_descriptors(np.hstack(parts), shape.operators[1]))
-    return out[0], out[1]
-
-
-def match_bases(
-    shape_x: PreparedShape,
-    shape_y: PreparedShape,
-    kind: str | BasisKind,
-    k: int,
-    landmarks: np.ndarray | None = None,
-    times=None,
-) -> tuple[Basis, Basis, np.ndarray | None]:
-    """The pair of B-orthonormal bases :func:`match` solves in, with exactly ``k`` columns each,
-    and the corresponding seed pairs ``(S, 2)`` they are built at (None when the columns do not
-    correspond): ``KINDS[kind].pair_bases`` (:data:`torchfmap.kinds.KINDS`). The seed pairs are
-    also recorded on both bases (``Basis.pair_landmarks``, saved with them), so that
-    ``match(bases=...)`` can tell them from bases built apart.
-
-    Raises:
-        ParameterError: an unknown kind, a kind that needs landmarks without them, or ``k``
-            outside its range.
-    """
-    bx, by, seeds = get_kind(kind).pair_bases(shape_x, shape_y, k, landmarks, times)
-    if seeds is not None:  # recorded (and saved with the bases): they were built together
-        bx.pair_landmarks = by.pair_landmarks = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
-    return bx, by, seeds
-
-
-def solve_pair(
-    shape_x: PreparedShape,
-    shape_y: PreparedShape,
-    kind: str | BasisKind,
-    k: int,
-    *,
-    landmarks: np.ndarray | None = None,
-    bases: tuple[Basis, Basis] | None = None,
-    seeds: np.ndarray | None = None,
-    times=None,
-    n_descriptors: int = 20,
-    k_descriptors: int = 100,
-    w_lap: float | None = None,
-    w_orient: float | None = None,
-    w_dcomm: float = W_DCOMM,
-    w_lmk: float = W_LMK,
-    w_prior: float | None = None,
-    p2p_mode: P2PMode | None = None,
-    n_eigen: int = 0,
-) -> MatchResult:
-    """The unrefined map of one kind on prepared shapes (the solve step :func:`match` and
-    :func:`match_landmark_default` share): eigenpairs grown in place to what the kind, its
-    descriptors and ``n_eigen`` (e.g. a later ZoomOut) need -> :func:`match_bases` (or the
-    given ``bases``) -> :func:`match_descriptors` -> the kind's ``solve_map`` (each block by
-    :func:`~torchfmap.fmap.solve_fmap` with the kind's weights unless given) -> the kind's
-    ``to_p2p``.
-
-    ``landmarks``: checked ``(L, 2)`` pairs, or None; ``bases``: given ``(basis_x, basis_y)`` of
-    ``k`` columns, ``seeds`` their seed pairs ``(S, 2)`` if built together (then pulled to
-    ``C = I``), else None; the rest as :func:`match`. Returns an unrefined :class:`MatchResult`
-    (``distortion`` set with landmarks; timings ``operators+eigen``, ``basis``,
-    ``descriptors``, ``fmap+p2p``).
-
-    Raises:
-        ParameterError: as the kind's bases, or ``k`` / ``k_descriptors`` out of range.
-    """
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    kind = get_kind(kind)
-    n_max = min(shape_x.mesh.n_vertices, shape_y.mesh.n_vertices) - 1
-    k = check_count(k, 1, n_max, "k (basis size)")
-    k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
-    prior = kind.needs_landmarks and (bases is None or seeds is not None)  # else columns need not correspond
-    w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
-    need_desc = kind.uses_descriptors(w_prior)
-    n_eigen = max(kind.n_eigen(k), n_eigen, k_descriptors if need_desc else 0)
-    for shape in (shape_x, shape_y):
-        with_eigenpairs(shape, n_eigen)
-    timings["operators+eigen"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    if bases is None:
-        bx, by, seeds = match_bases(shape_x, shape_y, kind, k, landmarks, times)
-    else:
-        bx, by = bases
-    timings["basis"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    if need_desc:
-        desc_x, desc_y = match_descriptors(
-            shape_x, shape_y, landmarks, n_descriptors=n_descriptors, k_descriptors=k_descriptors
-        )
-    timings["descriptors"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-
-    def solve_block(block_x: Basis, block_y: Basis, prior) -> np.ndarray:
-        return solve_fmap(
-            block_x, block_y, desc_x, desc_y, w_lap=kind.w_lap if w_lap is None else w_lap,
-            w_orient=kind.w_orient if w_orient is None else w_orient, w_dcomm=w_dcomm,
-            meshes=(shape_x.mesh, shape_y.mesh), landmarks=landmarks,
-            w_lmk=w_lmk if landmarks is not None else 0.0, prior=prior,
-            w_prior=w_prior if prior is not None else 0.0,
-        )  # fmt: skip
-
-    C = kind.solve_map(bx, by, solve_block, w_prior)
-    p2p = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode)
-    timings["fmap+p2p"] = time.perf_counter() - t0
-    distortion = None
-    if landmarks is not None:  # the score that chooses among kinds and guards the refinement
-        distortion = geodesic_distortion(shape_x, shape_y, p2p)
-    return MatchResult(p2p, C, bx, by, p2p, timings, seeds, kind.name, distortion)
-
-
-def _shapes(mesh_x: Mesh, mesh_y: Mesh, shapes, n_eigen: int) -> tuple[PreparedShape, PreparedShape]:
-    """``shapes`` checked (eigenpairs grown in place to ``n_eigen``), else both meshes prepared."""
-    if shapes is None:
-        return prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
-    return tuple(with_eigenpairs(s, n_eigen) for s in check_prepared(shapes, (mesh_x, mesh_y)))
 
 
 def match(
@@ -345,7 +182,7 @@ def match(
     if given_eigen:  # refused before any work
         check_eigenbases(eigenbases, k_final or 2 * k)
     grow_shapes = (k_final or 2 * k) if grow and eigenbases is None else 0  # ZoomOut's eigenpairs
-    shape_x, shape_y = _shapes(mesh_x, mesh_y, shapes, 0)
+    shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, 0)
     if pairs is not None:
         warn_if_off_by_one(shape_x, shape_y, pairs)
     prep = time.perf_counter() - t0
@@ -364,83 +201,3 @@ def match(
         result = refine_result(result, refiner, shape_x, shape_y)
     warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
     return result
-
-
-def match_landmark_default(
-    mesh_x: Mesh,
-    mesh_y: Mesh,
-    landmarks: np.ndarray,
-    *,
-    k: int = 50,
-    refine: RefineMethod | None = None,
-    k_final: int | None = None,
-    times=None,
-    zoomout_samples: int | None = None,
-    shapes: tuple[PreparedShape, PreparedShape] | None = None,
-    k_descriptors: int = 100,
-    p2p_mode: P2PMode | None = None,
-    **solve,
-) -> MatchResult:
-    """The landmark default of :func:`match` (``basis=None`` or ``'auto'`` with landmarks): each
-    kind of :data:`AUTO_KINDS` solved (:func:`solve_pair`) on shapes prepared once, the
-    eigenbasis refined as asked (ZoomOut is where it gains most) and the feature-aware kinds
-    unrefined; the map of least geodesic distortion is kept (the eigenbasis within
-    :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the same
-    score), so only one feature-aware refinement runs. Kinds that cannot be built on these
-    meshes (e.g. too few vertices for their columns) are skipped, with the reason
-    (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
-    chosen map collapsed). ``landmarks``: ``(L, 2)``
-    pairs; ``solve``: the other solver settings of :func:`solve_pair`; the rest as :func:`match`.
-
-    Raises:
-        ParameterError: what the eigenbasis refuses (it refuses only what every kind would),
-            or an unknown refinement.
-    """
-    t0 = time.perf_counter()
-    refine = check_refine(refine)
-    pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
-    n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
-    check_count(k, 1, n_max, "k (basis size)")  # the eigenbasis's own check, before any work
-    need = [k, min(k_descriptors, n_max)]  # the eigenbasis: k, and its descriptors
-    if refine == "zoomout":
-        need.append(k_final or 2 * k)
-    shape_x, shape_y = _shapes(mesh_x, mesh_y, shapes, min(max(need), n_max))
-    prep = time.perf_counter() - t0
-    pref = AUTO_KINDS[0]
-    check_unused(get_kind(AUTO_KINDS[-1]), refine, k_final, None)
-    check_k_final(get_kind(pref), refine, k, k_final)
-    warn_if_off_by_one(shape_x, shape_y, pairs)
-    candidates: dict[str, MatchResult] = {}
-    skipped: dict[str, str] = {}
-
-    def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
-        refiner = kind.refiner(
-            refine, k_final=k_final, mode=p2p_mode, n_fixed=len(pairs),
-            times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples,
-        )  # fmt: skip
-        return refine_result(result, refiner, shape_x, shape_y)
-
-    for name in AUTO_KINDS:
-        kind = get_kind(name)
-        first = name == pref
-        try:
-            grow = (k_final or 2 * k) if first and refine == "zoomout" and kind.grows else 0
-            result = solve_pair(
-                shape_x, shape_y, kind, k, landmarks=pairs, times=times if kind.needs_landmarks else None,
-                n_eigen=grow, k_descriptors=k_descriptors, p2p_mode=p2p_mode, **solve,
-            )  # fmt: skip
-            candidates[name] = refined(result, kind) if first and refine is not None else result
-        except ParameterError as err:
-            if first:  # the eigenbasis refuses only what every kind would
-                raise
-            skipped[name] = str(err)
-    best = min(candidates, key=lambda n: candidates[n].distortion)
-    if candidates[best].distortion > (1 - AUTO_MARGIN) * candidates[pref].distortion:
-        best = pref
-    if refine is not None and best != pref:
-        candidates[best] = refined(candidates[best], get_kind(best))
-    chosen = candidates[best]
-    timings = {"prepare": prep}
-    for name, c in candidates.items():
-        timings |= {f"{name}:{step}": t for step, t in c.timings.items()}
-    return dataclasses.replace(chosen, timings=timings, candidates=candidates, skipped=skipped)
