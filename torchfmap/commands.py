@@ -236,7 +236,8 @@ def cmd_match(args: argparse.Namespace) -> int:
         )
     chose = ""
     if result.candidates:
-        chose = f"chosen by geodesic distortion ({result.scores()} sqrt(area)), "
+        judge = "geodesic distortion and held-out landmarks" if result.fold_scores else "geodesic distortion"
+        chose = f"chosen by {judge} ({result.scores()} sqrt(area)), "
     how = f"({result.kind} basis, {chose}K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
 

@@ -1,9 +1,12 @@
 """The landmark default of :func:`torchfmap.match` (``basis=None`` or ``'auto'`` with
 landmarks): which basis to solve a pair in, chosen without ground truth.
 
-Each kind of :data:`AUTO_KINDS` is solved on shapes prepared once (:func:`~torchfmap.solve.solve_pair`)
-and the map that preserves geodesic distances best is kept (:data:`AUTO_MARGIN` in favour of the
-eigenbasis).
+Each kind of :data:`AUTO_KINDS` is solved on shapes prepared once
+(:func:`~torchfmap.solve.solve_pair`) and the map that preserves geodesic distances best is kept
+(:data:`AUTO_MARGIN` in favour of the eigenbasis). Then the user's landmarks judge: each kind of
+:data:`CV_KINDS` is solved with some landmarks held out and scored by where its map sends them
+(:func:`landmark_scores`); a kind whose held-out error is below :data:`CV_RATIO` of the chosen
+kind's replaces it.
 """
 
 from __future__ import annotations
@@ -37,6 +40,65 @@ AUTO_KINDS = ("laplacian", "hybrid")
 #: near-isometric pairs the scores of good maps differ by discretisation noise, and there the
 #: eigenbasis is the better basis.
 AUTO_MARGIN = 0.1
+#: The kinds the landmark cross-validation scores (:func:`landmark_scores`).
+CV_KINDS = ("laplacian", "hybrid", "diffusion")
+#: Folds of the cross-validation, at most (one held-out landmark per fold when there are fewer).
+CV_FOLDS = 4
+#: The cross-validation needs this many landmarks (each fold then solves with two or more).
+CV_MIN_LANDMARKS = 3
+#: A cross-validated kind replaces the distortion's choice only when its held-out landmark error
+#: is below this fraction of the chosen kind's: the held-out landmarks are few, so only a clear
+#: verdict overrides the choice (two or three landmarks cannot rank close maps).
+CV_RATIO = 0.5
+
+
+def landmark_scores(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    pairs: np.ndarray,
+    kinds,
+    k: int,
+    *,
+    folds: int = CV_FOLDS,
+    times=None,
+    **solve,
+) -> dict[str, float]:
+    """Cross-validation of the basis by the user's landmarks: for each kind, the mean error at
+    the held-out landmarks of maps solved (unrefined, :func:`~torchfmap.solve.solve_pair`) with
+    the others.
+
+    Fold ``f`` of ``F = min(folds, L)`` holds out the landmark pairs ``i`` with ``i % F == f``;
+    a held-out pair ``(a, b)`` scores ``d_x(p2p_yx[b], a)``, the geodesic distance on ``x`` (in
+    units of ``sqrt(area)``) between where the map sends ``b`` and where it should. Kinds that
+    cannot be built on a fold are left out. ``times`` go to the feature-aware kinds; ``solve``:
+    the other settings of :func:`~torchfmap.solve.solve_pair`. Returns ``{kind: mean held-out
+    error}``.
+
+    Raises:
+        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs.
+    """
+    if len(pairs) < CV_MIN_LANDMARKS:
+        raise ParameterError(
+            f"cross-validation holds landmarks out: {CV_MIN_LANDMARKS} or more are needed, got {len(pairs)}."
+        )
+    n_folds = min(folds, len(pairs))
+    rows = shape_x.distances.rows(pairs[:, 0])  # (L, V_x): distances from each true match
+    scores = {}
+    for name in kinds:
+        kind = get_kind(name)
+        errors = []
+        try:
+            for fold in range(n_folds):
+                held = np.arange(len(pairs)) % n_folds == fold
+                result = solve_pair(
+                    shape_x, shape_y, kind, k, landmarks=pairs[~held],
+                    times=times if kind.needs_landmarks else None, **solve,
+                )  # fmt: skip
+                errors.extend(rows[held, result.p2p_yx[pairs[held, 1]]])
+        except ParameterError:
+            continue
+        scores[name] = float(np.mean(errors))
+    return scores
 
 
 def match_landmark_default(
@@ -59,7 +121,10 @@ def match_landmark_default(
     eigenbasis refined as asked (ZoomOut is where it gains most) and the feature-aware kinds
     unrefined; the map of least geodesic distortion is kept (the eigenbasis within
     :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the same
-    score), so only one feature-aware refinement runs. Kinds that cannot be built on these
+    score), so only one feature-aware refinement runs. With :data:`CV_MIN_LANDMARKS` or more
+    landmarks, the landmark cross-validation (:func:`landmark_scores`, reported as
+    ``fold_scores``) replaces that choice by a kind of :data:`CV_KINDS` whose held-out error is
+    below :data:`CV_RATIO` of the chosen kind's (refined in turn). Kinds that cannot be built on these
     meshes (e.g. too few vertices for their columns) are skipped, with the reason
     (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
     chosen map collapsed). ``landmarks``: ``(L, 2)``
@@ -110,10 +175,27 @@ def match_landmark_default(
     best = min(candidates, key=lambda n: candidates[n].distortion)
     if candidates[best].distortion > (1 - AUTO_MARGIN) * candidates[pref].distortion:
         best = pref
+    fold_scores: dict[str, float] = {}
+    t_cv = time.perf_counter()
+    if len(pairs) >= CV_MIN_LANDMARKS:  # the landmarks as the judge: a clear verdict overrides
+        cv_solve = dict(solve, k_descriptors=k_descriptors, p2p_mode=p2p_mode)
+        fold_scores = landmark_scores(shape_x, shape_y, pairs, CV_KINDS, k, times=times, **cv_solve)
+        top = min(fold_scores, key=fold_scores.get) if fold_scores else best
+        if best in fold_scores and fold_scores[top] < CV_RATIO * fold_scores[best]:
+            best = top
+            if best not in candidates:
+                kind = get_kind(best)
+                candidates[best] = solve_pair(
+                    shape_x, shape_y, kind, k, landmarks=pairs, times=times if kind.needs_landmarks else None,
+                    k_descriptors=k_descriptors, p2p_mode=p2p_mode, **solve,
+                )  # fmt: skip
+    t_cv = time.perf_counter() - t_cv
     if refine is not None and best != pref:
         candidates[best] = refined(candidates[best], get_kind(best))
     chosen = candidates[best]
-    timings = {"prepare": prep}
+    timings = {"prepare": prep, "cross-validation": t_cv}
     for name, c in candidates.items():
         timings |= {f"{name}:{step}": t for step, t in c.timings.items()}
-    return dataclasses.replace(chosen, timings=timings, candidates=candidates, skipped=skipped)
+    return dataclasses.replace(
+        chosen, timings=timings, candidates=candidates, skipped=skipped, fold_scores=fold_scores
+    )

@@ -81,7 +81,9 @@ class MatchResult:
     kept (a refinement that raises the distortion is dropped: ``p2p_yx`` is then the initial
     map). The landmark default also fills ``candidates``: each kind it solved in
     (:data:`~torchfmap.pipeline.AUTO_KINDS`), by name, with its own result; ``skipped`` names the
-    kinds that could not be built on these meshes, with the reason. ``model`` names the trained network
+    kinds that could not be built on these meshes, with the reason, and ``fold_scores`` each
+    cross-validated kind's held-out landmark error
+    (:func:`~torchfmap.landmark_default.landmark_scores`). ``model`` names the trained network
     that made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`)."""
 
     p2p_yx: np.ndarray
@@ -97,9 +99,15 @@ class MatchResult:
     candidates: dict[str, MatchResult] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     model: str | None = None
+    fold_scores: dict[str, float] = field(default_factory=dict)
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen
-        one ('' when ``match`` did not choose)."""
+        one ('' when ``match`` did not choose); then, after the landmark cross-validation,
+        ``'; held-out landmarks: laplacian 0.031, hybrid 0.029, diffusion 0.052'``."""
         marks = {name: "*" if name == self.kind else "" for name in self.candidates}
-        return ", ".join(f"{name} {c.distortion:.4f}{marks[name]}" for name, c in self.candidates.items())
+        text = ", ".join(f"{name} {c.distortion:.4f}{marks[name]}" for name, c in self.candidates.items())
+        if self.fold_scores:
+            held = ", ".join(f"{name} {v:.4f}" for name, v in self.fold_scores.items())
+            text += f"; held-out landmarks: {held}"
+        return text
