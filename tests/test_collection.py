@@ -328,24 +328,24 @@ def test_ctrl_c_with_two_workers_exits_promptly_and_prints_the_finished_rows(tmp
 
     from torchfmap import save_mesh
 
-    x = bumpy_blob(2)
-    for i in range(6):
-        save_mesh(x.copy(bend(x.vertices, 0.05 + 0.1 * i)), tmp_path / f"m{i}.off")
+    x = bumpy_blob(3)  # 642 vertices, 8 meshes, 56 pairs: tens of seconds of work
+    for i in range(8):
+        save_mesh(x.copy(bend(x.vertices, 0.05 + 0.08 * i)), tmp_path / f"m{i}.off")
     cmd = [sys.executable, "-m", "torchfmap", "eval", str(tmp_path), "--pairs", "all", "--workers", "2"]
-    cmd += ["--threads", "1", "--k", "10", "--refine", "zoomout"]
+    cmd += ["--threads", "1", "--k", "30", "--refine", "zoomout"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     err: list[str] = []
     reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
     reader.start()
     deadline = time.monotonic() + 240
-    while not re.search(r"\b([1-9]\d*)/30\b", "".join(err)) and time.monotonic() < deadline:
+    while not re.search(r"\b([1-9]\d*)/56\b", "".join(err)) and time.monotonic() < deadline:
         assert proc.poll() is None, "".join(err)
         time.sleep(0.1)
-    if proc.poll() is not None or not re.search(r"\b([1-9]\d*)/30\b", "".join(err)):
+    if proc.poll() is not None or not re.search(r"\b([1-9]\d*)/56\b", "".join(err)):
         proc.kill()
         pytest.fail(f"no chunk finished in time: {''.join(err)[-500:]}")
-    done = int(re.findall(r"\b([1-9]\d*)/30\b", "".join(err))[-1])
-    if done == 30:
+    done = int(re.findall(r"\b([1-9]\d*)/56\b", "".join(err))[-1])
+    if done == 56:
         pytest.skip("every pair finished before the signal")
     t0 = time.monotonic()
     os.kill(proc.pid, signal.SIGINT)

@@ -273,7 +273,7 @@ def test_cli_line_names_the_choice(tmp_path, bent_pair, capsys):
     args = ["match", *files, "--landmarks", str(tmp_path / "lm.txt")]
     assert main([*args, "--k", "20", "--out", str(tmp_path / "m.txt")]) == 0
     out = capsys.readouterr().out
-    assert "chosen by geodesic distortion (laplacian" in out and "hybrid" in out
+    assert "chosen by geodesic distortion and held-out landmarks (laplacian" in out and "hybrid" in out
 
 
 def test_cli_matches_nonmanifold_files(tmp_path, capsys):

@@ -156,11 +156,13 @@ def _init_pool_worker() -> None:
 def _stop_pool(pool: ProcessPoolExecutor) -> None:
     """End a local pool now: pending chunks cancelled, running workers terminated (a chunk in
     flight is lost; the pairs scored so far are kept by the caller)."""
-    pool.shutdown(wait=False, cancel_futures=True)
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
         process.terminate()
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
-        process.join(timeout=2.0)
+    pool.shutdown(wait=False, cancel_futures=True)
+    deadline = time.monotonic() + 2.0
+    for process in processes:  # bounded: SIGTERM ends a worker at once
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
 
 
 def _evaluate_chunk(
@@ -349,6 +351,7 @@ def evaluate_pairs(
     except KeyboardInterrupt:
         if own:
             _stop_pool(pool)
+            own = False  # stopped: nothing left to wait for
         else:
             for future in futures:
                 future.cancel()

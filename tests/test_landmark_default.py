@@ -1,0 +1,52 @@
+"""The landmark default (``torchfmap.landmark_default``): the landmarks' cross-validation, its
+scores, and the rule by which it overrides the distortion's choice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import torchfmap.landmark_default as landmark_default
+from torchfmap import ParameterError, match, prepare_shape
+from torchfmap.eval import landmarks_from_gt
+from torchfmap.landmark_default import CV_KINDS, CV_RATIO, landmark_scores
+
+
+def test_held_out_landmark_errors_are_distances_to_the_true_matches(bent_pair):
+    """Each kind's score is the mean geodesic distance (units of sqrt(area)) between where its
+    fold maps send held-out landmarks and their true matches: finite, >= 0, below the shape's
+    diameter; on this near-isometric pair the eigenbasis sends them within a few edges."""
+    x, y, gt = bent_pair
+    pairs = landmarks_from_gt(x, gt, 6)
+    sx, sy = prepare_shape(x, 30), prepare_shape(y, 30)
+    scores = landmark_scores(sx, sy, pairs, CV_KINDS, 12)
+    assert set(scores) == set(CV_KINDS)
+    diameter = sx.distances.rows(pairs[:1, 0]).max()
+    assert all(0 <= v < diameter for v in scores.values())
+    edge = x.mean_edge_length / np.sqrt(x.area)
+    assert scores["laplacian"] < 5 * edge
+    with pytest.raises(ParameterError, match="3 or more are needed, got 2"):
+        landmark_scores(sx, sy, pairs[:2], CV_KINDS, 12)
+
+
+def test_a_clear_cross_validation_verdict_overrides_the_distortion_and_a_close_one_does_not(
+    bent_pair, monkeypatch
+):
+    x, y, gt = bent_pair
+    pairs = landmarks_from_gt(x, gt, 6)
+    plain = match(x, y, landmarks=pairs, k=12)
+    chosen = plain.kind
+    assert plain.fold_scores and set(plain.fold_scores) == set(CV_KINDS)
+    assert "held-out landmarks" in plain.scores()
+    verdicts = {
+        "clear": {chosen: 1.0, "diffusion" if chosen != "diffusion" else "hybrid": 0.9 * CV_RATIO},
+        "close": {chosen: 1.0, "diffusion" if chosen != "diffusion" else "hybrid": 1.1 * CV_RATIO},
+    }
+    for name, scores in verdicts.items():
+        monkeypatch.setattr(landmark_default, "landmark_scores", lambda *a, s=scores, **kw: dict(s))
+        result = match(x, y, landmarks=pairs, k=12, refine="icp")
+        other = next(n for n in scores if n != chosen)
+        assert result.kind == (other if name == "clear" else chosen), name
+        assert result.fold_scores == scores
+    # too few landmarks to hold some out: no cross-validation, the distortion decides
+    assert match(x, y, landmarks=pairs[:2], k=12).fold_scores == {}
