@@ -187,6 +187,7 @@ def test_a_pool_worker_prepares_each_mesh_once_across_its_chunks(tmp_path, monke
     assert len(prepared) == 4 and collection._POOL_SHAPES is None
     prepared.clear()
     monkeypatch.setattr(collection, "_POOL_SHAPES", None)  # restored after the test
+    monkeypatch.setattr(collection.signal, "signal", lambda *args: None)  # this process keeps Ctrl-C
     collection._init_pool_worker()  # as in a pool's worker process
     for chunk in ([pairs[0]], [pairs[1]]):
         collection._evaluate_chunk(chunk, 0, 200, {"k": 20})
