@@ -12,14 +12,15 @@ from torchfmap.bases import prepare_shape
 from torchfmap.eval import landmarks_from_gt
 from torchfmap.fmap import Refined
 from torchfmap.kinds import KINDS
-from torchfmap.quality import geodesic_distortion
+from torchfmap.quality import DISTORTION_RESOLUTION, geodesic_distortion
 from torchfmap.results import keeps_refinement, refine_result
 
 
 def test_the_distortion_guard():
     assert keeps_refinement(None, None)  # no landmarks: no score, always kept
     assert keeps_refinement(0.2, 0.2) and keeps_refinement(0.2, 0.1)
-    assert not keeps_refinement(0.2, 0.2 + 1e-12)
+    assert keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION))  # a rise within the resolution
+    assert not keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION) + 1e-12)
 
 
 def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):

@@ -24,7 +24,7 @@ from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_refine
 from .match_checks import check_k_final, check_unused
 from .mesh import Mesh
-from .quality import warn_if_off_by_one
+from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
 from .results import MatchResult, RefineMethod, refine_result
 from .solve import P2PMode, prepare_shapes, solve_pair
 
@@ -36,10 +36,10 @@ from .solve import P2PMode, prepare_shapes, solve_pair
 #: at 7 landmarks, 1.24x the eigenbasis's error there).
 AUTO_KINDS = ("laplacian", "hybrid")
 #: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
-#: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): on
-#: near-isometric pairs the scores of good maps differ by discretisation noise, and there the
-#: eigenbasis is the better basis.
-AUTO_MARGIN = 0.1
+#: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): the score's
+#: resolution (on near-isometric pairs the scores of good maps differ by discretisation noise,
+#: and there the eigenbasis is the better basis).
+AUTO_MARGIN = DISTORTION_RESOLUTION
 #: The kinds the landmark cross-validation scores (:func:`landmark_scores`).
 CV_KINDS = ("laplacian", "hybrid", "diffusion")
 #: Folds of the cross-validation, at most (one held-out landmark per fold when there are fewer).

@@ -30,6 +30,10 @@ from .seeds import consistent_seeds, farthest_point_sampling
 
 #: Anchors of :func:`geodesic_distortion` (farthest points on ``y``).
 N_ANCHORS = 64
+#: The resolution of :func:`geodesic_distortion` as a judge: maps whose scores differ by less than
+#: this fraction are not told apart (on near-isometric pairs good maps differ by discretisation
+#: noise). The landmark default's choice and every refinement's guard read it.
+DISTORTION_RESOLUTION = 0.1
 #: :func:`warn_if_off_by_one` reads landmark files of at least this many pairs (fewer distances
 #: among them do not tell readings apart: 3 landmarks give 3 distances).
 MISREAD_MIN_LANDMARKS = 5
