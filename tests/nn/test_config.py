@@ -30,7 +30,7 @@ def test_recipe_pieces_without_a_network():
     net, solver2, _ = build_model(config)
     assert solver2.w_lap == solver.w_lap and sum(p.numel() for p in net.parameters()) > 0
     assert set(shipped_models()) >= {"faust_r", "humans", "smal_r"}
-    for name in shipped_models():  # smal_r records the retired stages / stage_seeds: dropped
+    for name in shipped_models():
         net, config, ckpt = load_checkpoint(name)
         assert "provenance" in ckpt and config.k == 100 and not hasattr(config, "stages")
 

@@ -7,7 +7,7 @@ network gives them), so :func:`load_checkpoint` rebuilds any importable ``torch.
 class, not only the reference :class:`~torchfmap.nn.networks.DiffusionNet`. Files are read with
 ``torch.load(weights_only=True)``: tensors and plain containers only, never pickled objects;
 rebuilding imports the recorded module, code already installed, never code from the file.
-Checkpoints without a record (older files) rebuild the recipe's DiffusionNet from their config.
+Checkpoints without a record are refused.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 
 from .._files import CHECKED_MAGIC, load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
-from .config import RETIRED_FIELDS, TrainConfig, build_model, network_kwargs
+from .config import TrainConfig, network_kwargs
 from .networks import DiffusionNet
 from .shipped import resolve_checkpoint
 
@@ -204,33 +204,35 @@ def _network_class(name: str) -> type:
 def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
     """The network of a checkpoint dict (:func:`read_checkpoint`), rebuilt from its record, in
     the dtype of its weights and in eval mode; ``best``: the weights with the best validation
-    score when it has them. A checkpoint without a record rebuilds the recipe's DiffusionNet
-    from its config.
+    score when it has them.
 
     Raises:
-        ParameterError: a class that cannot be imported or is not a ``torch.nn.Module``, or a
-            record without constructor arguments.
+        ParameterError: no network record, a class that cannot be imported or is not a
+            ``torch.nn.Module``, or a record without constructor arguments.
     """
     record = ckpt.get("network")
-    if record is None:  # written before checkpoints recorded the network
-        net = build_model(_config(ckpt["config"], legacy=True))[0]
-    else:
-        cls = _network_class(record.get("class"))
-        kwargs = record.get("kwargs")
-        if kwargs is None:
-            raise ParameterError(
-                f"the checkpoint names the network class {record['class']!r} but not its constructor "
-                "arguments. Fix: give the network an init_kwargs dict (or pass net_kwargs to "
-                "save_checkpoint) when saving, or build it yourself and load ckpt['state_dict']."
-            )
-        try:
-            net = cls(**kwargs)
-        except (TypeError, ValueError) as err:
-            raise ParameterError(
-                f"the checkpoint's network {record['class']!r} cannot be built from its recorded "
-                f"arguments {kwargs} ({err}). Fix: use the torchfmap version that wrote it, or build "
-                "the network yourself and load ckpt['state_dict']."
-            ) from None
+    if record is None:
+        raise ParameterError(
+            "the checkpoint does not record its network (a development format that was never "
+            "released). Fix: train it again with `torchfmap train`, or build the network yourself "
+            "and load ckpt['state_dict']."
+        )
+    cls = _network_class(record.get("class"))
+    kwargs = record.get("kwargs")
+    if kwargs is None:
+        raise ParameterError(
+            f"the checkpoint names the network class {record['class']!r} but not its constructor "
+            "arguments. Fix: give the network an init_kwargs dict (or pass net_kwargs to "
+            "save_checkpoint) when saving, or build it yourself and load ckpt['state_dict']."
+        )
+    try:
+        net = cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        raise ParameterError(
+            f"the checkpoint's network {record['class']!r} cannot be built from its recorded "
+            f"arguments {kwargs} ({err}). Fix: use the torchfmap version that wrote it, or build "
+            "the network yourself and load ckpt['state_dict']."
+        ) from None
     state = ckpt.get("best_state_dict") if best and ckpt.get("best_state_dict") else ckpt["state_dict"]
     if not isinstance(state, dict):
         raise ParameterError(
@@ -251,22 +253,12 @@ def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
     return net.eval()
 
 
-#: Basis names of checkpoints written before the kinds registry: their ``'stack'`` was the
-#: learned path's mix of eigenfunctions and heat kernels, now called ``'eigen_diffusion'``
-#: (``'stack'`` is diffusion + harmonic functions everywhere).
-LEGACY_BASIS_NAMES = {"stack": "eigen_diffusion"}
-
-
-def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
-    """``cfg`` as a :class:`TrainConfig`; ``legacy``: a checkpoint without a network record,
-    whose basis names are read through :data:`LEGACY_BASIS_NAMES`."""
-    if legacy and cfg.get("basis") in LEGACY_BASIS_NAMES:
-        cfg = {**cfg, "basis": LEGACY_BASIS_NAMES[cfg["basis"]]}
+def _config(cfg: dict) -> TrainConfig:
+    """``cfg`` (a checkpoint's) as a :class:`TrainConfig`."""
     if not isinstance(cfg, dict):
         raise ParameterError(
             f"the checkpoint's config is a {type(cfg).__name__}, not a dict. Fix: re-save it."
         )
-    cfg = {k: v for k, v in cfg.items() if k not in RETIRED_FIELDS}
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(cfg) - names)
     if unknown:
@@ -279,7 +271,7 @@ def _config(cfg: dict, legacy: bool = False) -> TrainConfig:
 
 def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConfig, dict]:
     """``(network in eval mode, config, the whole checkpoint dict)``: the network rebuilt by
-    :func:`load_network` (its recorded class, or the recipe's DiffusionNet for older files);
+    :func:`load_network` (its recorded class);
     ``best``: the weights with the best validation score when the checkpoint has them.
 
     Raises:
@@ -287,7 +279,7 @@ def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConf
         CorruptFileError: a truncated or altered file.
     """
     ckpt = read_checkpoint(path)
-    config = _config(ckpt["config"], legacy="network" not in ckpt)
+    config = _config(ckpt["config"])
     return load_network(ckpt, best), config, ckpt
 
 
@@ -300,4 +292,4 @@ def read_recipe(path) -> TrainConfig:
         ParameterError / CorruptFileError: as :func:`load_checkpoint`.
     """
     ckpt = read_checkpoint(path)
-    return _config(ckpt["config"], legacy="network" not in ckpt)
+    return _config(ckpt["config"])

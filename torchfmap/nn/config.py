@@ -24,10 +24,6 @@ from .networks import DiffusionNet
 AUGMENTS = ("rigid", "scale", "none")
 #: The :class:`TrainConfig` fields that make up its :class:`Budget`.
 BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
-#: Fields of earlier recipes that checkpoints may hold and loading drops: the self-seeded second
-#: stage left the core recipe for :mod:`torchfmap.experimental.stages` (the network it was
-#: trained with is the same; every shipped model has ``stages=1``).
-RETIRED_FIELDS = ("stages", "stage_seeds")
 
 
 @dataclass(frozen=True)
