@@ -247,7 +247,11 @@ def seeded_refine(cfg: Settings, report: Report) -> None:
     without landmarks, on shapes prepared once per pair."""
     rows = grid(cfg, report)
     seeds = [r["seeds"] for r in rows if "seeds" in r]
-    report.add(f"Seed pairs per pair (mean): {fmt(float(np.mean(seeds)) if seeds else float('nan'))}.")
+    t = {m: sum(r["time"] for r in rows if (r["method"], r["refine"]) == m and "time" in r)
+         for m in (("seeded", "seeded"), ("zoomout", "zoomout"))}  # fmt: skip
+    ratio = t[("seeded", "seeded")] / t[("zoomout", "zoomout")] if t[("zoomout", "zoomout")] else float("nan")
+    report.add(f"Seed pairs per pair (mean): {fmt(float(np.mean(seeds)) if seeds else float('nan'))}; "
+               f"time of seeded over ZoomOut (sums over pairs): {fmt(ratio)}.")  # fmt: skip
 
 
 CASES = {
