@@ -83,9 +83,11 @@ def settings(suite: str, case: str, quick: bool, config: dict, overrides: dict) 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m bench", description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1],
-    )  # fmt: skip
+        prog="python -m bench",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n\n", 1)[1],
+    )
     p.add_argument("suite", choices=list(SUITES))
     p.add_argument("--case", default="", help="comma list of cases (default: every case of the suite)")
     p.add_argument("--list", action="store_true", help="list the suite's cases and their questions")
@@ -93,7 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="the smoke settings: demo pair, tiny meshes")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="one setting (repeatable)")
     p.add_argument("--name", default="", help="results in <suite>_<case>_<name>.md (a named variant)")
-    p.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder of the results (default bench/results)")
+    p.add_argument(
+        "--out", type=Path, default=RESULTS_DIR, help="folder of the results (default bench/results)"
+    )
     p.add_argument("--data", type=Path, help="folder of the real data (default ../shared/data)")
     return p
 
@@ -127,7 +131,8 @@ def main(argv: list[str] | None = None) -> list[Path]:
         header = (
             f"# {args.suite} / {case}: {question(every[case])}\n\n"
             f"`{command}`{' (quick: a smoke run, not figures)' if args.quick else ''}; settings "
-            f"`{json_line(dict(cfg))}`; {common.versions('scipy', 'torch')}; {code_state()}; {load_note()} at start."
+            f"`{json_line(dict(cfg))}`; {common.versions('scipy', 'torch')}; {code_state()}; "
+            f"{load_note()} at start."
         )
         report = Report(stem, args.out, header)
         t0 = time.perf_counter()

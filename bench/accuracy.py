@@ -49,7 +49,9 @@ def run_method(pair: Pair, rows: list, method: dict, lmk, k: int, shapes, info: 
             t0 = time.perf_counter()
             res = seeded_match(pair.x, pair.y, **kwargs).result
             seeds = 0 if res.seeds is None else len(res.seeds)
-            rows.append(record(pair, label, "seeded", res.p2p_yx, time.perf_counter() - t0, **info, seeds=seeds))
+            rows.append(
+                record(pair, label, "seeded", res.p2p_yx, time.perf_counter() - t0, **info, seeds=seeds)
+            )
         except Exception:
             crash(f"{pair.name} {label}")
         return
@@ -116,13 +118,17 @@ def summary(rows: list[dict], sets: dict, cfg: Settings) -> list[dict]:
                     rows, names, method=method, refine=refine, L=n, set=set_name
                 )
         times = [r["time"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "time" in r]
-        base = [r["time"] for r in rows if (r["method"], r["refine"]) == (cfg.baseline, refine) and "time" in r]
+        base = [
+            r["time"] for r in rows if (r["method"], r["refine"]) == (cfg.baseline, refine) and "time" in r
+        ]
         line["median t [s]"] = float(np.median(times)) if times else float("nan")
         if base and times:
             line[f"t / {cfg.baseline}"] = float(np.median(times) / np.median(base))
         kinds = sorted({r["K"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "K" in r})
         line["K"] = "/".join(str(k) for k in kinds)
-        notes = sorted({r["note"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "note" in r})
+        notes = sorted(
+            {r["note"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "note" in r}
+        )
         if notes:
             line["note"] = "/".join(notes)
         out.append(line)
@@ -137,7 +143,9 @@ def error_curves(plt, rows: list[dict], sets: dict, Ls: list[int]):
             ys = [mean_of(rows, names, method=method, refine=refine, L=n, set=set_name) for n in Ls]
             if not np.all(np.isnan(ys)):
                 ax.plot(Ls, ys, "--" if refine == "none" else "-", marker="o", label=f"{method} {refine}")
-        ax.set(title=f"{set_name} ({len(names)} pairs)", xlabel="landmarks L (0: none)", ylabel="mean error x100")
+        ax.set(
+            title=f"{set_name} ({len(names)} pairs)", xlabel="landmarks L (0: none)", ylabel="mean error x100"
+        )
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
@@ -183,10 +191,23 @@ def faust(cfg: Settings, report: Report) -> None:
     out = []
     for method, refine in _methods(rows):
         for n in cfg.L:
-            errs = np.array([r["mean"] for r in rows if (r["method"], r["refine"], r["L"]) == (method, refine, n) and "mean" in r])
+            errs = np.array(
+                [
+                    r["mean"]
+                    for r in rows
+                    if (r["method"], r["refine"], r["L"]) == (method, refine, n) and "mean" in r
+                ]
+            )
             if len(errs):
-                out.append({"method": method, "refine": refine, "L": n, "median x100": 100 * np.median(errs),
-                            "pairs > 10": f"{int((errs > 0.1).sum())}/{len(errs)}"})  # fmt: skip
+                out.append(
+                    {
+                        "method": method,
+                        "refine": refine,
+                        "L": n,
+                        "median x100": 100 * np.median(errs),
+                        "pairs > 10": f"{int((errs > 0.1).sum())}/{len(errs)}",
+                    }
+                )
     report.table(f"Medians and failures (error > 10) over the {sum(map(len, sets.values()))} pairs", out)
 
 
@@ -197,14 +218,25 @@ def feature_accuracy(cfg: Settings, report: Report) -> None:
     out = []
     for n in cfg.L:
         for s, names in sets.items():
-            m = {(meth, r): mean_of(rows, names, method=meth, refine=r, L=n, set=s) for meth, r in _methods(rows)}
-            t = {key: mean_of(rows, names, "time", 1.0, method=key[0], refine=key[1], L=n, set=s) for key in m}
-            out.append({
-                "L": n, "set": s,
-                "diffusion raw / lap raw": m.get(("diffusion", "none"), np.nan) / m.get(("laplacian", "none"), np.nan),
-                "diffusion ZO / lap ZO": m.get(("diffusion", "zoomout"), np.nan) / m.get(("laplacian", "zoomout"), np.nan),
-                "t diffusion ZO / t lap ZO": t.get(("diffusion", "zoomout"), np.nan) / t.get(("laplacian", "zoomout"), np.nan),
-            })  # fmt: skip
+            m = {
+                (meth, r): mean_of(rows, names, method=meth, refine=r, L=n, set=s)
+                for meth, r in _methods(rows)
+            }
+            t = {
+                key: mean_of(rows, names, "time", 1.0, method=key[0], refine=key[1], L=n, set=s) for key in m
+            }
+            out.append(
+                {
+                    "L": n,
+                    "set": s,
+                    "diffusion raw / lap raw": m.get(("diffusion", "none"), np.nan)
+                    / m.get(("laplacian", "none"), np.nan),
+                    "diffusion ZO / lap ZO": m.get(("diffusion", "zoomout"), np.nan)
+                    / m.get(("laplacian", "zoomout"), np.nan),
+                    "t diffusion ZO / t lap ZO": t.get(("diffusion", "zoomout"), np.nan)
+                    / t.get(("laplacian", "zoomout"), np.nan),
+                }
+            )
     report.table("Ratios (targets: <= 0.8 at L = 7, 15; no worse at L = 3)", out)
 
 
@@ -221,20 +253,34 @@ def landmark_default(cfg: Settings, report: Report) -> None:
                 d = mean_of(rows, [name], method="default", refine="zoomout", L=n, set=s)
                 best = [mean_of(rows, [name], method=b, refine="zoomout", L=n, set=s) for b in forced]
                 right.append(d <= 1.02 * min(best) if best and not np.isnan([d, *best]).any() else np.nan)
-            chosen = [r["chosen"] for r in rows if r["pair"] in names and r.get("L") == n and r.get("chosen")
-                      and r["refine"] == "zoomout"]  # fmt: skip
-            t = {b: mean_of(rows, names, "time", 1.0, method=b, refine="zoomout", L=n, set=s) for b in ("default", "laplacian")}
-            out.append({
-                "L": n, "set": s, "choice right": nanmean_or(right),
-                f"chosen ({'/'.join(b[:3] for b in AUTO_KINDS)})": "/".join(str(chosen.count(b)) for b in AUTO_KINDS),
-                "t default / t lap ZO": t["default"] / t["laplacian"],
-            })  # fmt: skip
+            chosen = [
+                r["chosen"]
+                for r in rows
+                if r["pair"] in names and r.get("L") == n and r.get("chosen") and r["refine"] == "zoomout"
+            ]
+            t = {
+                b: mean_of(rows, names, "time", 1.0, method=b, refine="zoomout", L=n, set=s)
+                for b in ("default", "laplacian")
+            }
+            out.append(
+                {
+                    "L": n,
+                    "set": s,
+                    "choice right": nanmean_or(right),
+                    f"chosen ({'/'.join(b[:3] for b in AUTO_KINDS)})": "/".join(
+                        str(chosen.count(b)) for b in AUTO_KINDS
+                    ),
+                    "t default / t lap ZO": t["default"] / t["laplacian"],
+                }
+            )
     report.table(
-        "The default's choice", out,
+        "The default's choice",
+        out,
         note=f"default: basis=None, chooses among {', '.join(AUTO_KINDS)} by geodesic distortion (eigenbasis "
-        f"margin {AUTO_MARGIN:g}). Choice right: share of pairs whose refined error is within 2 % of the best "
+        f"margin {AUTO_MARGIN:g}). Choice right: share of pairs whose refined error is within 2 % "
+        f"of the best "
         "forced kind's.",
-    )  # fmt: skip
+    )
 
 
 def nanmean_or(values: list) -> float:
@@ -247,11 +293,15 @@ def seeded_refine(cfg: Settings, report: Report) -> None:
     without landmarks, on shapes prepared once per pair."""
     rows = grid(cfg, report)
     seeds = [r["seeds"] for r in rows if "seeds" in r]
-    t = {m: sum(r["time"] for r in rows if (r["method"], r["refine"]) == m and "time" in r)
-         for m in (("seeded", "seeded"), ("zoomout", "zoomout"))}  # fmt: skip
+    t = {
+        m: sum(r["time"] for r in rows if (r["method"], r["refine"]) == m and "time" in r)
+        for m in (("seeded", "seeded"), ("zoomout", "zoomout"))
+    }
     ratio = t[("seeded", "seeded")] / t[("zoomout", "zoomout")] if t[("zoomout", "zoomout")] else float("nan")
-    report.add(f"Seed pairs per pair (mean): {fmt(float(np.mean(seeds)) if seeds else float('nan'))}; "
-               f"time of seeded over ZoomOut (sums over pairs): {fmt(ratio)}.")  # fmt: skip
+    report.add(
+        f"Seed pairs per pair (mean): {fmt(float(np.mean(seeds)) if seeds else float('nan'))}; "
+        f"time of seeded over ZoomOut (sums over pairs): {fmt(ratio)}."
+    )
 
 
 CASES = {

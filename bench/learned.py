@@ -21,15 +21,28 @@ import torch
 from torchfmap import prepare_shape
 from torchfmap.bases.prepared import with_eigenpairs
 from torchfmap.data import demo_pair_paths
+from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.kinds import get_kind
-from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
-from torchfmap.nn import LearnedMatcher, ShapeDataset, TrainConfig, Trainer, adapt, build_model, build_solver
-from torchfmap.nn import collate_pairs, load_checkpoint, predict_p2p, shipped_models, unsupervised_score
+from torchfmap.nn import (
+    LearnedMatcher,
+    ShapeDataset,
+    TrainConfig,
+    Trainer,
+    adapt,
+    build_model,
+    build_solver,
+    collate_pairs,
+    load_checkpoint,
+    predict_p2p,
+    shipped_models,
+    unsupervised_score,
+)
 from torchfmap.nn.data import class_pairs
 from torchfmap.nn.train import pair_loss
 
-from .common import DATA_DIR, Report, Settings, Skip, log, nanmean
+from . import common
+from .common import Report, Settings, Skip, log, nanmean
 from .pairs import Pair, expand
 
 
@@ -85,12 +98,12 @@ def checkpoints(cfg: Settings, report: Report) -> None:
             def add(method, fn, pair):
                 t0 = time.perf_counter()
                 p2p = fn()
-                seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0
-                errors.setdefault(method, []).append(float(pair.errors(p2p).mean()))
+                seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0  # noqa: B023
+                errors.setdefault(method, []).append(float(pair.errors(p2p).mean()))  # noqa: B023
                 return p2p
 
             def zoomout(network, shapes):
-                matcher = LearnedMatcher(network, config, device="cpu")
+                matcher = LearnedMatcher(network, config, device="cpu")  # noqa: B023
                 return matcher(shapes[0].mesh, shapes[1].mesh, refine="zoomout", shapes=shapes).p2p_yx
 
             for i, (pair, a, b, x, y) in enumerate(data):
@@ -99,7 +112,11 @@ def checkpoints(cfg: Settings, report: Report) -> None:
                     add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pair)  # noqa: B023
                 base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pair)  # noqa: B023
                 if cfg.all_rules:
-                    add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pair)  # noqa: B023
+                    add(
+                        "trained, fmap, pull-back",
+                        lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"),  # noqa: B023
+                        pair,
+                    )  # noqa: B023
                     add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pair)  # noqa: B023
                 if cfg.zoomout:
                     add("trained, fmap + zoomout", lambda: zoomout(net, shapes), pair)  # noqa: B023
@@ -110,15 +127,29 @@ def checkpoints(cfg: Settings, report: Report) -> None:
                     if cfg.zoomout:
                         add(f"adapt {cfg.adapt} + zoomout", lambda: zoomout(tuned, shapes), pair)  # noqa: B023
                 pair.free()
-                log(f"{set_name} {label} pair {i + 1}/{len(data.pairs)}: " + ", ".join(f"{m} {100 * e[-1]:.2f}" for m, e in errors.items()))
+                log(
+                    f"{set_name} {label} pair {i + 1}/{len(data.pairs)}: "
+                    + ", ".join(f"{m} {100 * e[-1]:.2f}" for m, e in errors.items())
+                )
             base_t = seconds.get("trained, fmap", float("nan")) / max(len(errors.get("trained, fmap", [])), 1)
             for method, errs in errors.items():
-                rows.append({"model": label, "set": set_name, "method": method, "pairs": len(errs),
-                             "mean error x100": 100 * nanmean(errs), "s / pair": seconds[method] / len(errs),
-                             "t / trained fmap": seconds[method] / len(errs) / base_t})  # fmt: skip
+                rows.append(
+                    {
+                        "model": label,
+                        "set": set_name,
+                        "method": method,
+                        "pairs": len(errs),
+                        "mean error x100": 100 * nanmean(errs),
+                        "s / pair": seconds[method] / len(errs),
+                        "t / trained fmap": seconds[method] / len(errs) / base_t,
+                    }
+                )
             secs = state.get("epoch_seconds", [])
-            report.add(f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
-                       f"{state.get('step', '?')} steps; seconds per full epoch: {', '.join(f'{s:.0f}' for s in secs) or 'n/a'}")  # fmt: skip
+            report.add(
+                f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
+                f"{state.get('step', '?')} steps; seconds per full epoch: "
+                f"{', '.join(f'{s:.0f}' for s in secs) or 'n/a'}"
+            )
     report.table("Mean geodesic error / sqrt(area) x100; seconds per pair (precompute excluded)", rows)
     report.rows_csv(rows)
     if any(curves.values()):
@@ -144,9 +175,9 @@ def curve(cfg: Settings, report: Report) -> None:
     if cfg.train == "demo":
         files = [str(p) for p in demo_pair_paths()[:2]]
     else:
-        files = sorted(glob.glob(str(DATA_DIR / cfg.train)))
+        files = sorted(glob.glob(str(common.DATA_DIR / cfg.train)))
         if not files:
-            raise Skip(f"no training files {DATA_DIR / cfg.train}")
+            raise Skip(f"no training files {common.DATA_DIR / cfg.train}")
     config = TrainConfig(**cfg.recipe, minutes=cfg.minutes, max_steps=cfg.max_steps, epochs=None)
     shapes = ShapeDataset(files, cfg.cache, **config.dataset_kwargs(), progress=False)
     val = PairSet(expand(cfg.val), config, cfg)
@@ -160,19 +191,30 @@ def curve(cfg: Settings, report: Report) -> None:
         score = unsupervised(model)
         errors = [float(p.errors(predict_p2p(model, solver, x, y)).mean()) for p, _, _, x, y in val]
         eval_s[0] += time.perf_counter() - t0
-        points.append({"step": (len(points) + 1) * cfg.every, "minutes": (time.perf_counter() - t_start - eval_s[0]) / 60,
-                       "val error x100": 100 * float(np.mean(errors)), "val loss": score})  # fmt: skip
+        points.append(
+            {
+                "step": (len(points) + 1) * cfg.every,
+                "minutes": (time.perf_counter() - t_start - eval_s[0]) / 60,
+                "val error x100": 100 * float(np.mean(errors)),
+                "val loss": score,
+            }
+        )
         log(f"step {points[-1]['step']}: error {points[-1]['val error x100']:.2f}, loss {score:.4g}")
         model.train()
         return score
 
-    state = Trainer.from_config(config, shapes, pairs, device="cpu", validate=validate, validate_every=cfg.every).fit()
+    state = Trainer.from_config(
+        config, shapes, pairs, device="cpu", validate=validate, validate_every=cfg.every
+    ).fit()
     if points:
         points[-1]["step"] = state.step
     report.table(
-        f"Validation against steps ({state.step} steps in {state.seconds:.0f} s, {len(pairs)} pairs per epoch)", points,
-        note="Minutes exclude the validations. A shorter budget anneals sooner: the curve's shape, not a final error.",
-    )  # fmt: skip
+        f"Validation against steps ({state.step} steps in {state.seconds:.0f} s, {len(pairs)} pairs "
+        f"per epoch)",
+        points,
+        note="Minutes exclude the validations. A shorter budget anneals sooner: the curve's shape, "
+        "not a final error.",
+    )
     report.figure(curve_figure, points, state.losses)
 
 
@@ -195,7 +237,7 @@ def adapt_sweep(cfg: Settings, report: Report) -> None:
     """Unsupervised test-time adaptation: steps x learning rate, raw and after ZoomOut, and what
     it costs per pair."""
     torch.set_num_threads(cfg.threads)
-    (label, path), = _checkpoints([cfg.checkpoint])
+    ((label, path),) = _checkpoints([cfg.checkpoint])
     net, config, _ = load_checkpoint(path)
     _, solver, loss_fn = build_model(config)
     results: dict[tuple[int, float], list] = {}
@@ -209,13 +251,26 @@ def adapt_sweep(cfg: Settings, report: Report) -> None:
                     tuned = adapt(net, solver, loss_fn, x, y, steps=n, lr=lr) if n else net
                     seconds = time.perf_counter() - t0
                     raw = predict_p2p(tuned, solver, x, y)
-                    ref = LearnedMatcher(tuned, config, device="cpu")(pair.x, pair.y, refine="zoomout", shapes=shapes).p2p_yx
-                    results.setdefault((n, lr), []).append((pair.errors(raw).mean(), pair.errors(ref).mean(), seconds))
+                    ref = LearnedMatcher(tuned, config, device="cpu")(
+                        pair.x, pair.y, refine="zoomout", shapes=shapes
+                    ).p2p_yx
+                    results.setdefault((n, lr), []).append(
+                        (pair.errors(raw).mean(), pair.errors(ref).mean(), seconds)
+                    )
             pair.free()
-    rows = [{"method": f"adapt {n} steps" if n else "no adaptation", "lr": f"{lr:g}" if n else "-",
-             "raw x100": 100 * nanmean(r[0] for r in res), "ZoomOut x100": 100 * nanmean(r[1] for r in res),
-             "adapt s / pair": nanmean(r[2] for r in res)} for (n, lr), res in results.items()]  # fmt: skip
-    report.table(f"`{label}`: mean geodesic error x100 and the adaptation's cost ({cfg.threads} thread(s))", rows)
+    rows = [
+        {
+            "method": f"adapt {n} steps" if n else "no adaptation",
+            "lr": f"{lr:g}" if n else "-",
+            "raw x100": 100 * nanmean(r[0] for r in res),
+            "ZoomOut x100": 100 * nanmean(r[1] for r in res),
+            "adapt s / pair": nanmean(r[2] for r in res),
+        }
+        for (n, lr), res in results.items()
+    ]
+    report.table(
+        f"`{label}`: mean geodesic error x100 and the adaptation's cost ({cfg.threads} thread(s))", rows
+    )
 
 
 def zoomout_from(p2p_yx, shapes, k0: int, k_final: int) -> np.ndarray:
@@ -258,7 +313,9 @@ def stage_two(cfg: Settings, report: Report) -> None:
             pair.free()
         step = [float("nan"), float("nan")]
         if cfg.step_pairs:  # one training step (forward, both losses, backward), stage 1 alone and both
-            batches = [collate_pairs([(data.shapes[a], data.shapes[b])]) for a, b in data.index[: cfg.step_pairs]]
+            batches = [
+                collate_pairs([(data.shapes[a], data.shapes[b])]) for a, b in data.index[: cfg.step_pairs]
+            ]
             gen, net_t = torch.Generator().manual_seed(0), net.train()
             for j, extra in enumerate(((), (StageTwoLoss(data.shapes.mesh),))):
                 for timed_pass in (False, True):  # the first pass prepares the second stage's shapes
@@ -272,9 +329,18 @@ def stage_two(cfg: Settings, report: Report) -> None:
         n = len(data.pairs)
         for method, errs in errors.items():
             stage_n = method.split(" +")[0]
-            rows.append({"set": set_name, "model": label, "method": method, "pairs": n, "mean error x100": 100 * nanmean(errs),
-                         "s / pair": seconds[stage_n] / n, "t / stage 1": seconds[stage_n] / max(seconds["stage 1"], 1e-12),
-                         "s / training step": step[0 if stage_n == "stage 1" else 1]})  # fmt: skip
+            rows.append(
+                {
+                    "set": set_name,
+                    "model": label,
+                    "method": method,
+                    "pairs": n,
+                    "mean error x100": 100 * nanmean(errs),
+                    "s / pair": seconds[stage_n] / n,
+                    "t / stage 1": seconds[stage_n] / max(seconds["stage 1"], 1e-12),
+                    "s / training step": step[0 if stage_n == "stage 1" else 1],
+                }
+            )
         report.add(f"{set_name}, {label}: {nanmean(counts):.1f} consistent seed pairs per pair (mean).")
     report.table("Second stage of the learned path against stage 1 (mean geodesic error x100)", rows)
 

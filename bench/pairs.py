@@ -132,7 +132,9 @@ class Pair:
             self._load(pa, pb, gt_from_map(read_map(pgt)))
         elif spec == "cat-lion":
             folder = require_data("pyfm_cat_lion")
-            self._load(folder / "cat-00.off", folder / "lion-00.off", gt_from_map(read_map(folder / "lion2cat")))
+            self._load(
+                folder / "cat-00.off", folder / "lion-00.off", gt_from_map(read_map(folder / "lion2cat"))
+            )
             self.fixed = read_landmark_pairs(folder / "landmarks.txt")  # (cat, lion)
         elif ":" in spec:
             kind, names = spec.split(":", 1)
@@ -242,7 +244,9 @@ def errors_section() -> str:
     return "### Unexpected exceptions\n\n" + "\n".join(f"```\n{e}```" for e in ERRORS) if ERRORS else ""
 
 
-def run_match(pair: Pair, rows: list, method: str, refine: str | None, info: dict | None = None, **kwargs) -> Any:
+def run_match(
+    pair: Pair, rows: list, method: str, refine: str | None, info: dict | None = None, **kwargs
+) -> Any:
     """``torchfmap.match(pair.x, pair.y, refine=refine, **kwargs)``: appends the unrefined row
     (``p2p_yx_initial``; its time the wall time minus ``timings['refine']``) and, with a
     refinement, the refined row (``info``: more columns of both); ``K`` is the size ``match``
@@ -259,7 +263,9 @@ def run_match(pair: Pair, rows: list, method: str, refine: str | None, info: dic
         return None
     except Exception:  # a crash: report it, keep benchmarking
         crash(f"{pair.name} {method} refine={refine}")
-        rows.append({"pair": pair.name, "method": method, "refine": refine or "none", **info, "note": "error"})
+        rows.append(
+            {"pair": pair.name, "method": method, "refine": refine or "none", **info, "note": "error"}
+        )
         return None
     info |= {"K": res.basis_x.k, "kind": res.kind}
     rows.append(record(pair, method, None, res.p2p_yx_initial, wall - res.timings.get("refine", 0.0), **info))
@@ -272,9 +278,10 @@ def mean_of(rows: list[dict], pairs: list[str], key: str = "mean", scale: float 
     """Mean of ``key`` (x ``scale``) over the rows of ``pairs`` matching ``match``; NaN unless
     every pair has such a row."""
     got = [
-        r[key] for r in rows
+        r[key]
+        for r in rows
         if r["pair"] in pairs and key in r and all(r.get(k) == v for k, v in match.items())
-    ]  # fmt: skip
+    ]
     return float(np.mean(got)) * scale if got and len(got) == len(pairs) else float("nan")
 
 
@@ -290,7 +297,11 @@ PYFM_QUICKSTART = dict(
 
 def pyfm_missing() -> str:
     """``''`` when pyFM (PyPI ``pyfmaps``) is importable, else the note a report prints."""
-    if importlib.util.find_spec("pyFM") is None:
+    try:
+        found = importlib.util.find_spec("pyFM") is not None
+    except (ImportError, ValueError):  # blocked (sys.modules entry None) or broken
+        found = False
+    if not found:
         return "pyFM (PyPI pyfmaps) is not installed: its rows are left out (pip install pyfmaps)."
     return ""
 
@@ -309,10 +320,18 @@ class PyfmRun:
 
 
 def run_pyfm(
-    mesh_x, mesh_y, *, k: int, landmarks=None, refine: tuple[str, ...] = ("icp", "zoomout"),
-    n_descr: int = 50, k_descr: int = 50, subsample_step: int = 1, zoomout_samples: int = 2000,
+    mesh_x,
+    mesh_y,
+    *,
+    k: int,
+    landmarks=None,
+    refine: tuple[str, ...] = ("icp", "zoomout"),
+    n_descr: int = 50,
+    k_descr: int = 50,
+    subsample_step: int = 1,
+    zoomout_samples: int = 2000,
     fit: dict | None = None,
-) -> PyfmRun:  # fmt: skip
+) -> PyfmRun:
     """pyFM's whole pipeline: ``TriMesh`` -> ``preprocess`` (WKS) -> ``fit`` -> ``get_p2p`` [-> refine].
 
     Direction: pyFM's ``mesh1`` is our ``x``, its ``FM_12`` is ``(k2, k1)`` like our ``C_xy`` and
@@ -335,9 +354,13 @@ def run_pyfm(
         m2 = TriMesh(np.array(mesh_y.vertices), np.array(mesh_y.faces))
         model = FunctionalMapping(m1, m2)
         model.preprocess(
-            n_descr=n_descr, descr_type="WKS", landmarks=None if landmarks is None else np.asarray(landmarks),
-            subsample_step=subsample_step, k_process=k_process, k_descr=k_descr,
-        )  # fmt: skip
+            n_descr=n_descr,
+            descr_type="WKS",
+            landmarks=None if landmarks is None else np.asarray(landmarks),
+            subsample_step=subsample_step,
+            k_process=k_process,
+            k_descr=k_descr,
+        )
         t1 = time.perf_counter()
         model.fit(K=(k, k), **(PYFM_FIT if fit is None else fit))
         t2 = time.perf_counter()
@@ -370,7 +393,9 @@ def pyfm_rows(pair: Pair, rows: list, k: int, landmarks, refines, method: str = 
         run = run_pyfm(pair.x, pair.y, k=k, landmarks=landmarks, refine=extra, **settings)
     except Exception:
         crash(f"{pair.name} pyFM")
-        rows += [{"pair": pair.name, "method": method, "refine": r or "none", "note": "error"} for r in refines]
+        rows += [
+            {"pair": pair.name, "method": method, "refine": r or "none", "note": "error"} for r in refines
+        ]
         return
     info = {"K": k, "n_descr": run.n_descr, "k_process": run.k_process}
     info |= {f"t_{key}": val for key, val in run.phases.items()}

@@ -23,9 +23,19 @@ from torchfmap.eval import auc, discover_pairs
 from torchfmap.fmap import nearest_neighbor
 
 from .common import (
-    MiB, Report, Settings, Skip, bench_mesh, load1, log, require_data, reset_peak_rss, status_mib, timed,
+    MiB,
+    Report,
+    Settings,
+    Skip,
+    bench_mesh,
+    load1,
+    log,
+    require_data,
+    reset_peak_rss,
+    status_mib,
+    timed,
     traced_peak_mib,
-)  # fmt: skip
+)
 from .pairs import PYFM_FIT, Pair, pyfm_missing, run_pyfm
 
 
@@ -62,23 +72,43 @@ def match_speed(cfg: Settings, report: Report) -> None:
     use_pyfm = cfg.pyfm and not pyfm_missing()
     report.add(pyfm_missing() if cfg.pyfm else "")
     m = bench_mesh(1500)  # warm-up of both pipelines
-    torchfmap.match(m, m.copy(m.vertices * np.array([1.0, 1.05, 0.95])), basis="laplacian", k=20, refine="zoomout")
+    torchfmap.match(
+        m, m.copy(m.vertices * np.array([1.0, 1.05, 0.95])), basis="laplacian", k=20, refine="zoomout"
+    )
     runs: dict[tuple[str, str], list[dict]] = {}
     for _ in range(cfg.repeats):
         for refine in ("none", "zoomout", "zoomout-sub"):
             t0 = time.perf_counter()
-            x, y = torchfmap.Mesh(vx.copy(), f.copy()), torchfmap.Mesh(vy.copy(), f.copy())  # construction timed
+            x, y = (
+                torchfmap.Mesh(vx.copy(), f.copy()),
+                torchfmap.Mesh(vy.copy(), f.copy()),
+            )  # construction timed
             res = torchfmap.match(
-                x, y, landmarks=lmk, basis="laplacian", k=cfg.k, refine=None if refine == "none" else "zoomout",
-                n_descriptors=nd, k_descriptors=kd, zoomout_samples=cfg.zoomout_samples if refine == "zoomout-sub" else None,
-            )  # fmt: skip
+                x,
+                y,
+                landmarks=lmk,
+                basis="laplacian",
+                k=cfg.k,
+                refine=None if refine == "none" else "zoomout",
+                n_descriptors=nd,
+                k_descriptors=kd,
+                zoomout_samples=cfg.zoomout_samples if refine == "zoomout-sub" else None,
+            )
             runs.setdefault(("ours", refine), []).append(
                 {"p2p": res.p2p_yx, "time": time.perf_counter() - t0, "phases": res.timings, "load": load1()}
             )
             if use_pyfm:
                 extra = () if refine == "none" else (refine,)
-                pf = run_pyfm(torchfmap.Mesh(vx, f), torchfmap.Mesh(vy, f), k=cfg.k, landmarks=lmk, refine=extra,
-                              n_descr=nd, k_descr=kd, zoomout_samples=cfg.zoomout_samples)  # fmt: skip
+                pf = run_pyfm(
+                    torchfmap.Mesh(vx, f),
+                    torchfmap.Mesh(vy, f),
+                    k=cfg.k,
+                    landmarks=lmk,
+                    refine=extra,
+                    n_descr=nd,
+                    k_descr=kd,
+                    zoomout_samples=cfg.zoomout_samples,
+                )
                 key = None if refine == "none" else refine
                 runs.setdefault(("pyFM", refine), []).append(
                     {"p2p": pf.p2p[key], "time": pf.times[key], "phases": pf.phases, "load": load1()}
@@ -94,19 +124,34 @@ def match_speed(cfg: Settings, report: Report) -> None:
         err /= np.sqrt(mesh_x.area)
         best = min(rs, key=lambda r: r["time"])
         med = statistics.median(r["time"] for r in rs)
-        rows.append({"method": method, "refine": refine, "V": len(vx), "k": cfg.k, "time [s] (median)": med,
-                     "phases of the fastest [s]": ", ".join(f"{k} {v:.1f}" for k, v in best["phases"].items()),
-                     "mean err": float(err.mean()), "AUC": auc(err), "load": "/".join(f"{r['load']:.1f}" for r in rs)})  # fmt: skip
+        rows.append(
+            {
+                "method": method,
+                "refine": refine,
+                "V": len(vx),
+                "k": cfg.k,
+                "time [s] (median)": med,
+                "phases of the fastest [s]": ", ".join(f"{k} {v:.1f}" for k, v in best["phases"].items()),
+                "mean err": float(err.mean()),
+                "AUC": auc(err),
+                "load": "/".join(f"{r['load']:.1f}" for r in rs),
+            }
+        )
     for r in rows:
         base = [x for x in rows if x["method"] == "pyFM" and x["refine"] == r["refine"]]
         if base:
-            r["pyFM / ours"] = base[0]["time [s] (median)"] / r["time [s] (median)"] if r["method"] == "ours" else 1.0
+            r["pyFM / ours"] = (
+                base[0]["time [s] (median)"] / r["time [s] (median)"] if r["method"] == "ours" else 1.0
+            )
     report.table(
-        f"Whole pipeline on {label}: {len(vx):,} vertices, k={cfg.k}, {cfg.landmarks or 'no'} landmarks", rows,
-        note=f"Both: {nd} WKS descriptors from {kd} eigenpairs; ZoomOut k -> 2k in steps of k // 10; zoomout-sub on "
-        f"{cfg.zoomout_samples} FPS samples per shape. pyFM fit weights {PYFM_FIT}. Errors: mean normalised geodesic "
+        f"Whole pipeline on {label}: {len(vx):,} vertices, k={cfg.k}, {cfg.landmarks or 'no'} landmarks",
+        rows,
+        note=f"Both: {nd} WKS descriptors from {kd} eigenpairs; ZoomOut k -> 2k in steps of k // "
+        f"10; zoomout-sub on "
+        f"{cfg.zoomout_samples} FPS samples per shape. pyFM fit weights {PYFM_FIT}. Errors: mean "
+        f"normalised geodesic "
         f"error and AUC at the same {len(pts)} random vertices (last round's map). Target: pyFM / ours >= 3.",
-    )  # fmt: skip
+    )
 
 
 def _timed_rss(fn):
@@ -131,27 +176,46 @@ def nn_speed(cfg: Settings, report: Report) -> None:
     reference = rng.standard_normal((n, d))
     perm = rng.permutation(n)
     query = reference[perm] + 1e-3 * rng.standard_normal((n, d))  # the answer is known
-    methods = [(f"ours block_bytes={mb} MiB", lambda mb=mb: nearest_neighbor(query, reference, search="brute", block_bytes=mb * MiB))
-               for mb in cfg.blocks_mib]  # fmt: skip
+    methods = [
+        (
+            f"ours block_bytes={mb} MiB",
+            lambda mb=mb: nearest_neighbor(query, reference, search="brute", block_bytes=mb * MiB),
+        )
+        for mb in cfg.blocks_mib
+    ]
     if cfg.pyfm and not pyfm_missing():
         from pyFM.spectral.nearest_neighbor import knn_query
 
-        methods.append(("pyFM knn_query brute (sklearn)", lambda: knn_query(reference, query, method="brute")))
+        methods.append(
+            ("pyFM knn_query brute (sklearn)", lambda: knn_query(reference, query, method="brute"))
+        )
     else:
         report.add(pyfm_missing())
     rows = []
     for name, fn in methods:
         sec, rss, idx = _timed_rss(fn)
-        rows.append({"method": name, "M x N x D": f"{n:,} x {n:,} x {d}", "time [s]": sec,
-                     "tracemalloc peak [MiB]": traced_peak_mib(fn)[0], "peak RSS [MiB]": rss,
-                     "RSS / naive": rss * MiB / (n * n * 8), "correct": float(np.mean(idx == perm)), "load": load1()})  # fmt: skip
+        rows.append(
+            {
+                "method": name,
+                "M x N x D": f"{n:,} x {n:,} x {d}",
+                "time [s]": sec,
+                "tracemalloc peak [MiB]": traced_peak_mib(fn)[0],
+                "peak RSS [MiB]": rss,
+                "RSS / naive": rss * MiB / (n * n * 8),
+                "correct": float(np.mean(idx == perm)),
+                "load": load1(),
+            }
+        )
     for r in rows:
         r[f"t / {rows[-1]['method']}"] = r["time [s]"] / rows[-1]["time [s]"]
     report.table(
-        f"Nearest neighbour of {n:,} queries among {n:,} points, {d} dimensions", rows,
-        note=f"Naive (M, N) float64 distance matrix: {n * n * 8 / 2**30:.1f} GiB, not allocated. tracemalloc: numpy "
-        "allocations of a second call; peak RSS: VmHWM (reset before the call) above the resident size at its start.",
-    )  # fmt: skip
+        f"Nearest neighbour of {n:,} queries among {n:,} points, {d} dimensions",
+        rows,
+        note=f"Naive (M, N) float64 distance matrix: {n * n * 8 / 2**30:.1f} GiB, not allocated. "
+        f"tracemalloc: numpy "
+        "allocations of a second call; peak RSS: VmHWM (reset before the call) above the resident "
+        "size at its start.",
+    )
 
 
 def eval_speed(cfg: Settings, report: Report) -> None:
@@ -181,21 +245,49 @@ def eval_speed(cfg: Settings, report: Report) -> None:
             base = (time.perf_counter() - t0) / max(n_base, 1) * len(pairs)
             threads = pool_threads(cfg.workers)
             runs = {}
-            for name, kw in (("prepared, 1 process", {}), (f"1 process, {threads} thread(s)", {"threads": threads}),
-                             (f"{cfg.workers} workers x {threads} thread(s)", {"workers": cfg.workers, "threads": threads})):  # fmt: skip
+            for name, kw in (
+                ("prepared, 1 process", {}),
+                (f"1 process, {threads} thread(s)", {"threads": threads}),
+                (
+                    f"{cfg.workers} workers x {threads} thread(s)",
+                    {"workers": cfg.workers, "threads": threads},
+                ),
+            ):
                 t0 = time.perf_counter()
                 runs[name] = (evaluate_pairs(pairs, **kw), time.perf_counter() - t0)
-            same = [np.array_equal(a.errors, b.errors) for a, b in zip(*(r[0] for r in list(runs.values())[1:]), strict=True)]
-            rows.append({"collection": label, "pairs": len(pairs), "method": "per pair (extrapolated)", "time [s]": base, "speed-up": 1.0})
+            same = [
+                np.array_equal(a.errors, b.errors)
+                for a, b in zip(*(r[0] for r in list(runs.values())[1:]), strict=True)
+            ]
+            rows.append(
+                {
+                    "collection": label,
+                    "pairs": len(pairs),
+                    "method": "per pair (extrapolated)",
+                    "time [s]": base,
+                    "speed-up": 1.0,
+                }
+            )
             for name, (res, t) in runs.items():
-                rows.append({"collection": label, "pairs": len(pairs), "method": name, "time [s]": t, "speed-up": base / t,
-                             "mean error": float(np.mean([r.errors.mean() for r in res])), "load": load1()})  # fmt: skip
+                rows.append(
+                    {
+                        "collection": label,
+                        "pairs": len(pairs),
+                        "method": name,
+                        "time [s]": t,
+                        "speed-up": base / t,
+                        "mean error": float(np.mean([r.errors.mean() for r in res])),
+                        "load": load1(),
+                    }
+                )
             rows[-1]["pool == 1 process (same threads)"] = "yes" if all(same) else "NO"
     report.table(
-        "Wall time of the whole collection", rows,
-        note=f"per pair: each pair evaluated on its own on the first {cfg.baseline_pairs} pairs, extrapolated (linear "
+        "Wall time of the whole collection",
+        rows,
+        note=f"per pair: each pair evaluated on its own on the first {cfg.baseline_pairs} pairs, "
+        f"extrapolated (linear "
         "by construction). speed-up: against it. Same match settings everywhere (eval's defaults).",
-    )  # fmt: skip
+    )
 
 
 def landmark_timing(cfg: Settings, report: Report) -> None:
@@ -204,19 +296,35 @@ def landmark_timing(cfg: Settings, report: Report) -> None:
     for spec in cfg.pairs:
         pair = Pair(spec)
         lm = pair.landmarks(cfg.L)
-        run = lambda basis, p=pair, lm=lm: torchfmap.match(p.x, p.y, landmarks=lm, k=cfg.k, refine="zoomout", basis=basis)  # noqa: E731
+        run = lambda basis, p=pair, lm=lm: torchfmap.match(  # noqa: E731
+            p.x, p.y, landmarks=lm, k=cfg.k, refine="zoomout", basis=basis
+        )  # noqa: E731
         run(None)  # warm-up
         times: dict[str, list[float]] = {"default": [], "laplacian": []}
         for _ in range(cfg.repeats):
             for name in times:
-                t, _, res = timed(lambda name=name: run(None if name == "default" else name))
+                t, _, res = timed(lambda name=name: run(None if name == "default" else name))  # noqa: B023
                 times[name].append(t)
                 if name == "default":
                     chosen = res.kind
         med = {n: statistics.median(t) for n, t in times.items()}
-        rows.append({"pair": spec, "method": "default", "chosen": chosen, "time [s]": med["default"],
-                     "t / eigenbasis ZoomOut": med["default"] / med["laplacian"]})  # fmt: skip
-        rows.append({"pair": spec, "method": "laplacian ZoomOut", "time [s]": med["laplacian"], "t / eigenbasis ZoomOut": 1.0})
+        rows.append(
+            {
+                "pair": spec,
+                "method": "default",
+                "chosen": chosen,
+                "time [s]": med["default"],
+                "t / eigenbasis ZoomOut": med["default"] / med["laplacian"],
+            }
+        )
+        rows.append(
+            {
+                "pair": spec,
+                "method": "laplacian ZoomOut",
+                "time [s]": med["laplacian"],
+                "t / eigenbasis ZoomOut": 1.0,
+            }
+        )
     report.table(f"Median of {cfg.repeats}, {cfg.L} landmarks, k = {cfg.k}, preparation included", rows)
 
 
@@ -252,8 +360,19 @@ def threads(cfg: Settings, report: Report) -> None:
                 times[label].append(timed(fn, cfg.repeats)[0])
         one, every = min(times["one"]), min(times["all"])
         rows.append({"workload": name, "method": "1 thread", "time [s]": one, "t / 1 thread": 1.0})
-        rows.append({"workload": name, "method": "all threads", "time [s]": every, "t / 1 thread": every / one, "load": load1()})
-    report.table(f"{pair.name} (V={x.n_vertices}); {', '.join(blas)}; torch {default} threads; best of two rounds", rows)
+        rows.append(
+            {
+                "workload": name,
+                "method": "all threads",
+                "time [s]": every,
+                "t / 1 thread": every / one,
+                "load": load1(),
+            }
+        )
+    report.table(
+        f"{pair.name} (V={x.n_vertices}); {', '.join(blas)}; torch {default} threads; best of two rounds",
+        rows,
+    )
 
 
 CASES = {

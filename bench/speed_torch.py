@@ -60,7 +60,11 @@ def loop_systems(A_x, A_y, lam_x, U_x, lam_y, U_y):
     ``(λ_x,j - λ_y,i)²`` normalised to mean 1 per batch item."""
     A_xr, A_yr = U_x.transpose(-1, -2) @ A_x, U_y.transpose(-1, -2) @ A_y
     m = (lam_x.clip(min=0)[:, None, :] - lam_y.clip(min=0)[:, :, None]) ** 2
-    return W_DESC * (A_xr @ A_xr.transpose(-1, -2)), W_DESC * (A_yr @ A_xr.transpose(-1, -2)), m / m.mean(dim=(-2, -1), keepdim=True)
+    return (
+        W_DESC * (A_xr @ A_xr.transpose(-1, -2)),
+        W_DESC * (A_yr @ A_xr.transpose(-1, -2)),
+        m / m.mean(dim=(-2, -1), keepdim=True),
+    )
 
 
 def loop_solve(fx, fy, bx: BasisBatch, by: BasisBatch):
@@ -71,15 +75,24 @@ def loop_solve(fx, fy, bx: BasisBatch, by: BasisBatch):
 
     def one(A_x, A_y, lx, Ux, ly, Uy):
         G, rhs, mask = loop_systems(A_x, A_y, lx, Ux, ly, Uy)
-        C = [torch.stack([torch.linalg.solve(G[b] + W_LAP * torch.diag(mask[b, i]), rhs[b, i]) for i in range(rhs.shape[1])])
-             for b in range(G.shape[0])]  # fmt: skip
+        C = [
+            torch.stack(
+                [
+                    torch.linalg.solve(G[b] + W_LAP * torch.diag(mask[b, i]), rhs[b, i])
+                    for i in range(rhs.shape[1])
+                ]
+            )
+            for b in range(G.shape[0])
+        ]
         return Uy @ torch.stack(C) @ Ux.transpose(-1, -2)
 
     return one(A_x, A_y, bx.lam, bx.U, by.lam, by.U), one(A_y, A_x, by.lam, by.U, bx.lam, bx.U)
 
 
-METHODS = {"batched": lambda fx, fy, bx, by: solve_fmap(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True),
-           "loop": loop_solve}  # fmt: skip
+METHODS = {
+    "batched": lambda fx, fy, bx, by: solve_fmap(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True),
+    "loop": loop_solve,
+}
 
 
 def fwd_bwd(method: str, inp: dict) -> tuple[float, float, dict]:
@@ -91,7 +104,11 @@ def fwd_bwd(method: str, inp: dict) -> tuple[float, float, dict]:
     t1 = time.perf_counter()
     total.backward()
     t2 = time.perf_counter()
-    return t1 - t0, t2 - t1, {"C_xy": C_xy.detach(), "C_yx": C_yx.detach(), "gx": fx.grad.clone(), "gy": fy.grad.clone()}
+    return (
+        t1 - t0,
+        t2 - t1,
+        {"C_xy": C_xy.detach(), "C_yx": C_yx.detach(), "gx": fx.grad.clone(), "gy": fy.grad.clone()},
+    )
 
 
 def child_memory(spec: str) -> None:
@@ -132,7 +149,9 @@ def solver(cfg: Settings, report: Report) -> None:
                         f, bw, outs[m] = fwd_bwd(m, inp)
                         times[m].append((f, bw))
                 ob, ol = outs["batched"], outs["loop"]
-                diff = max((ob[c] - ol[c]).abs().max().item() / max(ol[c].abs().max().item(), 1e-300) for c in ob)
+                diff = max(
+                    (ob[c] - ol[c]).abs().max().item() / max(ol[c].abs().max().item(), 1e-300) for c in ob
+                )
                 with torch.no_grad():  # conditioning of the row systems of item 0, x -> y, in float64
                     bx, by = (BasisBatch(*(t[:1].double() for t in bb[:5])) for bb in (inp["bx"], inp["by"]))
                     A_x = bx.values.transpose(-1, -2) @ (bx.mass[..., None] * inp["fx"][:1].double())
@@ -140,29 +159,59 @@ def solver(cfg: Settings, report: Report) -> None:
                     G, _, mask = loop_systems(A_x, A_y, bx.lam, bx.U, by.lam, by.U)
                     cond = torch.linalg.cond(G[0][None] + W_LAP * torch.diag_embed(mask[0]))
                 for m in order:
-                    row = {"dtype": dtype_name, "B": cfg.batch, "K": k, "V": cfg.v, "D": cfg.d, "order": " then ".join(order),
-                           "method": m, "fwd [s]": statistics.median(t[0] for t in times[m]),
-                           "bwd [s]": statistics.median(t[1] for t in times[m]),
-                           "fwd+bwd [s]": statistics.median(sum(t) for t in times[m])}  # fmt: skip
+                    row = {
+                        "dtype": dtype_name,
+                        "B": cfg.batch,
+                        "K": k,
+                        "V": cfg.v,
+                        "D": cfg.d,
+                        "order": " then ".join(order),
+                        "method": m,
+                        "fwd [s]": statistics.median(t[0] for t in times[m]),
+                        "bwd [s]": statistics.median(t[1] for t in times[m]),
+                        "fwd+bwd [s]": statistics.median(sum(t) for t in times[m]),
+                    }
                     rows.append(row)
                 base = rows[-2] if rows[-2]["method"] == "batched" else rows[-1]
                 for r in rows[-2:]:
                     r["t / batched"] = r["fwd+bwd [s]"] / base["fwd+bwd [s]"]
-                    r |= {"max rel. |Δ| (C, ∇f)": diff, "cond median": cond.median().item(), "cond max": cond.max().item(),
-                          "system MiB": cfg.batch * k**3 * DTYPES[dtype_name].itemsize / MiB, "load": load1()}  # fmt: skip
+                    r |= {
+                        "max rel. |Δ| (C, ∇f)": diff,
+                        "cond median": cond.median().item(),
+                        "cond max": cond.max().item(),
+                        "system MiB": cfg.batch * k**3 * DTYPES[dtype_name].itemsize / MiB,
+                        "load": load1(),
+                    }
                     if cfg.memory and order == ("batched", "loop"):
-                        spec = ",".join(str(x) for x in (r["method"], dtype_name, cfg.batch, cfg.v, k, cfg.d, cfg.seed))
-                        res = subprocess.run([sys.executable, "-m", "bench.speed_torch", spec], cwd=REPO_ROOT,
-                                             capture_output=True, text=True, check=False)  # fmt: skip
-                        got = json.loads(res.stdout.strip().splitlines()[-1]) if res.returncode == 0 else {"peak": float("nan")}
+                        spec = ",".join(
+                            str(x) for x in (r["method"], dtype_name, cfg.batch, cfg.v, k, cfg.d, cfg.seed)
+                        )
+                        res = subprocess.run(
+                            [sys.executable, "-m", "bench.speed_torch", spec],
+                            cwd=REPO_ROOT,
+                            capture_output=True,
+                            text=True,
+                            check=False,
+                        )
+                        got = (
+                            json.loads(res.stdout.strip().splitlines()[-1])
+                            if res.returncode == 0
+                            else {"peak": float("nan")}
+                        )
                         r["RSS peak MiB"] = got["peak"]
-                log(f"solver {dtype_name} K={k} {order[0]} first: loop / batched {rows[-1]['t / batched']:.2f}")
+                log(
+                    f"solver {dtype_name} K={k} {order[0]} first: loop / batched "
+                    f"{rows[-1]['t / batched']:.2f}"
+                )
     report.table(
-        f"solve_fmap (batched) against a per-row loop, median of {cfg.repeats} alternating rounds ({_threads(cfg)})", rows,
-        note="rel |Δ|: max over C_xy, C_yx, ∇feat_x, ∇feat_y of max|Δ| / max|loop|. cond: row systems of item 0. "
+        f"solve_fmap (batched) against a per-row loop, median of {cfg.repeats} alternating rounds "
+        f"({_threads(cfg)})",
+        rows,
+        note="rel |Δ|: max over C_xy, C_yx, ∇feat_x, ∇feat_y of max|Δ| / max|loop|. cond: row "
+        "systems of item 0. "
         "system MiB: one (B, K, K, K) tensor per direction. RSS peak: one fwd+bwd call in a fresh process. "
         "Target: loop / batched >= 3.",
-    )  # fmt: skip
+    )
 
 
 class _Hooks:
@@ -191,12 +240,14 @@ def train_step(cfg: Settings, report: Report) -> None:
             for k in cfg.ks:
                 dtype, gen = DTYPES[dtype_name], torch.Generator().manual_seed(cfg.seed)
                 bx, by = random_basis(b, cfg.v, k, dtype, gen), random_basis(b, cfg.v, k, dtype, gen)
-                xin, yin = (torch.randn(b, cfg.v, 32, generator=gen, dtype=torch.float64).to(dtype) for _ in range(2))
+                xin, yin = (
+                    torch.randn(b, cfg.v, 32, generator=gen, dtype=torch.float64).to(dtype) for _ in range(2)
+                )
                 torch.manual_seed(cfg.seed)
                 net = FeatureNet(32, 64, width=64, n_blocks=3).to(dtype)
                 loss_fn, opt = UnsupervisedFMLoss(), torch.optim.Adam(net.parameters(), lr=1e-3)
                 steps = []
-                for r in range(cfg.repeats + 1):  # the first is a warm-up
+                for r in range(cfg.repeats + 1):  # the first is a warm-up  # noqa: B007
                     gc.collect()
                     opt.zero_grad(set_to_none=True)
                     hooks, t0 = _Hooks(), time.perf_counter()
@@ -212,22 +263,41 @@ def train_step(cfg: Settings, report: Report) -> None:
                     t4 = time.perf_counter()
                     opt.step()
                     t5 = time.perf_counter()
-                    steps.append({"net fwd": t1 - t0, "solver fwd": t2 - t1, "loss fwd": t3 - t2, "loss bwd": hooks.at["loss"] - t3,
-                                  "solver bwd": hooks.at["solver"] - hooks.at["loss"], "net bwd": t4 - hooks.at["solver"],
-                                  "adam": t5 - t4, "step": t5 - t0, "loss": total.item()})  # fmt: skip
+                    steps.append(
+                        {
+                            "net fwd": t1 - t0,
+                            "solver fwd": t2 - t1,
+                            "loss fwd": t3 - t2,
+                            "loss bwd": hooks.at["loss"] - t3,
+                            "solver bwd": hooks.at["solver"] - hooks.at["loss"],
+                            "net bwd": t4 - hooks.at["solver"],
+                            "adam": t5 - t4,
+                            "step": t5 - t0,
+                            "loss": total.item(),
+                        }
+                    )
                 steps = steps[1:]
                 row = {"dtype": dtype_name, "B": b, "K": k, "V": cfg.v}
-                row |= {f"{key} [s]": statistics.median(s[key] for s in steps) for key in steps[0] if key != "loss"}
+                row |= {
+                    f"{key} [s]": statistics.median(s[key] for s in steps)
+                    for key in steps[0]
+                    if key != "loss"
+                }
                 for part in ("net", "solver", "loss"):
-                    row[f"{part} %"] = 100 * statistics.median((s[f"{part} fwd"] + s[f"{part} bwd"]) / s["step"] for s in steps)
+                    row[f"{part} %"] = 100 * statistics.median(
+                        (s[f"{part} fwd"] + s[f"{part} bwd"]) / s["step"] for s in steps
+                    )
                 row |= {"loss first→last": f"{steps[0]['loss']:.4g}→{steps[-1]['loss']:.4g}", "load": load1()}
                 rows.append(row)
     report.table(
-        f"Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + solve_fmap + UnsupervisedFMLoss + Adam; median of "
-        f"{cfg.repeats} steps after a warm-up ({threads})", rows,
-        note="Backward split by gradient hooks (loss bwd ends when the gradients of C are complete, solver bwd when "
+        f"Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + solve_fmap + UnsupervisedFMLoss "
+        f"+ Adam; median of "
+        f"{cfg.repeats} steps after a warm-up ({threads})",
+        rows,
+        note="Backward split by gradient hooks (loss bwd ends when the gradients of C are complete, "
+        "solver bwd when "
         "those of the features are; approximate).",
-    )  # fmt: skip
+    )
 
 
 def _coo_spatial_gradient(f: torch.Tensor, grad, *, check=None):
@@ -238,7 +308,9 @@ def _coo_spatial_gradient(f: torch.Tensor, grad, *, check=None):
         rows, cols = grad.rows[b], grad.cols[b]
         index = torch.stack([torch.cat([rows, rows + V]), torch.cat([cols, cols])])
         weights = torch.cat([grad.weight_x[b], grad.weight_y[b]]).to(f.dtype)
-        out = torch.sparse.mm(torch.sparse_coo_tensor(index, weights, (2 * V, V), check_invariants=False).coalesce(), f[b])
+        out = torch.sparse.mm(
+            torch.sparse_coo_tensor(index, weights, (2 * V, V), check_invariants=False).coalesce(), f[b]
+        )
         gx.append(out[:V])
         gy.append(out[V:])
     return torch.stack(gx), torch.stack(gy)
@@ -254,10 +326,14 @@ def train_recipe(cfg: Settings, report: Report) -> None:
         shapes = [collate_shapes([shape_item(shape_arrays(m, k, 32, k_net=k))]) for m in (pair.x, pair.y)]
         (sx, sy), rc = shapes, TrainConfig()
         torch.manual_seed(cfg.seed)
-        nets = {"recipe": DiffusionNet(32, rc.c_out, rc.width, rc.n_blocks, rc.dropout, rc.gradients),
-                "previous": DiffusionNet(32, rc.c_out, 64, 4, rc.dropout, rc.gradients),
-                "first": FeatureNet(32, 64, width=64, n_blocks=3)}  # fmt: skip
-        losses = {key: UnsupervisedFMLoss(**rc.loss_weights) for key in nets} | {"first": UnsupervisedFMLoss()}
+        nets = {
+            "recipe": DiffusionNet(32, rc.c_out, rc.width, rc.n_blocks, rc.dropout, rc.gradients),
+            "previous": DiffusionNet(32, rc.c_out, 64, 4, rc.dropout, rc.gradients),
+            "first": FeatureNet(32, 64, width=64, n_blocks=3),
+        }
+        losses = {key: UnsupervisedFMLoss(**rc.loss_weights) for key in nets} | {
+            "first": UnsupervisedFMLoss()
+        }
         opts = {key: torch.optim.Adam(net.parameters(), lr=1e-3) for key, net in nets.items()}
         draws = torch.Generator().manual_seed(cfg.seed)
 
@@ -284,12 +360,22 @@ def train_recipe(cfg: Settings, report: Report) -> None:
                 times[key].append(step(key))
         med = {key: statistics.median(t) for key, t in times.items()}
         for key in nets:
-            rows.append({"K": k, "V (x, y)": f"{pair.x.n_vertices}, {pair.y.n_vertices}", "method": key,
-                         "step [s]": med[key], "t / recipe": med[key] / med["recipe"], "load": load1()})  # fmt: skip
+            rows.append(
+                {
+                    "K": k,
+                    "V (x, y)": f"{pair.x.n_vertices}, {pair.y.n_vertices}",
+                    "method": key,
+                    "step [s]": med[key],
+                    "t / recipe": med[key] / med["recipe"],
+                    "load": load1(),
+                }
+            )
     report.table(
-        f"Training step of the recipe (DiffusionNet width {TrainConfig().width}, {TrainConfig().n_blocks} blocks) on "
-        f"{pair.name}, float32; median of {cfg.repeats} alternating steps ({threads})", rows,
-    )  # fmt: skip
+        f"Training step of the recipe (DiffusionNet width {TrainConfig().width}, "
+        f"{TrainConfig().n_blocks} blocks) on "
+        f"{pair.name}, float32; median of {cfg.repeats} alternating steps ({threads})",
+        rows,
+    )
 
 
 CASES = {"solver": solver, "train_step": train_step, "train_recipe": train_recipe}
