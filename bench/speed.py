@@ -114,7 +114,7 @@ def operators(cfg: Settings, report: Report) -> None:
             t, _, built[label] = timed(build, reps, warmup=1)
             op_rows.append({"mesh": name, "V": mesh.n_vertices, "method": label, "time [s]": t})
         t_pp, _, (Lp, areas) = timed(
-            lambda: (pp3d.cotan_laplacian(v, f), pp3d.vertex_areas(v, f)),
+            lambda: (pp3d.cotan_laplacian(v, f), pp3d.vertex_areas(v, f)),  # noqa: B023
             reps,
             warmup=1,  # noqa: B023
         )
@@ -241,14 +241,14 @@ def bases(cfg: Settings, report: Report) -> None:
             log(f"{name}: eigsh k={k}")
             row[f"eigsh k={k} [s]"] = eig_t[k] = run_timed(
                 f"eigsh {k}",
-                lambda k=k: eigsh(L, B, k),
+                lambda k=k: eigsh(L, B, k),  # noqa: B023
                 reps,
                 mrs,  # noqa: B023
             )[0]
             prev = (k, eig_t[k]) if isinstance(eig_t[k], float) else prev
         row["harmonic [s]"], harm = run_timed(
             "harmonic",
-            lambda: torchfmap.harmonic_basis(mesh, seeds, operators=(L, B)),
+            lambda: torchfmap.harmonic_basis(mesh, seeds, operators=(L, B)),  # noqa: B023
             reps,
             mrs,  # noqa: B023
         )  # noqa: B023
