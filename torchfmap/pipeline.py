@@ -39,7 +39,8 @@ P2PMode = Literal["pullback", "orthogonal"]
 #: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
 #: ``hybrid``. ``diffusion`` is not a candidate: its maps are built by trilateration from the
 #: landmarks, so they preserve geodesic distances by construction and score a lower distortion
-#: than maps with lower error (bench/landmark_default.py: chosen on 1 of 6 near-isometric pairs
+#: than maps with lower error (python -m bench accuracy --case landmark_default: chosen on 1 of 6
+#: near-isometric pairs
 #: at 7 landmarks, 1.24x the eigenbasis's error there).
 AUTO_KINDS = ("laplacian", "hybrid")
 #: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
