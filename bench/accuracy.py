@@ -1,208 +1,315 @@
-"""Benchmark: matching accuracy on real pairs, ours (4 bases x 3 refinements) vs pyFM, same landmarks and k.
+"""Suite ``accuracy``: classical matching (``torchfmap.match``) on real pairs, against pyFM.
 
-Run by hand from the repository root (prints markdown tables to stdout, progress to stderr; writes
-``bench/results/accuracy.md`` and ``accuracy.csv``, and the sweep's files, see below)::
-
-    python3 bench/accuracy.py                                  # 6 TOSCA pairs + cat-lion, sweep on 2
-    python3 bench/accuracy.py --pairs cat0-cat1,cat-lion --no-sweep
-    python3 bench/accuracy.py --pairs cat0-cat1 --no-sweep     # quick check (one pair, ~1 min)
-    python3 bench/landmark_sweep.py --pairs cat0-cat1 --L 5,10,20   # the sweep alone (was --no-main)
-
-Pairs, landmarks (``--L`` rows on TOSCA pairs, the 20 given pairs on cat-lion) and errors
-(normalised geodesic error, AUC on [0, 0.25], checked against ``evaluate_map``):
-``bench/_pairs.py``.
-
-Methods (all maps are ``p2p_yx``):
-
-- ours: ``match(x, y, landmarks=pairs, basis=b, k=k, refine=r)`` for b in laplacian, harmonic,
-  diffusion, stack and r in None, icp, zoomout (``'n/a'`` where match raises ParameterError);
-  descriptors and energy weights are ``match``'s defaults (printed with the table). The
-  unrefined map is ``p2p_yx_initial`` of the ``refine='icp'`` call; its time is that call's wall
-  time minus ``timings['refine']``. ``K`` is the basis size ``match`` used (``basis_x.k``):
-  feature-aware bases do not honour ``k`` (harmonic: L columns; diffusion: 4L minus dependent
-  ones; stack: 5L + max(0, k - 5L) eigenfunctions).
-- pyFM (the baseline, ``bench/_pyfm.py``): ``TriMesh`` from our arrays, ``preprocess(n_descr=50,
-  k_descr=50, descr_type='WKS', landmarks=pairs, subsample_step=5, k_process=2k)``,
-  ``fit(K=(k, k))`` with the weights of pyFM's README example, ``get_p2p()``, then
-  ``icp_refine(nit=10)`` and ``zoomout_refine(nit=10, step=k//10)`` (k -> 2k, like ours), each
-  from the fitted map. One preprocess serves all three, so its None / icp times include the 2k
-  eigenpairs ZoomOut needs.
-
-Times are wall-clock seconds of single runs, all in one process; the 1-minute load average is
-recorded with every run (another job may share the CPUs). The summary gives ``t / pyFM``, the
-ratio of the median times to pyFM's. Unless ``--no-sweep``, ``bench/landmark_sweep.py`` then runs
-on ``--sweep-pairs`` with ``--sweep-L``, reusing the main-table runs with the same pair and L.
-The CSVs are rewritten as runs finish; Ctrl-C or SIGTERM stops the runs and prints the tables of
-what finished.
+Every case runs one grid (:func:`grid`): for each set of pairs (``sets``: name -> pair specs of
+``bench/pairs.py``, ``@set`` names allowed), each pair, each number of landmarks ``L`` (0: none;
+ground-truth rows spread by FPS, the first L given pairs on cat-lion, all 20 with
+``given_landmarks``), each method of ``methods`` (``label``, ``refine``: a refinement or a list of
+them, the unrefined map being ``p2p_yx_initial`` of the same call; ``seeded``: true for
+``torchfmap.experimental.seeded.seeded_match``; every other key a ``match`` argument, ``k``
+from the case unless given) and, if ``pyfm`` is set, pyFM's pipeline (``bench/pairs.run_pyfm``,
+with those settings). With ``prepared``, each mesh is prepared once (``prepare_shape``) and its
+shapes are handed to every method, so the times compare what follows preparation. Errors: mean
+normalised geodesic error x100 at every ``every``-th ground-truth row (or ``max_points`` of them).
+Every case writes the rows (``.csv``), the means per method and refinement for every set and L,
+the median time over that of ``baseline`` (same refinement, same process), and an error-vs-L
+figure when there are several L.
 """
 
 from __future__ import annotations
 
-import argparse
-import os
 import time
-from pathlib import Path
 
 import numpy as np
-from _common import RESULTS_DIR, Report, fmt, int_list, log, markdown, str_list
-from _pairs import (
-    BASES,
-    METHODS,
-    PairCache,
-    errors_section,
-    interruptible,
-    lookup,
-    ours_settings,
-    rname,
-    run_header,
-    run_ours,
-    run_pyfm_rows,
-    save_csv,
-)
-from landmark_sweep import DEFAULT_L, replot, run_sweep, sweep_sections
 
-REFINES: tuple[str | None, ...] = (None, "icp", "zoomout")
-DEFAULT_PAIRS = "cat0-cat1,cat2-cat8,cat10-cat4,cat5-cat9,wolf0-wolf1,wolf1-wolf2,cat-lion"
-DEFAULT_SWEEP_PAIRS = "cat0-cat1,wolf0-wolf1"
+from torchfmap import prepare_shape
+from torchfmap.experimental.seeded import seeded_match
+from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN
+
+from .common import Report, Settings, fmt, log
+from .pairs import Pair, crash, expand, mean_of, pyfm_missing, pyfm_rows, record, run_match
 
 
-def cell(r: dict | None, key: str, digits: int = 4) -> str:
-    if r is None:
-        return "-"
-    if "mean" not in r:
-        return r.get("note", "n/a")
-    return fmt(r[key], digits)
+def _refines(method: dict) -> list[str | None]:
+    r = method.get("refine")
+    return list(r) if isinstance(r, list) else [r]
 
 
-def main_table(rows: list[dict], pairs: list[str]) -> str:
-    """Per pair and method: error, AUC and time for every refinement."""
-    cols = ["pair", "L", "method", "K"]
-    for r in REFINES:
-        cols += [f"{rname(r)} err", f"{rname(r)} AUC", f"{rname(r)} t [s]"]
-    out = []
-    for p in pairs:
-        for m in METHODS:
-            rs = [lookup(rows, p, m, r) for r in REFINES]
-            first = next((r for r in rs if r is not None), None)
-            if first is None:
-                continue
-            k_used = next((r["K"] for r in rs if r is not None and r.get("K") != ""), "")
-            line = [p, first["L"], m, k_used]
-            for r in rs:
-                line += [cell(r, "mean"), cell(r, "auc", 3), cell(r, "time", 2)]
-            out.append(line)
-    return markdown(out, cols)
+def _match_kwargs(method: dict, k: int) -> dict:
+    return {"k": k} | {key: v for key, v in method.items() if key not in ("label", "refine", "seeded")}
 
 
-def summary_cells(rows: list[dict], pairs: list[str], m: str, r: str | None) -> list[str]:
-    """Mean over pairs of the mean error and AUC, median time and its ratio to pyFM's."""
-    got = [x for x in (lookup(rows, p, m, r) for p in pairs) if x is not None]
-    ok = [x for x in got if "mean" in x]
-    if not ok:
-        return ["/".join(sorted({x.get("note", "n/a") for x in got})) or "-"] * 4
-    partial = "" if len(ok) == len(pairs) else f" ({len(ok)}/{len(pairs)} pairs)"
-    t = float(np.median([x["time"] for x in ok]))
-    base = [x["time"] for x in (lookup(rows, p, "pyFM", r) for p in pairs) if x is not None and "time" in x]
-    ratio = fmt(t / float(np.median(base)), 2) if base else "-"
-    return [
-        fmt(float(np.mean([x["mean"] for x in ok])), 4) + partial,
-        fmt(float(np.mean([x["auc"] for x in ok])), 3),
-        fmt(t, 2),
-        ratio,
-    ]
-
-
-def summary_table(rows: list[dict], pairs: list[str]) -> str:
-    """Per method and refinement: mean over pairs of mean error and AUC, median of the times."""
-    cols = ["method"]
-    for r in REFINES:
-        cols += [f"{rname(r)} err", f"{rname(r)} AUC", f"{rname(r)} median t [s]", f"{rname(r)} t / pyFM"]
-    out = [[m, *(c for r in REFINES for c in summary_cells(rows, pairs, m, r))] for m in METHODS]
-    return markdown(out, cols)
-
-
-def run_main(args, pairs: list[str], rows: list[dict], cache: PairCache, keep: set[str]) -> None:
-    """The main table's runs, appended to ``rows``; ``accuracy.csv`` rewritten after every pair."""
-    for spec in pairs:
-        pair = cache.get(spec)
-        lmk = pair.landmarks(args.L)
-        nx, ny = pair.x.n_vertices, pair.y.n_vertices
-        log(f"{spec}: V_x={nx}, V_y={ny}, {len(pair.gt.idx_x)} gt rows, L={len(lmk)}")
-        for basis in BASES:
-            run_ours(pair, basis, lmk, args.k, REFINES, rows)
-        if not args.no_pyfm:
-            run_pyfm_rows(pair, lmk, args.k, REFINES, rows)
-        save_csv(rows, args.out / "accuracy.csv")
-        if spec not in keep:
-            cache.drop(spec)  # frees its geodesic distance rows
-
-
-def main_sections(rows: list[dict], pairs: list[str], args) -> list[str]:
-    parts = [
-        "### Per pair: mean normalised geodesic error, AUC (PCK on [0, 0.25]), wall time",
-        main_table(rows, pairs),
-        f"### Mean over the {len(pairs)} pairs (times: median, robust to load spikes)",
-        summary_table(rows, pairs),
-    ]
-    pyfm_row = next((r for r in rows if r["method"] == "pyFM" and "n_descr" in r), None)
-    if pyfm_row is not None:
-        parts.append(
-            f"K: basis size used. ours: {ours_settings()}; pyFM: {pyfm_row['n_descr']} descriptors (WKS + "
-            f"landmark WKS, every 5th), k_process={pyfm_row['k_process']}. t / pyFM: median time over "
-            f"pyFM's median time, same refinement. Per-phase times: {args.out / 'accuracy.csv'}."
-        )
-    return parts
-
-
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--pairs", default=DEFAULT_PAIRS, help="A-B (tosca5k_dev) or cat-lion, comma sep.")
-    parser.add_argument("--L", type=int, default=20, help="landmarks on TOSCA pairs (cat-lion: its 20)")
-    parser.add_argument("--k", type=int, default=50, help="basis / functional map size")
-    parser.add_argument("--sweep-pairs", default=DEFAULT_SWEEP_PAIRS)
-    parser.add_argument("--sweep-L", default=DEFAULT_L)
-    parser.add_argument("--no-main", action="store_true", help="skip the main table")
-    parser.add_argument("--no-sweep", action="store_true", help="skip the landmark sweep")
-    parser.add_argument("--no-pyfm", action="store_true")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder of the CSVs, PNG and .md")
-    parser.add_argument("--replot", action="store_true", help="only redraw the PNG from landmark_sweep.csv")
-    return parser.parse_args(argv)
-
-
-def main(argv: list[str] | None = None) -> None:
-    args = parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    if args.replot:
-        replot(args.out)
+def run_method(pair: Pair, rows: list, method: dict, lmk, k: int, shapes, info: dict) -> None:
+    """The rows of one method on one pair: one ``match`` call per refinement (the unrefined row
+    from the first), or ``seeded_match``."""
+    label, kwargs = method["label"], _match_kwargs(method, k)
+    if shapes is not None:
+        kwargs["shapes"] = shapes
+    if method.get("seeded"):
+        try:
+            t0 = time.perf_counter()
+            res = seeded_match(pair.x, pair.y, **kwargs).result
+            seeds = 0 if res.seeds is None else len(res.seeds)
+            rows.append(
+                record(pair, label, "seeded", res.p2p_yx, time.perf_counter() - t0, **info, seeds=seeds)
+            )
+        except Exception:
+            crash(f"{pair.name} {label}")
         return
-    pairs = [] if args.no_main else str_list(args.pairs)
-    sweep_pairs = [] if args.no_sweep else str_list(args.sweep_pairs)
-    sizes = int_list(args.sweep_L)
-    t_start, load_start = time.perf_counter(), os.getloadavg()
+    for i, refine in enumerate(_refines(method)):
+        got: list = []
+        res = run_match(pair, got, label, refine, info, landmarks=lmk, **kwargs)
+        if res is not None and res.candidates:  # the landmark default: what it chose
+            chosen = {"chosen": res.kind, "distortion": res.distortion, "refine_kept": res.refined}
+            for r in got:
+                r |= chosen
+        rows += got if i == 0 else got[1:]  # the unrefined map once
+
+
+def grid(cfg: Settings, report: Report, methods: list[dict] | None = None) -> list[dict]:
+    """Run the case's grid (module docstring); returns the rows (also written as ``.csv``)."""
+    methods = cfg.methods if methods is None else methods
+    pyfm = cfg.get("pyfm")
+    if pyfm and pyfm_missing():
+        report.add(pyfm_missing())
+        pyfm = None
+    sets = {name: expand(specs) for name, specs in cfg.sets.items()}
     rows: list[dict] = []
-    sweep_rows: list[dict] = []
-    cache = PairCache()
+    try:
+        for set_name, specs in sets.items():
+            for spec in specs:
+                log(f"loading {spec}")
+                pair = Pair(spec).subsample(cfg.get("every", 1), cfg.get("max_points"))
+                shapes = (prepare_shape(pair.x, 0), prepare_shape(pair.y, 0)) if cfg.get("prepared") else None
+                for n in cfg.L:
+                    lmk = pair.landmarks(n, cfg.get("given_landmarks", False))
+                    info = {"set": set_name, "L": n}
+                    log(f"{spec} L={n}")
+                    for method in methods:
+                        run_method(pair, rows, method, lmk, cfg.k, shapes, info)
+                    if pyfm:
+                        settings = {k: v for k, v in pyfm.items() if k != "refine"}
+                        refines = [None, *pyfm.get("refine", [])]
+                        got: list = []
+                        pyfm_rows(pair, got, cfg.k, lmk, refines, **settings)
+                        rows += [r | info for r in got]
+                    report.rows_csv(rows)
+                pair.free()
+    except KeyboardInterrupt:
+        report.add("**Interrupted**: the tables below hold the runs that finished.")
+    report.table("Mean normalised geodesic error x100 (means over pairs) and times", summary(rows, sets, cfg))
+    if len(cfg.L) > 1:
+        report.figure(error_curves, rows, sets, cfg.L)
+    return rows
 
-    def run_all() -> None:
-        run_main(args, pairs, rows, cache, set(sweep_pairs))
-        run_sweep(sweep_pairs, sizes, args.k, args.no_pyfm, args.out, sweep_rows, reuse=rows, cache=cache)
 
-    stopped = interruptible(run_all)
-    title = f"Matching accuracy, k={args.k}: ours (match) vs pyFM, same landmarks"
-    report = Report("accuracy", args.out)
-    report.add(run_header(title, t_start, load_start, rows + sweep_rows, stopped))
-    if rows:
-        report.add(*main_sections(rows, pairs, args))
-    if sweep_rows:
-        sweep = sweep_sections(sweep_rows, sweep_pairs, sizes, args.k, args.out)
-        report.add(*sweep)
-        sweep_report = Report("landmark_sweep", args.out)
-        sweep_report.parts += [report.parts[0], *sweep]  # also on its own, as landmark_sweep.py writes it
-        sweep_report.save()
-    if errors_section():
-        report.add(errors_section())
-    report.save()
+def _methods(rows: list[dict]) -> list[tuple[str, str]]:
+    return list(dict.fromkeys((r["method"], r["refine"]) for r in rows))
 
 
-if __name__ == "__main__":
-    main()
+def summary(rows: list[dict], sets: dict, cfg: Settings) -> list[dict]:
+    """Per method and refinement (rows): the mean error x100 for every set and L, the median
+    time and its ratio to the ``baseline`` method's (same refinement)."""
+    out = []
+    for method, refine in _methods(rows):
+        line: dict = {"method": method, "refine": refine}
+        for set_name, names in sets.items():
+            for n in cfg.L:
+                line[f"{set_name} L={n}" if len(cfg.L) > 1 or len(sets) > 1 else "err x100"] = mean_of(
+                    rows, names, method=method, refine=refine, L=n, set=set_name
+                )
+        times = [r["time"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "time" in r]
+        base = [
+            r["time"] for r in rows if (r["method"], r["refine"]) == (cfg.baseline, refine) and "time" in r
+        ]
+        line["median t [s]"] = float(np.median(times)) if times else float("nan")
+        if base and times:
+            line[f"t / {cfg.baseline}"] = float(np.median(times) / np.median(base))
+        kinds = sorted({r["K"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "K" in r})
+        line["K"] = "/".join(str(k) for k in kinds)
+        notes = sorted(
+            {r["note"] for r in rows if (r["method"], r["refine"]) == (method, refine) and "note" in r}
+        )
+        if notes:
+            line["note"] = "/".join(notes)
+        out.append(line)
+    return out
+
+
+def error_curves(plt, rows: list[dict], sets: dict, Ls: list[int]):
+    """Mean error x100 against L, one panel per set, a curve per method and refinement."""
+    fig, axes = plt.subplots(1, len(sets), figsize=(5.5 * len(sets), 4.2), squeeze=False)
+    for ax, (set_name, names) in zip(axes[0], sets.items(), strict=True):
+        for method, refine in _methods([r for r in rows if r.get("set") == set_name]):
+            ys = [mean_of(rows, names, method=method, refine=refine, L=n, set=set_name) for n in Ls]
+            if not np.all(np.isnan(ys)):
+                ax.plot(Ls, ys, "--" if refine == "none" else "-", marker="o", label=f"{method} {refine}")
+        ax.set(
+            title=f"{set_name} ({len(names)} pairs)", xlabel="landmarks L (0: none)", ylabel="mean error x100"
+        )
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+    return fig
+
+
+# -- the cases ----------------------------------------------------------------------------------
+def bases(cfg: Settings, report: Report) -> None:
+    """Every basis kind x refinement (none, ICP, ZoomOut) against pyFM, same landmarks and k."""
+    rows = grid(cfg, report)
+    per_pair = []
+    for pair in dict.fromkeys(r["pair"] for r in rows):
+        line = {"pair": pair}
+        for method, refine in _methods(rows):
+            line[f"{method} {refine}"] = mean_of(rows, [pair], method=method, refine=refine)
+        per_pair.append(line)
+    report.table("Per pair: mean error x100", per_pair)
+
+
+def landmark_sweep(cfg: Settings, report: Report) -> None:
+    """Mean error against the number of landmarks, every basis and pyFM (unrefined and ICP)."""
+    grid(cfg, report)
+
+
+def weight_sweep(cfg: Settings, report: Report) -> None:
+    """Mean error against the Laplacian-commutativity weight w_lap, per basis (how each kind's
+    w_lap was chosen)."""
+    methods = [{"label": f"{b} w_lap={w:g}", "basis": b, "w_lap": w} for b in cfg.bases for w in cfg.w_lap]
+    rows = grid(cfg, report, methods)
+    sets = {s: expand(specs) for s, specs in cfg.sets.items()}
+    names = [n for specs in sets.values() for n in specs]
+    table = [
+        {"basis": b, **{f"w_lap={w:g}": mean_of(rows, names, method=f"{b} w_lap={w:g}") for w in cfg.w_lap}}
+        for b in cfg.bases
+    ]
+    report.table("Mean error x100 over all pairs: basis x w_lap (no refinement)", table)
+
+
+def faust(cfg: Settings, report: Report) -> None:
+    """Classical matching on FAUST_r dev pairs (humans), with and without landmarks, vs pyFM."""
+    rows = grid(cfg, report)
+    sets = {s: expand(specs) for s, specs in cfg.sets.items()}
+    out = []
+    for method, refine in _methods(rows):
+        for n in cfg.L:
+            errs = np.array(
+                [
+                    r["mean"]
+                    for r in rows
+                    if (r["method"], r["refine"], r["L"]) == (method, refine, n) and "mean" in r
+                ]
+            )
+            if len(errs):
+                out.append(
+                    {
+                        "method": method,
+                        "refine": refine,
+                        "L": n,
+                        "median x100": 100 * np.median(errs),
+                        "pairs > 10": f"{int((errs > 0.1).sum())}/{len(errs)}",
+                    }
+                )
+    report.table(f"Medians and failures (error > 10) over the {sum(map(len, sets.values()))} pairs", out)
+
+
+def feature_accuracy(cfg: Settings, report: Report) -> None:
+    """Feature-aware bases against the eigenbasis and pyFM with few landmarks, iso and non-iso pairs."""
+    rows = grid(cfg, report)
+    sets = {s: expand(specs) for s, specs in cfg.sets.items()}
+    out = []
+    for n in cfg.L:
+        for s, names in sets.items():
+            m = {
+                (meth, r): mean_of(rows, names, method=meth, refine=r, L=n, set=s)
+                for meth, r in _methods(rows)
+            }
+            t = {
+                key: mean_of(rows, names, "time", 1.0, method=key[0], refine=key[1], L=n, set=s) for key in m
+            }
+            out.append(
+                {
+                    "L": n,
+                    "set": s,
+                    "diffusion raw / lap raw": m.get(("diffusion", "none"), np.nan)
+                    / m.get(("laplacian", "none"), np.nan),
+                    "diffusion ZO / lap ZO": m.get(("diffusion", "zoomout"), np.nan)
+                    / m.get(("laplacian", "zoomout"), np.nan),
+                    "t diffusion ZO / t lap ZO": t.get(("diffusion", "zoomout"), np.nan)
+                    / t.get(("laplacian", "zoomout"), np.nan),
+                }
+            )
+    report.table("Ratios (targets: <= 0.8 at L = 7, 15; no worse at L = 3)", out)
+
+
+def landmark_default(cfg: Settings, report: Report) -> None:
+    """The landmark default of match (it chooses the basis) against each forced kind and pyFM."""
+    rows = grid(cfg, report)
+    sets = {s: expand(specs) for s, specs in cfg.sets.items()}
+    forced = [m["label"] for m in cfg.methods if m.get("basis")]
+    out = []
+    for n in cfg.L:
+        for s, names in sets.items():
+            right = []
+            for name in names:
+                d = mean_of(rows, [name], method="default", refine="zoomout", L=n, set=s)
+                best = [mean_of(rows, [name], method=b, refine="zoomout", L=n, set=s) for b in forced]
+                right.append(d <= 1.02 * min(best) if best and not np.isnan([d, *best]).any() else np.nan)
+            chosen = [
+                r["chosen"]
+                for r in rows
+                if r["pair"] in names and r.get("L") == n and r.get("chosen") and r["refine"] == "zoomout"
+            ]
+            t = {
+                b: mean_of(rows, names, "time", 1.0, method=b, refine="zoomout", L=n, set=s)
+                for b in ("default", "laplacian")
+            }
+            out.append(
+                {
+                    "L": n,
+                    "set": s,
+                    "choice right": nanmean_or(right),
+                    f"chosen ({'/'.join(b[:3] for b in AUTO_KINDS)})": "/".join(
+                        str(chosen.count(b)) for b in AUTO_KINDS
+                    ),
+                    "t default / t lap ZO": t["default"] / t["laplacian"],
+                }
+            )
+    report.table(
+        "The default's choice",
+        out,
+        note=f"default: basis=None, chooses among {', '.join(AUTO_KINDS)} by geodesic distortion (eigenbasis "
+        f"margin {AUTO_MARGIN:g}). Choice right: share of pairs whose refined error is within 2 % "
+        f"of the best "
+        "forced kind's.",
+    )
+
+
+def nanmean_or(values: list) -> float:
+    v = [x for x in values if not (isinstance(x, float) and np.isnan(x))]
+    return float(np.mean(v)) if v and len(v) == len(values) else float("nan")
+
+
+def seeded_refine(cfg: Settings, report: Report) -> None:
+    """The classical self-seeded second stage (experimental.seeded.seeded_match) against ZoomOut,
+    without landmarks, on shapes prepared once per pair."""
+    rows = grid(cfg, report)
+    seeds = [r["seeds"] for r in rows if "seeds" in r]
+    t = {
+        m: sum(r["time"] for r in rows if (r["method"], r["refine"]) == m and "time" in r)
+        for m in (("seeded", "seeded"), ("zoomout", "zoomout"))
+    }
+    ratio = t[("seeded", "seeded")] / t[("zoomout", "zoomout")] if t[("zoomout", "zoomout")] else float("nan")
+    report.add(
+        f"Seed pairs per pair (mean): {fmt(float(np.mean(seeds)) if seeds else float('nan'))}; "
+        f"time of seeded over ZoomOut (sums over pairs): {fmt(ratio)}."
+    )
+
+
+CASES = {
+    "bases": bases,
+    "landmark_sweep": landmark_sweep,
+    "weight_sweep": weight_sweep,
+    "faust": faust,
+    "feature_accuracy": feature_accuracy,
+    "landmark_default": landmark_default,
+    "seeded_refine": seeded_refine,
+}

@@ -1,307 +1,348 @@
-"""Benchmark: the learned path on the dev data: errors of trained checkpoints, before / after
-training, with test-time adaptation and ZoomOut refinement, per-epoch time, loss curves.
+"""Suite ``learned``: trained checkpoints on validation pairs (before / after training, point-map
+rules, ZoomOut, test-time adaptation), where a recipe converges, adaptation's steps x learning
+rate, and the self-seeded second stage.
 
-Run by hand from the repository root, after ``torchfmap train`` (see README, "Learning")::
-
-    torchfmap train ../shared/data/tosca5k_dev --out /tmp/learn/dev.ckpt --minutes 15
-    python3 bench/learned.py --checkpoints dev=/tmp/learn/dev.ckpt --adapt 10 --adapt-pairs 12
-    python3 bench/learned.py --checkpoints eigen=a.ckpt,stack=b.ckpt --pairs all --name bases
-
-Every shipped model on every dev set, one table (``--checkpoints`` defaults to the shipped
-models; the remeshed sets come from ``bench/make_remeshed.py``)::
-
-    python3 bench/learned.py --sets faust_val,faust_a,scape_r,scape_a,tosca --name sets
-
-Pairs: ``--sets`` (see :func:`dev_set`), or the older ``--pairs``:
-``../shared/data/tosca5k_dev/test_pairs.txt`` (``--pairs all|cat|wolf``) or 40 FAUST_r
-validation pairs among tr_reg_070..079 (``--pairs faust_val``). Errors: mean
-normalised geodesic error (``geodesic_errors``, ``--max-points`` per pair), averaged over pairs.
-Rows per checkpoint: the untrained network of the same recipe and seed (baseline, same
-process), the trained network's map from the functional map (``fmap``: orthogonal point-map rule, and
-with the pull-back rule for comparison) and from nearest
-neighbours in feature space (``features``), ZoomOut (``LearnedMatcher(..., refine='zoomout')``:
-from the model's k to 2k eigenfunctions, each mesh prepared once and reused by its pairs),
-and, on the first ``--adapt-pairs`` pairs, ``--adapt`` steps of unsupervised test-time
-adaptation (``adapt``, lr ``--adapt-lr``) with and without ZoomOut, next to the unadapted
-errors on the same pairs. The loss curve of each checkpoint (total per step, moving mean) goes to
-``bench/results/learned_<name>_loss.png``. No ground truth is used anywhere but in the errors.
+Pairs come from ``bench/pairs.py`` (``sets``: name -> pair specs, ``@faust_val`` etc.; files are
+read through :class:`torchfmap.nn.ShapeDataset` with the checkpoint's recipe, ``cache``: a
+folder, null for the per-user cache, false for none). Errors: mean normalised geodesic error
+x100 at ``max_points`` ground-truth points per pair, averaged over pairs; ground truth is read
+for the errors only. Checkpoints: ``label=path`` or a shipped model's name (``torchfmap
+models``); null for every shipped model.
 """
 
 from __future__ import annotations
 
-import argparse
+import glob
 import time
 
 import numpy as np
 import torch
-from _common import RESULTS_DIR, Report, load_note, log, require_data
 
-from torchfmap.bases import prepare_shape
-from torchfmap.eval import Correspondence, gt_from_vts
-from torchfmap.io import read_test_pairs, read_vts
-from torchfmap.mesh import Mesh
-from torchfmap.nn.checkpoints import load_checkpoint
-from torchfmap.nn.config import build_model
-from torchfmap.nn.data import ShapeDataset
-from torchfmap.nn.inference import LearnedMatcher, adapt, predict_p2p
-from torchfmap.operators import GeodesicSolver
+from torchfmap import prepare_shape
+from torchfmap.bases.prepared import with_eigenpairs
+from torchfmap.data import demo_pair_paths
+from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
+from torchfmap.fmap import p2p_to_fmap
+from torchfmap.kinds import get_kind
+from torchfmap.nn import (
+    LearnedMatcher,
+    ShapeDataset,
+    TrainConfig,
+    Trainer,
+    adapt,
+    build_model,
+    build_solver,
+    collate_pairs,
+    load_checkpoint,
+    predict_p2p,
+    shipped_models,
+    unsupervised_score,
+)
+from torchfmap.nn.data import class_pairs
+from torchfmap.nn.train import pair_loss
 
-#: FAUST_r validation meshes (never trained on by the shipped model: it trains on 000-069).
-FAUST_VAL = [f"tr_reg_{i:03d}" for i in range(70, 80)]
-
-
-def faust_val_pairs(n: int = 40) -> list[tuple[str, str]]:
-    """``n`` ordered pairs drawn with seed 0 among :data:`FAUST_VAL`."""
-    every = [(a, b) for a in FAUST_VAL for b in FAUST_VAL if a != b]
-    pick = np.random.default_rng(0).choice(len(every), n, replace=False)
-    return [every[i] for i in pick]
-
-
-def val_pairs(names: list[str], n: int = 40, seed: int = 0) -> list[tuple[str, str]]:
-    """``n`` ordered pairs drawn with ``seed`` among ``names`` (all of them if fewer)."""
-    every = [(a, b) for a in names for b in names if a != b]
-    pick = np.random.default_rng(seed).choice(len(every), min(n, len(every)), replace=False)
-    return [every[i] for i in pick]
-
-
-#: Dev sets of ``--sets``: (folder, where (shared data or bench/data), meshes, pairs).
-SCAPE_VAL = [f"mesh{i:03d}" for i in range(41, 51)]
+from . import common
+from .common import Report, Settings, Skip, log, nanmean
+from .pairs import Pair, expand
 
 
-def dev_set(name: str):
-    """``(files, names, pairs (index pairs), ground truths)`` of a dev set of ``--sets``:
-    ``faust_val`` (FAUST_r tr_reg_070..079), ``faust_a`` (the same shapes anisotropically
-    remeshed, ``bench/make_remeshed.py``), ``scape_r`` / ``scape_a`` (SCAPE poses 041..050 remeshed
-    isotropically / anisotropically; the F+S recipe trains on 000..040), each 40 ordered pairs
-    drawn with seed 0; ``tosca`` (``tosca5k_dev/test_pairs.txt``); ``smal_val`` (the SMAL_r
-    validation animals of the ``smal_r`` recipe, all ordered pairs)."""
-    from _common import BENCH_DIR, smal_split
+class PairSet:
+    """The pairs of some specs as items of one :class:`ShapeDataset` (each file once), with
+    their :class:`~bench.pairs.Pair` (meshes, errors) and each mesh prepared at most once."""
 
-    local = BENCH_DIR / "data"
-    if name == "tosca":
-        folder = require_data("tosca5k_dev")
-        rows = read_test_pairs(folder / "test_pairs.txt")
-        names = sorted({n for r in rows for n in r})
-        suffix = ".off"
-    else:
-        folder, names, suffix = {
-            "faust_val": (require_data("faust_r_train"), FAUST_VAL, ".off"),
-            "faust_a": (local / "faust_a", FAUST_VAL, ".off"),
-            "scape_r": (local / "scape_r", SCAPE_VAL, ".off"),
-            "scape_a": (local / "scape_a", SCAPE_VAL, ".off"),
-            "smal_val": (require_data("smal_r_train"), smal_split()[1], ".off.gz"),
-        }[name]
-        if not folder.exists():
-            raise SystemExit(f"skipped: {folder} not found (python3 bench/make_remeshed.py makes it)")
-        rows = val_pairs(names, 40 if name != "smal_val" else 10**6)
-    files = [folder / f"{n}{suffix}" for n in names]
-    pairs = [(names.index(a), names.index(b)) for a, b in rows]
-    gts = [
-        gt_from_vts(read_vts(folder / "corres" / f"{a}.vts"), read_vts(folder / "corres" / f"{b}.vts"))
-        for a, b in rows
-    ]
-    return files, names, pairs, gts
+    def __init__(self, specs: list[str], config: TrainConfig, cfg: Settings) -> None:
+        self.pairs = [Pair(s).subsample(max_points=cfg.max_points) for s in specs]
+        if any(p.path_y is None for p in self.pairs):
+            raise SystemExit("the learned suite needs pairs of files (no deformed copies such as A~B)")
+        files = list(dict.fromkeys(str(p) for pair in self.pairs for p in (pair.path_x, pair.path_y)))
+        self.shapes = ShapeDataset(files, cfg.cache, **config.dataset_kwargs(), progress=False)
+        self.index = [(files.index(str(p.path_x)), files.index(str(p.path_y))) for p in self.pairs]
+        self._prepared: dict[int, object] = {}
+
+    def prepared(self, i: int, mesh, n_eigen: int = 0):
+        if i not in self._prepared:
+            self._prepared[i] = prepare_shape(mesh, n_eigen)  # grown in place by the matcher
+        return self._prepared[i]
+
+    def __iter__(self):
+        for pair, (a, b) in zip(self.pairs, self.index, strict=True):
+            yield pair, a, b, self.shapes[a], self.shapes[b]
 
 
-def test_pairs(folder, names, which: str):
-    if which == "faust_val":
-        rows = faust_val_pairs()
-    else:
-        rows = read_test_pairs(folder / "test_pairs.txt")
-    rows = [r for r in rows if which in ("all", "faust_val") or r[0].startswith(which)]
-    pairs = [(names.index(a), names.index(b)) for a, b in rows]
-    gts = [
-        gt_from_vts(read_vts(folder / "corres" / f"{a}.vts"), read_vts(folder / "corres" / f"{b}.vts"))
-        for a, b in rows
-    ]
-    return pairs, gts
+def _checkpoints(spec) -> list[tuple[str, str]]:
+    if spec is None:
+        return [(name, str(path)) for name, path in shipped_models().items()]
+    return [tuple(s.split("=", 1)) if "=" in s else (s, s) for s in spec]
 
 
-class PairErrors:
-    """Geodesic errors of many maps of one pair from one set of distance rows (the ground-truth
-    sample of ``max_points`` pairs; :func:`geodesic_errors` with a shared solver)."""
-
-    def __init__(self, shapes, pair, gt, max_points: int) -> None:
-        x = shapes[pair[0]]
-        self.mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
-        idx_x, idx_y = gt
-        if len(idx_y) > max_points:
-            pick = np.sort(np.random.default_rng(0).choice(len(idx_y), max_points, replace=False))
-            idx_x, idx_y = idx_x[pick], idx_y[pick]
-        self.gt = Correspondence(idx_x, idx_y)
-        uniq, inverse = np.unique(idx_x, return_inverse=True)
-        self.rows, self.inverse = GeodesicSolver(self.mesh_x).distances(uniq), inverse
-
-    def mean(self, p2p) -> float:
-        pred = np.asarray(p2p)[self.gt.idx_y]
-        errors = np.maximum(self.rows[self.inverse, pred], 0.0)
-        errors[pred == self.gt.idx_x] = 0.0
-        return float(errors.mean() / np.sqrt(self.mesh_x.area))
+def _sets(cfg: Settings) -> dict[str, list[str]]:
+    return {name: expand(specs) for name, specs in cfg.sets.items()}
 
 
-def loss_png(curves: dict, path) -> None:
-    import matplotlib
+def checkpoints(cfg: Settings, report: Report) -> None:
+    """Errors of trained checkpoints on validation sets: untrained baseline (same recipe and
+    seed), the functional map's point map (orthogonal and pull-back rules), nearest features,
+    ZoomOut, and test-time adaptation, with seconds per pair and the loss curves."""
+    rows, curves = [], {}
+    for set_name, specs in _sets(cfg).items():
+        for label, path in _checkpoints(cfg.checkpoints):
+            net, config, ckpt = load_checkpoint(path)
+            state = ckpt.get("train_state") or {}
+            curves[label] = state.get("losses", [])
+            data = PairSet(specs, config, cfg)
+            solver, loss_fn = build_model(config)[1:]
+            untrained = build_model(config)[0].eval()
+            errors: dict[str, list[float]] = {}
+            seconds: dict[str, float] = {}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+            def add(method, fn, pair):
+                t0 = time.perf_counter()
+                p2p = fn()
+                seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0  # noqa: B023
+                errors.setdefault(method, []).append(float(pair.errors(p2p).mean()))  # noqa: B023
+                return p2p
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+            def zoomout(network, shapes):
+                matcher = LearnedMatcher(network, config, device="cpu")  # noqa: B023
+                return matcher(shapes[0].mesh, shapes[1].mesh, refine="zoomout", shapes=shapes).p2p_yx
+
+            for i, (pair, a, b, x, y) in enumerate(data):
+                shapes = (data.prepared(a, pair.x), data.prepared(b, pair.y))
+                if cfg.all_rules:
+                    add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pair)  # noqa: B023
+                base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pair)  # noqa: B023
+                if cfg.all_rules:
+                    add(
+                        "trained, fmap, pull-back",
+                        lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"),  # noqa: B023
+                        pair,
+                    )  # noqa: B023
+                    add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pair)  # noqa: B023
+                if cfg.zoomout:
+                    add("trained, fmap + zoomout", lambda: zoomout(net, shapes), pair)  # noqa: B023
+                if cfg.adapt and i < cfg.adapt_pairs:
+                    add("trained, fmap (adapt subset)", lambda: base, pair)  # noqa: B023
+                    tuned = adapt(net, solver, loss_fn, x, y, steps=cfg.adapt, lr=cfg.adapt_lr)
+                    add(f"adapt {cfg.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pair)  # noqa: B023
+                    if cfg.zoomout:
+                        add(f"adapt {cfg.adapt} + zoomout", lambda: zoomout(tuned, shapes), pair)  # noqa: B023
+                pair.free()
+                log(
+                    f"{set_name} {label} pair {i + 1}/{len(data.pairs)}: "
+                    + ", ".join(f"{m} {100 * e[-1]:.2f}" for m, e in errors.items())
+                )
+            base_t = seconds.get("trained, fmap", float("nan")) / max(len(errors.get("trained, fmap", [])), 1)
+            for method, errs in errors.items():
+                rows.append(
+                    {
+                        "model": label,
+                        "set": set_name,
+                        "method": method,
+                        "pairs": len(errs),
+                        "mean error x100": 100 * nanmean(errs),
+                        "s / pair": seconds[method] / len(errs),
+                        "t / trained fmap": seconds[method] / len(errs) / base_t,
+                    }
+                )
+            secs = state.get("epoch_seconds", [])
+            report.add(
+                f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
+                f"{state.get('step', '?')} steps; seconds per full epoch: "
+                f"{', '.join(f'{s:.0f}' for s in secs) or 'n/a'}"
+            )
+    report.table("Mean geodesic error / sqrt(area) x100; seconds per pair (precompute excluded)", rows)
+    report.rows_csv(rows)
+    if any(curves.values()):
+        report.figure(loss_curves, curves)
+
+
+def loss_curves(plt, curves: dict):
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, losses in curves.items():
         total = np.array([t["total"] for t in losses])
-        if not len(total):  # a shipped model keeps no loss history
-            continue
-        w = max(1, len(total) // 50)
-        ax.plot(np.convolve(total, np.ones(w) / w, mode="valid"), label=f"{label} (mean of {w})")
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("unsupervised loss")
+        if len(total):  # a shipped model keeps no loss history
+            w = max(1, len(total) // 50)
+            ax.plot(np.convolve(total, np.ones(w) / w, mode="valid"), label=f"{label} (mean of {w})")
+    ax.set(yscale="log", xlabel="step", ylabel="unsupervised loss")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig
 
 
-def run_checkpoint(
-    spec: str, args, data, report: Report, rows: list, curves: dict, set_name: str = ""
-) -> None:
-    """Rows of one checkpoint on one set: ``data`` is ``(files, pairs, gts)``, or a folder of the
-    old ``--pairs`` choices."""
-    label, path = spec.split("=")
-    net, config, ckpt = load_checkpoint(path)
-    state = ckpt.get("train_state", {})
-    curves[label] = state.get("losses", [])
-    if isinstance(data, tuple):
-        files, pairs, gts = data
-        shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
+def curve(cfg: Settings, report: Report) -> None:
+    """Where a recipe converges: validation error and loss against steps and wall time, while
+    training through the Trainer (weights never selected by the ground truth)."""
+    torch.set_num_threads(cfg.threads)
+    if cfg.train == "demo":
+        files = [str(p) for p in demo_pair_paths()[:2]]
     else:
-        folder = data
-        files = [folder / f"{n}.off" for n in FAUST_VAL] if args.pairs == "faust_val" else folder
-        shapes = ShapeDataset(files, args.cache, **config.dataset_kwargs(), progress=False)
-        pairs, gts = test_pairs(folder, shapes.names, args.pairs)
-    solver, loss_fn = build_model(config)[1:]
-    untrained = build_model(config)[0].eval()
-    errors: dict[str, list[float]] = {}
-    seconds: dict[str, float] = {}
+        files = sorted(glob.glob(str(common.DATA_DIR / cfg.train)))
+        if not files:
+            raise Skip(f"no training files {common.DATA_DIR / cfg.train}")
+    config = TrainConfig(**cfg.recipe, minutes=cfg.minutes, max_steps=cfg.max_steps, epochs=None)
+    shapes = ShapeDataset(files, cfg.cache, **config.dataset_kwargs(), progress=False)
+    val = PairSet(expand(cfg.val), config, cfg)
+    pairs = class_pairs(shapes.names)
+    solver, loss_fn = build_solver(config)
+    unsupervised = unsupervised_score(shapes, pairs[:: max(1, len(pairs) // 6)][:6], solver, loss_fn)
+    points, t_start, eval_s = [], time.perf_counter(), [0.0]
 
-    def add(method: str, fn, pe: PairErrors):
+    def validate(model) -> float:
         t0 = time.perf_counter()
-        p2p = fn()
-        seconds[method] = seconds.get(method, 0.0) + time.perf_counter() - t0
-        errors.setdefault(method, []).append(pe.mean(p2p))
-        return p2p
-
-    eigen: dict[int, object] = {}  # ZoomOut's eigenbases, once per shape (not per pair)
-
-    def prepared(i: int, mesh: Mesh):
-        if i not in eigen:
-            eigen[i] = prepare_shape(mesh, 0)  # grown by the matcher
-        return eigen[i]
-
-    def zoomout(network, shapes):  # the prepared shapes' own meshes: the meshes they were prepared for
-        matcher = LearnedMatcher(network, config, device="cpu")
-        return matcher(shapes[0].mesh, shapes[1].mesh, refine="zoomout", shapes=shapes).p2p_yx
-
-    for i, ((a, b), gt) in enumerate(zip(pairs, gts, strict=True)):
-        x, y = shapes[a], shapes[b]
-        pe = PairErrors(shapes, (a, b), gt, args.max_points)
-        mx = pe.mesh_x
-        my = Mesh(y["vertices"].numpy(), y["faces"].numpy(), validate=False)
-        if not args.quick:
-            add("untrained, fmap", lambda: predict_p2p(untrained, solver, x, y), pe)  # noqa: B023
-        base = add("trained, fmap", lambda: predict_p2p(net, solver, x, y), pe)  # noqa: B023
-        if not args.quick:
-            add("trained, fmap, pull-back", lambda: predict_p2p(net, solver, x, y, p2p_mode="pullback"), pe)  # noqa: B023
-            add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pe)  # noqa: B023
-        if not args.no_refine:
-            bases = (prepared(a, mx), prepared(b, my))
-            add("trained, fmap + zoomout", lambda: zoomout(net, bases), pe)  # noqa: B023
-        if args.adapt and i < args.adapt_pairs:
-            add("trained, fmap (adapt subset)", lambda: base, pe)  # noqa: B023
-            tuned = adapt(net, solver, loss_fn, x, y, steps=args.adapt, lr=args.adapt_lr)
-            add(f"adapt {args.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pe)  # noqa: B023
-            if not args.no_refine:
-                add(f"adapt {args.adapt} + zoomout", lambda: zoomout(tuned, bases), pe)  # noqa: B023
-        log(
-            f"{label} pair {i + 1}/{len(pairs)}: "
-            + ", ".join(f"{m} {np.mean(e):.4f}" for m, e in errors.items())
-        )
-    for method, errs in errors.items():
-        rows.append(
+        score = unsupervised(model)
+        errors = [float(p.errors(predict_p2p(model, solver, x, y)).mean()) for p, _, _, x, y in val]
+        eval_s[0] += time.perf_counter() - t0
+        points.append(
             {
-                "model": label,
-                **({"set": set_name} if set_name else {}),
-                "method": method,
-                "pairs": len(errs),
-                "mean error x100": 100 * float(np.mean(errs)),
-                "s / pair": seconds[method] / len(errs),
+                "step": (len(points) + 1) * cfg.every,
+                "minutes": (time.perf_counter() - t_start - eval_s[0]) / 60,
+                "val error x100": 100 * float(np.mean(errors)),
+                "val loss": score,
             }
         )
-    secs = state.get("epoch_seconds", [])
-    if set_name and set_name != args.sets.split(",")[0]:
-        return  # the training summary once per checkpoint
-    report.add(
-        f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
-        f"{state.get('step', '?')} steps, {state.get('epoch', '?')} full epochs, "
-        f"{state.get('seconds', float('nan')):.0f} s training; seconds per full epoch: "
-        + (", ".join(f"{s:.0f}" for s in secs) if secs else "n/a")
+        log(f"step {points[-1]['step']}: error {points[-1]['val error x100']:.2f}, loss {score:.4g}")
+        model.train()
+        return score
+
+    state = Trainer.from_config(
+        config, shapes, pairs, device="cpu", validate=validate, validate_every=cfg.every
+    ).fit()
+    if points:
+        points[-1]["step"] = state.step
+    report.table(
+        f"Validation against steps ({state.step} steps in {state.seconds:.0f} s, {len(pairs)} pairs "
+        f"per epoch)",
+        points,
+        note="Minutes exclude the validations. A shorter budget anneals sooner: the curve's shape, "
+        "not a final error.",
+    )
+    report.figure(curve_figure, points, state.losses)
+
+
+def curve_figure(plt, points: list[dict], losses: list):
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    steps = [p["step"] for p in points]
+    ax1.plot(steps, [p["val error x100"] for p in points], "C3-o")
+    ax1.set(xlabel="step", ylabel="validation error x100")
+    ax1.grid(alpha=0.3)
+    total = np.array([t["total"] for t in losses])
+    w = max(1, len(total) // 50)
+    ax2.plot(np.convolve(total, np.ones(w) / w, mode="valid"), label=f"training loss (mean of {w})")
+    ax2.plot(steps, [p["val loss"] for p in points], "C1-o", label="validation loss")
+    ax2.set(yscale="log", xlabel="step")
+    ax2.legend()
+    return fig
+
+
+def adapt_sweep(cfg: Settings, report: Report) -> None:
+    """Unsupervised test-time adaptation: steps x learning rate, raw and after ZoomOut, and what
+    it costs per pair."""
+    torch.set_num_threads(cfg.threads)
+    ((label, path),) = _checkpoints([cfg.checkpoint])
+    net, config, _ = load_checkpoint(path)
+    _, solver, loss_fn = build_model(config)
+    results: dict[tuple[int, float], list] = {}
+    for specs in _sets(cfg).values():
+        data = PairSet(specs, config, cfg)
+        for pair, a, b, x, y in data:
+            shapes = (data.prepared(a, pair.x), data.prepared(b, pair.y))
+            for n in cfg.steps:
+                for lr in cfg.lrs if n else cfg.lrs[:1]:
+                    t0 = time.perf_counter()
+                    tuned = adapt(net, solver, loss_fn, x, y, steps=n, lr=lr) if n else net
+                    seconds = time.perf_counter() - t0
+                    raw = predict_p2p(tuned, solver, x, y)
+                    ref = LearnedMatcher(tuned, config, device="cpu")(
+                        pair.x, pair.y, refine="zoomout", shapes=shapes
+                    ).p2p_yx
+                    results.setdefault((n, lr), []).append(
+                        (pair.errors(raw).mean(), pair.errors(ref).mean(), seconds)
+                    )
+            pair.free()
+    rows = [
+        {
+            "method": f"adapt {n} steps" if n else "no adaptation",
+            "lr": f"{lr:g}" if n else "-",
+            "raw x100": 100 * nanmean(r[0] for r in res),
+            "ZoomOut x100": 100 * nanmean(r[1] for r in res),
+            "adapt s / pair": nanmean(r[2] for r in res),
+        }
+        for (n, lr), res in results.items()
+    ]
+    report.table(
+        f"`{label}`: mean geodesic error x100 and the adaptation's cost ({cfg.threads} thread(s))", rows
     )
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--checkpoints", default=None, help="label=path,label=path (default: every shipped model)"
-    )
-    parser.add_argument(
-        "--sets",
-        default=None,
-        help="comma list of dev sets (faust_val, faust_a, scape_r, scape_a, tosca, smal_val): one "
-        "table of every checkpoint on every set (replaces --pairs)",
-    )
-    parser.add_argument(
-        "--pairs",
-        default="all",
-        choices=["all", "cat", "wolf", "faust_val"],
-        help="tosca5k_dev test pairs, or faust_val: 40 pairs among FAUST_r tr_reg_070..079",
-    )
-    parser.add_argument("--name", default="dev")
-    parser.add_argument("--adapt", type=int, default=0)
-    parser.add_argument("--adapt-lr", type=float, default=1e-4)
-    parser.add_argument("--adapt-pairs", type=int, default=12)
-    parser.add_argument("--max-points", type=int, default=500)
-    parser.add_argument("--no-refine", action="store_true")
-    parser.add_argument("--max-pairs", type=int, default=0, help="the first N pairs of each set (0: all)")
-    parser.add_argument(
-        "--quick", action="store_true", help="only the trained fmap and ZoomOut rows (no untrained, features)"
-    )
-    parser.add_argument("--cache", default=None)
-    args = parser.parse_args()
-    if args.checkpoints is None:
-        from torchfmap.nn.shipped import shipped_models
-
-        args.checkpoints = ",".join(f"{name}={path}" for name, path in shipped_models().items())
-    report = Report(f"learned_{args.name}")
-    rows, curves = [], {}
-    if args.sets:
-        report.add(f"# Learned path on the dev sets {args.sets} ({load_note()} at start)")
-        for set_name in args.sets.split(","):
-            files, _, pairs, gts = dev_set(set_name)
-            pairs, gts = pairs[: args.max_pairs or None], gts[: args.max_pairs or None]
-            for spec in args.checkpoints.split(","):
-                run_checkpoint(spec, args, (files, pairs, gts), report, rows, curves, set_name)
-    else:
-        data = "faust_r_train" if args.pairs == "faust_val" else "tosca5k_dev"
-        report.add(f"# Learned path on {data} ({args.pairs} pairs; {load_note()} at start)")
-        for spec in args.checkpoints.split(","):
-            run_checkpoint(spec, args, require_data(data), report, rows, curves)
-    report.table("Mean geodesic error / sqrt(area), x100; seconds per pair (precompute excluded)", rows)
-    png = RESULTS_DIR / f"learned_{args.name}_loss.png"
-    loss_png(curves, png)
-    report.add(f"Loss curves: `{png.relative_to(RESULTS_DIR.parent.parent)}`. {load_note()} at end.")
-    report.save()
+def zoomout_from(p2p_yx, shapes, k0: int, k_final: int) -> np.ndarray:
+    """ZoomOut of a given map in the prepared shapes' eigenbases, ``k0`` -> ``k_final`` (capped
+    at ``V - 1``): the eigenbasis kind's refiner, as ``match`` and ``LearnedMatcher`` refine."""
+    cap = min(s.mesh.n_vertices for s in shapes) - 1
+    k0, k_final = min(k0, cap), min(k_final, cap)
+    shapes = tuple(with_eigenpairs(s, k_final) for s in shapes)
+    bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
+    refiner = get_kind("laplacian").refiner("zoomout", k_final=k_final, mode="orthogonal")
+    return refiner(p2p_to_fmap(p2p_yx, bx, by), p2p_yx, *shapes, bx, by).p2p_yx
 
 
-if __name__ == "__main__":
-    torch.set_num_threads(1)
-    main()
+def stage_two(cfg: Settings, report: Report) -> None:
+    """The learned path's self-seeded second stage (experimental.stages) against stage 1, raw
+    and after ZoomOut, with the time per pair and per training step."""
+    rows = []
+    specs = _checkpoints(cfg.checkpoints)
+    for (set_name, pair_specs), (label, path) in zip(_sets(cfg).items(), specs * len(cfg.sets), strict=False):
+        net, config, _ = load_checkpoint(path)
+        data = PairSet(pair_specs, config, cfg)
+        solver, loss_fn = build_solver(config)
+        stage = StageTwo(n_seeds=cfg.seeds) if cfg.seeds else StageTwo()
+        errors: dict[str, list[float]] = {}
+        seconds, counts = {"stage 1": 0.0, "stage 2": 0.0}, []
+        for pair, a, b, x, y in data:
+            sx, sy = data.prepared(a, pair.x, 2 * config.k), data.prepared(b, pair.y, 2 * config.k)
+            t0 = time.perf_counter()
+            first, second, used = two_stage_p2p(net, solver, x, y, sx, sy, stage)
+            seconds["stage 2"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            predict_p2p(net, solver, x, y)
+            seconds["stage 1"] += time.perf_counter() - t0
+            counts.append(used)
+            for method, p2p in (("stage 1", first), ("stage 2", second)):
+                errors.setdefault(method, []).append(float(pair.errors(p2p).mean()))
+                if cfg.zoomout:
+                    refined = zoomout_from(p2p, (sx, sy), config.k, 2 * config.k)
+                    errors.setdefault(method + " +ZO", []).append(float(pair.errors(refined).mean()))
+            pair.free()
+        step = [float("nan"), float("nan")]
+        if cfg.step_pairs:  # one training step (forward, both losses, backward), stage 1 alone and both
+            batches = [
+                collate_pairs([(data.shapes[a], data.shapes[b])]) for a, b in data.index[: cfg.step_pairs]
+            ]
+            gen, net_t = torch.Generator().manual_seed(0), net.train()
+            for j, extra in enumerate(((), (StageTwoLoss(data.shapes.mesh),))):
+                for timed_pass in (False, True):  # the first pass prepares the second stage's shapes
+                    t0 = time.perf_counter()
+                    for batch in batches:
+                        net_t.zero_grad()
+                        pair_loss(net_t, solver, loss_fn, batch, gen, extra)["total"].backward()
+                    if timed_pass:
+                        step[j] = (time.perf_counter() - t0) / len(batches)
+            net.eval()
+        n = len(data.pairs)
+        for method, errs in errors.items():
+            stage_n = method.split(" +")[0]
+            rows.append(
+                {
+                    "set": set_name,
+                    "model": label,
+                    "method": method,
+                    "pairs": n,
+                    "mean error x100": 100 * nanmean(errs),
+                    "s / pair": seconds[stage_n] / n,
+                    "t / stage 1": seconds[stage_n] / max(seconds["stage 1"], 1e-12),
+                    "s / training step": step[0 if stage_n == "stage 1" else 1],
+                }
+            )
+        report.add(f"{set_name}, {label}: {nanmean(counts):.1f} consistent seed pairs per pair (mean).")
+    report.table("Second stage of the learned path against stage 1 (mean geodesic error x100)", rows)
+
+
+CASES = {"checkpoints": checkpoints, "curve": curve, "adapt": adapt_sweep, "stage_two": stage_two}

@@ -448,6 +448,8 @@ CONCEPT_TESTS = {
     "test_docs_names.py": "README.md and docs/*.md against the code: every name they cite exists",
     "test_readme.py": "the README's code blocks run as a reader would paste them",
     "test_api_coverage.py": "every public callable of every package is exercised by some test file",
+    "test_bench.py": "the benchmark runner outside the package (python -m bench): each suite's smallest "
+    "case in --quick mode on the demo pair, its settings and skips",
     "test_properties.py": "property-based runs (hypothesis) of random meshes through the eigenbasis, "
     "the diffusion basis, the solver, evaluation and save/load under one bounded example budget",
     "test_examples.py": "the numbered scripts of examples/ run on the demo pair and do what they promise",

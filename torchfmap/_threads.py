@@ -5,7 +5,8 @@ while after each call) and torch's (OpenMP). A tiny torch operation right after 
 run with several torch threads, waits for cores that BLAS's spinning threads still hold, so it
 is slower than with one thread. The classical path therefore runs its small torch work
 single-threaded (:func:`torch_threads`), and :func:`thread_limit` sets both pools for a whole
-computation. ``bench/threads.py`` checks that no workload is slower with all threads than with
+computation. ``python -m bench speed --case threads`` checks that no workload is slower with all threads
+than with
 one (``bench/results/threads.md``).
 """
 

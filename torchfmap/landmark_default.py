@@ -32,8 +32,9 @@ from .solve import P2PMode, prepare_shapes, solve_pair
 #: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
 #: ``hybrid``. ``diffusion`` is not a candidate: its maps are built by trilateration from the
 #: landmarks, so they preserve geodesic distances by construction and score a lower distortion
-#: than maps with lower error (bench/landmark_default.py: chosen on 1 of 6 near-isometric pairs
-#: at 7 landmarks, 1.24x the eigenbasis's error there).
+#: than maps with lower error (``python -m bench accuracy --case landmark_default``: chosen on 1
+#: of 6 near-isometric pairs at 7 landmarks, 1.24x the eigenbasis's error there); the held-out
+#: landmarks judge it fairly (:func:`landmark_scores`).
 AUTO_KINDS = ("laplacian", "hybrid")
 #: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
 #: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): the score's

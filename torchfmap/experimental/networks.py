@@ -1,7 +1,7 @@
 """Feature networks kept as baselines of experiments, outside the core learned path.
 
 :class:`FeatureNet` is the first learned path's network (spectral diffusion and MLPs, no
-gradient features; ``bench/train_step.py`` compares it with the recipe's
+gradient features; ``python -m bench speed --case train_recipe`` compares it with the recipe's
 :class:`~torchfmap.nn.networks.DiffusionNet`). It follows the
 :class:`~torchfmap.nn.networks.FeatureNetwork` protocol, so training, checkpoints and
 :class:`~torchfmap.nn.LearnedMatcher` take it as any user network.
@@ -19,7 +19,8 @@ from ..nn.modules import SpectralDiffusion
 
 
 class FeatureNet(nn.Module):
-    """The first learned path's network (kept as a baseline: ``bench/train_step.py``): spectral
+    """The first learned path's network (kept as a baseline: ``python -m bench speed --case
+    train_recipe``): spectral
     diffusion in any basis and MLPs, no gradient features.
 
     ``forward(inputs (B, V, C_in), basis, grad=None) -> (B, V, C_out)`` (the

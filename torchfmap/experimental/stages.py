@@ -19,7 +19,8 @@ add localised functions that are the same on both shapes where stage 1 was right
 round-trip test keeps a seed out where it was not. The seeds come from the detached stage-1
 map, so training differentiates through stage 2's solve, not through the seeding.
 
-(Measured with ``bench/stage_two.py``: on FAUST_r validation pairs about 0.97x the error of
+(Measured with ``python -m bench learned --case stage_two``: on FAUST_r validation pairs about 0.97x the
+error of
 stage 1 at about 3x its time per pair, nothing gained after ZoomOut; in the diffusion kernels
 alone, without the eigen block, worse than stage 1 at 40-160 seeds. Hence not in the core.)
 

@@ -49,7 +49,8 @@ def nearest_neighbor(
     lowest index.
 
     ``precision='single'`` runs the brute-force products in float32 (faster: see
-    ``bench/nn_speed.py``); rows whose nearest and second-nearest distances differ by less than float32
+    ``python -m bench speed --case nn_speed``); rows whose nearest and second-nearest distances differ by
+    less than float32
     round-off may then resolve differently from float64.
     """
     return _nearest(query, reference, search, precision, block_bytes)[0]

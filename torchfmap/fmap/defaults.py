@@ -9,7 +9,7 @@ Nothing here knows a basis kind.
 from __future__ import annotations
 
 #: Laplacian-commutativity weight of eigenfunctions and of bases with no heat kernels (the mask
-#: is normalised to mean 1), chosen by ``python bench/weight_sweep.py``; the default of
+#: is normalised to mean 1), chosen by ``python -m bench accuracy --case weight_sweep``; the default of
 #: :func:`~torchfmap.fmap.solve_fmap`.
 W_LAP_SMOOTH = 0.1
 #: Laplacian-commutativity weight of bases holding heat kernels, whose projected Laplacians have
@@ -18,11 +18,11 @@ W_LAP_KERNELS = 1.0
 #: Orientation-preservation weight when both meshes are given (tells left from right). Each
 #: operator pair is scaled to unit norm (``fmap.solver``), so at 1 the 16 orientation pairs
 #: together weigh like several times the descriptor term: on humans, whose limbs WKS cannot
-#: tell apart, weaker settings mix up left and right (``python3 bench/faust.py``).
+#: tell apart, weaker settings mix up left and right (``python -m bench accuracy --case faust``).
 W_ORIENT = 1.0
 #: Descriptor-commutativity weight of :func:`torchfmap.match` (multiplication operators,
 #: Nogneng & Ovsjanikov 2017): it asks ``C`` to carry each descriptor's product structure,
-#: which the descriptor term alone does not constrain (``python3 bench/faust.py``).
+#: which the descriptor term alone does not constrain (``python -m bench accuracy --case faust``).
 #: :func:`~torchfmap.fmap.solve_fmap` and the torch layers default to 0 (the layers have no such
 #: term).
 W_DCOMM = 0.3

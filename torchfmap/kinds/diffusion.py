@@ -26,7 +26,7 @@ DIFFUSION = DiffusionKind(
     summary="heat kernels at corresponding seeds (landmarks + farthest points)",
     # Projected Laplacians of small-t heat kernels have very large top eigenvalues, which
     # dominate the mask's mean: bases with diffusion columns need a larger weight than eigenbases
-    # (python bench/weight_sweep.py).
+    # (python -m bench accuracy --case weight_sweep).
     w_lap=W_LAP_KERNELS,
     column_families=frozenset({"diffusion"}),
 )

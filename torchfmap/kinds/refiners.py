@@ -40,7 +40,7 @@ FEATURE_SEED_MOVES = 2
 #: Farthest-point samples per basis column for the iterations of feature-aware refinement (the
 #: least-squares map of ``K`` columns is fitted on ``25 K`` sample rows; only the last point map
 #: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
-#: (accuracy against every-vertex iterations: ``bench/feature_accuracy.py``).
+#: (accuracy against every-vertex iterations: ``python -m bench accuracy --case feature_accuracy``).
 FEATURE_SAMPLES_PER_COLUMN = 25
 
 

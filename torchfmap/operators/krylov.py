@@ -20,7 +20,8 @@ from .solvers import factorize
 #: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
 KRYLOV_BLOCK_BYTES = 512 * 2**20
 #: Seeds per Krylov block: multi-column sparse solves cost less per column, but a block's work
-#: buffer is touched page by page (chosen by ``bench/bases.py``, ``bench/results/bases.md``).
+#: buffer is touched page by page (chosen by ``python -m bench speed --case bases``,
+#: ``bench/results/bases.md``).
 KRYLOV_BLOCK_COLUMNS = 8
 #: Lanczos vectors per column the work buffer starts with (it grows when more are needed).
 KRYLOV_STORE = 40

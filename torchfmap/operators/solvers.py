@@ -14,7 +14,8 @@ Backends, in the order ``backend='auto'`` tries them for symmetric positive defi
     complex systems. For SPD systems we call it in symmetric mode (minimum degree on A+A^T, no
     pivoting), which makes it competitive with CHOLMOD on well-ordered meshes.
 
-Factorisation and solve times of every installed backend: ``bench/operators.py`` (tables in
+Factorisation and solve times of every installed backend: ``python -m bench speed --case operators``
+(tables in
 ``bench/results/operators.md``).
 
 Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the matrix not

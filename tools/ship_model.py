@@ -2,7 +2,7 @@
 
 Run by hand from the repository root, after ``torchfmap train`` and the validation bench::
 
-    python3 bench/ship_model.py /tmp/humans.ckpt humans --command "torchfmap train ..." \\
+    python -m tools.ship_model /tmp/humans.ckpt humans --command "torchfmap train ..." \\
         --data "FAUST_r 000..069 + SCAPE 000..040, ..." --validation "..." --use "..."
 
 The shipped file keeps the weights of the best unsupervised validation score (what
@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import argparse
 import subprocess
-
-from _common import REPO_ROOT
+from pathlib import Path
 
 from torchfmap.nn.checkpoints import load_checkpoint, save_checkpoint
 from torchfmap.nn.shipped import MODELS_DIR
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
@@ -46,7 +47,8 @@ def main() -> None:
     }
     out = save_checkpoint(MODELS_DIR / f"{args.name}.ckpt", net, config, provenance=provenance)
     again, _, shipped = load_checkpoint(out)
-    assert shipped["provenance"] == provenance and type(again) is type(net)
+    if shipped["provenance"] != provenance or type(again) is not type(net):
+        raise SystemExit(f"{out} did not read back as written")
     print(f"shipped {out} ({out.stat().st_size / 1e6:.1f} MB)")
 
 

@@ -2,8 +2,8 @@
 
 Run by hand from the repository root (needs ``pip install 'torchfmap[remesh]'``)::
 
-    python3 bench/make_remeshed.py                      # every set below, into bench/data/
-    python3 bench/make_remeshed.py --sets scape_r --out /tmp/remeshed
+    python -m tools.remesh                      # every set below, into bench/data/
+    python -m tools.remesh --sets scape_r --out /tmp/remeshed
 
 Sets (each a folder of ``<name>.off`` and ``corres/<name>.vts``, 1-based, row r of A.vts and of
 B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was made):
@@ -19,7 +19,7 @@ B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was m
   tr_reg_000..069, scape_r and scape_a mesh000..040; anisotropic copies named ``<name>_a``):
   the folder ``torchfmap train --pairs all`` reads for the shipped ``humans`` model;
 - ``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe (every 4th
-  sorted name validates instead, ``bench/_common.smal_split``).
+  sorted name validates instead, ``bench/pairs.py``'s ``smal_split``).
 
 Ground truth through a remesh: each old vertex goes to its nearest new vertex, so the carried
 ground truth has an error of about half an edge, far below the errors measured.
@@ -32,11 +32,22 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from _common import BENCH_DIR, log, require_data, smal_split, str_list
 from tqdm import tqdm
 
+from bench.common import LOCAL_DATA_DIR, Skip, log
+from bench.common import require_data as _require_data
+from bench.pairs import smal_split
 from torchfmap.io import load_mesh, mesh_files, read_vts, save_mesh, shape_name
 from torchfmap.remesh import remesh
+
+
+def require_data(name: str) -> Path:
+    """``../shared/data/<name>``, or exit with one line when it is absent."""
+    try:
+        return _require_data(name)
+    except Skip as why:
+        raise SystemExit(f"tools.remesh: {why}") from None
+
 
 SETS = ("scape_r", "scape_a", "faust_a", "fs_train", "smal_train")
 #: Training shapes of the F+S recipe (the rest of each set validates): FAUST_r 000..069, SCAPE 000..040.
@@ -68,7 +79,7 @@ def make(set_name: str, out: Path, names=None) -> None:
             old = read_vts(src / "corres" / f"{name}.vts")
         _write(folder, name, res.mesh, res.to_new[old])
     (folder / "README.md").write_text(
-        f"# {set_name}\n\nMade by `python3 bench/make_remeshed.py --sets {set_name}` from "
+        f"# {set_name}\n\nMade by `python -m tools.remesh --sets {set_name}` from "
         f"`../shared/data/{src.name}` ({method} remeshing, ~{N_VERTICES} vertices, "
         "ground truth carried to the nearest new vertex). Same terms as the source; do not ship.\n"
     )
@@ -96,7 +107,7 @@ def make_training_folder(out: Path) -> None:
 
 def make_smal_training_folder(out: Path) -> None:
     """``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe
-    (``bench/_common.smal_split``; the other 8 validate)."""
+    (``bench/pairs.py``'s ``smal_split``; the other 8 validate)."""
     folder = out / "smal_train"
     folder.mkdir(parents=True, exist_ok=True)
     src = require_data("smal_r_train")
@@ -110,8 +121,13 @@ def make_smal_training_folder(out: Path) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--sets", type=str_list, default=list(SETS), help=f"comma list of {', '.join(SETS)}")
-    p.add_argument("--out", default=str(BENCH_DIR / "data"), help="output folder (default bench/data)")
+    p.add_argument(
+        "--sets",
+        type=lambda t: [s.strip() for s in t.split(",") if s.strip()],
+        default=list(SETS),
+        help=f"comma list of {', '.join(SETS)}",
+    )
+    p.add_argument("--out", default=str(LOCAL_DATA_DIR), help="output folder (default bench/data)")
     args = p.parse_args()
     for s in args.sets:
         if s not in SETS:

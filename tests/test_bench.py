@@ -1,0 +1,89 @@
+"""The benchmark runner (``python -m bench``): each suite's smallest case runs in ``--quick`` mode on
+the shipped demo pair or tiny synthetic meshes (no ../shared/data) and writes its results file,
+a table whose rows are the compared methods; settings are checked; pyFM is optional."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from bench import pairs
+from bench.__main__ import SUITES, cases, main
+
+#: suite -> (its smallest case, extra settings, the methods its table compares).
+SMALLEST = {
+    "accuracy": ("weight_sweep", [], ["laplacian w_lap=0.1", "diffusion w_lap=0.1"]),
+    "speed": ("eigenpairs", [], ["arpack", "block"]),
+    "learned": ("checkpoints", ["all_rules=false", "adapt=0"], ["trained, fmap", "trained, fmap + zoomout"]),
+}
+
+
+def _methods(markdown: str) -> list[str]:
+    """The ``method`` column of every table row in a results file."""
+    methods, column = [], None
+    for line in markdown.splitlines():
+        if not line.startswith("|") or line.startswith("|---"):
+            column = None if not line.startswith("|") else column
+            continue
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if "method" in cells and column is None:
+            column = cells.index("method")
+        elif column is not None:
+            methods.append(cells[column])
+    return methods
+
+
+@pytest.mark.parametrize("suite", sorted(SUITES))
+def test_smallest_case_writes_a_table_of_the_methods(suite, tmp_path, monkeypatch):
+    case, settings, expected = SMALLEST[suite]
+    assert case in cases(suite)
+    had_pyfm = "pyFM" in sys.modules
+    argv = [suite, "--case", case, "--quick", "--out", str(tmp_path)]
+    argv += [a for s in settings for a in ("--set", s)]
+    if suite == "accuracy":  # pyFM absent: its rows are left out with a note, the case still runs
+        monkeypatch.setitem(sys.modules, "pyFM", None)
+        argv += ["--set", 'pyfm={"refine": []}']
+    written = main(argv)
+    assert written == [tmp_path / f"{suite}_{case}.md"]
+    text = written[0].read_text()
+    assert set(expected) <= set(_methods(text)), text
+    if suite == "accuracy":
+        assert "pyFM (PyPI pyfmaps) is not installed" in text and "pyFM |" not in text
+        assert (tmp_path / f"{suite}_{case}.csv").is_file()
+    elif not had_pyfm:
+        assert "pyFM" not in sys.modules  # no case that does not compare with pyFM imports it
+
+
+def test_settings_are_checked_and_merged(tmp_path, capsys):
+    with pytest.raises(SystemExit, match="unknown setting.*nonsense"):
+        main(["speed", "--case", "eigenpairs", "--quick", "--set", "nonsense=1", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="unknown case"):
+        main(["speed", "--case", "nope"])
+    config = tmp_path / "c.json"
+    config.write_text(json.dumps({"eigenpairs": {"sizes": [300], "ks": [10]}}))
+    (path,) = main(
+        [
+            "speed",
+            "--case",
+            "eigenpairs",
+            "--quick",
+            "--config",
+            str(config),
+            "--name",
+            "tiny",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert path.name == "speed_eigenpairs_tiny.md" and '"sizes": [300]' in path.read_text()
+    main(["learned", "--list"])
+    assert "stage_two" in capsys.readouterr().out
+
+
+def test_a_case_without_its_data_is_skipped(tmp_path, monkeypatch):
+    monkeypatch.setattr("bench.common.DATA_DIR", tmp_path / "absent")
+    assert main(["accuracy", "--case", "weight_sweep", "--out", str(tmp_path)]) == []
+    with pytest.raises(pairs.Skip):
+        pairs.expand(["@tosca_test"])
