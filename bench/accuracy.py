@@ -18,6 +18,7 @@ figure when there are several L.
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from torchfmap import prepare_shape
 from torchfmap.experimental.seeded import seeded_match
 from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN
 
-from .common import Report, Settings, fmt, log
+from .common import Report, Settings, fmt, log, require_data
 from .pairs import Pair, crash, expand, mean_of, pyfm_missing, pyfm_rows, record, run_match
 
 
@@ -304,7 +305,126 @@ def seeded_refine(cfg: Settings, report: Report) -> None:
     )
 
 
+def _partial_pairs(cfg: Settings):
+    """``(name, whole, other, gt_whole, gt_other)``: dev pairs whose target is cut; the ground truth
+    as corresponding rows (``vts`` of FAUST_r, or the demo pair's map)."""
+    from torchfmap.data import demo_pair
+    from torchfmap.io import load_mesh, read_vts
+
+    if cfg.shapes == "demo":
+        a, b, gt = demo_pair()
+        yield "demo", a, b, gt, np.arange(b.n_vertices)
+        return
+    folder = require_data(cfg.shapes["folder"])
+    for i, j in cfg.shapes["pairs"]:
+        a, b = load_mesh(folder / f"{i}.off"), load_mesh(folder / f"{j}.off")
+        yield (
+            f"{i}-{j}",
+            a,
+            b,
+            read_vts(folder / "corres" / f"{i}.vts"),
+            read_vts(folder / "corres" / f"{j}.vts"),
+        )
+
+
+def partial(cfg: Settings, report: Report) -> None:
+    """Partial-to-full: each target cut (plane or holes, ``ratios`` of its area), matched to the
+    whole source by the full-shape ``match`` and by ``match(partial=True)``, raw and refined, with
+    ``L`` landmarks (ground-truth rows spread by FPS; the full-shape map then in the eigenbasis).
+    Errors on the whole shape over the part's ground-truth rows; overlap IoU of ``v > 0.5``
+    against the true part (area-weighted)."""
+    from torchfmap import match
+    from torchfmap.data.cuts import cut_holes, cut_plane
+    from torchfmap.eval import Correspondence, geodesic_errors, landmarks_from_gt
+
+    rows = []
+    for name, whole, other, gt_w, gt_o in _partial_pairs(cfg):
+        shape_w = prepare_shape(whole, 2 * cfg.k + 100)
+        mass = whole.face_areas  # area weights of vertices, lumped
+        vertex_area = np.bincount(whole.faces.ravel(), np.repeat(mass, 3), whole.n_vertices) / 3
+        for ratio in cfg.ratios:
+            for how in cfg.cuts:
+                cut = (
+                    cut_plane(other, ratio, seed=1) if how == "plane" else cut_holes(other, ratio, 4, seed=1)
+                )
+                inv = np.full(other.n_vertices, -1)
+                inv[cut.vertices] = np.arange(cut.n_vertices)
+                keep = inv[gt_o] >= 0
+                gt = Correspondence(gt_w[keep], inv[gt_o][keep])
+                truth = np.zeros(whole.n_vertices, bool)
+                truth[gt.idx_x] = True
+                shape_p = prepare_shape(cut.mesh, 2 * cfg.k + 100)
+                a = cut.mesh.area / other.area
+                for n in cfg.L:
+                    lm = landmarks_from_gt(whole, gt, n) if n else None
+                    for method, kwargs in (
+                        ("full-shape", {"basis": "laplacian"} if n else {}),
+                        ("partial", {"partial": True}),
+                    ):
+                        t0 = time.perf_counter()
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            r = match(
+                                whole,
+                                cut.mesh,
+                                landmarks=lm,
+                                k=cfg.k,
+                                refine="zoomout",
+                                shapes=(shape_w, shape_p),
+                                **kwargs,
+                            )
+                        t = time.perf_counter() - t0
+                        for refine, p2p in (("-", r.p2p_yx_initial), ("zoomout", r.p2p_yx)):
+                            row = dict(
+                                pair=name,
+                                cut=how,
+                                ratio=round(a, 2),
+                                L=n,
+                                method=method,
+                                refine=refine,
+                                time=t,
+                            )
+                            row["mean"] = float(
+                                geodesic_errors(whole, p2p, gt, solver=shape_w.distances).mean()
+                            )
+                            if r.overlap is not None and refine == "zoomout":
+                                est = r.overlap > 0.5
+                                row["iou"] = float(
+                                    vertex_area[est & truth].sum() / vertex_area[est | truth].sum()
+                                )
+                            rows.append(row)
+                            log(f"{name} {how} {a:.2f} L={n} {method} {refine}: {100 * row['mean']:.2f}")
+    report.rows_csv(rows)
+    bands = [(0.0, 0.5), (0.5, 0.7), (0.7, 1.0)]
+    out = []
+    for lo, hi in bands:
+        for n in cfg.L:
+            band = [r for r in rows if lo < r["ratio"] <= hi and r["L"] == n]
+            if not band:
+                continue
+            line = {"area ratio": f"({lo}, {hi}]", "L": n, "cuts": len(band) // 4}
+            for method in ("full-shape", "partial"):
+                for refine in ("-", "zoomout"):
+                    errs = [r["mean"] for r in band if (r["method"], r["refine"]) == (method, refine)]
+                    line[f"{method} {refine}"] = 100 * float(np.mean(errs))
+            ious = [r["iou"] for r in band if "iou" in r]
+            line["IoU"] = float(np.mean(ious)) if ious else float("nan")
+            line["t partial / t full"] = float(
+                np.median([r["time"] for r in band if r["method"] == "partial"])
+                / np.median([r["time"] for r in band if r["method"] == "full-shape"])
+            )
+            out.append(line)
+    report.table(
+        "Partial-to-full: mean geodesic error x100 on the whole, over the part's rows",
+        out,
+        note="full-shape: match(whole, part) (eigenbasis with landmarks); partial: match(whole, part, "
+        "partial=True). '-': the unrefined map of the same call; IoU: overlap v > 0.5 against the true "
+        "part, area-weighted; times include ZoomOut, same process.",
+    )
+
+
 CASES = {
+    "partial": partial,
     "bases": bases,
     "landmark_sweep": landmark_sweep,
     "weight_sweep": weight_sweep,

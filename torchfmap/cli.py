@@ -181,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--bases", nargs=2, metavar=("SRC.npz", "TGT.npz"), help="solve in saved bases ('torchfmap basis')"
     )
+    p.add_argument("--partial", action="store_true", help="the target is a part of the source, same units")
     p.add_argument(
         "--k",
         type=positive_int,

@@ -166,6 +166,11 @@ def _learned_matcher(args: argparse.Namespace):
                     "classical pipeline runs on the CPU and is not trained)."
                 )
         return None
+    if getattr(args, "partial", False):
+        raise TorchFmapError(
+            "--partial is the classical partial functional map; the trained networks match whole shapes. "
+            "Fix: drop --checkpoint (torchfmap match WHOLE PART --partial)."
+        )
     fixed = [f"--{n.replace('_', '-')}" for n in CHECKPOINT_FIXES if getattr(args, n, None) is not None]
     if fixed:
         raise TorchFmapError(
@@ -226,6 +231,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         times=args.times,
         p2p_mode=args.p2p_mode,
         bases=bases,
+        partial=args.partial,
     )
     refined = ""
     if args.refine:
@@ -238,6 +244,9 @@ def cmd_match(args: argparse.Namespace) -> int:
     if result.candidates:
         judge = "geodesic distortion and held-out landmarks" if result.fold_scores else "geodesic distortion"
         chose = f"chosen by {judge} ({result.scores()} sqrt(area)), "
+    if result.overlap is not None:
+        share = float((result.overlap > 0.5).mean())
+        chose = f"rank {result.partial_rank}, overlap {share:.0%} of the source's vertices, "
     how = f"({result.kind} basis, {chose}K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
 

@@ -60,11 +60,12 @@ def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndar
     return (evecs**2) @ np.exp(-np.outer(np.maximum(evals, 0), times))
 
 
-def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.ndarray:
-    """``(k, E)`` normalised Gaussian weights of each eigenvalue at each log-energy."""
+def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float, energy_range=None) -> np.ndarray:
+    """``(k, E)`` normalised Gaussian weights of each eigenvalue at each log-energy (spread over
+    ``energy_range`` ``(log e_min, log e_max)``, default the positive eigenvalues' log range)."""
     keep = evals > 1e-10 * evals.max()  # the constant eigenfunction carries no information
     loge = np.log(np.where(keep, evals, 1.0))
-    e_min, e_max = loge[keep].min(), loge[keep].max()
+    e_min, e_max = (loge[keep].min(), loge[keep].max()) if energy_range is None else energy_range
     energies = np.linspace(e_min, e_max, n_energies)
     sigma = sigma_factor * (e_max - e_min) / n_energies
     w = np.exp(-((energies[None, :] - loge[:, None]) ** 2) / (2 * sigma**2)) * keep[:, None]
@@ -72,19 +73,34 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.
 
 
 def wks(
-    eigenvalues, eigenvectors, n_energies: int = WKS_ENERGIES, sigma_factor: float = WKS_SIGMA
+    eigenvalues,
+    eigenvectors,
+    n_energies: int = WKS_ENERGIES,
+    sigma_factor: float = WKS_SIGMA,
+    *,
+    energy_range: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``.
 
-    Raises :class:`ParameterError` for ``n_energies < 1`` or a ``sigma_factor`` that is not
-    finite and > 0 (a zero-width Gaussian gives NaN weights).
+    The log-energies span the positive eigenvalues' log range, or ``energy_range``
+    ``(log e_min, log e_max)``: two shapes whose spectra cover different ranges (a part and its
+    whole) get comparable signatures only on shared energies.
+
+    Raises :class:`ParameterError` for ``n_energies < 1``, a ``sigma_factor`` that is not
+    finite and > 0 (a zero-width Gaussian gives NaN weights), or an ``energy_range`` that is not
+    two finite increasing numbers.
     """
     evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
     if isinstance(n_energies, bool) or int(n_energies) != n_energies or n_energies < 1:
         raise ParameterError(f"n_energies must be an integer >= 1, got {n_energies!r}.")
     if not np.isfinite(sigma_factor) or sigma_factor <= 0:
         raise ParameterError(f"sigma_factor must be finite and > 0, got {sigma_factor!r}. Fix: e.g. 7.")
-    return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
+    if energy_range is not None:
+        lo, hi = (float(v) for v in energy_range)
+        if not (np.isfinite([lo, hi]).all() and lo < hi):
+            raise ParameterError(f"energy_range must be increasing (log e_min, log e_max): {energy_range}.")
+        energy_range = (lo, hi)
+    return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor, energy_range)
 
 
 def landmark_descriptors(

@@ -61,8 +61,8 @@ def warn_if_partial(mesh_x: Mesh, mesh_y: Mesh, *, stacklevel: int = 3) -> None:
     warnings.warn(
         f"{which} looks partial: its boundary is {cut:.2f} sqrt(area) long against {other:.2f} for the "
         f"other mesh (area ratio {ratio:.2f}, if both are in the same units). A full-shape map "
-        "assumes both shapes whole; on a part it can be near-random. Fix: give a few landmarks "
-        "(landmarks=..., --landmarks), which anchor the map on the part.",
+        "assumes both shapes whole; on a part it can be near-random. Fix: match(whole, part, "
+        "partial=True) (torchfmap match WHOLE PART --partial), with a few landmarks if you have them.",
         MapWarning,
         stacklevel=stacklevel,
     )

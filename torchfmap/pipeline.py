@@ -28,6 +28,7 @@ from .kinds.refiners import check_eigenbases, check_refine
 from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
 from .match_checks import check_k_final, check_meshes, check_unused, given_bases_kind, warn_if_partial
 from .mesh import Mesh
+from .partial import match_partial
 from .quality import OFF_BY_ONE_RATIO, landmark_distortion, warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
 from .results import MatchResult, RefineMethod, refine_result
@@ -72,6 +73,7 @@ def match(
     zoomout_samples: int | None = None,
     bases: tuple[Basis, Basis] | None = None,
     shapes: tuple[PreparedShape, PreparedShape] | None = None,
+    partial: bool = False,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
 
@@ -129,6 +131,12 @@ def match(
             pairs (operators, eigenpairs, geodesic rows and heat kernels are then computed once
             per shape, not once per pair); eigenpairs are extended in place when a call needs
             more. The maps are the same as without.
+        partial: ``y`` is a part of ``x`` (a cut, a scan of one side, a shape with holes), both
+            in the same units: the partial functional map of :mod:`torchfmap.partial` (the
+            eigenbases in one frame, a rank-limited ``C_xy`` ``(r, k)``, ZoomOut within the
+            part's rank; ``result.overlap`` ``(V_x,)`` the estimated part on the whole).
+            ``refine`` is ``'zoomout'`` or None; ``basis``, ``bases``, ``times``, ``p2p_mode``
+            and ``zoomout_samples`` do not apply.
 
     Raises:
         ParameterError: inputs that are not meshes (e.g. paths: the fix names ``load_mesh``),
@@ -139,11 +147,36 @@ def match(
     """
     t0 = time.perf_counter()
     check_meshes(mesh_x, mesh_y)
-    warn_if_partial(mesh_x, mesh_y)
+    if not partial:
+        warn_if_partial(mesh_x, mesh_y)
     refine = check_refine(refine)
     pairs = None
     if landmarks is not None and len(np.atleast_1d(landmarks)):
         pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
+    if partial:
+        given = {"basis": basis, "bases": bases, "times": times, "p2p_mode": p2p_mode,
+                 "zoomout_samples": zoomout_samples}  # fmt: skip
+        unused = [name for name, value in given.items() if value is not None]
+        if unused or refine == "icp":
+            what = ", ".join(unused + (["refine='icp'"] if refine == "icp" else []))
+            raise ParameterError(
+                f"partial=True solves in the eigenbases and refines by ZoomOut, so {what} would not be "
+                "used. Fix: drop it, or match without partial=True."
+            )
+        n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
+        k = check_count(k, 1, n_max, "k (basis size)")
+        k_final = check_count(k_final or 2 * k, k, n_max, "k_final") if refine else None
+        n_eigen = min(max(k_final or k, k_descriptors), n_max)
+        shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, n_eigen)
+        result = match_partial(
+            shape_x, shape_y, landmarks=pairs, k=k, refine=refine, k_final=k_final,
+            n_descriptors=n_descriptors, k_descriptors=min(k_descriptors, n_eigen), w_dcomm=w_dcomm,
+            w_lmk=w_lmk, **({} if w_lap is None else {"w_lap": w_lap}),
+            **({} if w_orient is None else {"w_orient": w_orient}),
+        )  # fmt: skip
+        result.timings["operators+eigen"] += time.perf_counter() - t0 - sum(result.timings.values())
+        warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
+        return result
     if basis == "auto" and (pairs is None or bases is not None):
         raise ParameterError(
             "basis='auto' chooses among bases built at landmarks. Fix: pass landmarks, or name a "

@@ -87,7 +87,9 @@ class MatchResult:
     kinds that could not be built on these meshes, with the reason, and ``fold_scores`` each
     cross-validated kind's held-out landmark error
     (:func:`~torchfmap.landmark_default.landmark_scores`). ``model`` names the trained network
-    that made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`)."""
+    that made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`). A partial match
+    (``match(whole, part, partial=True)``, :mod:`torchfmap.partial`) sets ``overlap`` ``(V_x,)``,
+    the estimated part on the whole in ``[0, 1]``, and ``partial_rank``, the rows of ``C_xy``."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -103,6 +105,8 @@ class MatchResult:
     skipped: dict[str, str] = field(default_factory=dict)
     model: str | None = None
     fold_scores: dict[str, float] = field(default_factory=dict)
+    overlap: np.ndarray | None = None
+    partial_rank: int | None = None
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen

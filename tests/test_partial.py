@@ -1,0 +1,171 @@
+"""Partial-to-full matching (torchfmap.partial, match(partial=True)) and the cuts that make
+partial data (torchfmap.data.cuts)."""
+
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+from torchfmap import match, prepare_shape
+from torchfmap.data import demo_pair
+from torchfmap.data.cuts import cut_holes, cut_plane
+from torchfmap.data.synthetic import icosphere
+from torchfmap.descriptors import wks
+from torchfmap.errors import MapWarning, ParameterError
+from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
+from torchfmap.fmap import p2p_to_fmap
+from torchfmap.io import save_mesh
+from torchfmap.partial import common_frame, overlap_indicator, partial_rank
+
+
+@pytest.fixture(scope="module")
+def blob_cut():
+    a, b, gt = demo_pair()
+    cut = cut_plane(b, 0.6, seed=1)
+    return a, cut, gt[cut.vertices]  # part vertex -> vertex of a
+
+
+def test_cut_plane_keeps_positions_and_reaches_the_area_ratio():
+    sphere = icosphere(4)
+    cut = cut_plane(sphere, 0.5, normal=(0, 0, 1))
+    np.testing.assert_array_equal(cut.mesh.vertices, sphere.vertices[cut.vertices])
+    # bisection on face centroids: the kept area misses the asked one by at most the faces the
+    # plane crosses, a band one face wide around the equator (perimeter x edge length)
+    band = 2 * np.pi * sphere.mean_edge_length / sphere.area
+    assert abs(cut.mesh.area / sphere.area - 0.5) <= band
+    assert cut.mesh.boundary_vertices.size > 0 and cut.mesh.n_components == 1
+
+
+def test_cut_holes_removes_about_the_asked_area():
+    sphere = icosphere(4)
+    cut = cut_holes(sphere, 0.7, n_holes=3, seed=0)
+    np.testing.assert_array_equal(cut.mesh.vertices, sphere.vertices[cut.vertices])
+    largest_face = sphere.face_areas.max() / sphere.area
+    assert 0.7 - largest_face <= cut.mesh.area / sphere.area <= 0.7 + 3 * largest_face
+    assert len(cut.mesh.boundary_edges) > 0
+
+
+@pytest.mark.parametrize("ratio", [0.0, 1.0, float("nan")])
+def test_cuts_refuse_bad_ratios(ratio):
+    with pytest.raises(ParameterError, match="area_ratio"):
+        cut_plane(icosphere(2), ratio)
+
+
+def test_hemisphere_spectrum_in_the_whole_frame():
+    """A hemisphere's Neumann eigenvalues are the sphere's l(l+1) with multiplicity l + 1 (the
+    harmonics even about the cut plane); in the whole sphere's unit-area frame they must sit on
+    the sphere's own eigenvalues: 4π l(l+1)."""
+    sphere = icosphere(4)
+    cut = cut_plane(sphere, 0.5, normal=(0, 0, 1))
+    whole, part = prepare_shape(sphere, 30), prepare_shape(cut.mesh, 20)
+    a = cut.mesh.area / sphere.area
+    lam = common_frame(part.eigenbasis, a).eigenvalues
+    exact = np.concatenate([[4 * np.pi * n * (n + 1)] * (n + 1) for n in range(6)])[:20]
+    # the tolerance: the whole sphere's own discretisation error on the same eigenvalues, plus
+    # the jagged cut (faces kept by centroid), which moves the boundary by up to one edge length
+    # h: a relative change O(h / radius) of a Neumann eigenvalue (a wrong frame is off by 1 / a = 2)
+    sphere_exact = np.concatenate([[4 * np.pi * n * (n + 1)] * (2 * n + 1) for n in range(6)])[1:30]
+    sphere_err = np.max(np.abs(whole.eigenbasis.eigenvalues[1:30] / sphere_exact - 1))
+    np.testing.assert_allclose(lam[1:], exact[1:], rtol=sphere_err + sphere.mean_edge_length)
+    mid = 4 * np.pi * (12 + 20) / 2  # between l = 3 and l = 4
+    assert np.sum(lam < mid) == 1 + 2 + 3 + 4
+    assert np.sum(whole.eigenbasis.eigenvalues < mid) == 16
+    # B-orthonormal in the whole's frame
+    b = common_frame(part.eigenbasis, a)
+    np.testing.assert_allclose(b.gram(), np.eye(b.k), atol=1e-8)
+
+
+def test_partial_rank_counts_eigenvalues_below_the_whole():
+    lam_x = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    lam_y = np.array([0.0, 2.0, 4.0, 6.0, 8.0])
+    assert partial_rank(lam_x, lam_y, 5) == 3  # 0, 2, 4 <= 4
+    assert partial_rank(lam_x, lam_y, 1) == 1  # never below one
+    assert partial_rank(lam_x, lam_x, 5) == 5  # a whole "part": full rank
+
+
+def test_overlap_of_the_true_map_marks_the_part():
+    """Extension by zero of the part's constant function: with the true map's C the overlap is
+    the band-limited indicator of the part (a step function's projection: near 1 inside, near 0
+    outside, Gibbs overshoot only near the cut)."""
+    sphere = icosphere(4)
+    cut = cut_plane(sphere, 0.5, normal=(0, 0, 1))
+    whole, part = prepare_shape(sphere, 60), prepare_shape(cut.mesh, 60)
+    a = cut.mesh.area / sphere.area
+    full, pb = whole.eigenbasis, common_frame(part.eigenbasis, a)
+    r = partial_rank(full.eigenvalues, pb.eigenvalues, 49)
+    C = p2p_to_fmap(cut.vertices, full, pb, 49, r)
+    np.testing.assert_allclose(C[0, 0], np.sqrt(a), rtol=1e-6)  # constants: 1 -> sqrt(a) φ_0
+    v = overlap_indicator(C, full, pb)
+    inside = np.zeros(sphere.n_vertices, bool)
+    inside[cut.vertices] = True
+    far = np.abs(sphere.vertices[:, 2]) > 0.3  # away from the cut, where the projection converged
+    assert v[inside & far].mean() > 0.9 and v[~inside & far].mean() < 0.1
+
+
+def test_wks_energy_range():
+    sphere = icosphere(3)
+    eig = prepare_shape(sphere, 30).eigenbasis
+    lam = eig.eigenvalues[1:]
+    own = (np.log(lam.min()), np.log(lam.max()))
+    np.testing.assert_allclose(
+        wks(eig.eigenvalues, eig.values, 10, energy_range=own), wks(eig.eigenvalues, eig.values, 10)
+    )
+    with pytest.raises(ParameterError, match="energy_range"):
+        wks(eig.eigenvalues, eig.values, 10, energy_range=(2.0, 1.0))
+
+
+def test_partial_match_with_landmarks_beats_the_full_shape_map(blob_cut):
+    """Same landmarks, same k: the partial map (one frame, rank-limited) against the full-shape
+    map, which assumes the part whole and stretches it to the whole's size."""
+    a, cut, gt_part = blob_cut
+    lm = landmarks_from_gt(a, gt_from_map(gt_part), 5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MapWarning)
+        whole = match(a, cut.mesh, k=30, landmarks=lm, basis="laplacian", refine="zoomout")
+    part = match(a, cut.mesh, k=30, landmarks=lm, refine="zoomout", partial=True)
+    err = [geodesic_errors(a, r.p2p_yx, gt_from_map(gt_part)).mean() for r in (whole, part)]
+    assert err[1] < err[0]
+    assert part.kind == "partial" and part.overlap.shape == (a.n_vertices,)
+    assert part.C_xy.shape == (part.partial_rank, 60) and part.partial_rank < 60
+    assert 0.0 <= part.overlap.min() and part.overlap.max() <= 1.0
+
+
+def test_partial_input_warns_once_naming_the_flag(blob_cut):
+    a, cut, _ = blob_cut
+    with pytest.warns(MapWarning, match="partial=True") as record:
+        match(a, cut.mesh, k=10)
+    assert len([w for w in record if issubclass(w.category, MapWarning)]) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MapWarning)
+        match(a, cut.mesh, k=10, partial=True)  # asked for: no warning
+
+
+def test_partial_refuses_what_it_would_not_use(blob_cut):
+    a, cut, _ = blob_cut
+    with pytest.raises(ParameterError, match="basis"):
+        match(a, cut.mesh, k=10, partial=True, basis="diffusion")
+    with pytest.raises(ParameterError, match="icp"):
+        match(a, cut.mesh, k=10, partial=True, refine="icp")
+    with pytest.raises(ParameterError, match="whole shape first"):
+        match(cut.mesh, a, k=10, partial=True)  # swapped
+
+
+def test_cli_partial(blob_cut, tmp_path):
+    a, cut, gt_part = blob_cut
+    save_mesh(a, tmp_path / "whole.off")
+    save_mesh(cut.mesh, tmp_path / "part.off")
+    whole, part = str(tmp_path / "whole.off"), str(tmp_path / "part.off")
+    run = [sys.executable, "-m", "torchfmap", "match", whole, part]
+    done = subprocess.run([*run, "--partial", "--k", "20", "--out", str(tmp_path / "m.txt")],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "partial basis, rank" in done.stdout
+    assert len(np.loadtxt(tmp_path / "m.txt", dtype=np.int64)) == cut.n_vertices
+    done = subprocess.run([*run, "--k", "20", "--out", str(tmp_path / "m.txt")],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0 and "--partial" in done.stderr
+    done = subprocess.run([*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode != 0 and "--partial" in done.stderr and "Traceback" not in done.stderr

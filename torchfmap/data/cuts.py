@@ -1,0 +1,101 @@
+"""Partial shapes made from whole ones, with their ground truth: a plane cut
+(:func:`cut_plane`) or round holes (:func:`cut_holes`), as the SHREC'16 partial benchmark's cuts
+and holes were made. Each returns a :class:`Cut`: the part and, for every vertex of the part, its
+vertex on the whole shape (the part keeps the whole shape's vertex positions and relative order,
+so the ground truth is exact; remesh the part, :func:`torchfmap.remesh.remesh`, for a part that is
+not a subset of the whole's vertices).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .._checks import check_count
+from ..errors import MeshError, ParameterError
+from ..mesh import Mesh
+from ..operators.geodesic import geodesic_distances
+
+#: Bisection steps of the cut position that reaches the asked area ratio (each halves the
+#: interval of plane offsets: the ratio is met to within one face's area).
+CUT_STEPS = 60
+
+__all__ = ["Cut", "cut_holes", "cut_plane"]
+
+
+class Cut(NamedTuple):
+    """A part of a whole mesh: ``mesh`` (the part) and ``vertices`` ``(V_part,)``, the vertex of
+    the whole mesh each part vertex is (the ground-truth map part -> whole, 0-based)."""
+
+    mesh: Mesh
+    vertices: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return self.mesh.n_vertices
+
+
+def _check_ratio(area_ratio: float) -> float:
+    if not (np.isfinite(area_ratio) and 0.05 <= area_ratio < 1.0):
+        raise ParameterError(f"area_ratio must be in [0.05, 1), got {area_ratio!r}. Fix: e.g. 0.6.")
+    return float(area_ratio)
+
+
+def _kept_part(mesh: Mesh, drop_faces: np.ndarray) -> Cut:
+    """The largest connected piece left when ``drop_faces`` (bool ``(F,)``) are removed."""
+    part, ids = mesh.without_faces(np.flatnonzero(drop_faces)).referenced()
+    piece, kept = part.largest_component()
+    return Cut(Mesh(piece.vertices, piece.faces, name=f"{mesh.name or 'shape'}-part"), ids[kept])
+
+
+def cut_plane(mesh: Mesh, area_ratio: float, normal=None, *, seed: int = 0) -> Cut:
+    """The part of ``mesh`` on one side of a plane, keeping about ``area_ratio`` of its area.
+
+    ``normal`` ``(3,)``: the plane's normal (the part is on its negative side); default a random
+    direction drawn with ``seed``. The plane's offset is found by bisection (:data:`CUT_STEPS`)
+    on face centroids; the largest connected piece is kept (a plane can cut a limb off), so the
+    part's area can fall below ``area_ratio`` by that piece's share.
+
+    Raises:
+        ParameterError: ``area_ratio`` outside ``[0.05, 1)`` or a zero ``normal``.
+        MeshError: the cut leaves no faces.
+    """
+    area_ratio = _check_ratio(area_ratio)
+    if normal is None:
+        normal = np.random.default_rng(seed).normal(size=3)
+    normal = np.asarray(normal, dtype=np.float64).reshape(3)
+    if not np.isfinite(normal).all() or np.linalg.norm(normal) == 0:
+        raise ParameterError(f"normal must be a non-zero 3-vector, got {normal}.")
+    heights = mesh.vertices[mesh.faces].mean(axis=1) @ (normal / np.linalg.norm(normal))
+    areas = mesh.face_areas
+    lo, hi = float(heights.min()), float(heights.max())
+    for _ in range(CUT_STEPS):  # area below the plane grows with its offset
+        mid = 0.5 * (lo + hi)
+        if areas[heights < mid].sum() < area_ratio * areas.sum():
+            lo = mid
+        else:
+            hi = mid
+    drop = heights >= hi
+    if drop.all():
+        raise MeshError("the plane cut leaves no faces. Fix: a larger area_ratio.")
+    return _kept_part(mesh, drop)
+
+
+def cut_holes(mesh: Mesh, area_ratio: float, n_holes: int = 3, *, seed: int = 0) -> Cut:
+    """``mesh`` with ``n_holes`` round holes (geodesic balls about random centres, grown
+    together) removing about ``1 - area_ratio`` of its area; the largest connected piece is kept.
+
+    Raises:
+        ParameterError: ``area_ratio`` outside ``[0.05, 1)`` or ``n_holes < 1``.
+    """
+    area_ratio = _check_ratio(area_ratio)
+    n_holes = check_count(n_holes, 1, mesh.n_vertices, "n_holes")
+    centres = np.random.default_rng(seed).choice(mesh.n_vertices, n_holes, replace=False)
+    dist = geodesic_distances(mesh, centres).min(axis=0)  # (V,): to the nearest centre
+    face_dist = dist[mesh.faces].max(axis=1)
+    order = np.argsort(face_dist)
+    removed = np.cumsum(mesh.face_areas[order]) <= (1 - area_ratio) * mesh.area
+    drop = np.zeros(mesh.n_faces, dtype=bool)
+    drop[order[removed]] = True
+    return _kept_part(mesh, drop)

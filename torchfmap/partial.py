@@ -1,0 +1,210 @@
+"""Partial-to-full matching: a part ``y`` (a scan of one side, a cut limb, a shape with holes)
+matched to a whole shape ``x``, after Partial Functional Maps (Rodolà et al. 2017), in our terms.
+
+Why a full-shape map fails on a part, and what this module changes:
+
+- **One frame for both shapes.** :func:`~torchfmap.prepare_shape` puts every mesh in its own
+  unit-area frame, which stretches a part to the size of the whole. Here the part's eigenbasis
+  is expressed in the whole's frame (:func:`common_frame`: the part has area ``a``, the area
+  ratio, and its eigenvalues are divided by ``a``), so the Laplacian commutativity penalty
+  ``(λ_x,i - λ_y,j)² C_ji²`` compares frequencies of the same physical size. On a part of area
+  ``a``, the ``j``-th eigenvalue sits near the ``j / a``-th of the whole (Weyl's law): the
+  penalty is small along a *slanted* diagonal, the structure of partial functional maps.
+- **A rank-limited map.** Restriction to the part maps the whole's first ``k`` eigenfunctions
+  onto the part's eigenfunctions below the whole's ``λ_k``: ``r`` of them
+  (:func:`partial_rank`, about ``k·a``). ``C_xy`` is ``(r, k)``, its rows nearly orthonormal
+  (``C Cᵀ ≈ I_r``): restriction keeps norms of functions that live on the part.
+- **Descriptors that agree.** WKS energies are shared (the whole's log-eigenvalue range, both in
+  the common frame) and both shapes' descriptors are scaled by the whole's column norms, so a
+  descriptor restricted to the part equals the part's descriptor.
+- **Refinement restricted to the first ``r`` columns** (:func:`partial_zoomout`): ZoomOut grows
+  ``k`` and the rank with it.
+- **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
+  constant function carried back, ``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, is the band-limited indicator of
+  where the part lies on the whole (``MatchResult.overlap``, in ``[0, 1]``).
+
+Both meshes must be in the same units (the area ratio is read off them).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .bases import Basis
+from .bases.prepared import PreparedShape
+from .descriptors import LANDMARK_TIMES, WKS_ENERGIES, landmark_descriptors, wks
+from .errors import ParameterError
+from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
+from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
+from .mesh import Mesh
+from .results import MatchResult
+
+#: A part may be up to this much larger than the whole (meshing and measurement noise on a
+#: "part" that is in fact the whole shape); beyond it the shapes are taken to be swapped.
+AREA_SLACK = 1.05
+
+__all__ = ["common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout"]
+
+
+def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
+    """``area(y) / area(x)`` in the meshes' own units, capped at 1.
+
+    Raises:
+        ParameterError: the part is larger than the whole by more than :data:`AREA_SLACK`.
+    """
+    a = mesh_y.area / mesh_x.area
+    if a > AREA_SLACK:
+        raise ParameterError(
+            f"the part (mesh_y) has {a:.2f} times the area of the whole (mesh_x). Fix: pass the whole "
+            "shape first (match(full, part, partial=True)), with both meshes in the same units."
+        )
+    return min(a, 1.0)
+
+
+def common_frame(basis: Basis, a: float) -> Basis:
+    """The part's eigenbasis (B-orthonormal in its own unit-area frame) in the whole's
+    unit-area frame, where the part has area ``a``: values ``/ sqrt(a)``, mass ``· a``,
+    eigenvalues ``/ a`` (the stiffness, scale-free in 2-D, is kept; ``Φᵀ L Φ = Λ / a``)."""
+    out = Basis(
+        basis.values / np.sqrt(a), basis.mass * a, basis.provenance, orthonormal=basis.orthonormal,
+        stiffness=basis.stiffness / a, eigenvalues=basis.eigenvalues / a,
+    )  # fmt: skip
+    return out
+
+
+def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -> int:
+    """``r = #{j : λ_y,j <= λ_x,k}``, both spectra in one frame (:func:`common_frame`): how many of
+    the part's eigenfunctions the whole's first ``k`` can express, at least 1 and at most the
+    part's eigenpairs given."""
+    lam_max = float(eigenvalues_x[k - 1])
+    return int(np.clip(np.sum(np.asarray(eigenvalues_y) <= lam_max * (1 + 1e-9)), 1, len(eigenvalues_y)))
+
+
+def _descriptors(full: Basis, part: Basis, k_desc: int, n_descriptors: int) -> tuple[np.ndarray, np.ndarray]:
+    """WKS on shared energies (the whole's first ``k_desc`` eigenvalues' log range), both in the
+    common frame, each column scaled by the whole's B-norm."""
+    r_desc = partial_rank(full.eigenvalues, part.eigenvalues, k_desc)
+    lam = full.eigenvalues[:k_desc]
+    positive = lam[lam > 1e-10 * lam.max()]
+    energies = (float(np.log(positive.min())), float(np.log(positive.max())))
+    step = max(1, WKS_ENERGIES // n_descriptors)
+    out = []
+    for basis, kk in ((full, k_desc), (part, r_desc)):
+        desc = wks(basis.eigenvalues[:kk], basis.values[:, :kk], energy_range=energies)
+        out.append(desc[:, ::step][:, :n_descriptors])
+    return out[0], out[1]
+
+
+def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs: np.ndarray, a: float):
+    """Heat kernels at the landmarks at the same physical times on both shapes (the whole's
+    relative times ``t``; the part's own frame is ``1 / a`` times larger), in the common frame."""
+    hx = landmark_descriptors(pairs[:, 0], operators=shape_x.operators)
+    hy = landmark_descriptors(pairs[:, 1], operators=shape_y.operators, area=1.0 / a, times=LANDMARK_TIMES)
+    return hx, hy / a
+
+
+def overlap_indicator(C_xy: np.ndarray, full: Basis, part: Basis) -> np.ndarray:
+    """``(V_x,)`` the part's constant function extended by zero onto the whole through
+    ``C_xy`` ``(r, k)`` (``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, bases in the common frame), clipped to
+    ``[0, 1]``: where the part lies on the whole, band-limited."""
+    r, k = C_xy.shape
+    ones = part.project(np.ones(part.n_vertices))[:r]
+    return np.clip(full.values[:, :k] @ (C_xy.T @ ones), 0.0, 1.0)
+
+
+def partial_zoomout(
+    p2p_yx: np.ndarray, full: Basis, part: Basis, k: int, k_final: int, step: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """ZoomOut for a part: from ``k`` to ``k_final`` columns of the whole, each step fitting
+    ``C = Φ_y⁺ Π Φ_x`` on the part's first ``r(k)`` eigenfunctions (:func:`partial_rank`) and
+    converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
+    ``Φ_x Cᵀ``). Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    step = zoomout_step(k) if step is None else step
+    sizes = list(range(k + step, k_final, step)) + [k_final]
+    C = None
+    for kk in sizes:
+        r = partial_rank(full.eigenvalues, part.eigenvalues, kk)
+        C = p2p_to_fmap(p2p_yx, full, part, kk, r)
+        p2p_yx = fmap_to_p2p(C, full, part, mode="orthogonal")
+    return C, p2p_yx
+
+
+def match_partial(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    *,
+    landmarks: np.ndarray | None = None,
+    k: int = 50,
+    refine: str | None = None,
+    k_final: int | None = None,
+    n_descriptors: int = 20,
+    k_descriptors: int = 100,
+    w_lap: float = W_LAP_SMOOTH,
+    w_orient: float = W_ORIENT,
+    w_dcomm: float = W_DCOMM,
+    w_lmk: float = W_LMK,
+) -> MatchResult:
+    """Match the part ``y`` to the whole ``x`` on prepared shapes (:func:`torchfmap.match` with
+    ``partial=True`` prepares them and checks the arguments): see the module's text.
+
+    Returns a :class:`~torchfmap.MatchResult` whose ``p2p_yx`` gives every vertex of the part a
+    vertex of the whole, ``C_xy`` is ``(r, k)`` (``(r(k_final), k_final)`` refined) in the
+    whole's eigenbasis and the part's eigenbasis in the whole's frame, ``overlap`` ``(V_x,)``
+    the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
+    ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout`, to
+    ``k_final``, default ``2k``); ``landmarks`` ``(L, 2)`` checked pairs (whole, part) are
+    pointwise constraints and heat-kernel descriptors.
+
+    Raises:
+        ParameterError: the part is larger than the whole, ``refine`` other than None or
+            ``'zoomout'``, or either shape prepared with fewer eigenpairs than needed.
+    """
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if refine not in (None, "zoomout"):
+        raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
+    a = area_ratio(shape_x.mesh, shape_y.mesh)
+    k_final = (2 * k if k_final is None else k_final) if refine else k
+    n_x = max(k_final, k_descriptors)
+    for name, shape in (("shape_x", shape_x), ("shape_y", shape_y)):
+        if shape.eigenbasis is None or shape.eigenbasis.k < n_x:
+            raise ParameterError(f"{name} needs {n_x} eigenpairs. Fix: prepare_shape(mesh, {n_x}).")
+    full = shape_x.eigenbasis
+    part = common_frame(shape_y.eigenbasis, a)
+    r = partial_rank(full.eigenvalues, part.eigenvalues, k)
+    timings["operators+eigen"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    desc_x, desc_y = _descriptors(full, part, k_descriptors, n_descriptors)
+    if landmarks is not None:
+        hx, hy = _landmark_descriptors(shape_x, shape_y, landmarks, a)
+        desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])
+    norms = np.sqrt(np.einsum("vd,vd->d", desc_x, full.mass @ desc_x))
+    norms = np.where(norms > 0, norms, 1.0)
+    desc_x, desc_y = desc_x / norms, desc_y / norms
+    timings["descriptors"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    bx, by = full.truncated(k), part.truncated(r)
+    C = solve_fmap(
+        bx, by, desc_x, desc_y, w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm,
+        meshes=(shape_x.mesh, shape_y.mesh), landmarks=landmarks,
+        w_lmk=w_lmk if landmarks is not None else 0.0,
+    )  # fmt: skip
+    p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
+    timings["fmap+p2p"] = time.perf_counter() - t0
+    initial = p2p
+    if refine:
+        t0 = time.perf_counter()
+        C, p2p = partial_zoomout(p2p, full, part, k, k_final)
+        timings["refine"] = time.perf_counter() - t0
+    r_final = C.shape[0]
+    result = MatchResult(
+        p2p, C, full.truncated(C.shape[1]), part.truncated(r_final), initial, timings, kind="partial",
+        refined=refine is not None,
+    )  # fmt: skip
+    result.overlap = overlap_indicator(C, full, part)
+    result.partial_rank = r_final
+    return result
