@@ -340,8 +340,7 @@ def partial(cfg: Settings, report: Report) -> None:
     rows = []
     for name, whole, other, gt_w, gt_o in _partial_pairs(cfg):
         shape_w = prepare_shape(whole, 2 * cfg.k + 100)
-        mass = whole.face_areas  # area weights of vertices, lumped
-        vertex_area = np.bincount(whole.faces.ravel(), np.repeat(mass, 3), whole.n_vertices) / 3
+        vertex_area = shape_w.operators[1].diagonal()  # lumped mass: area weights (any scale)
         for ratio in cfg.ratios:
             for how in cfg.cuts:
                 cut = (

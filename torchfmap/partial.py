@@ -34,7 +34,7 @@ import numpy as np
 
 from .bases import Basis
 from .bases.prepared import PreparedShape
-from .descriptors import LANDMARK_TIMES, WKS_ENERGIES, landmark_descriptors, wks
+from .descriptors import WKS_ENERGIES, landmark_descriptors, wks
 from .errors import ParameterError
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
@@ -67,11 +67,10 @@ def common_frame(basis: Basis, a: float) -> Basis:
     """The part's eigenbasis (B-orthonormal in its own unit-area frame) in the whole's
     unit-area frame, where the part has area ``a``: values ``/ sqrt(a)``, mass ``· a``,
     eigenvalues ``/ a`` (the stiffness, scale-free in 2-D, is kept; ``Φᵀ L Φ = Λ / a``)."""
-    out = Basis(
+    return Basis(
         basis.values / np.sqrt(a), basis.mass * a, basis.provenance, orthonormal=basis.orthonormal,
         stiffness=basis.stiffness / a, eigenvalues=basis.eigenvalues / a,
     )  # fmt: skip
-    return out
 
 
 def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -> int:
@@ -101,7 +100,7 @@ def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs:
     """Heat kernels at the landmarks at the same physical times on both shapes (the whole's
     relative times ``t``; the part's own frame is ``1 / a`` times larger), in the common frame."""
     hx = landmark_descriptors(pairs[:, 0], operators=shape_x.operators)
-    hy = landmark_descriptors(pairs[:, 1], operators=shape_y.operators, area=1.0 / a, times=LANDMARK_TIMES)
+    hy = landmark_descriptors(pairs[:, 1], operators=shape_y.operators, area=1.0 / a)
     return hx, hy / a
 
 
