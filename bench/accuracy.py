@@ -307,9 +307,9 @@ def seeded_refine(cfg: Settings, report: Report) -> None:
 
 def _partial_pairs(cfg: Settings):
     """``(name, whole, other, gt_whole, gt_other)``: dev pairs whose target is cut; the ground truth
-    as corresponding rows (``vts`` of FAUST_r, or the demo pair's map)."""
+    as corresponding rows (``corres/<name>.vts``, or the demo pair's map)."""
     from torchfmap.data import demo_pair
-    from torchfmap.io import load_mesh, read_vts
+    from torchfmap.io import find_file, load_mesh, read_vts
 
     if cfg.shapes == "demo":
         a, b, gt = demo_pair()
@@ -317,14 +317,9 @@ def _partial_pairs(cfg: Settings):
         return
     folder = require_data(cfg.shapes["folder"])
     for i, j in cfg.shapes["pairs"]:
-        a, b = load_mesh(folder / f"{i}.off"), load_mesh(folder / f"{j}.off")
-        yield (
-            f"{i}-{j}",
-            a,
-            b,
-            read_vts(folder / "corres" / f"{i}.vts"),
-            read_vts(folder / "corres" / f"{j}.vts"),
-        )
+        a, b = (load_mesh(find_file(folder, f"{n}.off")) for n in (i, j))
+        gt = [read_vts(find_file(folder / "corres", f"{n}.vts")) for n in (i, j)]
+        yield f"{i}-{j}", a, b, *gt
 
 
 def partial(cfg: Settings, report: Report) -> None:
@@ -424,6 +419,7 @@ def partial(cfg: Settings, report: Report) -> None:
 
 CASES = {
     "partial": partial,
+    "partial_smal": partial,
     "bases": bases,
     "landmark_sweep": landmark_sweep,
     "weight_sweep": weight_sweep,

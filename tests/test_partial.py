@@ -15,9 +15,10 @@ from torchfmap.data.synthetic import icosphere
 from torchfmap.descriptors import wks
 from torchfmap.errors import MapWarning, ParameterError
 from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
+from torchfmap.eval_partial import discover_partial_pairs, overlap_iou
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.io import save_mesh
-from torchfmap.partial import common_frame, overlap_indicator, partial_rank
+from torchfmap.partial import common_frame, match_partial, overlap_indicator, partial_rank
 
 
 @pytest.fixture(scope="module")
@@ -169,3 +170,79 @@ def test_cli_partial(blob_cut, tmp_path):
     done = subprocess.run([*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")],
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode != 0 and "--partial" in done.stderr and "Traceback" not in done.stderr
+
+
+def _collection(tmp_path, blob_cut, base=0):
+    a, cut, gt_part = blob_cut
+    for sub in ("full", "partial", "corres"):
+        (tmp_path / sub).mkdir(parents=True, exist_ok=True)
+    save_mesh(a, tmp_path / "full" / "blob.off")
+    save_mesh(cut.mesh, tmp_path / "partial" / "blob_cut60.off")
+    known = gt_part.copy()
+    known[:10] = -1  # ten vertices without ground truth (written as 0 when 1-based)
+    np.savetxt(tmp_path / "corres" / "blob_cut60.map", known + base, fmt="%d")
+    return tmp_path
+
+
+def test_partial_collection_is_read(tmp_path, blob_cut):
+    a, cut, gt_part = blob_cut
+    folder = _collection(tmp_path, blob_cut)
+    [(whole, part, pw, pp, gt)] = list(discover_partial_pairs(folder))
+    assert (whole, part) == ("blob", "blob_cut60")
+    np.testing.assert_array_equal(gt.idx_y, np.arange(10, cut.n_vertices))
+    np.testing.assert_array_equal(gt.idx_x, gt_part[10:])
+    one = _collection(tmp_path / "one", blob_cut, base=1)  # 1-based: 0 marks no ground truth
+    [(*_, gt1)] = list(discover_partial_pairs(one, map_base=1))
+    np.testing.assert_array_equal(gt1.idx_x, gt.idx_x)
+
+
+def test_partial_collection_refuses_bad_layouts(tmp_path, blob_cut):
+    with pytest.raises(ParameterError, match="full, partial, corres"):
+        list(discover_partial_pairs(tmp_path))
+    folder = _collection(tmp_path, blob_cut)
+    np.savetxt(folder / "corres" / "blob_cut60.map", np.arange(5), fmt="%d")  # too short
+    with pytest.raises(ParameterError, match="one line per part vertex"):
+        list(discover_partial_pairs(folder))
+
+
+def test_overlap_iou_exact_cases():
+    mass = np.array([1.0, 2.0, 3.0, 4.0])
+    assert overlap_iou(np.array([1.0, 1.0, 0.0, 0.0]), [0, 1], mass) == 1.0
+    assert overlap_iou(np.array([0.0, 0.0, 1.0, 1.0]), [0, 1], mass) == 0.0
+    # estimated {1, 2}, true {0, 1}: intersection area 2, union 1 + 2 + 3
+    assert overlap_iou(np.array([0.2, 0.9, 0.7, 0.0]), [0, 1], mass) == pytest.approx(2 / 6)
+
+
+def test_cli_eval_partial(tmp_path, blob_cut):
+    folder = _collection(tmp_path, blob_cut)
+    cmd = [
+        sys.executable,
+        "-m",
+        "torchfmap",
+        "eval",
+        str(folder),
+        "--partial",
+        "--gt-landmarks",
+        "5",
+        "--k",
+        "20",
+    ]
+    done = subprocess.run([*cmd, "--quiet"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "IoU |" in done.stdout and "| blob | blob_cut60 |" in done.stdout
+    assert "maps 0-based" in done.stdout
+    done = subprocess.run([*cmd, "--pairs", "all"], capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "--pairs" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_given_descriptors_that_agree_recover_the_restriction():
+    """A part cut from the whole itself, with the vertex positions as descriptors (equal on the
+    part and on the whole where it lies): the solve must find the restriction, up to the
+    resolution of k eigenfunctions (a few edge lengths)."""
+    a, _, _ = demo_pair()
+    cut = cut_plane(a, 0.6, seed=3)
+    whole, part = prepare_shape(a, 60), prepare_shape(cut.mesh, 60)
+    xyz = (a.vertices, cut.mesh.vertices)
+    r = match_partial(whole, part, k=30, refine="zoomout", descriptors=xyz)
+    err = geodesic_errors(a, r.p2p_yx, gt_from_map(cut.vertices))
+    assert np.mean(err) < 3 * a.mean_edge_length / np.sqrt(a.area)

@@ -99,6 +99,9 @@ def _checkpoint_flags(p: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+QUIET = "no progress bar and no status lines (the results and errors still come)"
+
+
 def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
     return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_DefaultsFormatter)
 
@@ -158,11 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", required=True, nargs="+", metavar="OUT.npz", help="output .npz file, one per mesh"
     )
-    p.add_argument(
-        "--quiet",
-        action="store_true",
-        help="no progress bar and no status lines (the results and errors still come)",
-    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
     p.set_defaults(func=cmd_basis)
 
     p = _sub(sub, "match", "map a target mesh to a source mesh; write the target->source vertex map")
@@ -223,14 +222,16 @@ def build_parser() -> argparse.ArgumentParser:
         "match with it instead of the classical pipeline (its own basis and k; no --landmarks, --k, "
         "--basis, --bases, --w-lap, --times, --p2p-mode)",
     )
-    p.add_argument(
-        "--quiet",
-        action="store_true",
-        help="no progress bar and no status lines (the results and errors still come)",
-    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
     p.set_defaults(func=cmd_match)
 
     p = _sub(sub, "eval", "match every pair of a folder with ground truth; table + PCK plot")
+    p.add_argument(
+        "--partial", action="store_true", help="FOLDER is a partial collection: full/, partial/, corres/"
+    )
+    p.add_argument(
+        "--map-base", type=int, choices=[0, 1], default=0, help="--partial: maps' first index (default 0)"
+    )
     p.add_argument(
         "folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or meshes of one template)"
     )
@@ -293,11 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
         "match with it instead of the classical pipeline (its own basis and k; no --landmarks, "
         "--gt-landmarks, --k, --basis, --w-lap); each mesh prepared once per worker",
     )
-    p.add_argument(
-        "--quiet",
-        action="store_true",
-        help="no progress bar and no status lines (the results and errors still come)",
-    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
     p.set_defaults(func=cmd_eval)
 
     p = _sub(sub, "train", "train a feature network, unsupervised, on every mesh of a folder")
@@ -381,11 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--validate-every", type=count, default=100, help="steps between validations (0: none)")
     p.add_argument("--validate-pairs", type=positive_int, default=6, help="pairs of the validation score")
-    p.add_argument(
-        "--quiet",
-        action="store_true",
-        help="no progress bar and no status lines (the results and errors still come)",
-    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
     p.set_defaults(func=cmd_train)
     return parser
 

@@ -30,6 +30,7 @@ from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import EvaluationInterrupted, ParameterError
 from .eval import evaluate_map, landmarks_from_gt, shape_distance
+from .eval_partial import overlap_iou
 from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows
@@ -45,6 +46,7 @@ class PairResult(NamedTuple):
     report: object
     errors: np.ndarray
     seconds: float
+    iou: float | None = None  # partial pairs: overlap IoU (torchfmap.eval_partial.overlap_iou)
 
 
 #: Distance rows :func:`evaluate_pairs` keeps for the current source mesh (bytes).
@@ -200,14 +202,16 @@ def _evaluate_chunk(
             elif gt_landmarks:
                 settings = {**settings, "landmarks": landmarks_from_gt(x, gt, gt_landmarks)}
             t0 = time.perf_counter()
-            p2p = matcher(x, y, shapes=(sx, sy), **settings).p2p_yx
+            result = matcher(x, y, shapes=(sx, sy), **settings)
             seconds = time.perf_counter() - t0
+            p2p, overlap = result.p2p_yx, getattr(result, "overlap", None)
+            iou = None if overlap is None else overlap_iou(overlap, gt.idx_x, sx.operators[1])
             # errors are geodesic on x, from its ground-truth points: pairs with the same source
             # reuse its prefactored solver and the rows already solved (kept for one source at a time)
             if rows is None or rows.solver is not sx.distances.solver:
                 rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
             report, errors = evaluate_map(x, y, p2p, gt, max_points=max_points, solver=rows)
-            out.append(PairResult(a, b, report, errors, seconds))
+            out.append(PairResult(a, b, report, errors, seconds, iou))
             if on_pair is not None:
                 on_pair()
         return out

@@ -23,6 +23,7 @@ from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
 from .errors import EvaluationInterrupted, TorchFmapError
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve, select_pairs
+from .eval_partial import discover_partial_pairs
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .kinds import get_kind
 from .operators import GeodesicSolver, available_backends, laplacian
@@ -307,10 +308,12 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
         refine=args.refine,
         k_final=args.k_final,
         w_lap=args.w_lap,
+        **({"partial": True} if args.partial else {}),
     )
     lm = f", {args.gt_landmarks} ground-truth landmarks" if args.gt_landmarks else ""
     lm += f", landmarks from {args.landmarks}" if args.landmarks else ""
     basis = args.basis or ("auto" if lm else "laplacian")
+    basis = "partial" if args.partial else basis
     return settings, f"{basis} basis, k={k}, refine {args.refine or '-'}{lm}"
 
 
@@ -319,8 +322,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # absolute paths: workers of a cluster may run in another folder
     identity = {None: None, "identity": True, "files": False}[args.gt]
     folder = Path(args.folder).resolve()
-    _, protocol = select_pairs(folder, args.pairs)  # refuses a bad --pairs before any work
-    pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
+    if args.partial:
+        if args.pairs != "auto" or args.gt:
+            raise TorchFmapError(
+                "--partial pairs each part with its whole by the collection's layout, so --pairs and --gt "
+                "do not apply. Fix: drop them."
+            )
+        pairs = list(discover_partial_pairs(folder, args.map_base))[: args.max_pairs or None]
+        protocol = (
+            f"{len(pairs)} parts of {folder / 'partial'} against their wholes (maps {args.map_base}-based); "
+            "errors over the part's vertices with ground truth; IoU: estimated overlap v > 0.5 against "
+            "the true part on the whole, area-weighted"
+        )
+    else:
+        _, protocol = select_pairs(folder, args.pairs)  # refuses a bad --pairs before any work
+        pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
     if args.max_pairs and len(pairs) == args.max_pairs:
         protocol += f", the first {len(pairs)} (--max-pairs)"
     try:
@@ -345,16 +361,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def _print_table(results, title: str, protocol: str, png) -> None:
     """The ``eval`` table of ``results`` (one row a pair, then all pairs), its footer and, with
     ``png``, the PCK plot."""
-    print("| source | target | mean err | median | AUC | coverage | time [s] |")
-    print("|---|---|---|---|---|---|---|")
+    partial = any(r.iou is not None for r in results)
+    print(
+        "| source | target | mean err | median | AUC | coverage | time [s] |" + (" IoU |" if partial else "")
+    )
+    print("|---|---|---|---|---|---|---|" + ("---|" if partial else ""))
     for r in results:
         rep = r.report
+        iou = f" {r.iou:.3f} |" if partial else ""
         print(
             f"| {r.source} | {r.target} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
-            f"{rep.coverage:.3f} | {r.seconds:.2f} |"
+            f"{rep.coverage:.3f} | {r.seconds:.2f} |{iou}"
         )
     errors = np.concatenate([r.errors for r in results])
-    print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |")
+    mean_iou = f" {np.mean([r.iou for r in results]):.3f} |" if partial else ""
+    print(f"| **all** | | {errors.mean():.4f} | {np.median(errors):.4f} | | | |{mean_iou}")
     print(
         f"\n{title}. Pairs: {protocol}. Errors: geodesic distance on the source to the true match "
         "/ sqrt(area); AUC: area under the PCK curve up to 0.25; coverage: fraction of source "

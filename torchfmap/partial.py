@@ -144,6 +144,7 @@ def match_partial(
     w_orient: float = W_ORIENT,
     w_dcomm: float = W_DCOMM,
     w_lmk: float = W_LMK,
+    descriptors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> MatchResult:
     """Match the part ``y`` to the whole ``x`` on prepared shapes (:func:`torchfmap.match` with
     ``partial=True`` prepares them and checks the arguments): see the module's text.
@@ -154,7 +155,9 @@ def match_partial(
     the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
     ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout`, to
     ``k_final``, default ``2k``); ``landmarks`` ``(L, 2)`` checked pairs (whole, part) are
-    pointwise constraints and heat-kernel descriptors.
+    pointwise constraints and heat-kernel descriptors. ``descriptors``: ``(V_x, D)``, ``(V_y, D)``
+    pointwise features to solve with instead of WKS (e.g. features of a network trained for parts;
+    they must agree on the part and on the whole where the part lies).
 
     Raises:
         ParameterError: the part is larger than the whole, ``refine`` other than None or
@@ -166,7 +169,7 @@ def match_partial(
         raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
     a = area_ratio(shape_x.mesh, shape_y.mesh)
     k_final = (2 * k if k_final is None else k_final) if refine else k
-    n_x = max(k_final, k_descriptors)
+    n_x = max(k_final, k_descriptors if descriptors is None else 0)
     for name, shape in (("shape_x", shape_x), ("shape_y", shape_y)):
         if shape.eigenbasis is None or shape.eigenbasis.k < n_x:
             raise ParameterError(f"{name} needs {n_x} eigenpairs. Fix: prepare_shape(mesh, {n_x}).")
@@ -176,7 +179,10 @@ def match_partial(
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    desc_x, desc_y = _descriptors(full, part, k_descriptors, n_descriptors)
+    if descriptors is None:
+        desc_x, desc_y = _descriptors(full, part, k_descriptors, n_descriptors)
+    else:
+        desc_x, desc_y = (np.asarray(d, dtype=np.float64) for d in descriptors)
     if landmarks is not None:
         hx, hy = _landmark_descriptors(shape_x, shape_y, landmarks, a)
         desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])

@@ -1,0 +1,79 @@
+"""Evaluation of partial-to-full matching: the partial collections ``torchfmap eval --partial``
+reads (:func:`discover_partial_pairs`) and the overlap score (:func:`overlap_iou`). Errors are
+those of :mod:`torchfmap.eval`: geodesic on the whole, over the part's vertices with ground
+truth (:func:`~torchfmap.eval.geodesic_errors` of the pairs' :class:`~torchfmap.eval.Correspondence`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ParameterError
+from .eval import Correspondence
+from .io import find_file, mesh_files, read_arrays, read_index_table, shape_name
+
+__all__ = ["PARTIAL_LAYOUT", "discover_partial_pairs", "overlap_iou"]
+
+
+#: Sub-folders of a partial collection (:func:`discover_partial_pairs`): the whole shapes, the
+#: parts, and the parts' maps to their wholes.
+PARTIAL_LAYOUT = ("full", "partial", "corres")
+
+
+def discover_partial_pairs(folder: str | os.PathLike, map_base: int = 0):
+    """Pairs of a partial collection: yields ``(whole, part, path_whole, path_part, gt)``.
+
+    Layout: ``FOLDER/full/`` the whole shapes, ``FOLDER/partial/`` the parts, each named after its
+    whole (``<whole>_<anything>``; any name when there is one whole), ``FOLDER/corres/<part>.map``
+    one line per part vertex: its vertex on the whole (``map_base`` 0 or 1; ``-1``, or 0 when
+    1-based, marks a vertex without ground truth). ``tools/cut_shapes.py`` writes this layout.
+
+    Raises:
+        ParameterError: a missing sub-folder or map, a part naming no whole, a map whose length
+            is not the part's vertex count or whose indices leave the whole.
+    """
+    folder = Path(folder)
+    missing = [d for d in PARTIAL_LAYOUT if not (folder / d).is_dir()]
+    if missing:
+        raise ParameterError(
+            f"{folder} is not a partial collection: no {', '.join(missing)}/. Fix: the layout full/ (whole "
+            "shapes), partial/ (parts), corres/<part>.map (python3 tools/cut_shapes.py makes one)."
+        )
+    if map_base not in (0, 1):
+        raise ParameterError(f"map_base is 0 or 1, got {map_base!r}.")
+    wholes = {shape_name(p): p for p in mesh_files(folder / "full")}
+    for path in mesh_files(folder / "partial"):
+        part = shape_name(path)
+        owners = [w for w in wholes if part.startswith(w + "_") or part.startswith(w + "-")]
+        if not owners and len(wholes) != 1:
+            raise ParameterError(f"part {part} names no whole in {folder / 'full'}. Fix: name it <whole>_...")
+        whole = max(owners, key=len) if owners else next(iter(wholes))
+        map_file = find_file(folder / "corres", f"{part}.map")
+        if map_file is None:
+            raise ParameterError(f"no ground truth {folder / 'corres' / (part + '.map')}. Fix: add it.")
+        gt_map = read_index_table(map_file, 1, "partial map")[:, 0] - map_base
+        n_part, n_whole = len(read_arrays(path)[0]), len(read_arrays(wholes[whole])[0])
+        if len(gt_map) != n_part or gt_map.max() >= n_whole or gt_map.min() < -1:
+            raise ParameterError(
+                f"{map_file.name} has {len(gt_map)} lines for {n_part} part vertices, indices "
+                f"{gt_map.min()}..{gt_map.max()} ({map_base}-based) for {n_whole} whole vertices. Fix: one "
+                "line per part vertex, its whole vertex (-1: unknown), or the right --map-base."
+            )
+        known = np.flatnonzero(gt_map >= 0)
+        yield whole, part, wholes[whole], path, Correspondence(gt_map[known], known)
+
+
+def overlap_iou(overlap: np.ndarray, true_vertices, mass) -> float:
+    """Area-weighted intersection over union of the estimated part ``overlap > 0.5`` (``(V_x,)``,
+    :attr:`~torchfmap.MatchResult.overlap`) and the whole's vertices ``true_vertices`` (e.g. the
+    ground-truth images of the part's vertices); ``mass`` the whole's lumped mass, a ``(V_x, V_x)``
+    diagonal matrix or its ``(V_x,)`` diagonal (any scale)."""
+    area = np.asarray(mass.diagonal() if np.ndim(mass) == 2 else mass, dtype=np.float64)
+    est = np.asarray(overlap) > 0.5
+    true = np.zeros(len(area), dtype=bool)
+    true[np.asarray(true_vertices, dtype=np.int64)] = True
+    union = area[est | true].sum()
+    return float(area[est & true].sum() / union) if union > 0 else 1.0
