@@ -12,7 +12,7 @@ from torchfmap import match, prepare_shape
 from torchfmap.data import demo_pair
 from torchfmap.data.cuts import cut_holes, cut_plane
 from torchfmap.data.synthetic import icosphere
-from torchfmap.descriptors import wks
+from torchfmap.descriptors import shot
 from torchfmap.errors import MapWarning, ParameterError
 from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
 from torchfmap.eval_partial import discover_partial_pairs, overlap_iou
@@ -105,18 +105,6 @@ def test_overlap_of_the_true_map_marks_the_part():
     assert v[inside & far].mean() > 0.9 and v[~inside & far].mean() < 0.1
 
 
-def test_wks_energy_range():
-    sphere = icosphere(3)
-    eig = prepare_shape(sphere, 30).eigenbasis
-    lam = eig.eigenvalues[1:]
-    own = (np.log(lam.min()), np.log(lam.max()))
-    np.testing.assert_allclose(
-        wks(eig.eigenvalues, eig.values, 10, energy_range=own), wks(eig.eigenvalues, eig.values, 10)
-    )
-    with pytest.raises(ParameterError, match="energy_range"):
-        wks(eig.eigenvalues, eig.values, 10, energy_range=(2.0, 1.0))
-
-
 def test_partial_match_with_landmarks_beats_the_full_shape_map(blob_cut):
     """Same landmarks, same k: the partial map (one frame, rank-limited) against the full-shape
     map, which assumes the part whole and stretches it to the whole's size."""
@@ -145,6 +133,8 @@ def test_partial_input_warns_once_naming_the_flag(blob_cut):
 
 def test_partial_refuses_what_it_would_not_use(blob_cut):
     a, cut, _ = blob_cut
+    with pytest.raises(ParameterError, match="n_descriptors"):
+        match(a, cut.mesh, k=10, partial=True, n_descriptors=10)
     with pytest.raises(ParameterError, match="basis"):
         match(a, cut.mesh, k=10, partial=True, basis="diffusion")
     with pytest.raises(ParameterError, match="icp"):
@@ -246,3 +236,31 @@ def test_given_descriptors_that_agree_recover_the_restriction():
     r = match_partial(whole, part, k=30, refine="zoomout", descriptors=xyz)
     err = geodesic_errors(a, r.p2p_yx, gt_from_map(cut.vertices))
     assert np.mean(err) < 3 * a.mean_edge_length / np.sqrt(a.area)
+
+
+def test_shot_is_local_and_rigid_invariant():
+    """SHOT reads only the surface within its radius in a frame of its own: a rigid motion
+    leaves it unchanged, and a cut changes it only within the radius of the cut (plus the ring
+    whose vertex areas and normals the cut changes)."""
+    a, _, _ = demo_pair()
+    radius = 0.15 * np.sqrt(a.area)
+    F = shot(a, radius)
+    np.testing.assert_allclose(np.linalg.norm(F, axis=1), 1.0)
+    R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))  # proper rotation
+    moved = a.copy(vertices=a.vertices @ R.T + 3.0)
+    # exact except where round-off decides: an axis sign voted by a tie of neighbours, or a
+    # neighbour on a grid cell's or the ball's border (on a regular icosphere-like mesh, a few
+    # vertices in a hundred share such symmetric neighbourhoods)
+    same = np.abs(shot(moved, radius) - F).max(axis=1) < 1e-8
+    assert same.mean() > 0.98
+    cut = cut_plane(a, 0.6, seed=3)
+    Fp = shot(cut.mesh, radius)
+    rim = cut.mesh.vertices[cut.mesh.boundary_vertices]
+    near_cut = np.linalg.norm(cut.mesh.vertices[:, None] - rim[None], axis=2).min(axis=1)
+    # away from the cut (beyond the radius plus one ring, whose normals the cut changes)
+    far = near_cut > radius + 2 * a.mean_edge_length
+    assert far.sum() > 100
+    np.testing.assert_allclose(Fp[far], F[cut.vertices][far], atol=1e-8)
+    with pytest.raises(ParameterError, match="radius"):
+        shot(a, 0.0)

@@ -1,7 +1,8 @@
-"""Pointwise descriptors: HKS, WKS, landmark descriptors, normalisation, checks.
+"""Pointwise descriptors: HKS, WKS, SHOT, landmark descriptors, normalisation, checks.
 
 HKS and WKS are spectral (they take eigenpairs ``evals (k,)``, ``evecs (V, k)`` of
-``L φ = λ B φ``); landmark descriptors can also be computed spectrum-free as heat kernels
+``L φ = λ B φ``), so every point's value depends on the whole shape; SHOT is local (the normals
+within a ball); landmark descriptors can also be computed spectrum-free as heat kernels
 centred at the landmarks. Every descriptor array is ``(V, D)``: one column per descriptor.
 """
 
@@ -21,6 +22,8 @@ WKS_ENERGIES = 100
 WKS_SIGMA = 7.0
 #: Relative heat times of the landmark descriptors (two kernels per landmark).
 LANDMARK_TIMES = (1e-2, 3e-2)
+#: SHOT's grid: azimuth sectors, elevation halves, radial shells, bins of the normals' cosine.
+SHOT_GRID = (8, 2, 2, 11)
 
 
 def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,12 +63,11 @@ def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndar
     return (evecs**2) @ np.exp(-np.outer(np.maximum(evals, 0), times))
 
 
-def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float, energy_range=None) -> np.ndarray:
-    """``(k, E)`` normalised Gaussian weights of each eigenvalue at each log-energy (spread over
-    ``energy_range`` ``(log e_min, log e_max)``, default the positive eigenvalues' log range)."""
+def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.ndarray:
+    """``(k, E)`` normalised Gaussian weights of each eigenvalue at each log-energy."""
     keep = evals > 1e-10 * evals.max()  # the constant eigenfunction carries no information
     loge = np.log(np.where(keep, evals, 1.0))
-    e_min, e_max = (loge[keep].min(), loge[keep].max()) if energy_range is None else energy_range
+    e_min, e_max = loge[keep].min(), loge[keep].max()
     energies = np.linspace(e_min, e_max, n_energies)
     sigma = sigma_factor * (e_max - e_min) / n_energies
     w = np.exp(-((energies[None, :] - loge[:, None]) ** 2) / (2 * sigma**2)) * keep[:, None]
@@ -73,34 +75,19 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float, energy
 
 
 def wks(
-    eigenvalues,
-    eigenvectors,
-    n_energies: int = WKS_ENERGIES,
-    sigma_factor: float = WKS_SIGMA,
-    *,
-    energy_range: tuple[float, float] | None = None,
+    eigenvalues, eigenvectors, n_energies: int = WKS_ENERGIES, sigma_factor: float = WKS_SIGMA
 ) -> np.ndarray:
     """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``.
 
-    The log-energies span the positive eigenvalues' log range, or ``energy_range``
-    ``(log e_min, log e_max)``: two shapes whose spectra cover different ranges (a part and its
-    whole) get comparable signatures only on shared energies.
-
-    Raises :class:`ParameterError` for ``n_energies < 1``, a ``sigma_factor`` that is not
-    finite and > 0 (a zero-width Gaussian gives NaN weights), or an ``energy_range`` that is not
-    two finite increasing numbers.
+    Raises :class:`ParameterError` for ``n_energies < 1`` or a ``sigma_factor`` that is not
+    finite and > 0 (a zero-width Gaussian gives NaN weights).
     """
     evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
     if isinstance(n_energies, bool) or int(n_energies) != n_energies or n_energies < 1:
         raise ParameterError(f"n_energies must be an integer >= 1, got {n_energies!r}.")
     if not np.isfinite(sigma_factor) or sigma_factor <= 0:
         raise ParameterError(f"sigma_factor must be finite and > 0, got {sigma_factor!r}. Fix: e.g. 7.")
-    if energy_range is not None:
-        lo, hi = (float(v) for v in energy_range)
-        if not (np.isfinite([lo, hi]).all() and lo < hi):
-            raise ParameterError(f"energy_range must be increasing (log e_min, log e_max): {energy_range}.")
-        energy_range = (lo, hi)
-    return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor, energy_range)
+    return (evecs**2) @ _wks_weights(evals, n_energies, sigma_factor)
 
 
 def landmark_descriptors(
@@ -169,3 +156,52 @@ def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors")
             "(e.g. a WKS of a mesh with zero-area vertices)."
         )
     return F
+
+
+def shot(mesh, radius: float) -> np.ndarray:
+    """SHOT signatures (Tombari et al. 2010) of a :class:`~torchfmap.Mesh`: ``(V, 352)``, unit L2
+    norm per vertex (zero where fewer than 5 other vertices lie within ``radius``).
+
+    Local: a vertex's signature depends only on the surface within ``radius`` of it (in the
+    mesh's units), so it is the same on a part and on the whole it was cut from, away from the
+    cut. Per vertex: a local frame from the distance-weighted covariance of the neighbours
+    (axes signed towards the majority of neighbours and of normals), then, in each cell of a
+    spherical grid (:data:`SHOT_GRID`: 8 azimuth sectors, 2 elevation halves, 2 radial shells),
+    a histogram of the cosine between each neighbour's normal and the frame's ``z`` axis
+    (linear interpolation between cosine bins). Each neighbour counts with its vertex area, so
+    the histograms integrate over the surface and depend little on how it is meshed. Invariant
+    to rigid motions; scale the radius with the shape.
+
+    Raises:
+        ParameterError: a radius that is not finite and > 0.
+    """
+    from scipy.spatial import cKDTree
+
+    if not (np.isfinite(radius) and radius > 0):
+        raise ParameterError(f"radius must be finite and > 0, got {radius!r}. Fix: e.g. 0.08 * sqrt(area).")
+    vertices, normals = mesh.vertices, mesh.vertex_normals
+    areas = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3, 3), mesh.n_vertices)
+    n_az, n_el, n_rad, n_cos = SHOT_GRID
+    out = np.zeros((len(vertices), n_az * n_el * n_rad * n_cos))
+    neighbours = cKDTree(vertices).query_ball_point(vertices, radius)
+    for p, idx in enumerate(neighbours):  # bounded: one pass over the vertices
+        idx = np.asarray([i for i in idx if i != p])  # the vertex itself has no direction
+        if len(idx) < 5:
+            continue
+        d = vertices[idx] - vertices[p]
+        dist = np.linalg.norm(d, axis=1)
+        w = (radius - dist) * areas[idx]
+        _, axes = np.linalg.eigh((d * w[:, None]).T @ d / w.sum())
+        x, z = axes[:, 2], axes[:, 0]
+        x = -x if np.sum(areas[idx] * np.sign(d @ x)) < 0 else x
+        z = -z if np.sum(areas[idx] * np.sign(normals[idx] @ z)) < 0 else z
+        y = np.cross(z, x)
+        azimuth = ((np.arctan2(d @ y, d @ x) + np.pi) / (2 * np.pi) * n_az).astype(int) % n_az
+        cell = (azimuth * n_el + (d @ z > 0)) * n_rad + (dist > radius / 2)
+        pos = (np.clip(normals[idx] @ z, -1.0, 1.0) + 1) / 2 * (n_cos - 1)
+        lo = np.minimum(np.floor(pos).astype(int), n_cos - 2)
+        frac = pos - lo
+        h = np.bincount(cell * n_cos + lo, areas[idx] * (1 - frac), out.shape[1])
+        h += np.bincount(cell * n_cos + lo + 1, areas[idx] * frac, out.shape[1])
+        out[p] = h / np.linalg.norm(h)
+    return out

@@ -14,9 +14,11 @@ Why a full-shape map fails on a part, and what this module changes:
   onto the part's eigenfunctions below the whole's ``λ_k``: ``r`` of them
   (:func:`partial_rank`, about ``k·a``). ``C_xy`` is ``(r, k)``, its rows nearly orthonormal
   (``C Cᵀ ≈ I_r``): restriction keeps norms of functions that live on the part.
-- **Descriptors that agree.** WKS energies are shared (the whole's log-eigenvalue range, both in
-  the common frame) and both shapes' descriptors are scaled by the whole's column norms, so a
-  descriptor restricted to the part equals the part's descriptor.
+- **Descriptors that agree.** A descriptor restricted to the part must equal the part's own.
+  Spectral ones (WKS, HKS) do not: a cut changes every eigenfunction, so they change over the
+  whole part. SHOT (:func:`~torchfmap.descriptors.shot`, at one physical radius) is local: it
+  changes only within its radius of the cut. Landmarks add heat kernels at the same physical
+  times. Both shapes' descriptors are scaled by the whole's column norms.
 - **Refinement restricted to the first ``r`` columns** (:func:`partial_zoomout`): ZoomOut grows
   ``k`` and the rank with it.
 - **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
@@ -34,7 +36,7 @@ import numpy as np
 
 from .bases import Basis
 from .bases.prepared import PreparedShape
-from .descriptors import WKS_ENERGIES, landmark_descriptors, wks
+from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
@@ -81,19 +83,20 @@ def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -
     return int(np.clip(np.sum(np.asarray(eigenvalues_y) <= lam_max * (1 + 1e-9)), 1, len(eigenvalues_y)))
 
 
-def _descriptors(full: Basis, part: Basis, k_desc: int, n_descriptors: int) -> tuple[np.ndarray, np.ndarray]:
-    """WKS on shared energies (the whole's first ``k_desc`` eigenvalues' log range), both in the
-    common frame, each column scaled by the whole's B-norm."""
-    r_desc = partial_rank(full.eigenvalues, part.eigenvalues, k_desc)
-    lam = full.eigenvalues[:k_desc]
-    positive = lam[lam > 1e-10 * lam.max()]
-    energies = (float(np.log(positive.min())), float(np.log(positive.max())))
-    step = max(1, WKS_ENERGIES // n_descriptors)
-    out = []
-    for basis, kk in ((full, k_desc), (part, r_desc)):
-        desc = wks(basis.eigenvalues[:kk], basis.values[:, :kk], energy_range=energies)
-        out.append(desc[:, ::step][:, :n_descriptors])
-    return out[0], out[1]
+#: SHOT's support radius in units of the whole's ``sqrt(area)`` (the same physical radius on the
+#: part: both meshes are in the same units).
+SHOT_RADIUS = 0.08
+
+
+def _descriptors(shape_x: PreparedShape, shape_y: PreparedShape) -> tuple[np.ndarray, np.ndarray]:
+    """SHOT on both meshes at one physical radius (:data:`SHOT_RADIUS` of the whole), computed
+    once per shape and radius (:meth:`~torchfmap.bases.prepared.PreparedShape.derive`)."""
+    radius = SHOT_RADIUS * np.sqrt(shape_x.mesh.area)
+
+    def signature(shape: PreparedShape) -> np.ndarray:
+        return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
+
+    return signature(shape_x), signature(shape_y)
 
 
 def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs: np.ndarray, a: float):
@@ -138,8 +141,6 @@ def match_partial(
     k: int = 50,
     refine: str | None = None,
     k_final: int | None = None,
-    n_descriptors: int = 20,
-    k_descriptors: int = 100,
     w_lap: float = W_LAP_SMOOTH,
     w_orient: float = W_ORIENT,
     w_dcomm: float = W_DCOMM,
@@ -156,7 +157,7 @@ def match_partial(
     ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout`, to
     ``k_final``, default ``2k``); ``landmarks`` ``(L, 2)`` checked pairs (whole, part) are
     pointwise constraints and heat-kernel descriptors. ``descriptors``: ``(V_x, D)``, ``(V_y, D)``
-    pointwise features to solve with instead of WKS (e.g. features of a network trained for parts;
+    pointwise features to solve with instead of SHOT (e.g. features of a network trained for parts;
     they must agree on the part and on the whole where the part lies).
 
     Raises:
@@ -169,7 +170,7 @@ def match_partial(
         raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
     a = area_ratio(shape_x.mesh, shape_y.mesh)
     k_final = (2 * k if k_final is None else k_final) if refine else k
-    n_x = max(k_final, k_descriptors if descriptors is None else 0)
+    n_x = k_final
     for name, shape in (("shape_x", shape_x), ("shape_y", shape_y)):
         if shape.eigenbasis is None or shape.eigenbasis.k < n_x:
             raise ParameterError(f"{name} needs {n_x} eigenpairs. Fix: prepare_shape(mesh, {n_x}).")
@@ -180,7 +181,7 @@ def match_partial(
 
     t0 = time.perf_counter()
     if descriptors is None:
-        desc_x, desc_y = _descriptors(full, part, k_descriptors, n_descriptors)
+        desc_x, desc_y = _descriptors(shape_x, shape_y)
     else:
         desc_x, desc_y = (np.asarray(d, dtype=np.float64) for d in descriptors)
     if landmarks is not None:

@@ -134,9 +134,9 @@ def match(
         partial: ``y`` is a part of ``x`` (a cut, a scan of one side, a shape with holes), both
             in the same units: the partial functional map of :mod:`torchfmap.partial` (the
             eigenbases in one frame, a rank-limited ``C_xy`` ``(r, k)``, ZoomOut within the
-            part's rank; ``result.overlap`` ``(V_x,)`` the estimated part on the whole).
-            ``refine`` is ``'zoomout'`` or None; ``basis``, ``bases``, ``times``, ``p2p_mode``
-            and ``zoomout_samples`` do not apply.
+            part's rank, SHOT descriptors; ``result.overlap`` ``(V_x,)`` the estimated part on
+            the whole). ``refine`` is ``'zoomout'`` or None; ``basis``, ``bases``, ``times``,
+            ``p2p_mode``, ``zoomout_samples`` and the WKS settings do not apply.
 
     Raises:
         ParameterError: inputs that are not meshes (e.g. paths: the fix names ``load_mesh``),
@@ -157,23 +157,22 @@ def match(
         given = {"basis": basis, "bases": bases, "times": times, "p2p_mode": p2p_mode,
                  "zoomout_samples": zoomout_samples}  # fmt: skip
         unused = [name for name, value in given.items() if value is not None]
-        if unused or refine == "icp":
-            what = ", ".join(unused + (["refine='icp'"] if refine == "icp" else []))
+        unused += ["refine='icp'"] if refine == "icp" else []
+        unused += ["n_descriptors / k_descriptors"] if (n_descriptors, k_descriptors) != (20, 100) else []
+        if unused:
             raise ParameterError(
-                f"partial=True solves in the eigenbases and refines by ZoomOut, so {what} would not be "
-                "used. Fix: drop it, or match without partial=True."
+                f"partial=True solves in the eigenbases with SHOT descriptors and refines by ZoomOut, so "
+                f"{', '.join(unused)} would not be used. Fix: drop it, or match without partial=True."
             )
         n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
         k = check_count(k, 1, n_max, "k (basis size)")
         k_final = check_count(k_final or 2 * k, k, n_max, "k_final") if refine else None
-        n_eigen = min(max(k_final or k, k_descriptors), n_max)
-        shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, n_eigen)
+        shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, k_final or k)
         prep = time.perf_counter() - t0
+        weights = {"w_lap": w_lap, "w_orient": w_orient, "w_dcomm": w_dcomm, "w_lmk": w_lmk}
         result = match_partial(
             shape_x, shape_y, landmarks=pairs, k=k, refine=refine, k_final=k_final,
-            n_descriptors=n_descriptors, k_descriptors=min(k_descriptors, n_eigen), w_dcomm=w_dcomm,
-            w_lmk=w_lmk, **({} if w_lap is None else {"w_lap": w_lap}),
-            **({} if w_orient is None else {"w_orient": w_orient}),
+            **{name: w for name, w in weights.items() if w is not None},
         )  # fmt: skip
         result.timings["operators+eigen"] += prep
         warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
