@@ -8,7 +8,9 @@ Suites group the measurements by the question they answer; each is a set of name
   matching pipeline, nearest neighbours, collections, threads (``bench/speed_match.py``), the
   differentiable solver and a training step (``bench/speed_torch.py``);
 - ``learned``: trained checkpoints, convergence, test-time adaptation, the second stage
-  (``bench/learned.py``).
+  (``bench/learned.py``);
+- ``robustness``: every reader fed mutated files (``bench/fuzz.py``; a bounded run is
+  ``tests/test_fuzz.py``).
 
 A case's settings are the defaults of ``bench/configs/<suite>.json`` (its entry ``<case>``),
 then its ``quick`` entry with ``--quick`` (the demo pair, tiny synthetic meshes: a smoke run),
@@ -37,6 +39,7 @@ SUITES = {
     "accuracy": ("bench.accuracy",),
     "speed": ("bench.speed", "bench.speed_match", "bench.speed_torch"),
     "learned": ("bench.learned",),
+    "robustness": ("bench.fuzz",),
 }
 
 

@@ -17,6 +17,7 @@ SMALLEST = {
     "accuracy": ("weight_sweep", [], ["laplacian w_lap=0.1", "diffusion w_lap=0.1"]),
     "speed": ("eigenpairs", [], ["arpack", "block"]),
     "learned": ("checkpoints", ["all_rules=false", "adapt=0"], ["trained, fmap", "trained, fmap + zoomout"]),
+    "robustness": ("fuzz", ["readers=off,map"], ["off", "map"]),
 }
 
 

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -101,3 +103,34 @@ def test_duplicate_out_of_range_and_empty_seeds(blob, build):
         build(blob, [])
     with pytest.raises(SeedError, match="integer"):
         build(blob, [0.5, 2.0])
+
+
+def test_a_computation_beyond_the_available_memory_is_refused_before_any_work(monkeypatch):
+    """A mesh and k whose eigenpairs would not fit (e.g. a 2M-vertex scan on a small machine, or
+    k=2000) are refused at once with the estimate and the fix, instead of swapping for hours."""
+    import time
+
+    import torchfmap._checks as checks
+    from torchfmap.bases.prepared import prepare_shape
+    from torchfmap.data import icosphere
+    from torchfmap.operators import eigenpairs, laplacian
+
+    mesh = icosphere(3)  # 642 vertices
+    L, B = laplacian(mesh)
+    need = mesh.n_vertices * (checks.BYTES_PER_VERTEX + 8 * checks.EIGEN_VECTORS * 100)
+    monkeypatch.setattr(checks, "available_memory", lambda: need - 1)
+    start = time.perf_counter()
+    with pytest.raises(
+        ParameterError, match=r"642 vertices and 100 eigenpairs need about .* GiB.*Fix: decimate"
+    ):
+        eigenpairs(L, B, 100)
+    with pytest.raises(ParameterError, match="preparing .*Fix: decimate"):
+        prepare_shape(mesh, 100)
+    assert time.perf_counter() - start < 1.0  # refused before the work
+    monkeypatch.setattr(checks, "available_memory", lambda: need)
+    assert eigenpairs(L, B, 100)[1].shape == (642, 100)
+    monkeypatch.setattr(checks, "available_memory", lambda: None)  # not Linux: no estimate, no refusal
+    assert prepare_shape(mesh, 10).n_eigen == 10
+    monkeypatch.undo()
+    if os.path.exists("/proc/meminfo"):
+        assert 0 < checks.available_memory() < os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") + 1

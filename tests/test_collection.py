@@ -314,44 +314,38 @@ def test_ctrl_c_in_one_process_keeps_the_pairs_scored_before_it(tmp_path):
     assert isinstance(stop.value, KeyboardInterrupt)  # a caller's Ctrl-C handling still sees it
 
 
-@pytest.mark.slow
-def test_ctrl_c_with_two_workers_exits_promptly_and_prints_the_finished_rows(tmp_path):
-    """The command with a pool of 2 processes: Ctrl-C after the first chunks are in ends it within
-    a few seconds (the workers are terminated, not waited for), exit 130, and the rows scored so
-    far are printed with a footer saying so."""
-    import os
-    import re
-    import signal
-    import subprocess
-    import sys
-    import threading
-    import time
+def test_a_lost_worker_is_worker_lost_with_the_finished_pairs(tmp_path):
+    """An executor whose worker dies (BrokenProcessPool; Dask's KilledWorker alike) ends the run
+    with WorkerLost holding the pairs finished before, handed to on_results as they came."""
+    from concurrent.futures import Future, ThreadPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
-    from torchfmap import save_mesh
+    from torchfmap import WorkerLost
+    from torchfmap.collection import evaluate_pairs
+    from torchfmap.eval import discover_pairs
 
-    x = bumpy_blob(3)  # 642 vertices, 8 meshes, 56 pairs: tens of seconds of work
-    for i in range(8):
-        save_mesh(x.copy(bend(x.vertices, 0.05 + 0.08 * i)), tmp_path / f"m{i}.off")
-    cmd = [sys.executable, "-m", "torchfmap", "eval", str(tmp_path), "--pairs", "all", "--workers", "2"]
-    cmd += ["--threads", "1", "--k", "30", "--refine", "zoomout"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    err: list[str] = []
-    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
-    reader.start()
-    deadline = time.monotonic() + 240
-    while not re.search(r"\b([1-9]\d*)/56\b", "".join(err)) and time.monotonic() < deadline:
-        assert proc.poll() is None, "".join(err)
-        time.sleep(0.1)
-    if proc.poll() is not None or not re.search(r"\b([1-9]\d*)/56\b", "".join(err)):
-        proc.kill()
-        pytest.fail(f"no chunk finished in time: {''.join(err)[-500:]}")
-    done = int(re.findall(r"\b([1-9]\d*)/56\b", "".join(err))[-1])
-    if done == 56:
-        pytest.skip("every pair finished before the signal")
-    t0 = time.monotonic()
-    os.kill(proc.pid, signal.SIGINT)
-    out, _ = proc.communicate(timeout=30)
-    took = time.monotonic() - t0
-    assert proc.returncode == 130 and took < 3.0, (proc.returncode, took)
-    rows = [line for line in out.splitlines() if re.match(r"\| m\d \| m\d \|", line)]
-    assert len(rows) >= done and "interrupted after" in out and "| **all** |" in out
+    folder = _identity_folder(tmp_path)
+    pairs = list(discover_pairs(folder, True, "all"))
+
+    class DiesAfterOne(ThreadPoolExecutor):
+        submitted = 0
+
+        def submit(self, fn, *args, **kwargs):
+            self.submitted += 1
+            if self.submitted == 1:
+                self.first = super().submit(fn, *args, **kwargs)
+                return self.first
+            dead = Future()  # the worker dies once the first chunk is in
+            broken = BrokenProcessPool("terminated abruptly")
+            self.first.add_done_callback(lambda _: dead.set_exception(broken))
+            return dead
+
+    seen = []
+    with (
+        DiesAfterOne(max_workers=1) as executor,
+        pytest.raises(WorkerLost, match="BrokenProcessPool") as lost,
+    ):
+        evaluate_pairs(pairs, executor=executor, k=20, on_results=seen.extend)
+    assert 0 < len(lost.value.finished) < len(pairs) and lost.value.total == len(pairs)
+    assert [(r.source, r.target) for r in seen] == [(r.source, r.target) for r in lost.value.finished]
+    assert "Fix:" in str(lost.value)

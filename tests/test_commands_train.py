@@ -3,6 +3,8 @@ recipe files, devices, Ctrl-C, folders without pairs) and ``models``."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -221,3 +223,65 @@ def test_a_checkpoint_exists_before_the_first_step(tmp_path, monkeypatch):
     assert read_checkpoint(ckpt)["train_state"]["step"] == 0
     monkeypatch.undo()
     assert main([*args, "--resume"]) == 0 and read_checkpoint(ckpt)["train_state"]["step"] == 5
+
+
+def _two_blobs(folder):
+    folder.mkdir()
+    x = bumpy_blob(2)
+    for i, s in enumerate((0.1, 0.3)):
+        save_mesh(x.copy(bend(x.vertices, s)), folder / f"b{i}.off")
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("when", ["first checkpoint", "mid-run"])
+def test_sigkill_at_any_point_leaves_a_checkpoint_that_resumes(tmp_path, when):
+    """A run killed (SIGKILL: no handler runs) as soon as its checkpoint exists, or after some
+    steps: the file is whole, its lock is taken over, and --resume finishes the budget."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from torchfmap.errors import TorchFmapError
+
+    folder = _two_blobs(tmp_path / "two")
+    ckpt = tmp_path / "m.ckpt"
+    args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--k", "8"]
+    args += ["--max-steps", "40"]
+    proc = subprocess.Popen([sys.executable, "-m", "torchfmap", *args], stderr=subprocess.PIPE)
+
+    def step() -> int:
+        try:
+            return read_checkpoint(ckpt)["train_state"]["step"]
+        except (TorchFmapError, OSError):  # not there yet
+            return -1
+
+    deadline = time.monotonic() + 120
+    least = 0 if when == "first checkpoint" else 2  # a checkpoint is saved every epoch (2 pairs)
+    while step() < least and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    killed_at = step()  # whole: its checksum holds
+    assert 0 <= killed_at < 40, proc.stderr.read().decode()[-500:]
+    assert main([*args, "--resume"]) == 0
+    assert read_checkpoint(ckpt)["train_state"]["step"] == 40 and not Path(f"{ckpt}.lock").exists()
+
+
+def test_a_second_training_on_the_same_out_is_refused(tmp_path, capsys):
+    """Two runs writing one checkpoint would take turns overwriting it: the second is refused
+    while the first (a live process) holds the lock; a lock of a dead process is taken over."""
+    import subprocess
+    import sys
+
+    folder = _two_blobs(tmp_path / "two")
+    ckpt = tmp_path / "m.ckpt"
+    lock = Path(f"{ckpt}.lock")
+    args = ["train", str(folder), "--out", str(ckpt), "--no-cache", "--quiet", "--max-steps", "2", "--k", "8"]
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) as other:
+        lock.write_text(str(other.pid))
+        assert main(args) == 2
+        assert f"being written by another process (pid {other.pid}" in _err(capsys) and not ckpt.exists()
+        other.kill()
+    assert main(args) == 0 and ckpt.exists() and not lock.exists()

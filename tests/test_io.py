@@ -15,6 +15,7 @@ from torchfmap.data import icosphere
 from torchfmap.io import (
     find_file,
     is_mesh_file,
+    load_points,
     mesh_files,
     read_index_table,
     read_landmark_pairs,
@@ -362,3 +363,69 @@ def test_nonmanifold_file_loads_with_a_warning_and_robust_operators(tmp_path):
     assert abs(lam[0]) < 1e-8 and lam[1] > 1e-6
     # a manifold mesh keeps the cotangent Laplacian
     assert prepare_shape(base, 0).operators[0].nnz == laplacian(base.scaled(1 / np.sqrt(base.area)))[0].nnz
+
+
+# -- what the fuzz suite (tests/test_fuzz.py) found, one regression test each ---------------------
+def test_off_comments_between_rows_load_and_added_or_shifted_lines_are_refused(tmp_path, sphere2):
+    """A comment after the counts made trimesh's OFF reader fail; inline counts ('OFF V F 0')
+    skipped the truncation check; a doubled line was silently dropped or shifted rows."""
+    lines = _off_text(sphere2).splitlines()
+    path = tmp_path / "m.off"
+    path.write_text("\n".join(lines[:5] + ["# a comment between vertices"] + lines[5:]) + "\n")
+    np.testing.assert_array_equal(load_mesh(path).faces, sphere2.faces)
+    inline = [f"OFF {lines[1]}"] + lines[2:]
+    path.write_text("\n".join(inline[:3] + inline[4:]) + "\n")  # one vertex line missing
+    with pytest.raises(MeshError, match="truncated"):
+        load_mesh(path)
+    path.write_text("\n".join(lines + [lines[-1]]) + "\n")  # the last face doubled
+    with pytest.raises(MeshError, match="lines were added, doubled"):
+        load_mesh(path)
+    counts = lines[1].split()
+    swapped = [lines[0], f"{counts[1]} {counts[0]} 0"] + lines[2:]  # faces read as vertices
+    path.write_text("\n".join(swapped) + "\n")
+    with pytest.raises(MeshError, match="vertex lines hold"):
+        load_points(path)
+
+
+def test_ascii_ply_rows_must_fit_the_header(tmp_path, sphere2):
+    """trimesh reads ASCII PLY numbers as one stream: a missing vertex line shifted every later
+    row, a non-integer face index was truncated."""
+    text = sphere2.to_trimesh().export(file_type="ply", encoding="ascii")
+    text = text.decode() if isinstance(text, bytes) else text
+    lines = text.splitlines()
+    body = lines.index("end_header") + 1
+    path = tmp_path / "m.ply"
+    path.write_text("\n".join(lines[:body] + lines[body + 1 :]) + "\n")
+    with pytest.raises(MeshError, match=r"m\.ply.*declares 162 vertex, 320 face.*holds 481 lines"):
+        load_mesh(path)
+    face = lines[-1].split()
+    lines[-1] = " ".join(face[:2] + ["1.5"] + face[3:])
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MeshError, match="does not fit the header's face element"):
+        load_mesh(path)
+
+
+def test_damaged_obj_lines_are_refused(tmp_path, sphere2):
+    """A damaged statement ('12x 3 4' for 'f 2 3 4') or vertex ('v 0.1 12x 0') used to load
+    without that face or with a changed vertex."""
+    text = sphere2.to_trimesh().export(file_type="obj")
+    lines = text.splitlines()
+    path = tmp_path / "m.obj"
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("f "))
+    path.write_text("\n".join(lines[:at] + ["12x" + lines[at][1:]] + lines[at + 1 :]) + "\n")
+    with pytest.raises(MeshError, match=r"m\.obj':\d+: .*no OBJ statement"):
+        load_mesh(path)
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("v "))
+    path.write_text("\n".join(lines[:at] + ["v 0.1 12x 0"] + lines[at + 1 :]) + "\n")
+    with pytest.raises(MeshError, match="is not an OBJ vertex"):
+        load_mesh(path)
+
+
+def test_a_damaged_first_entry_is_no_header(tmp_path):
+    """'12x' on the first line was taken for a header and dropped: the landmarks lost one."""
+    path = tmp_path / "l.txt"
+    path.write_text("12x\n17\n29\n")
+    with pytest.raises(TorchFmapError, match=r"l\.txt:1: '12x' is not"):
+        read_landmarks(path)
+    path.write_text("source,target\n3,5\n")
+    np.testing.assert_array_equal(read_landmark_pairs(path), [[3, 5]])

@@ -453,6 +453,8 @@ CONCEPT_TESTS = {
     "test_properties.py": "property-based runs (hypothesis) of random meshes through the eigenbasis, "
     "the diffusion basis, the solver, evaluation and save/load under one bounded example budget",
     "test_examples.py": "the numbered scripts of examples/ run on the demo pair and do what they promise",
+    "test_fuzz.py": "every reader (meshes, index files, bases, checkpoints, cache entries) fed mutated "
+    "files by bench/fuzz.py under one bounded example budget",
 }
 TESTS = Path(__file__).resolve().parent
 

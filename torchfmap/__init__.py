@@ -31,6 +31,7 @@ from .errors import (
     ParameterError,
     SeedError,
     TorchFmapError,
+    WorkerLost,
 )
 from .eval import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
@@ -89,6 +90,7 @@ __all__ = [
     "MeshWarning",
     "CostWarning",
     "EvaluationInterrupted",
+    "WorkerLost",
     "MapWarning",
     "FileReadError",
     "FileWriteError",

@@ -13,9 +13,11 @@ raises :class:`~torchfmap.errors.CorruptFileError`.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -53,6 +55,46 @@ def _pid_alive(pid: int) -> bool:
     except (PermissionError, OSError):
         return True  # exists (another user's) or cannot tell: keep its file
     return True
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike, what: str = "file"):
+    """Hold ``<path>.lock`` (this process's pid in it) while this process writes ``path`` over a
+    long run (a training's checkpoint), so that a second run writing the same path is refused
+    instead of taking turns with the first. A lock whose process is gone (killed) is taken over.
+
+    Raises:
+        ParameterError: another live process holds the lock.
+    """
+    lock = Path(f"{path}.lock")
+    for _ in range(3):  # bounded: a stale lock is removed and the creation tried again
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                holder = int(lock.read_text().strip() or 0)
+            except (OSError, ValueError):
+                holder = 0  # being written this instant, or not ours: judged on the next pass
+            if holder and holder != os.getpid() and _pid_alive(holder):
+                raise ParameterError(
+                    f"{path} is being written by another process (pid {holder}; lock {lock}). Fix: "
+                    f"give this run another {what} path, or wait for that one to end (a lock left by a "
+                    "killed process is taken over)."
+                ) from None
+            if holder:
+                lock.unlink(missing_ok=True)
+            else:
+                time.sleep(0.05)
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        break
+    else:
+        raise ParameterError(f"could not take the lock {lock}. Fix: remove it if no run is writing {path}.")
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
 
 
 def remove_stale_temps(path: str | os.PathLike) -> int:

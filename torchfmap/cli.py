@@ -276,6 +276,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--png", help="save the PCK curves here (needs matplotlib)")
     p.add_argument(
+        "--out", metavar="FILE.npz", help="keep the scored pairs here as they finish; the same command "
+        "with the same FILE resumes from them (after Ctrl-C, a lost worker, a full disk)",
+    )  # fmt: skip
+    p.add_argument(
         "--workers",
         type=positive_int,
         default=1,
@@ -348,10 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--augment",
-        choices=["rigid", "scale", "none"],
+        choices=["rigid", "up", "scale", "none"],
         default=None,
-        help="moves of XYZ inputs at each step: rotation and scaling, scaling only (shapes aligned "
-        "alike), or none (default: rigid)",
+        help="moves of XYZ inputs at each step: rotation and scaling, rotation about the y axis and "
+        "scaling (shapes standing alike, facing anywhere), scaling only (shapes aligned alike), or "
+        "none (default: rigid)",
     )
     p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default: 32)")
     p.add_argument(

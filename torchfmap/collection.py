@@ -19,6 +19,7 @@ import os
 import signal
 import time
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,7 +29,7 @@ from tqdm import tqdm
 from ._checks import check_count
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
-from .errors import EvaluationInterrupted, ParameterError
+from .errors import EvaluationInterrupted, ParameterError, WorkerLost
 from .eval import evaluate_map, landmarks_from_gt, shape_distance
 from .eval_partial import overlap_iou
 from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
@@ -263,6 +264,7 @@ def evaluate_pairs(
     executor: Executor | None = None,
     progress: bool = False,
     matcher=None,
+    on_results=None,
     **match_kwargs,
 ) -> list[PairResult]:
     """Match and score every pair ``(name_x, name_y, path_x, path_y, gt)`` (as yielded by
@@ -299,6 +301,9 @@ def evaluate_pairs(
             :class:`MapFiles`); with workers or an executor it must pickle.
         match_kwargs: passed to the matcher (for :func:`~torchfmap.match`: ``basis``, ``k``,
             ``refine``, ...; for a learned matcher: ``refine``, ``k_final``).
+        on_results: called in this process with the list of :class:`PairResult` of each pair (one
+            process) or chunk (a pool or an executor) as it finishes, e.g. to save them as they
+            come (``torchfmap eval --out``); its exceptions stop the run.
 
     Raises:
         ParameterError: ``workers < 1`` or ``threads < 1``; ``match_kwargs`` (or landmarks,
@@ -306,6 +311,8 @@ def evaluate_pairs(
         EvaluationInterrupted: Ctrl-C (a ``KeyboardInterrupt``): a local pool is stopped at once
             (its workers ignore the signal and are terminated) and the exception's ``finished``
             holds the pairs scored until then.
+        WorkerLost: a worker process died (a broken local pool, Dask's ``KilledWorker``); its
+            ``finished`` holds the pairs scored until then.
     """
     pairs = list(pairs)
     _check_matcher(match if matcher is None else matcher, {
@@ -319,9 +326,15 @@ def evaluate_pairs(
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if executor is None and workers == 1:
         finished: list[PairResult] = []
+
+        def on_pair() -> None:
+            bar.update()
+            if on_results is not None:
+                on_results(finished[-1:])
+
         try:
             return _evaluate_chunk(
-                pairs, gt_landmarks, max_points, match_kwargs, on_pair=bar.update, threads=threads,
+                pairs, gt_landmarks, max_points, match_kwargs, on_pair=on_pair, threads=threads,
                 matcher=matcher, results=finished,
             )  # fmt: skip
         except KeyboardInterrupt:
@@ -342,17 +355,19 @@ def evaluate_pairs(
     )
     # costliest chunks first (longest-processing-time order): the last ones to finish are short
     order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
+    futures: dict = {}
+    done: dict[int, list[PairResult]] = {}
     try:
         args = (gt_landmarks, max_points, match_kwargs)
-        futures = {
-            pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads, matcher=matcher): i for i in order
-        }
-        done: dict[int, list[PairResult]] = {}
+        for i in order:
+            futures[pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads, matcher=matcher)] = i
         for future in as_completed(futures):
             i = futures[future]
             done[i] = future.result()
             bar.update(len(chunks[i]))
-    except KeyboardInterrupt:
+            if on_results is not None:
+                on_results(done[i])
+    except BaseException as err:  # stop the pool at once, whatever ended the run
         if own:
             _stop_pool(pool)
             own = False  # stopped: nothing left to wait for
@@ -360,7 +375,11 @@ def evaluate_pairs(
             for future in futures:
                 future.cancel()
         finished = [r for i in sorted(done) for r in done[i]]
-        raise EvaluationInterrupted(finished, len(pairs)) from None
+        if isinstance(err, KeyboardInterrupt):
+            raise EvaluationInterrupted(finished, len(pairs)) from None
+        if isinstance(err, BrokenProcessPool) or type(err).__name__ == "KilledWorker":
+            raise WorkerLost(finished, len(pairs), f"{type(err).__name__}: {err}") from None
+        raise
     finally:
         bar.close()
         if own:

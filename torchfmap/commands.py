@@ -21,13 +21,14 @@ from ._checks import is_symmetric
 from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
-from .errors import EvaluationInterrupted, TorchFmapError
+from .errors import EvaluationInterrupted, TorchFmapError, WorkerLost
 from .eval import discover_pairs, evaluate_map, gt_from_map, landmarks_from_gt, pck_curve, select_pairs
 from .eval_partial import discover_partial_pairs
 from .io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from .kinds import get_kind
 from .operators import GeodesicSolver, available_backends, laplacian
 from .pipeline import match, match_bases
+from .saved_pairs import SavedPairs
 from .viz import plot_color_transfer, plot_pck, save_transfer_html
 
 
@@ -339,21 +340,43 @@ def cmd_eval(args: argparse.Namespace) -> int:
         pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
     if args.max_pairs and len(pairs) == args.max_pairs:
         protocol += f", the first {len(pairs)} (--max-pairs)"
+    saved = None
+    if args.out:  # what changes a pair's score: the folder, the method, the ground truth, the points
+        scored_by = {"folder": folder, "method": title, "k_final": args.k_final, "w_lap": args.w_lap,
+                     "gt": args.gt, "partial": args.partial, "map_base": args.map_base,
+                     "max_points": args.max_points}  # fmt: skip
+        saved = SavedPairs(args.out, scored_by)
+        todo = [p for p in pairs if (p[0], p[1]) not in saved.done]
+        if len(todo) < len(pairs) and not args.quiet:
+            print(
+                f"resuming: {len(pairs) - len(todo)} of {len(pairs)} pairs read from {args.out}",
+                file=sys.stderr,
+            )
+        pairs, all_pairs = todo, pairs
     try:
-        results = evaluate_pairs(
+        results = pairs and evaluate_pairs(  # nothing to score when every pair was kept
             pairs,
             max_points=args.max_points,
             workers=args.workers,
             threads=args.threads,
             executor=_dask_executor(args.dask) if args.dask else None,
             progress=not args.quiet,
+            on_results=None if saved is None else saved.add,
             **settings,
         )
-    except EvaluationInterrupted as stop:  # the pairs scored before Ctrl-C are shown, then 130
-        if stop.finished:
-            _print_table(stop.finished, title, f"{protocol}; {stop} (Ctrl-C)", None)
-        print(f"torchfmap: {stop} (Ctrl-C)", file=sys.stderr)
-        return 130
+    except (EvaluationInterrupted, WorkerLost) as stop:  # the pairs scored before are shown
+        finished = stop.finished if saved is None else saved.in_order(all_pairs)
+        why = "Ctrl-C" if isinstance(stop, EvaluationInterrupted) else "a worker died"
+        if finished:
+            _print_table(finished, title, f"{protocol}; {stop} ({why})", None)
+        kept = f"; the finished pairs are in {args.out}: the same command resumes" if saved else ""
+        print(f"torchfmap: {stop} ({why}){kept}", file=sys.stderr)
+        return 130 if isinstance(stop, EvaluationInterrupted) else 1
+    finally:  # whatever ended the run (an error in a pair too), the finished pairs are kept
+        if saved is not None:
+            saved.flush()
+    if saved is not None:
+        results = saved.in_order(all_pairs)
     _print_table(results, title, protocol, args.png)
     return 0
 

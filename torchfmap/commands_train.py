@@ -8,6 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._files import output_lock
 from .errors import TorchFmapError
 
 #: ``TrainConfig`` fields that ``torchfmap train`` takes as flags (``--k``, ``--n-wks``, ...).
@@ -80,6 +81,12 @@ def _recipe(args: argparse.Namespace):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    """``torchfmap train``: one run at a time writes a checkpoint (:func:`~torchfmap._files.output_lock`)."""
+    with output_lock(args.out, "--out"):
+        return _train(args)
+
+
+def _train(args: argparse.Namespace) -> int:
     from .nn.checkpoints import load_checkpoint
     from .nn.config import build_solver
     from .nn.data import ShapeDataset, class_pairs

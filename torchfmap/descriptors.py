@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from ._checks import check_vertex_indices
 from .errors import ParameterError
@@ -175,8 +176,6 @@ def shot(mesh, radius: float) -> np.ndarray:
     Raises:
         ParameterError: a radius that is not finite and > 0.
     """
-    from scipy.spatial import cKDTree
-
     if not (np.isfinite(radius) and radius > 0):
         raise ParameterError(f"radius must be finite and > 0, got {radius!r}. Fix: e.g. 0.08 * sqrt(area).")
     vertices, normals = mesh.vertices, mesh.vertex_normals

@@ -87,6 +87,20 @@ class EvaluationInterrupted(KeyboardInterrupt):
         self.finished, self.total = finished, total
 
 
+class WorkerLost(TorchFmapError, RuntimeError):
+    """A worker of :func:`torchfmap.collection.evaluate_pairs` died mid-run (killed, out of
+    memory): ``finished`` holds the :class:`~torchfmap.collection.PairResult` of every pair scored
+    before, in pair order; the chunks in flight are lost."""
+
+    def __init__(self, finished: list, total: int, cause: str) -> None:
+        super().__init__(
+            f"a worker process died ({cause}) after {len(finished)} of {total} pairs. Fix: check the "
+            "machine's memory (fewer --workers, or --threads); with eval --out FILE the same command "
+            "resumes from the finished pairs."
+        )
+        self.finished, self.total = finished, total
+
+
 class MapWarning(UserWarning):
     """A computed map that is valid but suspicious (e.g. collapsed onto a few vertices)."""
 

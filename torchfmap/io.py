@@ -31,6 +31,7 @@ import numpy as np
 import trimesh
 
 from ._files import atomic_write
+from ._format_checks import check_obj, check_ply, is_float, off_without_comments
 from ._format_checks import check_off as _check_off
 from ._format_checks import check_stl as _check_stl
 from ._format_checks import off_header_counts as off_header_counts
@@ -155,12 +156,7 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             "mesh again."
         )
     try:
-        if fmt in TEXT_FORMATS:
-            data = _decode(data)
-        if fmt == "off":
-            _check_off(data.decode("utf-8"), path.name)
-        if fmt == "stl":
-            _check_stl(data, path.name)
+        data = _checked_bytes(data, fmt, path.name)
         loaded = trimesh.load(
             _io.BytesIO(data), file_type=fmt, process=False, maintain_order=True, force="mesh"
         )
@@ -190,6 +186,24 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
     return vertices, faces
 
 
+def _checked_bytes(data: bytes, fmt: str, name: str) -> bytes:
+    """The bytes trimesh parses: text decoded (:func:`_decode`), checked against its format's
+    counts and row shapes (:mod:`torchfmap._format_checks`; :class:`MeshError` naming ``name``),
+    OFF comments removed."""
+    if fmt in TEXT_FORMATS:
+        data = _decode(data)
+    if fmt == "off":
+        _check_off(data.decode("utf-8"), name)
+        data = off_without_comments(data.decode("utf-8")).encode()
+    elif fmt == "obj":
+        check_obj(data.decode("utf-8"), name)
+    elif fmt == "ply":
+        check_ply(data, name)
+    elif fmt == "stl":
+        _check_stl(data, name)
+    return data
+
+
 def _read_points(data: bytes, fmt: str) -> np.ndarray:
     """The vertex coordinates of a mesh or point-cloud file's bytes, ``(V, 3)`` (faces ignored)."""
     try:
@@ -212,7 +226,7 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
     if fmt not in ("ply", "off", "obj"):
         raise MeshError(f"{path.name!r}: point clouds are read from .ply/.off/.obj files. Fix: convert it.")
     data = _read_bytes(path, "point", MeshError)
-    points = _read_points(_decode(data) if fmt in TEXT_FORMATS else data, fmt)
+    points = _read_points(_checked_bytes(data, fmt, path.name), fmt)
     if len(points) == 0:
         raise MeshError(f"{path.name!r} holds no points. Fix: check the file.")
     if not np.isfinite(points).all():
@@ -278,16 +292,16 @@ def _is_integer(field: str) -> bool:
 
 
 def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
-    """The careful parser: skips a header line (the first line, when none of its fields is a
-    number, e.g. ``source,target``) and names the first bad line."""
+    """The careful parser: skips a header line (the first line, when its fields are words, e.g.
+    ``source,target``) and names the first bad line."""
     rows, width, first = [], columns, True
     for number, line in enumerate(text.splitlines(), start=1):
         fields = _fields(line)
         if not fields:
             continue
-        if first and not any(_is_integer(f) or _is_number(f) for f in fields):
+        if first and all(_HEADER_WORD.match(f) and not is_float(f) for f in fields):
             first = False
-            continue  # a header line
+            continue  # a header line: words only, e.g. 'source,target' (a damaged number is no word)
         first = False
         width = len(fields) if width is None else width
         if len(fields) != width:
@@ -312,16 +326,10 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
 
 #: Characters that cannot appear in a table of integers (outside comments).
 _NOT_INTEGER_TEXT = re.compile(r"[^0-9\s+\-\ufeff]")
+#: A header field: a word starting with a letter or an underscore.
+_HEADER_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*$")
 #: Field separators of index tables: white space, commas, semicolons.
 _SEPARATORS = re.compile(r"[\s,;]+")
-
-
-def _is_number(field: str) -> bool:
-    try:
-        float(field)
-        return True
-    except ValueError:
-        return False
 
 
 def _one_entry(what: str, width: int) -> str:

@@ -135,3 +135,30 @@ def test_missing_input_files_are_torchfmap_errors_with_exit_1(tmp_path, capsys):
     )
     err = _err(capsys)
     assert "cannot read the basis file" in err and "Fix:" in err and "[Errno" not in err
+
+
+@pytest.mark.parametrize(
+    "edit, problem",
+    [
+        (lambda a: a.pop("values"), "no 'values' array"),
+        (lambda a: a.update(values=a["values"][:, 0]), "values of shape"),
+        (lambda a: a.update(values=np.where(a["values"] > 0, np.nan, a["values"])), "not finite"),
+        (lambda a: a.update(mass_row=a["mass_row"] + 1), "outside the"),
+        (lambda a: a.update(prov_seed=a["prov_seed"][:-1]), "shorter"),
+        (lambda a: a.update(version=np.array(99)), "format version 99"),
+    ],
+)
+def test_a_file_with_a_valid_checksum_but_no_basis_in_it_is_refused(blob, tmp_path, edit, problem):
+    """Found by the fuzz suite: arrays written with a valid checksum but missing, reshaped or out
+    of range raised KeyError / ValueError from scipy, or loaded NaN values."""
+    from torchfmap._files import load_arrays, save_arrays
+
+    seeds = farthest_point_sampling(blob, 4, metric="euclidean")
+    path = basis_stack(blob, seeds, times=[1e-2], n_eigen=3).save(tmp_path / "basis.npz")
+    arrays = load_arrays(path)
+    edit(arrays)
+    path.unlink()
+    save_arrays(path, arrays)
+    expected = rf"basis\.npz is not a basis torchfmap can read \(.*{problem}.*Fix"
+    with pytest.raises(CorruptFileError, match=expected):
+        Basis.load(path)

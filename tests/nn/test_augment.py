@@ -40,3 +40,22 @@ def test_augment_batch_rotates_and_scales_both_sides_or_nothing():
     scaled = augment_batch(batch, "scale", torch.Generator().manual_seed(0))["y"].inputs
     factor = scaled / xyz  # a scaling only: one factor per shape
     assert torch.allclose(factor, factor[:, :1, :1].expand_as(factor), rtol=1e-5)
+
+
+def test_up_rotation_turns_about_y_only_and_scales():
+    """augment='up' (SMAL: animals standing alike, facing anywhere): y @ T keeps the y axis, the
+    x-z plane is rotated (angles spread over the circle) and scaled by s in [0.9, 1.1]."""
+    xyz = torch.randn(64, 20, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    moved = random_rigid(xyz, torch.Generator().manual_seed(0), rotation="up")
+    T = torch.linalg.lstsq(xyz, moved).solution  # (64, 3, 3) = s * R_y(angle)
+    s = T[:, 1, 1]
+    assert ((s >= 0.9) & (s <= 1.1)).all()
+    torch.testing.assert_close(T[:, 1, [0, 2]], torch.zeros(64, 2, dtype=T.dtype), atol=1e-12, rtol=0)
+    torch.testing.assert_close(T[:, [0, 2], 1], torch.zeros(64, 2, dtype=T.dtype), atol=1e-12, rtol=0)
+    R = T / s[:, None, None]
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(64, dtype=T.dtype), atol=1e-12, rtol=0)
+    angles = torch.atan2(R[:, 0, 2], R[:, 0, 0])
+    assert (angles < -2).any() and (angles > 2).any()  # both facings, not a small jitter
+    assert augmentation("up", "xyz") == "up" and augmentation("up", "wks") == "none"
+    with pytest.raises(ParameterError, match="rotation must be"):
+        random_rigid(xyz, torch.Generator(), rotation="tilt")

@@ -179,3 +179,27 @@ def test_a_checkpoints_recipe_reads_back_without_its_network(tmp_path):
     assert recipe.k == 100 and recipe.minutes == 60.0 and recipe.epochs is None
     recipe.to_json(tmp_path / "smal_r.json")
     assert TrainConfig.from_json(tmp_path / "smal_r.json") == recipe
+
+
+@pytest.mark.parametrize(
+    "edit, problem",
+    [
+        (lambda c: c.update(network="DiffusionNet"), "network record is a str"),
+        (lambda c: c["config"].update(k=-3), "k must be >= 1"),
+        (lambda c: c["config"].update(lr=float("nan")), "lr must be finite"),
+        (lambda c: [t.fill_(float("inf")) for t in c["state_dict"].values()], "NaN or infinite"),
+    ],
+    ids=["record", "k", "lr", "weights"],
+)
+def test_checkpoint_contents_are_checked_and_errors_name_the_file(tmp_path, edit, problem):
+    """Found by the fuzz suite: a network record that is no dict raised AttributeError, a negative
+    k or NaN lr loaded, NaN weights loaded, and errors about the contents did not name the file."""
+    config = TrainConfig(k=8, n_wks=8, width=8, c_out=8, n_blocks=1)
+    path = save_checkpoint(tmp_path / "m.ckpt", build_model(config)[0], config)
+    ckpt = read_checkpoint(path)
+    edit(ckpt)
+    buffer = io.BytesIO()
+    torch.save(ckpt, buffer)
+    _checked(path, buffer.getvalue())
+    with pytest.raises(ParameterError, match=rf"m\.ckpt: .*{problem}"):
+        load_checkpoint(path)

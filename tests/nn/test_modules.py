@@ -246,7 +246,7 @@ def test_random_draws_come_from_the_given_generator(nn_setting):
     T = torch.linalg.lstsq(xyz, moved).solution  # (2, 3, 3): scale * rotation
     assert (torch.linalg.det(T) > 0).all() and not torch.allclose(T[0], T[1])
     # augment='scale' (shapes aligned alike): a pure scaling, T = s I with s in the range
-    scaled = random_rigid(xyz, torch.Generator().manual_seed(0), rotate=False)
+    scaled = random_rigid(xyz, torch.Generator().manual_seed(0), rotation="none")
     S = torch.linalg.lstsq(xyz, scaled).solution
     s = torch.diagonal(S, dim1=-2, dim2=-1)
     eye = torch.eye(3, dtype=S.dtype)

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 
 from .._checks import check_count
 from .._files import load_arrays, save_arrays
-from ..errors import ParameterError
+from ..errors import CorruptFileError, ParameterError
 
 _FORMAT_VERSION = 1
 
@@ -225,15 +225,44 @@ class Basis:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Basis:
-        """Read a basis written by :meth:`save`; raises if the file is truncated or altered."""
+        """Read a basis written by :meth:`save`.
+
+        Raises:
+            FileReadError: no such file, a folder, no permission.
+            CorruptFileError: a truncated or altered file, or one whose checksum holds but whose
+                arrays are not a basis of this format (missing, of the wrong shape or dtype,
+                non-finite values, mass indices outside the vertices).
+        """
         arrays = load_arrays(path, what="basis file")
-        n = arrays["values"].shape[0]
-        mass = sp.csr_matrix((arrays["mass_data"], (arrays["mass_row"], arrays["mass_col"])), shape=(n, n))
-        stiffness = None
-        if "stiff_data" in arrays:
-            stiffness = sp.csr_matrix(
-                (arrays["stiff_data"], (arrays["stiff_row"], arrays["stiff_col"])), shape=(n, n)
-            )
+        try:
+            return cls._from_arrays(arrays)
+        except (KeyError, ValueError, IndexError, TypeError) as err:
+            problem = f"no {err} array" if isinstance(err, KeyError) else str(err)
+            raise CorruptFileError(
+                f"{path} is not a basis torchfmap can read ({problem}). Fix: save the basis again "
+                "with Basis.save (or rebuild it)."
+            ) from None
+
+    @classmethod
+    def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> Basis:
+        version = int(arrays["version"])
+        if version != _FORMAT_VERSION:
+            raise ValueError(f"format version {version}, this torchfmap reads {_FORMAT_VERSION}")
+        values = arrays["values"]
+        if values.ndim != 2 or not np.issubdtype(values.dtype, np.floating) or not np.isfinite(values).all():
+            raise ValueError(f"values of shape {values.shape} and dtype {values.dtype}, or not finite")
+        n = values.shape[0]
+
+        def matrix(prefix: str) -> sp.csr_matrix:
+            row, col, data = (arrays[f"{prefix}_{part}"] for part in ("row", "col", "data"))
+            if not (len(row) == len(col) == len(data)) or (
+                len(row) and (min(row.min(), col.min()) < 0 or max(row.max(), col.max()) >= n)
+            ):
+                raise ValueError(f"{prefix} entries of unequal lengths or outside the {n} vertices")
+            return sp.csr_matrix((data, (row, col)), shape=(n, n))  # fmt: skip
+
+        mass = matrix("mass")
+        stiffness = matrix("stiff") if "stiff_data" in arrays else None
         prov = [
             Column(str(k), int(s), None if np.isnan(t) else float(t), int(i), bool(kept))
             for k, s, t, i, kept in zip(
@@ -245,9 +274,7 @@ class Basis:
                 strict=True,
             )
         ]
-        basis = cls(
-            arrays["values"], mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues")
-        )
+        basis = cls(values, mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues"))
         basis.pair_landmarks = arrays.get("pair_landmarks")
         return basis
 

@@ -10,27 +10,39 @@ from .config import AUGMENTS
 
 
 def random_rigid(
-    xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1), rotate: bool = True
+    xyz: torch.Tensor, generator: torch.Generator, scale=(0.9, 1.1), rotation: str = "any"
 ) -> torch.Tensor:
-    """Augmentation for XYZ inputs: a random rotation (uniform on SO(3); none with
-    ``rotate=False``) and a uniform scaling in ``scale`` per shape, ``(B, V, 3)``.
+    """Augmentation for XYZ inputs, ``(B, V, 3)``: a random rotation and a uniform scaling in
+    ``scale`` per shape. ``rotation``: ``"any"`` uniform on SO(3), ``"up"`` a uniform angle about
+    the ``y`` axis (shapes standing alike, facing anywhere), ``"none"``.
 
     Drawn (in float64) from ``generator`` on its device, then cast to ``xyz``'s dtype and device.
+
+    Raises:
+        ParameterError: no ``torch.Generator``, or an unknown ``rotation``.
     """
     if not isinstance(generator, torch.Generator):
         raise ParameterError(
             f"random_rigid draws from a torch.Generator, got {type(generator).__name__}. Fix: pass one, "
             "e.g. torch.Generator().manual_seed(0)."
         )
+    if rotation not in ("any", "up", "none"):
+        raise ParameterError(f"rotation must be 'any', 'up' or 'none', got {rotation!r}.")
     B, device = xyz.shape[0], generator.device
-    q, r = torch.linalg.qr(torch.randn(B, 3, 3, generator=generator, dtype=torch.float64, device=device))
-    q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1))[:, None, :]
-    # proper rotations only (reflections change the shape): flip the first column where det < 0
-    flip = torch.where(torch.linalg.det(q) < 0, -1.0, 1.0).to(q)
-    q = torch.cat([q[:, :, :1] * flip[:, None, None], q[:, :, 1:]], dim=-1)
-    s = torch.empty(B, 1, 1, dtype=torch.float64, device=device).uniform_(*scale, generator=generator)
-    if not rotate:
-        q = torch.eye(3, dtype=torch.float64, device=device).expand(B, 3, 3)
+    f64 = dict(dtype=torch.float64, device=device)
+    if rotation == "any":
+        q, r = torch.linalg.qr(torch.randn(B, 3, 3, generator=generator, **f64))
+        q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1))[:, None, :]
+        # proper rotations only (reflections change the shape): flip the first column where det < 0
+        flip = torch.where(torch.linalg.det(q) < 0, -1.0, 1.0).to(q)
+        q = torch.cat([q[:, :, :1] * flip[:, None, None], q[:, :, 1:]], dim=-1)
+    elif rotation == "up":
+        angle = torch.empty(B, **f64).uniform_(0, 2 * torch.pi, generator=generator)
+        c, s_, zero, one = torch.cos(angle), torch.sin(angle), torch.zeros(B, **f64), torch.ones(B, **f64)
+        q = torch.stack([c, zero, s_, zero, one, zero, -s_, zero, c], dim=-1).reshape(B, 3, 3)
+    else:
+        q = torch.eye(3, **f64).expand(B, 3, 3)
+    s = torch.empty(B, 1, 1, **f64).uniform_(*scale, generator=generator)
     return xyz @ (s * q).to(xyz)
 
 
@@ -50,10 +62,13 @@ def augmentation(augment: str, inputs: str | None) -> str:
 
 def augment_batch(batch: dict, augment: str, generator: torch.Generator) -> dict:
     """``batch`` (:func:`~torchfmap.nn.data.collate_pairs`) with the inputs of both sides moved
-    by :func:`random_rigid` (``augment``: ``"rigid"`` or ``"scale"``, as :func:`augmentation`
-    resolved it; ``"none"``: the batch itself)."""
+    by :func:`random_rigid` (``augment``: ``"rigid"`` any rotation, ``"up"`` a rotation about the
+    ``y`` axis, ``"scale"`` none, each with a scaling, as :func:`augmentation` resolved it;
+    ``"none"``: the batch itself)."""
     if augment == "none":
         return batch
-    rotate = augment == "rigid"
-    moved = [batch[s]._replace(inputs=random_rigid(batch[s].inputs, generator, rotate=rotate)) for s in "xy"]
+    rotation = {"rigid": "any", "up": "up", "scale": "none"}[augment]
+    moved = [
+        batch[s]._replace(inputs=random_rigid(batch[s].inputs, generator, rotation=rotation)) for s in "xy"
+    ]
     return {**batch, "x": moved[0], "y": moved[1]}

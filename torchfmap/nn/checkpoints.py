@@ -211,6 +211,10 @@ def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
             ``torch.nn.Module``, or a record without constructor arguments.
     """
     record = ckpt.get("network")
+    if record is not None and not isinstance(record, dict):
+        raise ParameterError(
+            f"the checkpoint's network record is a {type(record).__name__}, not a dict. Fix: re-save it."
+        )
     if record is None:
         raise ParameterError(
             "the checkpoint does not record its network (a development format that was never "
@@ -237,6 +241,12 @@ def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
     if not isinstance(state, dict):
         raise ParameterError(
             f"the checkpoint's weights are a {type(state).__name__}, not a state dict. Fix: re-save it."
+        )
+    broken = [k for k, t in state.items() if isinstance(t, torch.Tensor) and not torch.isfinite(t).all()]
+    if broken:
+        raise ParameterError(
+            f"the checkpoint's weights {broken[:3]} hold NaN or infinite values (a diverged run?). Fix: "
+            "use an earlier checkpoint of the run, or train again (e.g. with a lower lr or --clip-grad)."
         )
     dtypes = {t.dtype for t in state.values() if isinstance(t, torch.Tensor) and t.is_floating_point()}
     if len(dtypes) == 1:  # weights saved in one dtype (e.g. a float64 network): load them in it
@@ -266,7 +276,7 @@ def _config(cfg: dict) -> TrainConfig:
             f"the checkpoint's config has keys {unknown} that TrainConfig does not know. Fix: read it "
             "with read_checkpoint() and rebuild the network with load_network()."
         )
-    return TrainConfig(**cfg)
+    return TrainConfig.from_dict(cfg, where="the checkpoint's config")
 
 
 def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConfig, dict]:
@@ -279,8 +289,10 @@ def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConf
         CorruptFileError: a truncated or altered file.
     """
     ckpt = read_checkpoint(path)
-    config = _config(ckpt["config"])
-    return load_network(ckpt, best), config, ckpt
+    try:
+        return load_network(ckpt, best), _config(ckpt["config"]), ckpt
+    except ParameterError as err:
+        raise ParameterError(f"{path}: {err}") from None
 
 
 def read_recipe(path) -> TrainConfig:
@@ -292,4 +304,7 @@ def read_recipe(path) -> TrainConfig:
         ParameterError / CorruptFileError: as :func:`load_checkpoint`.
     """
     ckpt = read_checkpoint(path)
-    return _config(ckpt["config"])
+    try:
+        return _config(ckpt["config"])
+    except ParameterError as err:
+        raise ParameterError(f"{path}: {err}") from None

@@ -21,7 +21,7 @@ from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import DiffusionNet
 
 #: Augmentations of XYZ inputs (:attr:`TrainConfig.augment`).
-AUGMENTS = ("rigid", "scale", "none")
+AUGMENTS = ("rigid", "up", "scale", "none")
 #: The :class:`TrainConfig` fields that make up its :class:`Budget`.
 BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
 
@@ -66,8 +66,10 @@ class Budget:
             text
             for text, done in (
                 (f"--max-steps {self.steps} (done: {step} steps)", self.steps and step >= self.steps),
-                (f"--minutes {self.minutes:g} (done: {seconds / 60:.1f} min)",
-                 self.minutes and seconds >= 60 * self.minutes),
+                (
+                    f"--minutes {self.minutes:g} (done: {seconds / 60:.1f} min)",
+                    self.minutes and seconds >= 60 * self.minutes,
+                ),
                 (f"--epochs {self.epochs} (done: {epoch})", self.epochs and epoch >= self.epochs),
             )  # fmt: skip
             if done
@@ -88,8 +90,9 @@ class TrainConfig:
 
     ``epochs`` / ``minutes`` / ``max_steps``: the :class:`Budget` (:attr:`budget`).
     ``augment`` (XYZ inputs only; :func:`~torchfmap.nn.augment.augmentation`): ``"rigid"`` a
-    random rotation and scaling per step, ``"scale"`` a scaling only (for data sets whose shapes
-    are aligned alike), ``"none"``.
+    random rotation and scaling per step, ``"up"`` a rotation about the ``y`` axis and a scaling
+    (shapes standing alike but facing anywhere, e.g. SMAL), ``"scale"`` a scaling only (shapes
+    aligned alike), ``"none"``.
     """
 
     k: int = 50
@@ -160,6 +163,7 @@ class TrainConfig:
         default = type(self)()
         for key, value in values.items():
             _check_type(key, value, getattr(default, key), where)
+            _check_range(key, value, where)
         if any(k in values for k in BUDGET_FIELDS):
             values = {"epochs": None, "minutes": 0.0, "max_steps": 0, **values}
         config = dataclasses.replace(self, **values)
@@ -214,6 +218,24 @@ def _check_type(key: str, value, default, where: str) -> None:
         raise ParameterError(
             f"{where}: {key} must be {kind.__name__}, got {value!r}. Fix: e.g. {json.dumps({key: default})}."
         )
+
+
+#: Recipe fields that must be integers >= 1, and the allowed ranges of the float fields.
+_POSITIVE_FIELDS = ("k", "k_net", "n_wks", "width", "c_out", "n_blocks", "batch_size")
+_FLOAT_RANGES = {"lr": (0.0, math.inf, False), "clip_grad": (0.0, math.inf, True),
+                 "w_lap": (0.0, math.inf, True), "dropout": (0.0, 1.0, True)}  # fmt: skip
+
+
+def _check_range(key: str, value, where: str) -> None:
+    """Refuse a recipe value outside its field's range (sizes >= 1; ``lr`` > 0; ``clip_grad``,
+    ``w_lap`` >= 0; ``dropout`` in [0, 1); all finite)."""
+    if key in _POSITIVE_FIELDS and value < 1:
+        raise ParameterError(f"{where}: {key} must be >= 1, got {value!r}. Fix: a positive size.")
+    if key in _FLOAT_RANGES:
+        low, high, closed = _FLOAT_RANGES[key]
+        if not (math.isfinite(value) and (value >= low if closed else value > low) and value < high):
+            bound = f"{'>=' if closed else '>'} {low}" + (f" and < {high}" if math.isfinite(high) else "")
+            raise ParameterError(f"{where}: {key} must be finite and {bound}, got {value!r}.")
 
 
 def network_kwargs(config: TrainConfig) -> dict:

@@ -17,7 +17,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as ssla
 
-from .._checks import check_symmetric, lumped_diagonal
+from .._checks import check_memory, check_symmetric, lumped_diagonal
 from .._threads import blas_threads
 from ..errors import ConvergenceError, CostWarning, ParameterError
 from .solvers import factorize
@@ -94,14 +94,16 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
     mesh's units; the eigenpairs are scaled back.
 
     Raises:
-        ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, or an area that is not a
-            finite positive float64 (a mesh so large or small that it overflows).
+        ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, an area that is not a
+            finite positive float64 (a mesh so large or small that it overflows), or more memory
+            than is available (:func:`~torchfmap._checks.check_memory`).
         ConvergenceError: block Lanczos did not converge in :data:`BLOCK_MAX_CYCLES` restarts
             (``solver='arpack'`` is the alternative).
     """
     n = L.shape[0]
     if not 1 <= k <= n:
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got k={k}.")
+    check_memory(n, k, "eigenpairs")
     if solver not in ("auto", "block", "arpack"):
         raise ParameterError(f"unknown eigensolver {solver!r}. Fix: 'auto', 'block' or 'arpack'.")
     check_symmetric(L, "Laplacian eigenbases", "laplacian(mesh, scheme='cotan') or scheme='robust'")
