@@ -258,3 +258,31 @@ def test_cuda_and_cpu_maps_agree():
     assert _agree(b.p2p_yx, a.p2p_yx) >= 0.99
     a, b = (m(x, y, refine="zoomout", shapes=shapes) for m in (cpu, cuda))
     assert _agree(b.p2p_yx, a.p2p_yx) >= 0.99
+
+
+def test_a_model_trained_facing_anywhere_tries_the_targets_facings(permuted, monkeypatch):
+    """An XYZ model trained with augment='up' matches a target turned half a turn about y as it
+    matches the unturned one (the quarter turns are tried and the most isometric map kept); other
+    models try one facing."""
+    from dataclasses import replace
+
+    mesh_x, mesh_y, perm = permuted
+    up = replace(TINY, inputs="xyz", augment="up")
+    matcher = LearnedMatcher(build_model(up)[0], up, device="cpu")
+    assert matcher.facings() == inference.FACINGS and len(inference.FACINGS) == 4
+    assert LearnedMatcher(build_model(TINY)[0], TINY, device="cpu").facings() == (0.0,)
+    turn = np.diag([-1.0, 1.0, -1.0])  # half a turn about y
+    straight = matcher(mesh_x, mesh_y)
+    turned = matcher(mesh_x, mesh_y.copy(mesh_y.vertices @ turn.T))
+    assert _agree(straight.p2p_yx, turned.p2p_yx) > 0.99
+    # the criterion: 0 for the identity between a shape and itself, positive for a swapped map
+    seen = []
+    real = inference.laplacian_defect
+    monkeypatch.setattr(
+        inference, "laplacian_defect", lambda C, bx, by: seen.append(real(C, bx, by)) or seen[-1]
+    )
+    matcher(mesh_x, mesh_x)
+    assert len(seen) == 4
+    sx = inference._pair(*[matcher._items(prepare_shape(mesh_x, 12), 0)[0]] * 2, "cpu")[0]
+    eye = torch.eye(TINY.k, dtype=torch.float64)
+    assert real(eye, sx.basis, sx.basis) < 1e-9 < real(eye[[1, 0, *range(2, TINY.k)]], sx.basis, sx.basis)

@@ -37,13 +37,18 @@ def random_rigid(
         flip = torch.where(torch.linalg.det(q) < 0, -1.0, 1.0).to(q)
         q = torch.cat([q[:, :, :1] * flip[:, None, None], q[:, :, 1:]], dim=-1)
     elif rotation == "up":
-        angle = torch.empty(B, **f64).uniform_(0, 2 * torch.pi, generator=generator)
-        c, s_, zero, one = torch.cos(angle), torch.sin(angle), torch.zeros(B, **f64), torch.ones(B, **f64)
-        q = torch.stack([c, zero, s_, zero, one, zero, -s_, zero, c], dim=-1).reshape(B, 3, 3)
+        q = yaw_matrices(torch.empty(B, **f64).uniform_(0, 2 * torch.pi, generator=generator))
     else:
         q = torch.eye(3, **f64).expand(B, 3, 3)
     s = torch.empty(B, 1, 1, **f64).uniform_(*scale, generator=generator)
     return xyz @ (s * q).to(xyz)
+
+
+def yaw_matrices(angles: torch.Tensor) -> torch.Tensor:
+    """``(B, 3, 3)`` rotations by ``angles (B,)`` (radians) about the ``y`` axis, in their dtype
+    and device, to multiply row vectors on the right (``xyz @ R``)."""
+    c, s, zero, one = torch.cos(angles), torch.sin(angles), torch.zeros_like(angles), torch.ones_like(angles)
+    return torch.stack([c, zero, s, zero, one, zero, -s, zero, c], dim=-1).reshape(-1, 3, 3)
 
 
 def augmentation(augment: str, inputs: str | None) -> str:

@@ -22,6 +22,7 @@ from ..kinds import get_kind
 from ..match_checks import check_meshes, check_unused, warn_if_partial
 from ..mesh import Mesh
 from ..results import MatchResult
+from .augment import yaw_matrices
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs
@@ -30,6 +31,19 @@ from .inputs import K_WKS, SEED_TIMES, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .train import pair_loss
+
+#: Yaw angles (radians) tried by :meth:`LearnedMatcher.facings` for models trained facing anywhere.
+FACINGS = (0.0, np.pi / 2, np.pi, 3 * np.pi / 2)
+
+
+def laplacian_defect(C: torch.Tensor, basis_x, basis_y) -> float:
+    """``‖C W_x - W_y C‖ / ‖C‖`` of one map ``C (K_y, K_x)`` between the bases of two
+    :class:`~torchfmap.nn.functional.BasisBatch` of one shape each (``W = U diag(lam) Uᵀ``, the
+    projected Laplacian): 0 for an isometry, large for a map that is far from one."""
+    C = C.to(torch.float64)
+    W = [(b.U[0] * b.lam[0][None, :]) @ b.U[0].T for b in (basis_x, basis_y)]
+    W = [w.to(torch.float64) for w in W]
+    return float(torch.linalg.norm(C @ W[0] - W[1] @ C) / torch.linalg.norm(C))
 
 
 def _pair(x: dict, y: dict, device) -> tuple[ShapeBatch, ShapeBatch]:
@@ -273,6 +287,16 @@ class LearnedMatcher:
             f"device={str(self.device)!r}, adapt_steps={self.adapt_steps})"
         )
 
+    def facings(self) -> tuple[float, ...]:
+        """Yaw angles (radians, about ``y``) at which the target's inputs are tried: for an XYZ
+        model trained with ``augment='up'`` (shapes standing alike, facing anywhere) the
+        :data:`FACINGS` quarter turns, the functional map kept being the most isometric one
+        (:func:`laplacian_defect`: a wrong facing maps head to tail, far from an isometry);
+        ``(0,)`` for any other model (WKS is invariant, other XYZ models were trained aligned or
+        under any rotation)."""
+        cfg = self.config
+        return FACINGS if cfg.inputs == "xyz" and cfg.augment == "up" else (0.0,)
+
     def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
         """``(dataset item, solver basis)`` of one prepared shape: the network's arrays
         (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) and the float64
@@ -339,7 +363,18 @@ class LearnedMatcher:
         with torch.no_grad():
             sx, sy = _pair(ix, iy, self.device)
             solver = self.solver.to(self.device)
-            C = _solve_xy(solver, features(net, sx), features(net, sy), sx.basis, sy.basis)[0]
+            fx = features(net, sx)
+            C, turn = None, None
+            for angle in self.facings():  # one facing, or the most isometric of several
+                turned = (
+                    sy._replace(inputs=sy.inputs @ yaw_matrices(sy.inputs.new_tensor([angle])))
+                    if angle
+                    else sy
+                )
+                C_a = _solve_xy(solver, fx, features(net, turned), sx.basis, sy.basis)[0]
+                defect = laplacian_defect(C_a, sx.basis, sy.basis)
+                if C is None or defect < turn[1]:
+                    C, turn = C_a, (angle, defect)
         timings["network+fmap"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         C = C.to(torch.float64)
