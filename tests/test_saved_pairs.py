@@ -106,14 +106,26 @@ def _sixteen_shapes(tmp_path: Path) -> tuple[Path, Path, int, list[str]]:
 
 def _start(cmd: list[str]) -> tuple[subprocess.Popen, list[str]]:
     """The command with Ctrl-C as in a terminal (a suite started in the background inherits SIGINT
-    ignored), its stderr collected by a thread."""
+    ignored), its stderr collected by a thread (the only reader of it: see ``_finish``)."""
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     err: list[str] = []
-    threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True).start()
+    proc.err_reader = threading.Thread(
+        target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True
+    )
+    proc.err_reader.start()
     return proc, err
+
+
+def _finish(proc: subprocess.Popen, timeout: float) -> str:
+    """The command's stdout once it exits, and its stderr read to the end by ``_start``'s thread
+    (``communicate`` would read stderr too, taking part of it from that thread)."""
+    out = proc.stdout.read()
+    proc.wait(timeout=timeout)
+    proc.err_reader.join(timeout=timeout)
+    return out
 
 
 def _wait_for_progress(proc, err, total: int) -> int:
@@ -143,7 +155,7 @@ def test_a_killed_worker_keeps_the_finished_pairs_and_the_rerun_resumes(tmp_path
     assert done < n_pairs / 2
     t0 = time.monotonic()
     os.kill(_workers(proc.pid)[0], signal.SIGKILL)  # as the kernel's out-of-memory killer would
-    out_text, _ = proc.communicate(timeout=60)
+    out_text = _finish(proc, 60)
     assert proc.returncode == 1 and time.monotonic() - t0 < 10, (proc.returncode, "".join(err)[-500:])
     assert "a worker process died" in "".join(err) and "the same command resumes" in "".join(err)
     printed = _rows(out_text)
@@ -176,7 +188,7 @@ def test_ctrl_c_with_two_workers_exits_promptly_and_keeps_the_finished_pairs(tmp
     done = _wait_for_progress(proc, err, n_pairs)
     t0 = time.monotonic()
     os.kill(proc.pid, signal.SIGINT)
-    out_text, _ = proc.communicate(timeout=30)
+    out_text = _finish(proc, 30)
     assert proc.returncode == 130 and time.monotonic() - t0 < 3.0
     printed = _rows(out_text)
     assert len(printed) >= done and _kept(out) == set(printed)
