@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
     val_pairs = pairs or class_pairs(shapes.names)[: args.eval_pairs]
     untrained, solver, loss_fn = build_model(config)  # the recipe's network before training (same seed)
     untrained = untrained.to(device)
-    validate = unsupervised_score(shapes, val_pairs, solver, loss_fn, device=device)  # no ground truth
+    validate = unsupervised_score(shapes, val_pairs, solver, loss_fn, device=device, augment=config.augment)
     trainer = Trainer.from_config(
         config, shapes, device=device, validate=validate, validate_every=args.validate_every,
         checkpoint=args.out,

@@ -25,13 +25,14 @@ BLOCK = re.compile(r"(<!-- readme-test: skip: (?P<why>.*?) -->\n)?```(?P<lang>\w
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 
 
+def _blocks_of(doc: Path) -> list[tuple[str, str, str | None]]:
+    """``(language, code, skip reason or None)`` of every fenced block of one document."""
+    return [(m["lang"], m["body"], m["why"]) for m in BLOCK.finditer(doc.read_text(encoding="utf-8"))]
+
+
 def readme_blocks() -> list[tuple[str, str, str | None]]:
     """``(language, code, skip reason or None)`` of every fenced block of :data:`DOCS`, in order."""
-    blocks = []
-    for doc in DOCS:
-        text = doc.read_text(encoding="utf-8")
-        blocks += [(m["lang"], m["body"], m["why"]) for m in BLOCK.finditer(text)]
-    return blocks
+    return [block for doc in DOCS for block in _blocks_of(doc)]
 
 
 def shell_commands(body: str) -> list[str]:
@@ -46,6 +47,20 @@ def test_every_block_is_run_or_says_why_not():
         assert lang in ("python", "bash", "text"), f"unknown block language {lang!r}"
         assert why is None or why.strip(), "a skip marker needs a reason"
         assert body.strip(), "an empty block"
+
+
+#: The skip reason of a guide's block that repeats README commands (run once, by the README).
+REPEATED = "the README's own commands, which the README test runs"
+
+
+def test_a_block_skipped_as_repeated_repeats_the_readme_verbatim():
+    readme = REPO / "README.md"
+    ran = {c for lang, body, why in _blocks_of(readme) if why is None for c in shell_commands(body)}
+    repeated = [body for lang, body, why in readme_blocks() if why and why.strip() == REPEATED]
+    assert repeated, "no guide block is marked as repeating the README"
+    for body in repeated:
+        missing = [c for c in shell_commands(body) if c not in ran]
+        assert not missing, f"marked as README commands but not run by the README: {missing}"
 
 
 @pytest.fixture(scope="module")

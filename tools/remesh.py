@@ -19,7 +19,10 @@ B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was m
   tr_reg_000..069, scape_r and scape_a mesh000..040; anisotropic copies named ``<name>_a``):
   the folder ``torchfmap train --pairs all`` reads for the shipped ``humans`` model;
 - ``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe (every 4th
-  sorted name validates instead, ``bench/pairs.py``'s ``smal_split``).
+  sorted name validates instead, ``bench/pairs.py``'s ``smal_split``);
+- ``smal_val``: links to the other 8 animals and their ground truth, with a ``test_pairs.txt``
+  of 16 ordered pairs among them (``drawn_pairs``, seed 0): ``torchfmap eval bench/data/smal_val
+  --checkpoint smal_r`` gives the figures of ``docs/models.md``.
 
 Ground truth through a remesh: each old vertex goes to its nearest new vertex, so the carried
 ground truth has an error of about half an edge, far below the errors measured.
@@ -36,7 +39,7 @@ from tqdm import tqdm
 
 from bench.common import LOCAL_DATA_DIR, Skip, log
 from bench.common import require_data as _require_data
-from bench.pairs import smal_split
+from bench.pairs import drawn_pairs, smal_split
 from torchfmap.io import load_mesh, mesh_files, read_vts, save_mesh, shape_name
 from torchfmap.remesh import remesh
 
@@ -49,7 +52,9 @@ def require_data(name: str) -> Path:
         raise SystemExit(f"tools.remesh: {why}") from None
 
 
-SETS = ("scape_r", "scape_a", "faust_a", "fs_train", "smal_train")
+SETS = ("scape_r", "scape_a", "faust_a", "fs_train", "smal_train", "smal_val")
+#: Ordered validation pairs of ``smal_val`` (its test_pairs.txt).
+SMAL_VAL_PAIRS = 16
 #: Training shapes of the F+S recipe (the rest of each set validates): FAUST_r 000..069, SCAPE 000..040.
 FAUST_TRAIN = [f"tr_reg_{i:03d}" for i in range(70)]
 SCAPE_TRAIN = [f"mesh{i:03d}" for i in range(41)]
@@ -119,6 +124,25 @@ def make_smal_training_folder(out: Path) -> None:
     log(f"smal_train: {len(train)} shapes in {folder}")
 
 
+def make_smal_validation_folder(out: Path) -> None:
+    """``smal_val``: links to the 8 held-out animals of ``smal_split`` and their ``.vts``, and a
+    ``test_pairs.txt`` of ``SMAL_VAL_PAIRS`` ordered pairs drawn among them (seed 0)."""
+    folder = out / "smal_val"
+    (folder / "corres").mkdir(parents=True, exist_ok=True)
+    src = require_data("smal_r_train")
+    _, val = smal_split()
+    for name in val:
+        for link, target in (
+            (folder / f"{name}.off.gz", src / f"{name}.off.gz"),
+            (folder / "corres" / f"{name}.vts", src / "corres" / f"{name}.vts"),
+        ):
+            if not link.exists():
+                link.symlink_to(target.resolve())
+    lines = [f"{a}\t{b}\n" for a, b in drawn_pairs(val, SMAL_VAL_PAIRS)]
+    (folder / "test_pairs.txt").write_text("".join(lines))
+    log(f"smal_val: {len(val)} shapes, {len(lines)} pairs in {folder}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
@@ -136,6 +160,8 @@ def main() -> None:
             make_training_folder(Path(args.out))
         elif s == "smal_train":
             make_smal_training_folder(Path(args.out))
+        elif s == "smal_val":
+            make_smal_validation_folder(Path(args.out))
         else:
             make(s, Path(args.out))
 

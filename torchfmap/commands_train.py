@@ -103,7 +103,8 @@ def _train(args: argparse.Namespace) -> int:
     validate, picked = None, []
     if args.validate_every:  # the unsupervised loss (full soft maps) on a fixed spread of training pairs
         picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
-        validate = unsupervised_score(shapes, picked, *build_solver(config), device=device)
+        solver, loss_fn = build_solver(config)
+        validate = unsupervised_score(shapes, picked, solver, loss_fn, device=device, augment=config.augment)
     trainer = Trainer.from_config(
         config, shapes, pairs, init=init, device=device, validate=validate,
         validate_every=args.validate_every, checkpoint=args.out,

@@ -170,9 +170,7 @@ def solve_pair(
     return MatchResult(p2p, C, bx, by, p2p, timings, seeds, kind.name, distortion)
 
 
-def prepare_shapes(
-    mesh_x: Mesh, mesh_y: Mesh, shapes, n_eigen: int
-) -> tuple[PreparedShape, PreparedShape]:
+def prepare_shapes(mesh_x: Mesh, mesh_y: Mesh, shapes, n_eigen: int) -> tuple[PreparedShape, PreparedShape]:
     """``shapes`` checked against the meshes (eigenpairs grown in place to ``n_eigen``), else
     both meshes prepared (:func:`~torchfmap.prepare_shape`).
 

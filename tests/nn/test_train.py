@@ -70,6 +70,42 @@ def test_the_validation_score_is_the_mean_full_loss_and_leaves_eval_mode(shapes)
     assert with_extra > each[0]
 
 
+def test_the_validation_scores_pairs_moved_as_training_moves_them(shapes, tmp_path):
+    """XYZ inputs and augment 'up': the score is of turned pairs (not of the pairs as stored,
+    which a network trained facing one way would win), drawn once (every call the same), and
+    from the seed; WKS inputs are never moved (the training's rule)."""
+    from torchfmap import ParameterError
+
+    xyz = TrainConfig(**{**TINY.__dict__, "inputs": "xyz", "augment": "up"})
+    mesh = bumpy_blob(2)
+    files = [
+        save_mesh(mesh, tmp_path / "b0.off"),
+        save_mesh(mesh.copy(bend(mesh.vertices, 0.3)), tmp_path / "b1.off"),
+    ]
+    data = ShapeDataset(files, False, **xyz.dataset_kwargs(), progress=False)
+    net, solver, loss_fn = build_model(xyz)
+    stored = unsupervised_score(data, [(0, 1)], solver, loss_fn)(net)
+    turned = unsupervised_score(data, [(0, 1)], solver, loss_fn, augment="up")
+    assert turned(net) == turned(net) != stored
+    assert unsupervised_score(data, [(0, 1)], solver, loss_fn, augment="up", seed=1)(net) != turned(net)
+
+    class HeightOnly(torch.nn.Module):
+        """Features of the height alone, scaled to unit maximum: unchanged by a turn about y
+        and a scaling, so the turned pairs score as stored (to float32 rounding of the turn)."""
+
+        def forward(self, inputs, basis, grad):
+            y = inputs[..., 1:2] / inputs[..., 1:2].abs().amax(dim=1, keepdim=True)
+            return torch.cat([y, y.square(), y**3], dim=-1)
+
+    as_stored = unsupervised_score(data, [(0, 1)], solver, loss_fn)(HeightOnly())
+    assert turned(HeightOnly()) == pytest.approx(as_stored, rel=1e-3)
+    wks_net, wks_solver, wks_loss = build_model(TINY)
+    on_wks = unsupervised_score(shapes, [(0, 1)], wks_solver, wks_loss, augment="rigid")(wks_net)
+    assert on_wks == unsupervised_score(shapes, [(0, 1)], wks_solver, wks_loss)(wks_net)
+    with pytest.raises(ParameterError, match="augment must be one of"):
+        unsupervised_score(data, [(0, 1)], solver, loss_fn, augment="yaw")
+
+
 def test_a_fresh_state_and_adapt_returns_a_tuned_copy(shapes):
     state = TrainState()
     assert state.step == 0 and state.losses == [] and state.best_score == float("inf")

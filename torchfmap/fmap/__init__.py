@@ -47,4 +47,3 @@ __all__ = [
     "zoomout_energy",
     "zoomout_sequence",
 ]
-

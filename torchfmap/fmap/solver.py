@@ -372,9 +372,7 @@ def solve_fmap(
         w_lap=w_lap,
         mask=mask,
         w_dcomm=w_dcomm,
-        w_orient=(W_ORIENT if meshes is not None else 0.0)
-        if w_orient is None
-        else w_orient,
+        w_orient=(W_ORIENT if meshes is not None else 0.0) if w_orient is None else w_orient,
         orient_reversing=orient_reversing,
         meshes=meshes,
         landmarks=landmarks if has_landmarks else None,

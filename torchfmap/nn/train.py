@@ -17,6 +17,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import torch
 
+from .augment import augment_batch, augmentation
 from .data import ShapeDataset, collate_pairs
 from .modules import UnsupervisedFMLoss
 from .networks import features
@@ -86,13 +87,28 @@ def unsupervised_score(
     loss_fn: UnsupervisedFMLoss,
     device: str | torch.device = "cpu",
     extra_losses: Sequence[ExtraLoss] = (),
+    augment: str = "none",
+    seed: int = 0,
 ):
     """``score(net) -> float``: the mean unsupervised loss (plug-in terms included) on ``pairs``
     with full (not sampled) soft maps, in eval mode, for the trainer's ``validate`` (lower is
-    better; no ground truth). Batches are moved to ``device``."""
+    better; no ground truth). Batches are moved to ``device``.
+
+    ``augment``: the recipe's augmentation (:attr:`TrainConfig.augment
+    <torchfmap.nn.TrainConfig>`), resolved for the shapes' inputs by the training's rule
+    (:func:`~torchfmap.nn.augment.augmentation`) and applied to the validation pairs once, with
+    draws from ``seed``: the score measures the pairs as training sees them (a network trained
+    facing anywhere is scored on turned pairs, not only on the pairs as stored), and every call
+    scores the same inputs.
+
+    Raises:
+        ParameterError: an unknown ``augment``.
+    """
     full = copy.deepcopy(loss_fn)
     full.n_samples = 0
-    batches = [collate_pairs([(shapes[a], shapes[b])]) for a, b in pairs]
+    augment = augmentation(augment, getattr(shapes, "inputs", None))
+    draws = torch.Generator().manual_seed(seed)
+    batches = [augment_batch(collate_pairs([(shapes[a], shapes[b])]), augment, draws) for a, b in pairs]
 
     @torch.no_grad()
     def score(net) -> float:

@@ -41,7 +41,6 @@ LAPLACIAN_SCHEMES = ("cotan", "robust", "mean_value")
 MASS_SCHEMES = ("voronoi", "barycentric", "fem")
 
 
-
 class Operators(NamedTuple):
     """Stiffness and mass matrices, both ``(V, V)`` scipy CSR float64. Unpacks as ``L, B``."""
 
