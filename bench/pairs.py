@@ -9,8 +9,8 @@ Pair specs (``x`` the source, ``y`` the target; every map is ``p2p_yx``):
   seed=crc32(B), strength=1)`` (vertex ids kept, same ground truth);
 - ``faust:A-B``: ``faust_r_train/tr_reg_A.off`` and ``tr_reg_B.off`` (``corres/*.vts``);
 - ``smal:A+B``: ``smal_r_train/A.off.gz`` and ``B.off.gz`` (``corres/*.vts``);
-- ``faust_a:A+B``, ``scape_r:A+B``, ``scape_a:A+B``: the remeshed dev sets of ``bench/data``
-  (``python -m tools.remesh``);
+- ``faust_a:A+B``, ``faust_h:A+B``, ``scape_r:A+B``, ``scape_a:A+B``, ``scape_h:A+B``: the
+  remeshed dev sets of ``bench/data`` (``python -m tools.remesh``);
 - ``cat-lion``: ``pyfm_cat_lion`` cat-00 (x) and lion-00 (y), ground truth ``lion2cat``, its 20
   given landmark pairs.
 
@@ -51,7 +51,10 @@ SCAPE_VAL = [f"mesh{i:03d}" for i in range(41, 51)]
 TOSCA_ISO = ["cat0-cat1", "cat2-cat8", "cat10-cat4", "cat5-cat9", "wolf0-wolf1", "wolf1-wolf2"]
 TOSCA_NONISO = ["cat-lion", "cat0~cat1", "cat5~cat9", "cat2~cat8", "wolf0~wolf1"]
 #: Remeshed dev sets (``python -m tools.remesh``) and the shape names they validate on.
-LOCAL_SETS = {"faust_a": FAUST_VAL, "scape_r": SCAPE_VAL, "scape_a": SCAPE_VAL}
+LOCAL_SETS = {
+    "faust_a": FAUST_VAL, "faust_h": FAUST_VAL,
+    "scape_r": SCAPE_VAL, "scape_a": SCAPE_VAL, "scape_h": SCAPE_VAL,
+}  # fmt: skip
 
 
 def drawn_pairs(names: list[str], n: int, seed: int = 0) -> list[tuple[str, str]]:

@@ -51,6 +51,33 @@ def test_anisotropic_triangles_are_elongated_and_the_spectrum_stays(sphere4):
         assert np.all(np.abs(got - exact) <= 4 * h**2 * np.maximum(exact, 1) + 1e-8), (got, h)
 
 
+def test_density_grows_the_edges_along_a_direction_as_the_inversion_predicts(sphere4):
+    """``density``: an inversion centred at distance D = R / (sqrt(density) - 1) before the
+    sphere (diameter R) along u scales lengths by |x - c|^2, so edges whose midpoints lie at
+    fraction f of the way along u are (D + f R)^2 long up to a constant: the mean edge of the
+    far decile (f about 0.95) over the near one (f about 0.05) is ((D + 0.95 R) / (D + 0.05 R))^2,
+    to the remesher's own spread of edge lengths (it splits above 4/3 and collapses below 4/5
+    of its target); triangles keep their shape (the inversion is conformal)."""
+    density, seed = 4.0, 3
+    out = remesh(sphere4, 2000, "isotropic", density=density, seed=seed).mesh
+    uniform = remesh(sphere4, 2000, "isotropic", seed=seed).mesh
+    u = np.random.default_rng(seed).normal(size=3)  # the seed's first draw without a stretch
+    u /= np.linalg.norm(u)
+    edges = out.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    at = out.vertices[edges].mean(axis=1) @ u
+    length = np.linalg.norm(out.vertices[edges[:, 0]] - out.vertices[edges[:, 1]], axis=1)
+    near, far = np.quantile(at, [0.1, 0.9])
+    R = 2.0
+    D = R / (np.sqrt(density) - 1.0)
+    expected = ((D + 0.95 * R) / (D + 0.05 * R)) ** 2
+    assert 0.8 * expected < length[at >= far].mean() / length[at <= near].mean() < 1.25 * expected
+    assert np.median(aspect(out)) < 1.25 * np.median(aspect(uniform))
+    with pytest.raises(ParameterError, match="density"):
+        remesh(sphere4, 1000, "isotropic", density=0.5)
+    with pytest.raises(ParameterError, match="density"):
+        remesh(sphere4, 1000, "decimate", density=2.0)
+
+
 def test_remesh_refuses_bad_settings(sphere4):
     with pytest.raises(ParameterError, match="unknown remeshing method"):
         remesh(sphere4, 1000, "quad")

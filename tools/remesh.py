@@ -15,9 +15,15 @@ B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was m
 - ``faust_a``: FAUST_r training shapes tr_reg_000..079 anisotropically remeshed from their
   FAUST_r meshing (stretch 3, random direction per shape), ~5,000 vertices, their ``.vts``
   carried through (5,000 rows);
+- ``faust_h``, ``scape_h``: the hard meshings, harder than the anisotropic benchmark sets:
+  triangles stretched 5 : 1 along a random direction, edges about 4 times longer at one end of
+  the body than at the other (``remesh(density=4)``, along another random direction), and a
+  vertex count drawn per shape between 3,000 and 10,000; FAUST_r tr_reg_000..079 and SCAPE
+  mesh000..050 as for ``faust_a`` / ``scape_a``;
 - ``fs_train``: links to the F+S training shapes in both meshings (FAUST_r and faust_a
   tr_reg_000..069, scape_r and scape_a mesh000..040; anisotropic copies named ``<name>_a``):
   the folder ``torchfmap train --pairs all`` reads for the shipped ``humans`` model;
+- ``fsh_train``: ``fs_train`` and the hard meshings of the same shapes (``<name>_h``);
 - ``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe (every 4th
   sorted name validates instead, ``bench/pairs.py``'s ``smal_split``);
 - ``smal_val``: links to the other 8 animals and their ground truth, with a ``test_pairs.txt``
@@ -52,7 +58,12 @@ def require_data(name: str) -> Path:
         raise SystemExit(f"tools.remesh: {why}") from None
 
 
-SETS = ("scape_r", "scape_a", "faust_a", "fs_train", "smal_train", "smal_val")
+SETS = (
+    "scape_r", "scape_a", "faust_a", "faust_h", "scape_h", "fs_train", "fsh_train", "smal_train", "smal_val"
+)  # fmt: skip
+#: Remeshing of the hard sets (``*_h``): ``remesh`` settings, and the range of vertex counts.
+HARD = {"stretch": 5.0, "density": 4.0}
+HARD_VERTICES = (3000, 10000)
 #: Ordered validation pairs of ``smal_val`` (its test_pairs.txt).
 SMAL_VAL_PAIRS = 16
 #: Training shapes of the F+S recipe (the rest of each set validates): FAUST_r 000..069, SCAPE 000..040.
@@ -70,44 +81,55 @@ def _write(out: Path, name: str, mesh, vts0: np.ndarray) -> None:
 def make(set_name: str, out: Path, names=None) -> None:
     src = require_data("scape_train" if set_name.startswith("scape") else "faust_r_train")
     method = "isotropic" if set_name == "scape_r" else "anisotropic"
+    hard = set_name.endswith("_h")
     folder = out / set_name
-    files = [f for f in mesh_files(src) if names is None or shape_name(f) in names]
-    for i, path in enumerate(tqdm(files, desc=set_name)):
+    # seeds follow a shape's place among all of the source's shapes, so a subset gets the same meshes
+    files = [(i, f) for i, f in enumerate(mesh_files(src)) if names is None or shape_name(f) in names]
+    for i, path in tqdm(files, desc=set_name):
         name = shape_name(path)
         if (folder / f"{name}.off").exists():
             continue
         mesh = load_mesh(path, allow_nonmanifold=True)
-        res = remesh(mesh, N_VERTICES, method, seed=1000 + i)
+        if hard:
+            n = int(np.random.default_rng(2000 + i).integers(HARD_VERTICES[0], HARD_VERTICES[1] + 1))
+            res = remesh(mesh, n, method, seed=2000 + i, **HARD)
+        else:
+            res = remesh(mesh, N_VERTICES, method, seed=1000 + i)
         if set_name.startswith("scape"):
             old = np.arange(mesh.n_vertices)  # identity ground truth on the template
         else:
             old = read_vts(src / "corres" / f"{name}.vts")
         _write(folder, name, res.mesh, res.to_new[old])
+    size = f"{HARD}, {HARD_VERTICES[0]}-{HARD_VERTICES[1]} vertices" if hard else f"~{N_VERTICES} vertices"
     (folder / "README.md").write_text(
         f"# {set_name}\n\nMade by `python -m tools.remesh --sets {set_name}` from "
-        f"`../shared/data/{src.name}` ({method} remeshing, ~{N_VERTICES} vertices, "
+        f"`../shared/data/{src.name}` ({method} remeshing, {size}, "
         "ground truth carried to the nearest new vertex). Same terms as the source; do not ship.\n"
     )
     log(f"{set_name}: {len(files)} shapes in {folder}")
 
 
-def make_training_folder(out: Path) -> None:
+def make_training_folder(out: Path, hard: bool = False) -> None:
     """``fs_train``: links to the F+S training shapes in both meshings (FAUST_r and faust_a
-    000..069, scape_r and scape_a 000..040; the anisotropic copies named ``<name>_a``)."""
-    folder = out / "fs_train"
+    000..069, scape_r and scape_a 000..040; the anisotropic copies named ``<name>_a``);
+    ``fsh_train`` (``hard``): the same and the hard meshings of faust_h and scape_h (``<name>_h``)."""
+    folder = out / ("fsh_train" if hard else "fs_train")
     folder.mkdir(parents=True, exist_ok=True)
     faust = require_data("faust_r_train")
     links = [(faust / f"{n}.off", n) for n in FAUST_TRAIN]
     links += [(out / "faust_a" / f"{n}.off", f"{n}_a") for n in FAUST_TRAIN]
     links += [(out / "scape_r" / f"{n}.off", n) for n in SCAPE_TRAIN]
     links += [(out / "scape_a" / f"{n}.off", f"{n}_a") for n in SCAPE_TRAIN]
+    if hard:
+        links += [(out / "faust_h" / f"{n}.off", f"{n}_h") for n in FAUST_TRAIN]
+        links += [(out / "scape_h" / f"{n}.off", f"{n}_h") for n in SCAPE_TRAIN]
     for target, name in links:
         if not target.exists():
-            raise SystemExit(f"{target} is missing: make the sets faust_a, scape_r, scape_a first")
+            raise SystemExit(f"{target} is missing: make the sets it links ({target.parent.name}) first")
         link = folder / f"{name}.off"
         if not link.exists():
             link.symlink_to(target.resolve())
-    log(f"fs_train: {len(links)} shapes in {folder}")
+    log(f"{folder.name}: {len(links)} shapes in {folder}")
 
 
 def make_smal_training_folder(out: Path) -> None:
@@ -156,8 +178,8 @@ def main() -> None:
     for s in args.sets:
         if s not in SETS:
             raise SystemExit(f"unknown set {s!r}: one of {', '.join(SETS)}")
-        if s == "fs_train":
-            make_training_folder(Path(args.out))
+        if s in ("fs_train", "fsh_train"):
+            make_training_folder(Path(args.out), hard=s == "fsh_train")
         elif s == "smal_train":
             make_smal_training_folder(Path(args.out))
         elif s == "smal_val":

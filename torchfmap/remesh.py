@@ -13,6 +13,12 @@ Two meshings, both from pymeshlab (the maintained Python binding of MeshLab):
   (the anisotropic benchmark meshings, FAUST_a and SCAPE_a, mix triangle shapes similarly);
 - ``'decimate'``: quadric edge collapse to the target count (keeps the original vertices'
   positions, as SCAPE_r / FAUST_r were made).
+
+``density > 1`` (isotropic and anisotropic) also varies the edge length over the shape: the
+surface is inverted in a sphere centred outside it along a random direction ``u`` (a conformal
+map: angles kept, sizes changed), remeshed with one edge length there and inverted back, so
+edges are about ``density`` times longer at the far end of the shape along ``u`` than at the near
+end, with triangle shapes unchanged (as scans and artist meshes are finer where detail is).
 """
 
 from __future__ import annotations
@@ -42,6 +48,32 @@ class Remeshed:
     to_new: np.ndarray
 
 
+class _DensityWarp:
+    """The inversion of ``density`` (module docstring) in a sphere centred at ``c``, outside the
+    shape along the unit vector of ``u``: ``x -> c + (x - c) / |x - c|^2`` (a sphere of radius 1,
+    the scale is immaterial). An inversion is conformal (it keeps angles, only sizes change) and
+    its own inverse; it scales lengths near ``x`` by ``1 / |x - c|^2``, so with the nearest point
+    of the shape at distance ``D`` from ``c`` and the farthest at ``D + R``, edges of one length in
+    the inverted space are ``((D + R) / D)^2 = density`` times longer at the far end:
+    ``D = R / (sqrt(density) - 1)``. ``density == 1``: the identity."""
+
+    def __init__(self, V: np.ndarray, density: float, u: np.ndarray) -> None:
+        self.on = density > 1.0
+        if self.on:
+            u = u / np.linalg.norm(u)
+            mid = (V.max(axis=0) + V.min(axis=0)) / 2.0
+            t = (V - mid) @ u
+            R = float(np.ptp(t))
+            D = R / (math.sqrt(density) - 1.0)
+            self.c = mid + (float(t.min()) - D) * u  # D before the nearest point along u
+
+    def __call__(self, V: np.ndarray) -> np.ndarray:
+        if not self.on:
+            return V
+        x = V - self.c
+        return self.c + x / np.einsum("ij,ij->i", x, x)[:, None]
+
+
 def _pymeshlab():
     try:
         import pymeshlab
@@ -59,6 +91,7 @@ def remesh(
     *,
     stretch: float = 3.0,
     direction=None,
+    density: float = 1.0,
     seed: int = 0,
 ) -> Remeshed:
     """``mesh`` remeshed to about ``n_vertices`` vertices (within a few percent), and the
@@ -71,11 +104,13 @@ def remesh(
         stretch: elongation of ``'anisotropic'`` triangles, ``> 1``.
         direction: ``(3,)`` stretch direction of ``'anisotropic'`` (default: a random unit
             vector drawn from ``seed``).
-        seed: seed of the random direction.
+        density: ratio of the longest to the shortest edge length across the shape, ``>= 1``
+            (1: uniform; module docstring), varying along a random direction drawn from ``seed``.
+        seed: seed of the random directions.
 
     Raises:
-        ParameterError: an unknown method, ``n_vertices < 100``, ``stretch <= 1`` or a zero
-            direction; ImportError without pymeshlab.
+        ParameterError: an unknown method, ``n_vertices < 100``, ``stretch <= 1``, ``density < 1``
+            (or with ``'decimate'``) or a zero direction; ImportError without pymeshlab.
     """
     if method not in METHODS:
         raise ParameterError(f"unknown remeshing method {method!r}. Fix: one of {', '.join(METHODS)}.")
@@ -83,17 +118,24 @@ def remesh(
         raise ParameterError(f"n_vertices must be an integer >= 100, got {n_vertices}.")
     if method == "anisotropic" and not (math.isfinite(stretch) and stretch > 1):
         raise ParameterError(f"stretch must be a finite number > 1, got {stretch}.")
+    if not (math.isfinite(density) and density >= 1) or (density > 1 and method == "decimate"):
+        raise ParameterError(
+            f"density must be a finite number >= 1 with 'isotropic' or 'anisotropic', got {density} "
+            f"with {method!r}. Fix: density=1 (uniform) or another method."
+        )
     ml = _pymeshlab()
     V = mesh.vertices
+    rng = np.random.default_rng(seed)
     A = np.eye(3)
     if method == "anisotropic":
-        d = np.random.default_rng(seed).normal(size=3) if direction is None else np.asarray(direction, float)
+        d = rng.normal(size=3) if direction is None else np.asarray(direction, float)
         if d.shape != (3,) or not np.linalg.norm(d) > 0:
             raise ParameterError(f"direction must be a non-zero (3,) vector, got {direction!r}.")
         d = d / np.linalg.norm(d)
         A = np.eye(3) + (stretch - 1.0) * np.outer(d, d)
+    warp = _DensityWarp(V, density, rng.normal(size=3))
     ms = ml.MeshSet()
-    ms.add_mesh(ml.Mesh(V @ A, mesh.faces))
+    ms.add_mesh(ml.Mesh(warp(V) @ A, mesh.faces))
     base = ms.current_mesh_id()
     area = float(ms.get_geometric_measures()["surface_area"])
     # equilateral triangles, F = 2V: area = 2 V (sqrt(3) / 4) l^2
@@ -120,7 +162,7 @@ def remesh(
         ms.meshing_remove_unreferenced_vertices()
         out = ms.current_mesh()
         got = out.vertex_number()
-        verts = out.vertex_matrix() @ np.linalg.inv(A)
+        verts = warp(out.vertex_matrix() @ np.linalg.inv(A))
         try:
             candidate = Mesh(verts, out.face_matrix().astype(np.int64), allow_nonmanifold=True)
         except MeshError as err:  # e.g. a sliver face: remesh again (more iterations)
