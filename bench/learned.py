@@ -83,7 +83,7 @@ def checkpoints(cfg: Settings, report: Report) -> None:
     """Errors of trained checkpoints on validation sets: untrained baseline (same recipe and
     seed), the functional map's point map (orthogonal and pull-back rules), nearest features,
     ZoomOut, and test-time adaptation, with seconds per pair and the loss curves."""
-    rows, curves = [], {}
+    rows, curves, described = [], {}, set()
     for set_name, specs in _sets(cfg).items():
         for label, path in _checkpoints(cfg.checkpoints):
             net, config, ckpt = load_checkpoint(path)
@@ -144,12 +144,14 @@ def checkpoints(cfg: Settings, report: Report) -> None:
                         "t / trained fmap": seconds[method] / len(errs) / base_t,
                     }
                 )
-            secs = state.get("epoch_seconds", [])
-            report.add(
-                f"**{label}** (`{path}`): {config.basis} basis K={config.k}, inputs {config.inputs}, "
-                f"{state.get('step', '?')} steps; seconds per full epoch: "
-                f"{', '.join(f'{s:.0f}' for s in secs) or 'n/a'}"
-            )
+            if label not in described:  # once per model, not per set
+                described.add(label)
+                epochs = ", ".join(f"{s:.0f}" for s in state.get("epoch_seconds", [])) or "n/a"
+                shipped = (ckpt.get("provenance") or {}).get("training", "not recorded")
+                own = f"{state.get('step')} steps; seconds per epoch: {epochs}"
+                trained = own if "step" in state else shipped
+                recipe = f"{config.basis} basis K={config.k}, inputs {config.inputs}"
+                report.add(f"**{label}** (`{path}`): {recipe}; {trained}")
     report.table("Mean geodesic error / sqrt(area) x100; seconds per pair (precompute excluded)", rows)
     report.rows_csv(rows)
     if any(curves.values()):

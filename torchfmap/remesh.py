@@ -63,7 +63,7 @@ class _DensityWarp:
             u = u / np.linalg.norm(u)
             mid = (V.max(axis=0) + V.min(axis=0)) / 2.0
             t = (V - mid) @ u
-            R = float(np.ptp(t))
+            R = float(np.ptp(t)) or float(np.linalg.norm(np.ptp(V, axis=0)))  # flat across u: the diagonal
             D = R / (math.sqrt(density) - 1.0)
             self.c = mid + (float(t.min()) - D) * u  # D before the nearest point along u
 
