@@ -364,7 +364,7 @@ class LearnedMatcher:
             sx, sy = _pair(ix, iy, self.device)
             solver = self.solver.to(self.device)
             fx = features(net, sx)
-            C, turn = None, None
+            C, least = None, float("inf")
             for angle in self.facings():  # one facing, or the most isometric of several
                 turned = (
                     sy._replace(inputs=sy.inputs @ yaw_matrices(sy.inputs.new_tensor([angle])))
@@ -373,8 +373,8 @@ class LearnedMatcher:
                 )
                 C_a = _solve_xy(solver, fx, features(net, turned), sx.basis, sy.basis)[0]
                 defect = laplacian_defect(C_a, sx.basis, sy.basis)
-                if C is None or defect < turn[1]:
-                    C, turn = C_a, (angle, defect)
+                if C is None or defect < least:
+                    C, least = C_a, defect
         timings["network+fmap"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         C = C.to(torch.float64)
