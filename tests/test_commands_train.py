@@ -201,6 +201,13 @@ def test_the_validation_loss_is_explained_against_the_untrained_network_and_an_u
     assert main([*args, "--validate-every", "1", "--lr", "1e-12", "--out", str(tmp_path / "still.ckpt")]) == 0
     err = capsys.readouterr().err
     assert "lowered the validation loss only from" in err and "Fix: train longer" in err
+    # a fine-tune starts from trained weights: its step-0 score is theirs, and a small gain no warning
+    tuned = tmp_path / "tuned.ckpt"
+    fine = [*args, "--validate-every", "1", "--lr", "1e-12", "--init", str(ckpt), "--out", str(tuned)]
+    assert main(fine) == 0
+    captured = capsys.readouterr()
+    assert "the --init weights" in captured.out and "untrained" not in captured.out
+    assert "lowered the validation loss only" not in captured.err
 
 
 def test_a_checkpoint_exists_before_the_first_step(tmp_path, monkeypatch):

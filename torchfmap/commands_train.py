@@ -123,7 +123,8 @@ def _train(args: argparse.Namespace) -> int:
         return 130
     last = state.losses[-1]["total"] if state.losses else float("nan")
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
-    say(f"{summary}{_validation_summary(state, len(picked))} -> {args.out}")
+    started = "the --init weights" if args.init else "untrained"
+    say(f"{summary}{_validation_summary(state, len(picked), started)} -> {args.out}")
     return 0
 
 
@@ -132,26 +133,27 @@ def _train(args: argparse.Namespace) -> int:
 UNMOVED = 0.9
 
 
-def _validation_summary(state, n_pairs: int) -> str:
-    """What the validation score means, against the untrained network's (step 0); warns on
-    stderr when training did not move it."""
+def _validation_summary(state, n_pairs: int, started: str = "untrained") -> str:
+    """What the validation score means, against the step-0 score of the weights training
+    ``started`` from (``"untrained"``, or ``"the --init weights"``); warns on stderr when training
+    from scratch did not move it (a fine-tune starts from a low score: any gain is progress)."""
     if not state.scores:
         return ""
     text = (
         f"; best validation loss {state.best_score:.4g} (the unsupervised loss on {n_pairs} fixed "
         "training pairs, lower is better"
     )
-    untrained = state.scores[0][1] if state.scores[0][0] == 0 else None
-    if untrained is None or not untrained > 0:
+    first = state.scores[0][1] if state.scores[0][0] == 0 else None
+    if first is None or not first > 0:
         return text + ")"
-    if state.best_score > UNMOVED * untrained:
+    if started == "untrained" and state.best_score > UNMOVED * first:
         print(
-            f"torchfmap: warning: training lowered the validation loss only from {untrained:.4g} "
+            f"torchfmap: warning: training lowered the validation loss only from {first:.4g} "
             f"(untrained) to {state.best_score:.4g}: the network is close to untrained and its maps "
             "will be too. Fix: train longer (--minutes / --epochs), or check the meshes and --pairs.",
             file=sys.stderr,
         )
-    return text + f"; untrained {untrained:.4g}, {100 * (1 - state.best_score / untrained):.0f} % lower)"
+    return text + f"; {started} {first:.4g}, {100 * (1 - state.best_score / first):.0f} % lower)"
 
 
 def _fit_or_interrupted(trainer, progress: bool):
