@@ -123,8 +123,7 @@ def _train(args: argparse.Namespace) -> int:
         return 130
     last = state.losses[-1]["total"] if state.losses else float("nan")
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
-    started = "the --init weights" if args.init else "untrained"
-    say(f"{summary}{_validation_summary(state, len(picked), started)} -> {args.out}")
+    say(f"{summary}{_validation_summary(state, len(picked), fine_tune=bool(args.init))} -> {args.out}")
     return 0
 
 
@@ -133,10 +132,10 @@ def _train(args: argparse.Namespace) -> int:
 UNMOVED = 0.9
 
 
-def _validation_summary(state, n_pairs: int, started: str = "untrained") -> str:
-    """What the validation score means, against the step-0 score of the weights training
-    ``started`` from (``"untrained"``, or ``"the --init weights"``); warns on stderr when training
-    from scratch did not move it (a fine-tune starts from a low score: any gain is progress)."""
+def _validation_summary(state, n_pairs: int, fine_tune: bool = False) -> str:
+    """What the validation score means, against the step-0 score of the weights training started
+    from (untrained, or the --init weights of a ``fine_tune``); warns on stderr when training from
+    scratch did not move it (a fine-tune starts from a low score: any gain is progress)."""
     if not state.scores:
         return ""
     text = (
@@ -146,7 +145,8 @@ def _validation_summary(state, n_pairs: int, started: str = "untrained") -> str:
     first = state.scores[0][1] if state.scores[0][0] == 0 else None
     if first is None or not first > 0:
         return text + ")"
-    if started == "untrained" and state.best_score > UNMOVED * first:
+    started = "the --init weights" if fine_tune else "untrained"
+    if not fine_tune and state.best_score > UNMOVED * first:
         print(
             f"torchfmap: warning: training lowered the validation loss only from {first:.4g} "
             f"(untrained) to {state.best_score:.4g}: the network is close to untrained and its maps "
