@@ -105,6 +105,21 @@ f 4/2/1 1/1/1 5/1/1
     assert set(map(tuple, np.sort(mesh.faces[2:], axis=1))) == set(map(tuple, np.sort(f[2:], axis=1)))
 
 
+def test_obj_keeps_a_vertex_no_face_uses_and_reads_relative_corners(tmp_path):
+    """A vertex no face references stays at its index (trimesh drops it, which renumbers every
+    later vertex and so breaks ground truth); negative corners count back from the last vertex."""
+    path = tmp_path / "tri.obj"
+    path.write_text("v 0 0 0\nv 9 9 9\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n")
+    with pytest.raises(MeshError, match="not used by any face.*allow_unreferenced"):
+        load_mesh(path)
+    mesh = load_mesh(path, allow_unreferenced=True)
+    assert mesh.vertices.tolist() == [[0, 0, 0], [9, 9, 9], [1, 0, 0], [0, 1, 0]]
+    assert mesh.faces.tolist() == [[1, 2, 3]]
+    path.write_text("v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n")  # a corner defined after its face
+    with pytest.raises(MeshError, match=r"tri\.obj':3: .*outside the 2 defined"):
+        load_mesh(path)
+
+
 def test_ply_binary_and_ascii(tmp_path, shuffled):
     for encoding in ("binary", "ascii"):
         data = shuffled.to_trimesh().export(file_type="ply", encoding=encoding)

@@ -4,6 +4,8 @@ of a parser's error. Used by :mod:`torchfmap.io`, the home of every file format.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .errors import MeshError
 
 
@@ -82,6 +84,11 @@ def check_off(text: str, name: str) -> None:
         ids = [int(t) for ln in lines[start : start + n_f] for t in ln.split()[1 : 1 + int(ln.split()[0])]]
     except ValueError:
         return  # trimesh names what it cannot parse
+    if ids and min(ids) < 0:  # some trimesh versions index from the end with it
+        raise MeshError(
+            f"{name!r} has face index {min(ids)}: OFF indices are 0..{n_v - 1}, never negative. Fix: "
+            "check the file's face lines."
+        )
     if ids and max(ids) >= n_v:
         if min(ids) >= 1 and max(ids) == n_v:
             raise MeshError(
@@ -123,12 +130,25 @@ def check_stl(data: bytes, name: str) -> None:
         return
     head = data[:1024].lstrip().lower()
     if head.startswith(b"solid") and (b"facet" in data[:4096].lower() or len(data) < 4096):
+        _check_stl_vertices(data.decode("latin-1"), name)
         return
     raise MeshError(
         f"{name!r} is not an STL file: not binary STL (84-byte header + 50 bytes per triangle; "
         f"{len(data)} bytes here) and not ASCII STL (starting 'solid' with 'facet' lines). Fix: "
         "check the file and its extension."
     )
+
+
+def _check_stl_vertices(text: str, name: str) -> None:
+    """ASCII STL ``vertex`` lines hold three numbers (some trimesh versions read a damaged
+    coordinate such as ``-`` or ``1.5x`` as a number)."""
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if fields[:1] == ["vertex"] and not (len(fields) == 4 and all(is_float(t) for t in fields[1:])):
+            raise MeshError(
+                f"{name!r}:{number}: {line.strip()!r} is not an STL vertex ('vertex x y z'): the line "
+                "is damaged. Fix: copy or export the file again."
+            )
 
 
 def check_ply(data: bytes, name: str) -> None:
@@ -171,8 +191,8 @@ def check_ply(data: bytes, name: str) -> None:
     start = 0
     for element, count, scalars, lists in elements:
         for number, fields in enumerate(lines[start : start + count], start=start):
-            if lists == 0:
-                good = len(fields) == scalars
+            if lists == 0:  # some trimesh versions read '12x' as 12
+                good = len(fields) == scalars and all(is_float(t) for t in fields)
             elif lists == 1 and scalars == 0:
                 good = fields[0].isdigit() and len(fields) == 1 + int(fields[0])
                 if good and integer_lists == {True}:
@@ -223,6 +243,34 @@ def check_obj(text: str, name: str) -> None:
                 f"{'vertex (v x y z)' if fields[0] == 'v' else 'face (f i j k, 1-based vertex indices)'}. "
                 "Fix: copy or export the file again."
             )
+
+
+def read_obj(text: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(V, 3)`` float64 vertices and ``(F, 3)`` int64 faces of an OBJ text already passed by
+    :func:`check_obj`: every ``v`` line in file order (unreferenced vertices kept, texture and
+    normal indices ignored, so no vertex is split, merged or dropped), polygons fanned into
+    triangles, 1-based and negative (relative) corners made 0-based. Raises :class:`MeshError`
+    naming ``name`` for a corner outside the vertices defined before its face."""
+    vertices, faces = [], []
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields or fields[0] not in ("v", "f"):
+            continue
+        if fields[0] == "v":
+            vertices.append([float(t) for t in fields[1:4]])
+            continue
+        corners = [int(t.split("/", 1)[0]) for t in fields[1:]]
+        corners = [c - 1 if c > 0 else len(vertices) + c for c in corners]
+        if min(corners) < 0 or max(corners) >= len(vertices):
+            raise MeshError(
+                f"{name!r}:{number}: {line.strip()!r} names a vertex outside the {len(vertices)} defined "
+                "before it. Fix: copy or export the file again."
+            )
+        faces.extend([corners[0], corners[i], corners[i + 1]] for i in range(1, len(corners) - 1))
+    return (
+        np.asarray(vertices, dtype=np.float64).reshape(-1, 3),
+        np.asarray(faces, dtype=np.int64).reshape(-1, 3),
+    )
 
 
 def is_float(token: str) -> bool:

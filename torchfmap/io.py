@@ -8,9 +8,10 @@ an optional ``.gz``, and a ``.gz`` file is read and written gzip-compressed. Fol
 
 Meshes never change vertex order. Ground-truth correspondences are vertex indices, so a loader
 that merges, sorts or drops vertices silently breaks them. :func:`load_mesh` goes through
-trimesh with ``process=False`` and ``maintain_order=True``; the one exception is STL, a
-triangle soup with no shared vertices, where identical corners are merged **in order of first
-appearance** (the only vertex order an STL file defines).
+trimesh with ``process=False`` and ``maintain_order=True``, except OBJ, read here (trimesh
+drops the vertices no face references), and STL, a triangle soup with no shared vertices, where
+identical corners are merged **in order of first appearance** (the only vertex order an STL file
+defines).
 
 Index files (maps, ``.vts``, landmarks, landmark pairs) are text with one row per line;
 ``#`` comments, blank lines and a UTF-8 byte-order mark are ignored, and a malformed file
@@ -31,7 +32,7 @@ import numpy as np
 import trimesh
 
 from ._files import atomic_write
-from ._format_checks import check_obj, check_ply, is_float, off_without_comments
+from ._format_checks import check_obj, check_ply, is_float, off_without_comments, read_obj
 from ._format_checks import check_off as _check_off
 from ._format_checks import check_stl as _check_stl
 from ._format_checks import off_header_counts as off_header_counts
@@ -155,21 +156,23 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             f"{path.name!r} is empty ({len(data)} bytes): no vertices, no faces. Fix: copy or export the "
             "mesh again."
         )
-    try:
-        data = _checked_bytes(data, fmt, path.name)
-        loaded = trimesh.load(
-            _io.BytesIO(data), file_type=fmt, process=False, maintain_order=True, force="mesh"
-        )
-    except MeshError:
-        raise
-    except Exception as err:  # trimesh raises many types for malformed files
-        raise MeshError(
-            f"could not parse {path.name!r} as {fmt.upper()} (the parser said: {err}). Fix: check that "
-            f"the file is a {fmt.upper()} mesh (its extension names the format; open it in a viewer)."
-        ) from err
-    # older trimesh returns a PointCloud (no faces) for a file without faces, even with force="mesh"
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    data = _checked_bytes(data, fmt, path.name)
+    if fmt == "obj":  # trimesh drops the vertices no face references: read in file order here
+        vertices, faces = read_obj(data.decode("utf-8"), path.name)
+    else:
+        try:
+            loaded = trimesh.load(
+                _io.BytesIO(data), file_type=fmt, process=False, maintain_order=True, force="mesh"
+            )
+        except Exception as err:  # trimesh raises many types for malformed files
+            raise MeshError(
+                f"could not parse {path.name!r} as {fmt.upper()} (the parser said: {err}). Fix: check "
+                f"that the file is a {fmt.upper()} mesh (its extension names the format; open it in a "
+                "viewer)."
+            ) from err
+        # older trimesh returns a PointCloud (no faces) for a file without faces, even with force="mesh"
+        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if fmt == "stl" and len(faces):
         vertices, faces, _ = weld_vertices(vertices, faces, rtol=0)  # STL stores a soup
     if len(faces) == 0 and fmt in ("ply", "off", "obj"):
@@ -206,6 +209,8 @@ def _checked_bytes(data: bytes, fmt: str, name: str) -> bytes:
 
 def _read_points(data: bytes, fmt: str) -> np.ndarray:
     """The vertex coordinates of a mesh or point-cloud file's bytes, ``(V, 3)`` (faces ignored)."""
+    if fmt == "obj":
+        return read_obj(data.decode("utf-8"), "")[0]
     try:
         loaded = trimesh.load(_io.BytesIO(data), file_type=fmt, process=False, maintain_order=True)
     except Exception:  # the file was parsed as a mesh already; no points means none
@@ -326,6 +331,8 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
 
 #: Characters that cannot appear in a table of integers (outside comments).
 _NOT_INTEGER_TEXT = re.compile(r"[^0-9\s+\-\ufeff]")
+#: A number of 19 digits or more: may not fit in int64 (2**63 has 19 digits).
+_LONG_NUMBER = re.compile(r"\d{19,}")
 #: A header field: a word starting with a letter or an underscore.
 _HEADER_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*$")
 #: Field separators of index tables: white space, commas, semicolons.
@@ -349,7 +356,9 @@ def read_index_table(path: str | os.PathLike, columns: int | None, what: str) ->
     """
     text = read_text(path, what)
     body = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
-    if _NOT_INTEGER_TEXT.search(body):  # e.g. '1.5': some numpy versions' loadtxt truncates it
+    if _NOT_INTEGER_TEXT.search(body) or _LONG_NUMBER.search(body):
+        # e.g. '1.5', which some numpy versions' loadtxt truncates, or 10**30, which numpy 2.0's
+        # loadtxt wraps around to a negative index instead of raising
         return _parse_rows(text, path, columns, what)
     try:  # fast path for well-formed files; the careful parser names the problem otherwise
         with warnings.catch_warnings():
