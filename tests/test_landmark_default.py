@@ -29,6 +29,29 @@ def test_held_out_landmark_errors_are_distances_to_the_true_matches(bent_pair):
         landmark_scores(sx, sy, pairs[:2], CV_KINDS, 12)
 
 
+def test_landmark_descriptors_are_solved_once_per_landmark(bent_pair, monkeypatch):
+    """The cross-validation's folds use subsets of the same landmarks: their descriptor columns
+    are the whole set's columns, solved once per landmark and shape."""
+    import torchfmap.solve as solve
+
+    x, y, gt = bent_pair
+    pairs = landmarks_from_gt(x, gt, 6)
+    sx, sy = prepare_shape(x, 30), prepare_shape(y, 30)
+    whole = solve.match_descriptors(sx, sy, pairs)
+    solved = []
+    real = solve.landmark_descriptors
+    monkeypatch.setattr(
+        solve, "landmark_descriptors", lambda lm, **kw: solved.append(list(lm)) or real(lm, **kw)
+    )
+    fold = solve.match_descriptors(sx, sy, pairs[1::2])
+    assert solved == []  # every landmark's columns were kept
+    n_wks, per = whole[0].shape[1] - 2 * len(pairs), 2  # two heat kernels per landmark
+    lm_cols = np.concatenate([np.arange(n_wks + per * i, n_wks + per * (i + 1)) for i in range(1, 6, 2)])
+    for w, f in zip(whole, fold, strict=True):
+        np.testing.assert_array_equal(f[:, :n_wks], w[:, :n_wks])
+        np.testing.assert_allclose(f[:, n_wks:], w[:, lm_cols], rtol=1e-12, atol=0)
+
+
 def test_a_clear_cross_validation_verdict_overrides_the_distortion_and_a_close_one_does_not(
     bent_pair, monkeypatch
 ):

@@ -26,7 +26,7 @@ from .match_checks import check_k_final, check_unused
 from .mesh import Mesh
 from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
 from .results import MatchResult, RefineMethod, refine_result
-from .solve import P2PMode, prepare_shapes, solve_pair
+from .solve import P2PMode, prepare_shapes, solve_functional_map, solve_pair
 
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
 #: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
@@ -62,11 +62,12 @@ def landmark_scores(
     *,
     folds: int = CV_FOLDS,
     times=None,
+    p2p_mode: P2PMode | None = None,
     **solve,
 ) -> dict[str, float]:
     """Cross-validation of the basis by the user's landmarks: for each kind, the mean error at
-    the held-out landmarks of maps solved (unrefined, :func:`~torchfmap.solve.solve_pair`) with
-    the others.
+    the held-out landmarks of maps solved (unrefined, :func:`~torchfmap.solve.solve_functional_map`)
+    with the others, converted (``p2p_mode``, default the kind's) at the held-out landmarks only.
 
     Fold ``f`` of ``F = min(folds, L)`` holds out the landmark pairs ``i`` with ``i % F == f``;
     a held-out pair ``(a, b)`` scores ``d_x(p2p_yx[b], a)``, the geodesic distance on ``x`` (in
@@ -91,11 +92,12 @@ def landmark_scores(
         try:
             for fold in range(n_folds):
                 held = np.arange(len(pairs)) % n_folds == fold
-                result = solve_pair(
+                C, bx, by, _, _ = solve_functional_map(
                     shape_x, shape_y, kind, k, landmarks=pairs[~held],
                     times=times if kind.needs_landmarks else None, **solve,
                 )  # fmt: skip
-                errors.extend(rows[held, result.p2p_yx[pairs[held, 1]]])
+                sent = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode, rows=pairs[held, 1])
+                errors.extend(rows[held, sent])
         except ParameterError:
             continue
         scores[name] = float(np.mean(errors))

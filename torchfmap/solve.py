@@ -8,7 +8,7 @@ pair of bases (:func:`match_bases`) and the unrefined map of one kind on prepare
 from __future__ import annotations
 
 import time
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -26,7 +26,10 @@ from .results import MatchResult
 
 P2PMode = Literal["pullback", "orthogonal"]
 
-__all__ = ["P2PMode", "match_bases", "match_descriptors", "prepare_shapes", "solve_pair"]
+__all__ = [
+    "P2PMode", "SolvedMap", "match_bases", "match_descriptors", "prepare_shapes", "solve_functional_map",
+    "solve_pair",
+]  # fmt: skip
 
 
 def match_descriptors(
@@ -57,9 +60,23 @@ def match_descriptors(
         step = max(1, WKS_ENERGIES // n_descriptors)
         parts = [wks(eig.eigenvalues, eig.values)[:, ::step][:, :n_descriptors]]
         if landmarks is not None:
-            parts.append(landmark_descriptors(landmarks[:, s], operators=shape.operators))
+            parts.append(_landmark_columns(shape, landmarks[:, s]))
         out.append(normalize_descriptors(np.hstack(parts), shape.operators[1]))
     return out[0], out[1]
+
+
+def _landmark_columns(shape: PreparedShape, landmarks: np.ndarray) -> np.ndarray:
+    """``(V, L·T)`` :func:`~torchfmap.descriptors.landmark_descriptors` of ``landmarks`` on a
+    prepared shape, each landmark's columns solved once and kept in ``shape.derived`` (the
+    landmark cross-validation solves with subsets of the same landmarks; a kernel does not
+    depend on the others it is solved with)."""
+    kept = shape.derive("landmark descriptors", dict)
+    missing = [int(v) for v in dict.fromkeys(np.asarray(landmarks).tolist()) if int(v) not in kept]
+    if missing:
+        columns = landmark_descriptors(missing, operators=shape.operators)  # (V, len(missing)·T)
+        per = columns.shape[1] // len(missing)
+        kept.update({v: columns[:, j * per : (j + 1) * per] for j, v in enumerate(missing)})
+    return np.hstack([kept[int(v)] for v in np.asarray(landmarks).tolist()])
 
 
 def match_bases(
@@ -86,10 +103,21 @@ def match_bases(
     return bx, by, seeds
 
 
-def solve_pair(
+class SolvedMap(NamedTuple):
+    """A kind's functional map before its point map: ``C_xy (K_y, K_x)`` in the pair of bases
+    it was solved in, their seed pairs ``(S, 2)`` (or None) and the timings so far."""
+
+    C_xy: np.ndarray
+    basis_x: Basis
+    basis_y: Basis
+    seeds: np.ndarray | None
+    timings: dict[str, float]
+
+
+def solve_functional_map(
     shape_x: PreparedShape,
     shape_y: PreparedShape,
-    kind: str | BasisKind,
+    kind: BasisKind,
     k: int,
     *,
     landmarks: np.ndarray | None = None,
@@ -103,28 +131,16 @@ def solve_pair(
     w_dcomm: float = W_DCOMM,
     w_lmk: float = W_LMK,
     w_prior: float | None = None,
-    p2p_mode: P2PMode | None = None,
     n_eigen: int = 0,
-) -> MatchResult:
-    """The unrefined map of one kind on prepared shapes (the solve step :func:`match` and
-    :func:`match_landmark_default` share): eigenpairs grown in place to what the kind, its
-    descriptors and ``n_eigen`` (e.g. a later ZoomOut) need -> :func:`match_bases` (or the
-    given ``bases``) -> :func:`match_descriptors` -> the kind's ``solve_map`` (each block by
-    :func:`~torchfmap.fmap.solve_fmap` with the kind's weights unless given) -> the kind's
-    ``to_p2p``.
-
-    ``landmarks``: checked ``(L, 2)`` pairs, or None; ``bases``: given ``(basis_x, basis_y)`` of
-    ``k`` columns, ``seeds`` their seed pairs ``(S, 2)`` if built together (then pulled to
-    ``C = I``), else None; the rest as :func:`match`. Returns an unrefined :class:`MatchResult`
-    (``distortion`` set with landmarks; timings ``operators+eigen``, ``basis``,
-    ``descriptors``, ``fmap+p2p``).
+) -> SolvedMap:
+    """:func:`solve_pair` up to the functional map (its point map left to the caller: the
+    landmark cross-validation converts only the held-out landmarks); arguments as there.
 
     Raises:
-        ParameterError: as the kind's bases, or ``k`` / ``k_descriptors`` out of range.
+        ParameterError: as :func:`solve_pair`.
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    kind = get_kind(kind)
     n_max = min(shape_x.mesh.n_vertices, shape_y.mesh.n_vertices) - 1
     k = check_count(k, 1, n_max, "k (basis size)")
     k_descriptors = min(check_count(k_descriptors, 2, 10**9, "k_descriptors"), n_max)  # small meshes
@@ -162,8 +178,45 @@ def solve_pair(
         )  # fmt: skip
 
     C = kind.solve_map(bx, by, solve_block, w_prior)
+    timings["fmap"] = time.perf_counter() - t0
+    return SolvedMap(C, bx, by, seeds, timings)
+
+
+def solve_pair(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    kind: str | BasisKind,
+    k: int,
+    *,
+    landmarks: np.ndarray | None = None,
+    p2p_mode: P2PMode | None = None,
+    **settings,
+) -> MatchResult:
+    """The unrefined map of one kind on prepared shapes (the solve step :func:`match` and
+    :func:`match_landmark_default` share): eigenpairs grown in place to what the kind, its
+    descriptors and ``n_eigen`` (e.g. a later ZoomOut) need -> :func:`match_bases` (or the
+    given ``bases``) -> :func:`match_descriptors` -> the kind's ``solve_map`` (each block by
+    :func:`~torchfmap.fmap.solve_fmap` with the kind's weights unless given) -> the kind's
+    ``to_p2p``.
+
+    ``landmarks``: checked ``(L, 2)`` pairs, or None; ``settings`` (those of
+    :func:`solve_functional_map`): ``bases``: given ``(basis_x, basis_y)`` of ``k`` columns,
+    ``seeds`` their seed pairs ``(S, 2)`` if built together (then pulled to ``C = I``), else
+    None; ``n_eigen``: eigenpairs to hold for a later ZoomOut; ``times``, ``n_descriptors``,
+    ``k_descriptors`` and the weights as :func:`match`. Returns an unrefined
+    :class:`MatchResult` (``distortion`` set with landmarks; timings ``operators+eigen``,
+    ``basis``, ``descriptors``, ``fmap+p2p``).
+
+    Raises:
+        ParameterError: as the kind's bases, or ``k`` / ``k_descriptors`` out of range.
+    """
+    kind = get_kind(kind)
+    C, bx, by, seeds, timings = solve_functional_map(
+        shape_x, shape_y, kind, k, landmarks=landmarks, **settings
+    )
+    t0 = time.perf_counter()
     p2p = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode)
-    timings["fmap+p2p"] = time.perf_counter() - t0
+    timings["fmap+p2p"] = timings.pop("fmap") + time.perf_counter() - t0
     distortion = None
     if landmarks is not None:  # the score that chooses among kinds and guards the refinement
         distortion = geodesic_distortion(shape_x, shape_y, p2p)

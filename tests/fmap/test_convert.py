@@ -61,6 +61,17 @@ def test_p2p_fmap_round_trip(permuted_bases):
     assert np.array_equal(fmap_to_p2p(p2p_to_fmap(perm, bx, by, 20, 20), bx, by), perm)
 
 
+def test_the_map_at_some_rows_is_the_whole_map_there(permuted_bases, rng):
+    """``rows`` converts only those target vertices, and gives what the whole map gives there."""
+    x, y, perm, bx, by = permuted_bases
+    C = p2p_to_fmap(perm, bx, by) + 0.05 * rng.normal(size=(40, 40))  # not an exact permutation
+    rows = rng.choice(len(perm), 17, replace=False)
+    for mode in ("pullback", "orthogonal"):
+        whole = fmap_to_p2p(C, bx, by, mode=mode, precision="double")
+        part = fmap_to_p2p(C, bx, by, mode=mode, precision="double", rows=rows)
+        assert part.shape == (17,) and np.array_equal(part, whole[rows])
+
+
 def test_conversion_errors(permuted_bases):
     x, y, perm, bx, by = permuted_bases
     with pytest.raises(ParameterError, match=r"C_xy has shape \(50, 50\)"):

@@ -31,6 +31,25 @@ def test_krylov_meets_each_tolerance(heat_setting):
         assert rel_err(heat_kernels(ops, seeds, times, "krylov", tol=tol), ref).max() < tol
 
 
+def test_kept_factorisations_are_reused_and_change_nothing(heat_setting, monkeypatch):
+    """A caller's ``factors`` dict is filled on the first call and read on the next: the same
+    kernels, no second factorisation."""
+    import torchfmap.operators.krylov as krylov
+
+    mesh, ops, seeds, times, ref = heat_setting
+    calls = []
+    real = krylov.factorize
+    monkeypatch.setattr(krylov, "factorize", lambda *a, **kw: calls.append(1) or real(*a, **kw))
+    factors: dict = {}
+    first = heat_kernels(ops, seeds[:2], times, "krylov", tol=1e-8, factors=factors)
+    n_first = len(calls)
+    assert n_first >= 1 and len(factors) == n_first
+    again = heat_kernels(ops, seeds, times, "krylov", tol=1e-8, factors=factors)
+    assert len(calls) == n_first  # nothing factorised again
+    np.testing.assert_allclose(again[:, :, :2], first, rtol=0, atol=1e-12 * np.abs(first).max())
+    assert rel_err(again, ref).max() < 1e-8
+
+
 def test_cf_rational_approximation_scalar():
     x = -np.concatenate([np.linspace(0, 40, 4001), np.logspace(-6, 6, 2001)])
     for n in (8, 12):

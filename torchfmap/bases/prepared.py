@@ -152,7 +152,8 @@ def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
     ``('diffusion', seed, t)``.
 
     Kernels are independent per seed: only the ``(seed, time)`` pairs missing from
-    ``shape.kernels`` are solved (to :data:`SEED_HEAT_TOL`) and stored there.
+    ``shape.kernels`` are solved (to :data:`SEED_HEAT_TOL`) and stored there, with the
+    factorisations of their solves kept in ``shape.derived`` for the next seeds at those times.
 
     Raises:
         ParameterError: invalid seeds, seeds missing a connected component, or times not > 0.
@@ -166,7 +167,10 @@ def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
     for t in times:
         missing = np.unique([int(s) for s in seeds if (int(s), t) not in shape.kernels])
         if len(missing):  # heat_kernels checks the time
-            K = heat_kernels(shape.operators, missing, [t * shape.area], tol=SEED_HEAT_TOL, local=False)[0]
+            K = heat_kernels(
+                shape.operators, missing, [t * shape.area], tol=SEED_HEAT_TOL, local=False,
+                factors=shape.derive("heat factorisations", dict),
+            )[0]  # fmt: skip
             shape.kernels.update({(int(s), t): K[:, j] for j, s in enumerate(missing)})
     values = np.stack([shape.kernels[int(s), t] for t in times for s in seeds], axis=1)
     prov = [Column("diffusion", int(s), t) for t in times for s in seeds]

@@ -131,8 +131,10 @@ def fmap_to_p2p(
     mode: Literal["pullback", "orthogonal"] = "pullback",
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
+    rows: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis).
+    """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis);
+    ``rows`` ``(R,)``: only these vertices of ``y`` (an ``(R,)`` map).
 
     ``mode``: ``'pullback'`` (nearest neighbour of each row of ``Φ_y C_xy`` among the rows of
     ``Φ_x``; valid in any basis, the default) or ``'orthogonal'`` (of each row of ``Φ_y`` among
@@ -143,9 +145,8 @@ def fmap_to_p2p(
     """
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
     ky, kx = C_xy.shape
-    return values_to_p2p(
-        C_xy, basis_x.values[:, :kx], basis_y.values[:, :ky], mode=mode, search=search, precision=precision
-    )
+    phi_y = basis_y.values[:, :ky] if rows is None else basis_y.values[rows, :ky]
+    return values_to_p2p(C_xy, basis_x.values[:, :kx], phi_y, mode=mode, search=search, precision=precision)
 
 
 def values_to_p2p(

@@ -150,14 +150,17 @@ class BasisKind:
         for the classical conversion (:func:`~torchfmap.fmap.fmap_to_p2p` by ``p2p_mode``)."""
         return None
 
-    def to_p2p(self, C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, mode: str) -> np.ndarray:
+    def to_p2p(
+        self, C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, mode: str, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         """``p2p_yx (V_y,)`` of ``C_xy`` in a pair of this kind's bases: nearest neighbours of
         :meth:`embeddings` when the kind defines them, else
-        :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``."""
+        :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``. ``rows`` ``(R,)``: only these
+        vertices of ``y`` (``(R,)`` returned), e.g. held-out landmarks."""
         pair = self.embeddings(C_xy, basis_x, basis_y)
         if pair is None:
-            return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode)
-        return nearest_neighbor(pair[1], pair[0], precision="single")
+            return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode, rows=rows)
+        return nearest_neighbor(pair[1] if rows is None else pair[1][rows], pair[0], precision="single")
 
     def refiner(
         self,

@@ -170,8 +170,11 @@ def heat_apply(
     tol: float = 1e-8,
     n_steps: int = 1,
     n_eigen: int = 200,
+    factors: dict | None = None,
 ) -> np.ndarray:
-    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``.
+    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``. ``factors``:
+    the ``krylov`` method's factorisations of these operators, kept by the caller between calls
+    (:func:`~torchfmap.operators.krylov.krylov_heat`).
 
     Raises :class:`ParameterError` for times that are not finite and > 0, an unknown method, or
     ``tol`` outside ``[1e-14, 1)`` (:func:`~torchfmap._checks.check_tolerance`).
@@ -187,7 +190,7 @@ def heat_apply(
     single = X.ndim == 1
     X = X[:, None] if single else X
     if method == "krylov":
-        out = krylov_heat(L, B, X, times, tol)
+        out = krylov_heat(L, B, X, times, tol, factors=factors)
     elif method == "rational":
         out = _rational(L, B, X, times, tol)
     elif method == "backward_euler":
@@ -255,6 +258,7 @@ def heat_kernels(
     vertices: np.ndarray | None = None,
     n_steps: int = 1,
     n_eigen: int = 200,
+    factors: dict | None = None,
 ) -> np.ndarray:
     """Heat kernels ``K_t(p_i, ·)`` for every absolute time and seed: ``(T, V, S)``.
 
@@ -267,6 +271,7 @@ def heat_kernels(
         tol: relative accuracy target (Krylov convergence, CF order, local patch radius).
         local: solve on a geodesic neighbourhood of each seed (``'auto'``: when it is small);
             needs ``vertices (V, 3)`` for edge lengths.
+        factors: as :func:`heat_apply` (global solves only).
     """
     L, B = operators
     n = L.shape[0]
@@ -278,7 +283,9 @@ def heat_kernels(
     check_symmetric(L, "heat kernels", "laplacian(mesh, scheme='cotan') or scheme='robust'")
     if not local or method == "spectral":
         X0 = _initial(B, seeds, n, kernel)
-        return heat_apply((L, B), X0, times, method, tol=tol, n_steps=n_steps, n_eigen=n_eigen)
+        return heat_apply(
+            (L, B), X0, times, method, tol=tol, n_steps=n_steps, n_eigen=n_eigen, factors=factors
+        )
     if vertices is None:
         raise ParameterError("local heat kernels need the mesh vertices. Fix: pass vertices=mesh.vertices.")
     graph = _edge_graph(L, np.asarray(vertices))

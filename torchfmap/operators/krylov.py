@@ -128,9 +128,13 @@ def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None)
     return out, k
 
 
-def krylov_heat(L, B, X, times, tol, max_iter: int = 150, shift: float | None = None) -> np.ndarray:
+def krylov_heat(
+    L, B, X, times, tol, max_iter: int = 150, shift: float | None = None, factors: dict | None = None
+) -> np.ndarray:
     """Times within a factor :data:`KRYLOV_SPAN` share one Krylov space per column and one
-    factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group)."""
+    factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group). ``factors``: a
+    dict kept by the caller for these ``L`` and ``B`` (e.g. a prepared shape's), ``γ ->``
+    factorisation, read and filled, so later calls at the same times factorise nothing."""
     times = np.asarray(times, dtype=np.float64)
     n, s_total = X.shape
     order = np.argsort(times)
@@ -152,7 +156,11 @@ def krylov_heat(L, B, X, times, tol, max_iter: int = 150, shift: float | None = 
         t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
         gamma = KRYLOV_SHIFT * t_lo * (t_hi / t_lo) ** KRYLOV_SHIFT_SPAN_EXP
         gamma = float(shift) if shift is not None else gamma
-        fac = factorize(B + gamma * L, spd=True)
+        fac = factors.get(gamma) if factors is not None else None
+        if fac is None:
+            fac = factorize(B + gamma * L, spd=True)
+            if factors is not None:
+                factors[gamma] = fac
         for start in range(0, s_total, block):
             cols = slice(start, min(start + block, s_total))
             out[group, :, cols], _ = krylov_block(
