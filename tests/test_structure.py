@@ -528,6 +528,7 @@ BASIS_KIND_PARAMETERS = {
     "torchfmap.match_checks.check_k_final",
     "torchfmap.solve.match_bases",
     "torchfmap.solve.solve_pair",
+    "torchfmap.solve.solve_functional_map",
     "torchfmap.results.MatchResult",
     "torchfmap.results.MatchResult.__init__",
 }
