@@ -127,7 +127,10 @@ def match_landmark_default(
     score), so only one feature-aware refinement runs. With :data:`CV_MIN_LANDMARKS` or more
     landmarks, the landmark cross-validation (:func:`landmark_scores`, reported as
     ``fold_scores``) replaces that choice by a kind of :data:`CV_KINDS` whose held-out error is
-    below :data:`CV_RATIO` of the chosen kind's (refined in turn). Kinds that cannot be built on these
+    below :data:`CV_RATIO` of the chosen kind's (refined in turn). Last, a feature-aware map
+    is returned only if, as returned (refined or not), it distorts geodesic distances no more
+    than the eigenbasis's map: the cross-validation's evidence is a few raw folds, the refined
+    eigenbasis is at hand, and neither check alone ranks every pair. Kinds that cannot be built on these
     meshes (e.g. too few vertices for their columns) are skipped, with the reason
     (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
     chosen map collapsed). ``landmarks``: ``(L, 2)``
@@ -195,6 +198,8 @@ def match_landmark_default(
     t_cv = time.perf_counter() - t_cv
     if refine is not None and best != pref:
         candidates[best] = refined(candidates[best], get_kind(best))
+    if candidates[best].distortion > candidates[pref].distortion:
+        best = pref  # do no harm: never a map more distorted than the eigenbasis's
     chosen = candidates[best]
     timings = {"prepare": prep, "cross-validation": t_cv}
     for name, c in candidates.items():
