@@ -41,7 +41,15 @@ import torchfmap
 from torchfmap.data import demo_pair_paths, stretch_deform
 from torchfmap.errors import ParameterError
 from torchfmap.eval import Correspondence, auc, evaluate_map, gt_from_map, gt_from_vts, landmarks_from_gt
-from torchfmap.io import mesh_files, read_landmark_pairs, read_map, read_test_pairs, read_vts, shape_name
+from torchfmap.io import (
+    load_mesh,
+    mesh_files,
+    read_landmark_pairs,
+    read_map,
+    read_test_pairs,
+    read_vts,
+    shape_name,
+)
 
 from .common import LOCAL_DATA_DIR, Skip, load1, log, require_data
 
@@ -70,6 +78,62 @@ def smal_split() -> tuple[list[str], list[str]]:
     names = sorted(shape_name(p) for p in mesh_files(require_data("smal_r_train")))
     val = names[::4]
     return [n for n in names if n not in val], val
+
+
+#: Rows of the SMAL template whose geodesic distances make an animal's shape signature.
+N_SIGNATURE_ROWS = 40
+
+
+def smal_families(n_families: int = 5) -> list[list[str]]:
+    """The 32 ``smal_r_train`` animals grouped into ``n_families`` shape families, sorted names in
+    each, families ordered by size then first name.
+
+    The folder names no species, so they are found from the shapes: each animal's signature is the
+    matrix of geodesic distances, divided by ``sqrt(area)``, between ``N_SIGNATURE_ROWS`` template
+    vertices (farthest-point sampled on the first animal, the same rows on every animal through
+    ``corres/*.vts``); geodesic distances change little with pose and much with proportions (legs,
+    neck, body length). Ward clustering of the signatures into 5 families recovers SMAL's five
+    (felids, canids, horses, cows, hippos) up to a few animals of ambiguous proportions."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    from torchfmap.operators.geodesic import GeodesicSolver
+
+    folder = require_data("smal_r_train")
+    names = sorted(shape_name(p) for p in mesh_files(folder))
+    signatures, rows = [], None
+    for name in names:
+        mesh = load_mesh(folder / f"{name}.off.gz")
+        vts = read_vts(folder / "corres" / f"{name}.vts")
+        if rows is None:
+            rows = _farthest_rows(np.asarray(mesh.vertices)[vts], N_SIGNATURE_ROWS)
+        solver = GeodesicSolver(mesh)
+        d = np.stack([solver.distance(int(vts[r]))[vts[rows]] for r in rows]) / np.sqrt(mesh.area)
+        d = 0.5 * (d + d.T)
+        signatures.append(d[np.triu_indices(len(rows), 1)])
+    labels = fcluster(linkage(np.asarray(signatures), "ward"), n_families, "maxclust")
+    families = [
+        sorted(n for n, lab in zip(names, labels, strict=True) if lab == c) for c in sorted(set(labels))
+    ]
+    return sorted(families, key=lambda f: (len(f), f[0]))
+
+
+def _farthest_rows(points: np.ndarray, n: int) -> np.ndarray:
+    """``n`` row indices of ``points`` (V, 3) by Euclidean farthest-point sampling from row 0."""
+    rows = [0]
+    d = np.linalg.norm(points - points[0], axis=1)
+    for _ in range(n - 1):
+        rows.append(int(d.argmax()))
+        d = np.minimum(d, np.linalg.norm(points - points[rows[-1]], axis=1))
+    return np.asarray(rows)
+
+
+def smal_family_split(families: list[list[str]] | None = None) -> tuple[list[str], list[str]]:
+    """``(train, val)`` names for a split by species: the two smallest of ``families`` (default
+    :func:`smal_families`) validate (animals whose proportions no training animal shares), the
+    other three train."""
+    families = smal_families() if families is None else families
+    val = sorted(n for f in families[:2] for n in f)
+    return sorted(n for f in families[2:] for n in f), val
 
 
 def _smal_cross() -> list[str]:
@@ -101,6 +165,8 @@ SETS = {
     "faust_val": lambda: _faust(FAUST_VAL),  # 40 pairs among tr_reg_070..079 (seed 0)
     "smal_cross": _smal_cross,
     "smal_val": lambda: [f"smal:{a}+{b}" for a, b in drawn_pairs(smal_split()[1], 10**6)],
+    # 40 pairs among the animals of the two families no training animal of the split shares
+    "smal_fval": lambda: [f"smal:{a}+{b}" for a, b in drawn_pairs(smal_family_split()[1], 40)],
     **{
         name: (lambda name=name, val=val: [f"{name}:{a}+{b}" for a, b in drawn_pairs(val, 40)])
         for name, val in LOCAL_SETS.items()

@@ -88,3 +88,22 @@ def test_a_case_without_its_data_is_skipped(tmp_path, monkeypatch):
     assert main(["accuracy", "--case", "weight_sweep", "--out", str(tmp_path)]) == []
     with pytest.raises(pairs.Skip):
         pairs.expand(["@tosca_test"])
+
+
+def test_the_species_split_holds_whole_shape_families_out():
+    """``smal_families`` partitions the 32 SMAL_r animals; the split validates on whole families
+    (the two smallest), so no validation animal shares a family with a training one; the four
+    hippos (named so in the folder) are one family, which a signature blind to proportions would
+    not give."""
+    try:
+        families = pairs.smal_families()
+    except pairs.Skip as why:
+        pytest.skip(str(why))
+    names = [n for f in families for n in f]
+    assert len(names) == len(set(names)) == 32 and len(families) == 5
+    train, val = pairs.smal_family_split(families)
+    assert set(train) | set(val) == set(names) and not set(train) & set(val)
+    assert all(set(f) <= set(val) or set(f) <= set(train) for f in families)
+    assert sorted(val) == sorted(families[0] + families[1])
+    hippos = {n for n in names if "hippo" in n.lower()}
+    assert len(hippos) == 4 and any(set(f) == hippos for f in families)

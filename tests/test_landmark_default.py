@@ -9,7 +9,7 @@ import pytest
 import torchfmap.landmark_default as landmark_default
 from torchfmap import ParameterError, match, prepare_shape
 from torchfmap.eval import landmarks_from_gt
-from torchfmap.landmark_default import CV_KINDS, CV_RATIO, landmark_scores
+from torchfmap.landmark_default import AUTO_KINDS, CV_RATIO, landmark_scores
 
 
 def test_held_out_landmark_errors_are_distances_to_the_true_matches(bent_pair):
@@ -19,14 +19,14 @@ def test_held_out_landmark_errors_are_distances_to_the_true_matches(bent_pair):
     x, y, gt = bent_pair
     pairs = landmarks_from_gt(x, gt, 6)
     sx, sy = prepare_shape(x, 30), prepare_shape(y, 30)
-    scores = landmark_scores(sx, sy, pairs, CV_KINDS, 12)
-    assert set(scores) == set(CV_KINDS)
+    scores = landmark_scores(sx, sy, pairs, AUTO_KINDS, 12)
+    assert set(scores) == set(AUTO_KINDS)
     diameter = sx.distances.rows(pairs[:1, 0]).max()
     assert all(0 <= v < diameter for v in scores.values())
     edge = x.mean_edge_length / np.sqrt(x.area)
     assert scores["laplacian"] < 5 * edge
     with pytest.raises(ParameterError, match="3 or more are needed, got 2"):
-        landmark_scores(sx, sy, pairs[:2], CV_KINDS, 12)
+        landmark_scores(sx, sy, pairs[:2], AUTO_KINDS, 12)
 
 
 def test_landmark_descriptors_are_solved_once_per_landmark(bent_pair, monkeypatch):
@@ -59,11 +59,11 @@ def test_a_clear_cross_validation_verdict_overrides_the_distortion_and_a_close_o
     pairs = landmarks_from_gt(x, gt, 6)
     plain = match(x, y, landmarks=pairs, k=12)
     chosen = plain.kind
-    assert plain.fold_scores and set(plain.fold_scores) == set(CV_KINDS)
+    assert plain.fold_scores and set(plain.fold_scores) == set(AUTO_KINDS)
     assert "held-out landmarks" in plain.scores()
     verdicts = {
-        "clear": {chosen: 1.0, "diffusion" if chosen != "diffusion" else "hybrid": 0.9 * CV_RATIO},
-        "close": {chosen: 1.0, "diffusion" if chosen != "diffusion" else "hybrid": 1.1 * CV_RATIO},
+        "clear": {chosen: 1.0, next(n for n in AUTO_KINDS if n != chosen): 0.9 * CV_RATIO},
+        "close": {chosen: 1.0, next(n for n in AUTO_KINDS if n != chosen): 1.1 * CV_RATIO},
     }
     pref = landmark_default.AUTO_KINDS[0]
     for name, scores in verdicts.items():

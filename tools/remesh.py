@@ -28,7 +28,12 @@ B.vts corresponding, as in ``../shared/data``; a ``README.md`` says how it was m
   sorted name validates instead, ``bench/pairs.py``'s ``smal_split``);
 - ``smal_val``: links to the other 8 animals and their ground truth, with a ``test_pairs.txt``
   of 16 ordered pairs among them (``drawn_pairs``, seed 0): ``torchfmap eval bench/data/smal_val
-  --checkpoint smal_r`` gives the figures of ``docs/models.md``.
+  --checkpoint smal_r`` gives the figures of ``docs/models.md``;
+- ``smal_ftrain``, ``smal_fval``: the split by species (``bench/pairs.py``'s
+  ``smal_family_split``: the animals clustered into five shape families by their geodesic
+  proportions; the two smallest families, hippos and cows, validate): links to the 23 training
+  animals, and to the 9 validation animals with their ground truth and a ``test_pairs.txt`` of 40
+  ordered pairs among them (seed 0).
 
 Ground truth through a remesh: each old vertex goes to its nearest new vertex, so the carried
 ground truth has an error of about half an edge, far below the errors measured.
@@ -45,7 +50,7 @@ from tqdm import tqdm
 
 from bench.common import LOCAL_DATA_DIR, Skip, log
 from bench.common import require_data as _require_data
-from bench.pairs import drawn_pairs, smal_split
+from bench.pairs import drawn_pairs, smal_family_split, smal_split
 from torchfmap.io import load_mesh, mesh_files, read_vts, save_mesh, shape_name
 from torchfmap.remesh import remesh
 
@@ -59,7 +64,8 @@ def require_data(name: str) -> Path:
 
 
 SETS = (
-    "scape_r", "scape_a", "faust_a", "faust_h", "scape_h", "fs_train", "fsh_train", "smal_train", "smal_val"
+    "scape_r", "scape_a", "faust_a", "faust_h", "scape_h", "fs_train", "fsh_train", "smal_train", "smal_val",
+    "smal_ftrain", "smal_fval",
 )  # fmt: skip
 #: Remeshing of the hard sets (``*_h``): ``remesh`` settings, and the range of vertex counts.
 HARD = {"stretch": 5.0, "density": 4.0}
@@ -132,27 +138,29 @@ def make_training_folder(out: Path, hard: bool = False) -> None:
     log(f"{folder.name}: {len(links)} shapes in {folder}")
 
 
-def make_smal_training_folder(out: Path) -> None:
+def make_smal_training_folder(out: Path, by_family: bool = False) -> None:
     """``smal_train``: links to the 24 SMAL_r training animals of the ``smal_r`` recipe
-    (``bench/pairs.py``'s ``smal_split``; the other 8 validate)."""
-    folder = out / "smal_train"
+    (``bench/pairs.py``'s ``smal_split``; the other 8 validate); ``smal_ftrain`` (``by_family``):
+    the 23 of ``smal_family_split``."""
+    folder = out / ("smal_ftrain" if by_family else "smal_train")
     folder.mkdir(parents=True, exist_ok=True)
     src = require_data("smal_r_train")
-    train, _ = smal_split()
+    train, _ = smal_family_split() if by_family else smal_split()
     for name in train:
         link = folder / f"{name}.off.gz"
         if not link.exists():
             link.symlink_to((src / f"{name}.off.gz").resolve())
-    log(f"smal_train: {len(train)} shapes in {folder}")
+    log(f"{folder.name}: {len(train)} shapes in {folder}")
 
 
-def make_smal_validation_folder(out: Path) -> None:
+def make_smal_validation_folder(out: Path, by_family: bool = False) -> None:
     """``smal_val``: links to the 8 held-out animals of ``smal_split`` and their ``.vts``, and a
-    ``test_pairs.txt`` of ``SMAL_VAL_PAIRS`` ordered pairs drawn among them (seed 0)."""
-    folder = out / "smal_val"
+    ``test_pairs.txt`` of ``SMAL_VAL_PAIRS`` ordered pairs drawn among them (seed 0);
+    ``smal_fval`` (``by_family``): the 9 of ``smal_family_split`` and 40 pairs."""
+    folder = out / ("smal_fval" if by_family else "smal_val")
     (folder / "corres").mkdir(parents=True, exist_ok=True)
     src = require_data("smal_r_train")
-    _, val = smal_split()
+    _, val = smal_family_split() if by_family else smal_split()
     for name in val:
         for link, target in (
             (folder / f"{name}.off.gz", src / f"{name}.off.gz"),
@@ -160,9 +168,9 @@ def make_smal_validation_folder(out: Path) -> None:
         ):
             if not link.exists():
                 link.symlink_to(target.resolve())
-    lines = [f"{a}\t{b}\n" for a, b in drawn_pairs(val, SMAL_VAL_PAIRS)]
+    lines = [f"{a}\t{b}\n" for a, b in drawn_pairs(val, 40 if by_family else SMAL_VAL_PAIRS)]
     (folder / "test_pairs.txt").write_text("".join(lines))
-    log(f"smal_val: {len(val)} shapes, {len(lines)} pairs in {folder}")
+    log(f"{folder.name}: {len(val)} shapes, {len(lines)} pairs in {folder}")
 
 
 def main() -> None:
@@ -180,10 +188,10 @@ def main() -> None:
             raise SystemExit(f"unknown set {s!r}: one of {', '.join(SETS)}")
         if s in ("fs_train", "fsh_train"):
             make_training_folder(Path(args.out), hard=s == "fsh_train")
-        elif s == "smal_train":
-            make_smal_training_folder(Path(args.out))
-        elif s == "smal_val":
-            make_smal_validation_folder(Path(args.out))
+        elif s in ("smal_train", "smal_ftrain"):
+            make_smal_training_folder(Path(args.out), by_family=s == "smal_ftrain")
+        elif s in ("smal_val", "smal_fval"):
+            make_smal_validation_folder(Path(args.out), by_family=s == "smal_fval")
         else:
             make(s, Path(args.out))
 

@@ -3,8 +3,8 @@ landmarks): which basis to solve a pair in, chosen without ground truth.
 
 Each kind of :data:`AUTO_KINDS` is solved on shapes prepared once
 (:func:`~torchfmap.solve.solve_pair`) and the map that preserves geodesic distances best is kept
-(:data:`AUTO_MARGIN` in favour of the eigenbasis). Then the user's landmarks judge: each kind of
-:data:`CV_KINDS` is solved with some landmarks held out and scored by where its map sends them
+(:data:`AUTO_MARGIN` in favour of the eigenbasis). Then the user's landmarks judge: each kind is
+solved again with some landmarks held out and scored by where its map sends them
 (:func:`landmark_scores`); a kind whose held-out error is below :data:`CV_RATIO` of the chosen
 kind's replaces it.
 """
@@ -30,19 +30,19 @@ from .solve import P2PMode, prepare_shapes, solve_functional_map, solve_pair
 
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
 #: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
-#: ``hybrid``. ``diffusion`` is not a candidate: its maps are built by trilateration from the
-#: landmarks, so they preserve geodesic distances by construction and score a lower distortion
-#: than maps with lower error (``python -m bench accuracy --case landmark_default``: chosen on 1
-#: of 6 near-isometric pairs at 7 landmarks, 1.24x the eigenbasis's error there); the held-out
-#: landmarks judge it fairly (:func:`landmark_scores`).
+#: ``hybrid``; the cross-validation scores the same kinds. ``diffusion`` is not a candidate:
+#: its maps are built by trilateration from the landmarks, so they preserve geodesic distances
+#: by construction and score a lower distortion than maps with lower error, and once a
+#: feature-aware map must also be no more distorted than the eigenbasis's (the last check of
+#: :func:`match_landmark_default`) a cross-validated ``diffusion`` was never the map returned on
+#: the dev sets (SMAL_r across species, cat-lion, TOSCA, FAUST_r; 3, 7 and 15 landmarks), while
+#: its folds cost most (heat kernels at newly trilaterated seeds in every fold).
 AUTO_KINDS = ("laplacian", "hybrid")
 #: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
 #: distances by this fraction less (:func:`~torchfmap.quality.geodesic_distortion`): the score's
 #: resolution (on near-isometric pairs the scores of good maps differ by discretisation noise,
 #: and there the eigenbasis is the better basis).
 AUTO_MARGIN = DISTORTION_RESOLUTION
-#: The kinds the landmark cross-validation scores (:func:`landmark_scores`).
-CV_KINDS = ("laplacian", "hybrid", "diffusion")
 #: Folds of the cross-validation, at most (one held-out landmark per fold when there are fewer).
 CV_FOLDS = 4
 #: The cross-validation needs this many landmarks (each fold then solves with two or more).
@@ -126,8 +126,8 @@ def match_landmark_default(
     :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the same
     score), so only one feature-aware refinement runs. With :data:`CV_MIN_LANDMARKS` or more
     landmarks, the landmark cross-validation (:func:`landmark_scores`, reported as
-    ``fold_scores``) replaces that choice by a kind of :data:`CV_KINDS` whose held-out error is
-    below :data:`CV_RATIO` of the chosen kind's (refined in turn). Last, a feature-aware map
+    ``fold_scores``) replaces that choice by the other kind when its held-out error is below
+    :data:`CV_RATIO` of the chosen kind's (refined in turn). Last, a feature-aware map
     is returned only if, as returned (refined or not), it distorts geodesic distances no more
     than the eigenbasis's map: the cross-validation's evidence is a few raw folds, the refined
     eigenbasis is at hand, and neither check alone ranks every pair. Kinds that cannot be built on these
@@ -185,16 +185,10 @@ def match_landmark_default(
     t_cv = time.perf_counter()
     if len(pairs) >= CV_MIN_LANDMARKS:  # the landmarks as the judge: a clear verdict overrides
         cv_solve = dict(solve, k_descriptors=k_descriptors, p2p_mode=p2p_mode)
-        fold_scores = landmark_scores(shape_x, shape_y, pairs, CV_KINDS, k, times=times, **cv_solve)
+        fold_scores = landmark_scores(shape_x, shape_y, pairs, list(candidates), k, times=times, **cv_solve)
         top = min(fold_scores, key=fold_scores.get) if fold_scores else best
         if best in fold_scores and fold_scores[top] < CV_RATIO * fold_scores[best]:
             best = top
-            if best not in candidates:
-                kind = get_kind(best)
-                candidates[best] = solve_pair(
-                    shape_x, shape_y, kind, k, landmarks=pairs, times=times if kind.needs_landmarks else None,
-                    k_descriptors=k_descriptors, p2p_mode=p2p_mode, **solve,
-                )  # fmt: skip
     t_cv = time.perf_counter() - t_cv
     if refine is not None and best != pref:
         candidates[best] = refined(candidates[best], get_kind(best))
