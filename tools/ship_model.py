@@ -5,10 +5,12 @@ Run by hand from the repository root, after ``torchfmap train`` and the validati
     python -m tools.ship_model /tmp/humans.ckpt humans --command "torchfmap train ..." \\
         --data "FAUST_r 000..069 + SCAPE 000..040, ..." --validation "..." --use "..."
 
-The shipped file keeps the weights of the best unsupervised validation score (what
-``load_checkpoint`` returns), the recipe's config, the network record and a ``provenance``
-dict (command, data, commit, training, validation, use) that ``torchfmap models`` prints; the
-training state (optimiser, loss history) is left out. It is written atomically and read back.
+Given a shipped model instead, it re-documents it: the fields not given, the commit and the
+training record are kept. The shipped file keeps the weights of the best unsupervised
+validation score (what ``load_checkpoint`` returns), the recipe's config, the network record
+and a ``provenance`` dict (command, data, commit, training, validation, use) that ``torchfmap
+models`` prints; the training state (optimiser, loss history) is left out. It is written
+atomically and read back.
 """
 
 from __future__ import annotations
@@ -23,27 +25,42 @@ from torchfmap.nn.shipped import MODELS_DIR
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def main() -> None:
+FIELDS = ("command", "data", "validation", "use")
+
+
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoint", help="a file written by torchfmap train")
+    p.add_argument("checkpoint", help="a file written by torchfmap train, or a shipped model to re-document")
     p.add_argument("name", help="the shipped name (torchfmap match --checkpoint NAME)")
-    for field in ("command", "data", "validation", "use"):
-        p.add_argument(f"--{field}", required=True)
-    args = p.parse_args()
+    for field in FIELDS:
+        p.add_argument(f"--{field}", help="required unless the checkpoint's provenance has it (kept)")
+    args = p.parse_args(argv)
     net, config, ckpt = load_checkpoint(args.checkpoint)
     state = ckpt.get("train_state") or {}
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=False
-    ).stdout.strip()
-    best = state.get("best_score")
+    old = ckpt.get("provenance") or {}
+    given = {f: getattr(args, f) if getattr(args, f) is not None else old.get(f) for f in FIELDS}
+    missing = [f"--{f}" for f, v in given.items() if v is None]
+    if missing:
+        p.error(f"{', '.join(missing)} required: {args.checkpoint} has no provenance to keep them from")
+    if state:  # a training run: its own commit and figures
+        git = ["git", "rev-parse", "--short", "HEAD"]
+        run = subprocess.run(git, cwd=REPO_ROOT, capture_output=True, text=True, check=False)
+        commit = run.stdout.strip()
+        best = state.get("best_score")
+        training = f"{state.get('step', '?')} steps, {state.get('seconds', 0):.0f} s" + (
+            f"; weights of the best unsupervised validation score {best:.4g}" if best is not None else ""
+        )
+    elif "training" in old and "commit" in old:  # a shipped model re-documented: its run's record
+        commit, training = old["commit"], old["training"]
+    else:
+        p.error(f"{args.checkpoint} has neither a training state nor a shipped model's provenance")
     provenance = {
-        "command": args.command,
-        "data": args.data,
+        "command": given["command"],
+        "data": given["data"],
         "commit": commit,
-        "training": f"{state.get('step', '?')} steps, {state.get('seconds', 0):.0f} s"
-        + (f"; weights of the best unsupervised validation score {best:.4g}" if best is not None else ""),
-        "validation": args.validation,
-        "use": args.use,
+        "training": training,
+        "validation": given["validation"],
+        "use": given["use"],
     }
     out = save_checkpoint(MODELS_DIR / f"{args.name}.ckpt", net, config, provenance=provenance)
     again, _, shipped = load_checkpoint(out)

@@ -348,7 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
         "(species, data sets)",
     )
     p.add_argument(
-        "--inputs", choices=["wks", "xyz"], default=None, help="per-vertex network inputs (default: wks)"
+        "--inputs",
+        choices=["wks", "xyz", "wks+xyz"],
+        default=None,
+        help="per-vertex network inputs: WKS, coordinates, or both (default: wks)",
     )
     p.add_argument(
         "--augment",

@@ -59,3 +59,17 @@ def test_up_rotation_turns_about_y_only_and_scales():
     assert augmentation("up", "xyz") == "up" and augmentation("up", "wks") == "none"
     with pytest.raises(ParameterError, match="rotation must be"):
         random_rigid(xyz, torch.Generator(), rotation="tilt")
+
+
+def test_wks_and_xyz_inputs_move_their_coordinates_only():
+    """inputs='wks+xyz': the WKS channels first, the coordinates last; augmentation moves the
+    coordinates (a rigid motion and scaling: distances scale by one factor) and keeps the WKS."""
+    assert augmentation("up", "wks+xyz") == "up"
+    g = torch.Generator().manual_seed(3)
+    wks, xyz = torch.randn(2, 6, 4, generator=g), torch.randn(2, 6, 3, generator=g)
+    side = ShapeBatch(*[None] * len(ShapeBatch._fields))._replace(inputs=torch.cat([wks, xyz], -1))
+    moved = augment_batch({"x": side, "y": side}, "rigid", torch.Generator().manual_seed(0))["x"].inputs
+    assert torch.equal(moved[..., :4], wks)
+    d0, d1 = torch.cdist(xyz, xyz), torch.cdist(moved[..., 4:], moved[..., 4:])
+    ratio = d1[d0 > 0] / d0[d0 > 0]
+    assert 0.9 - 1e-6 <= ratio.min() and ratio.max() <= 1.1 + 1e-6 and not torch.allclose(moved[..., 4:], xyz)

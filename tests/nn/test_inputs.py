@@ -97,6 +97,10 @@ def test_items_cast_once_to_the_networks_dtype(blob):
     assert item["inputs"].dtype == torch.float64 and item["inputs"].shape == (blob.n_vertices, 3)
     assert item["grad_rows"].dtype == torch.int64 and item["name"] == "b" and item["index"] == 3
     assert shape_item(shape_arrays(blob, 6, 8, 20))["values"].dtype == torch.float32
+    arrays = shape_arrays(blob, 6, 8, 20)
+    both = shape_item(arrays, inputs="wks+xyz", dtype=torch.float64)["inputs"]  # WKS first, then xyz
+    assert both.shape == (blob.n_vertices, 8 + 3)
+    assert torch.equal(both[:, :8], torch.as_tensor(arrays["wks"])) and torch.equal(both[:, 8:], item["inputs"])
 
 
 def test_bad_requests_are_refused_before_any_work(blob):

@@ -53,27 +53,37 @@ def yaw_matrices(angles: torch.Tensor) -> torch.Tensor:
 
 def augmentation(augment: str, inputs: str | None) -> str:
     """The one rule of which augmentation training applies (:class:`~torchfmap.nn.trainer.Trainer`,
-    from :attr:`TrainConfig.augment <torchfmap.nn.TrainConfig>`): ``augment`` for XYZ inputs,
-    ``"none"`` for any other (``'wks'``, or None when the data's inputs are unknown): the setting
-    moves coordinates, and WKS is invariant to rigid motions and scale.
+    from :attr:`TrainConfig.augment <torchfmap.nn.TrainConfig>`): ``augment`` for inputs with
+    coordinates (``'xyz'``, ``'wks+xyz'``), ``"none"`` for any other (``'wks'``, or None when the
+    data's inputs are unknown): the setting moves coordinates, and WKS is invariant to rigid
+    motions and scale.
 
     Raises:
         ParameterError: an unknown augmentation.
     """
     if augment not in AUGMENTS:
         raise ParameterError(f"augment must be one of {AUGMENTS}, got {augment!r}.")
-    return augment if inputs == "xyz" else "none"
+    return augment if inputs is not None and inputs.endswith("xyz") else "none"
 
 
 def augment_batch(batch: dict, augment: str, generator: torch.Generator) -> dict:
-    """``batch`` (:func:`~torchfmap.nn.data.collate_pairs`) with the inputs of both sides moved
-    by :func:`random_rigid` (``augment``: ``"rigid"`` any rotation, ``"up"`` a rotation about the
-    ``y`` axis, ``"scale"`` none, each with a scaling, as :func:`augmentation` resolved it;
-    ``"none"``: the batch itself)."""
+    """``batch`` (:func:`~torchfmap.nn.data.collate_pairs`) with the coordinates of both sides'
+    inputs (their last three channels) moved by :func:`random_rigid` (``augment``: ``"rigid"``
+    any rotation, ``"up"`` a rotation about the ``y`` axis, ``"scale"`` none, each with a
+    scaling, as :func:`augmentation` resolved it; ``"none"``: the batch itself)."""
     if augment == "none":
         return batch
     rotation = {"rigid": "any", "up": "up", "scale": "none"}[augment]
     moved = [
-        batch[s]._replace(inputs=random_rigid(batch[s].inputs, generator, rotation=rotation)) for s in "xy"
+        batch[s]._replace(
+            inputs=move_xyz(batch[s].inputs, lambda xyz: random_rigid(xyz, generator, rotation=rotation))
+        )
+        for s in "xy"
     ]
     return {**batch, "x": moved[0], "y": moved[1]}
+
+
+def move_xyz(inputs: torch.Tensor, move) -> torch.Tensor:
+    """``inputs`` ``(..., C)`` with their coordinates, the last three channels, replaced by
+    ``move(coordinates)`` (the other channels, e.g. WKS, unchanged)."""
+    return torch.cat([inputs[..., :-3], move(inputs[..., -3:])], dim=-1)

@@ -22,6 +22,9 @@ from .networks import DiffusionNet
 
 #: Augmentations of XYZ inputs (:attr:`TrainConfig.augment`).
 AUGMENTS = ("rigid", "up", "scale", "none")
+#: Per-vertex network inputs (:attr:`TrainConfig.inputs`): WKS channels, unit-area coordinates,
+#: or both (the WKS channels first, the three coordinates last, which augmentation moves).
+INPUTS = ("wks", "xyz", "wks+xyz")
 #: The :class:`TrainConfig` fields that make up its :class:`Budget`.
 BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
 
@@ -240,7 +243,7 @@ def _check_range(key: str, value, where: str) -> None:
 
 def network_kwargs(config: TrainConfig) -> dict:
     """The :class:`~torchfmap.nn.networks.DiffusionNet` arguments of the recipe ``config``."""
-    c_in = config.n_wks if config.inputs == "wks" else 3
+    c_in = {"wks": config.n_wks, "xyz": 3, "wks+xyz": config.n_wks + 3}[config.inputs]
     return dict(
         c_in=c_in, c_out=config.c_out, width=config.width, n_blocks=config.n_blocks,
         dropout=config.dropout, gradients=config.gradients,

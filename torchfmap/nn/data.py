@@ -25,6 +25,7 @@ from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
 from ..kinds import learned_kind
 from ..mesh import Mesh
+from .config import INPUTS
 from .functional import BasisBatch, GradientBatch
 from .inputs import shape_arrays, shape_item
 
@@ -96,7 +97,7 @@ class ShapeDataset(torch.utils.data.Dataset):
     Each mesh is read and precomputed (:func:`~torchfmap.nn.inputs.shape_arrays`, through a
     :class:`PrecomputeCache`) once, at construction. ``cache_dir``: a folder, ``None`` for
     :func:`default_cache_dir`, ``False`` for no cache; a folder that cannot be written is
-    used read-only or not at all (with a warning). ``inputs``: ``'wks'`` or ``'xyz'``.
+    used read-only or not at all (with a warning). ``inputs``: one of :data:`~torchfmap.nn.config.INPUTS`.
 
     Items are dicts of tensors (floats in ``dtype``): solver basis ``values (V, K)``, ``mass (V,)``,
     ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``, ``net_lam``, ``net_U``;
@@ -124,8 +125,8 @@ class ShapeDataset(torch.utils.data.Dataset):
             raise ParameterError(
                 "no meshes found. Fix: point to a folder of .off/.ply/.obj/.stl (.gz) files."
             )
-        if inputs not in ("wks", "xyz"):
-            raise ParameterError(f"unknown inputs {inputs!r}. Fix: 'wks' or 'xyz'.")
+        if inputs not in INPUTS:
+            raise ParameterError(f"unknown inputs {inputs!r}. Fix: one of {', '.join(INPUTS)}.")
         learned_kind(basis)  # refuses an unknown or classical-only kind (torchfmap.bases.KINDS)
         self.files = [Path(f) for f in files]
         self.names = [f.name.split(".")[0] for f in self.files]

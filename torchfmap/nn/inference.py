@@ -22,7 +22,7 @@ from ..kinds import get_kind
 from ..match_checks import check_meshes, check_unused, warn_if_partial
 from ..mesh import Mesh
 from ..results import MatchResult
-from .augment import yaw_matrices
+from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs
@@ -295,7 +295,7 @@ class LearnedMatcher:
         ``(0,)`` for any other model (WKS is invariant, other XYZ models were trained aligned or
         under any rotation)."""
         cfg = self.config
-        return FACINGS if cfg.inputs == "xyz" and cfg.augment == "up" else (0.0,)
+        return FACINGS if cfg.inputs.endswith("xyz") and cfg.augment == "up" else (0.0,)
 
     def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
         """``(dataset item, solver basis)`` of one prepared shape: the network's arrays
@@ -367,7 +367,11 @@ class LearnedMatcher:
             C, least = None, float("inf")
             for angle in self.facings():  # one facing, or the most isometric of several
                 turned = (
-                    sy._replace(inputs=sy.inputs @ yaw_matrices(sy.inputs.new_tensor([angle])))
+                    sy._replace(
+                        inputs=move_xyz(
+                            sy.inputs, lambda xyz, a=angle: xyz @ yaw_matrices(xyz.new_tensor([a]))
+                        )
+                    )
                     if angle
                     else sy
                 )

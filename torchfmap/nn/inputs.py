@@ -137,10 +137,11 @@ def shape_item(
     arrays: dict[str, np.ndarray], inputs: str = "wks", dtype=torch.float32, name: str = "", index: int = 0
 ) -> dict:
     """A dataset item (see :class:`~torchfmap.nn.data.ShapeDataset`) from :func:`shape_arrays`
-    arrays: floats cast to ``dtype``, ``inputs`` (``'wks'`` or ``'xyz'``) as the item's
-    ``'inputs'``, index arrays int64."""
+    arrays: floats cast to ``dtype``, ``inputs`` (``'wks'``, ``'xyz'``, or ``'wks+xyz'``: the
+    WKS channels then the three coordinates) as the item's ``'inputs'``, index arrays int64."""
     item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
-    item["inputs"] = torch.as_tensor(arrays[inputs], dtype=dtype)
+    parts = [arrays[name] for name in inputs.split("+")]
+    item["inputs"] = torch.as_tensor(np.concatenate(parts, axis=1), dtype=dtype)
     item["xyz"] = torch.as_tensor(arrays["xyz"], dtype=dtype)
     for key in ("grad_rows", "grad_cols", "grad_order_t", "vertices", "faces"):
         if key in arrays:
