@@ -100,7 +100,8 @@ def test_items_cast_once_to_the_networks_dtype(blob):
     arrays = shape_arrays(blob, 6, 8, 20)
     both = shape_item(arrays, inputs="wks+xyz", dtype=torch.float64)["inputs"]  # WKS first, then xyz
     assert both.shape == (blob.n_vertices, 8 + 3)
-    assert torch.equal(both[:, :8], torch.as_tensor(arrays["wks"])) and torch.equal(both[:, 8:], item["inputs"])
+    assert torch.equal(both[:, :8], torch.as_tensor(arrays["wks"]))
+    assert torch.equal(both[:, 8:], item["inputs"])
 
 
 def test_bad_requests_are_refused_before_any_work(blob):
