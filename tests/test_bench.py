@@ -5,12 +5,16 @@ a table whose rows are the compared methods; settings are checked; pyFM is optio
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 
 import pytest
 
 from bench import pairs
 from bench.__main__ import SUITES, cases, main
+from tools import ship_model
+from torchfmap.nn.checkpoints import load_checkpoint
+from torchfmap.nn.shipped import MODELS_DIR
 
 #: suite -> (its smallest case, extra settings, the methods its table compares).
 SMALLEST = {
@@ -107,3 +111,26 @@ def test_the_species_split_holds_whole_shape_families_out():
     assert sorted(val) == sorted(families[0] + families[1])
     hippos = {n for n in names if "hippo" in n.lower()}
     assert len(hippos) == 4 and any(set(f) == hippos for f in families)
+
+
+def test_re_documenting_a_shipped_model_keeps_its_run_and_replaces_what_is_given(tmp_path, monkeypatch):
+    src = tmp_path / "src" / "faust_r.ckpt"
+    src.parent.mkdir()
+    shutil.copy(MODELS_DIR / "faust_r.ckpt", src)
+    monkeypatch.setattr(ship_model, "MODELS_DIR", tmp_path)
+    before = load_checkpoint(src)[2]["provenance"]
+    ship_model.main([str(src), "faust_r", "--validation", "new figures"])
+    net, _, after = load_checkpoint(tmp_path / "faust_r.ckpt")
+    assert after["provenance"] == before | {"validation": "new figures"}
+    for a, b in zip(load_checkpoint(src)[0].state_dict().values(), net.state_dict().values(), strict=True):
+        assert (a == b).all()  # the same weights
+
+
+def test_shipping_needs_every_field_a_checkpoint_cannot_give(tmp_path, monkeypatch, capsys):
+    src = tmp_path / "faust_r.ckpt"
+    shutil.copy(MODELS_DIR / "faust_r.ckpt", src)
+    monkeypatch.setattr(ship_model, "MODELS_DIR", tmp_path / "out")
+    monkeypatch.setattr(ship_model, "load_checkpoint", lambda path: (None, None, {}))
+    with pytest.raises(SystemExit):
+        ship_model.main([str(src), "x", "--command", "c"])
+    assert "--data, --validation, --use required" in capsys.readouterr().err

@@ -22,9 +22,6 @@ from .networks import DiffusionNet
 
 #: Augmentations of XYZ inputs (:attr:`TrainConfig.augment`).
 AUGMENTS = ("rigid", "up", "scale", "none")
-#: Per-vertex network inputs (:attr:`TrainConfig.inputs`): WKS channels, unit-area coordinates,
-#: or both (the WKS channels first, the three coordinates last, which augmentation moves).
-INPUTS = ("wks", "xyz", "wks+xyz")
 #: The :class:`TrainConfig` fields that make up its :class:`Budget`.
 BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
 

@@ -25,9 +25,8 @@ from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
 from ..kinds import learned_kind
 from ..mesh import Mesh
-from .config import INPUTS
 from .functional import BasisBatch, GradientBatch
-from .inputs import shape_arrays, shape_item
+from .inputs import INPUTS, shape_arrays, shape_item
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +96,7 @@ class ShapeDataset(torch.utils.data.Dataset):
     Each mesh is read and precomputed (:func:`~torchfmap.nn.inputs.shape_arrays`, through a
     :class:`PrecomputeCache`) once, at construction. ``cache_dir``: a folder, ``None`` for
     :func:`default_cache_dir`, ``False`` for no cache; a folder that cannot be written is
-    used read-only or not at all (with a warning). ``inputs``: one of :data:`~torchfmap.nn.config.INPUTS`.
+    used read-only or not at all (with a warning). ``inputs``: one of :data:`~torchfmap.nn.inputs.INPUTS`.
 
     Items are dicts of tensors (floats in ``dtype``): solver basis ``values (V, K)``, ``mass (V,)``,
     ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``, ``net_lam``, ``net_U``;

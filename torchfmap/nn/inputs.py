@@ -29,6 +29,9 @@ from ..kinds import get_kind, learned_kind
 from ..mesh import Mesh
 from .modules import basis_arrays
 
+#: Per-vertex network inputs (``TrainConfig.inputs``): WKS channels, unit-area coordinates,
+#: or both (the WKS channels first, the three coordinates last, which augmentation moves).
+INPUTS = ("wks", "xyz", "wks+xyz")
 #: Eigenpairs the WKS inputs are computed from (:func:`shape_arrays`'s ``k_wks``).
 K_WKS = 100
 #: Relative diffusion times of the feature-aware bases on the learned path.
