@@ -80,6 +80,8 @@ def smal_split() -> tuple[list[str], list[str]]:
     return [n for n in names if n not in val], val
 
 
+#: Ordered pairs of the species split's validation set (``@smal_fval``, ``bench/data/smal_fval``).
+SMAL_FVAL_PAIRS = 40
 #: Rows of the SMAL template whose geodesic distances make an animal's shape signature.
 N_SIGNATURE_ROWS = 40
 
@@ -166,7 +168,7 @@ SETS = {
     "smal_cross": _smal_cross,
     "smal_val": lambda: [f"smal:{a}+{b}" for a, b in drawn_pairs(smal_split()[1], 10**6)],
     # 40 pairs among the animals of the two families no training animal of the split shares
-    "smal_fval": lambda: [f"smal:{a}+{b}" for a, b in drawn_pairs(smal_family_split()[1], 40)],
+    "smal_fval": lambda: [f"smal:{a}+{b}" for a, b in drawn_pairs(smal_family_split()[1], SMAL_FVAL_PAIRS)],
     **{
         name: (lambda name=name, val=val: [f"{name}:{a}+{b}" for a, b in drawn_pairs(val, 40)])
         for name, val in LOCAL_SETS.items()

@@ -50,7 +50,7 @@ from tqdm import tqdm
 
 from bench.common import LOCAL_DATA_DIR, Skip, log
 from bench.common import require_data as _require_data
-from bench.pairs import drawn_pairs, smal_family_split, smal_split
+from bench.pairs import SMAL_FVAL_PAIRS, drawn_pairs, smal_family_split, smal_split
 from torchfmap.io import load_mesh, mesh_files, read_vts, save_mesh, shape_name
 from torchfmap.remesh import remesh
 
@@ -156,7 +156,7 @@ def make_smal_training_folder(out: Path, by_family: bool = False) -> None:
 def make_smal_validation_folder(out: Path, by_family: bool = False) -> None:
     """``smal_val``: links to the 8 held-out animals of ``smal_split`` and their ``.vts``, and a
     ``test_pairs.txt`` of ``SMAL_VAL_PAIRS`` ordered pairs drawn among them (seed 0);
-    ``smal_fval`` (``by_family``): the 9 of ``smal_family_split`` and 40 pairs."""
+    ``smal_fval`` (``by_family``): the 9 of ``smal_family_split`` and ``SMAL_FVAL_PAIRS`` pairs."""
     folder = out / ("smal_fval" if by_family else "smal_val")
     (folder / "corres").mkdir(parents=True, exist_ok=True)
     src = require_data("smal_r_train")
@@ -168,7 +168,7 @@ def make_smal_validation_folder(out: Path, by_family: bool = False) -> None:
         ):
             if not link.exists():
                 link.symlink_to(target.resolve())
-    lines = [f"{a}\t{b}\n" for a, b in drawn_pairs(val, 40 if by_family else SMAL_VAL_PAIRS)]
+    lines = [f"{a}\t{b}\n" for a, b in drawn_pairs(val, SMAL_FVAL_PAIRS if by_family else SMAL_VAL_PAIRS)]
     (folder / "test_pairs.txt").write_text("".join(lines))
     log(f"{folder.name}: {len(val)} shapes, {len(lines)} pairs in {folder}")
 

@@ -7,6 +7,7 @@ import torch
 
 from ..errors import ParameterError
 from .config import AUGMENTS
+from .inputs import has_coordinates
 
 
 def random_rigid(
@@ -63,7 +64,7 @@ def augmentation(augment: str, inputs: str | None) -> str:
     """
     if augment not in AUGMENTS:
         raise ParameterError(f"augment must be one of {AUGMENTS}, got {augment!r}.")
-    return augment if inputs is not None and inputs.endswith("xyz") else "none"
+    return augment if has_coordinates(inputs) else "none"
 
 
 def augment_batch(batch: dict, augment: str, generator: torch.Generator) -> dict:

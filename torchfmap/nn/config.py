@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ParameterError
+from .inputs import input_channels
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import DiffusionNet
 
@@ -240,7 +241,7 @@ def _check_range(key: str, value, where: str) -> None:
 
 def network_kwargs(config: TrainConfig) -> dict:
     """The :class:`~torchfmap.nn.networks.DiffusionNet` arguments of the recipe ``config``."""
-    c_in = {"wks": config.n_wks, "xyz": 3, "wks+xyz": config.n_wks + 3}[config.inputs]
+    c_in = input_channels(config.inputs, config.n_wks)
     return dict(
         c_in=c_in, c_out=config.c_out, width=config.width, n_blocks=config.n_blocks,
         dropout=config.dropout, gradients=config.gradients,

@@ -27,7 +27,7 @@ from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs
 from .devices import resolve_device
-from .inputs import K_WKS, SEED_TIMES, shape_arrays, shape_item
+from .inputs import K_WKS, SEED_TIMES, has_coordinates, shape_arrays, shape_item
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
 from .train import pair_loss
@@ -295,7 +295,7 @@ class LearnedMatcher:
         ``(0,)`` for any other model (WKS is invariant, other XYZ models were trained aligned or
         under any rotation)."""
         cfg = self.config
-        return FACINGS if cfg.inputs.endswith("xyz") and cfg.augment == "up" else (0.0,)
+        return FACINGS if has_coordinates(cfg.inputs) and cfg.augment == "up" else (0.0,)
 
     def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
         """``(dataset item, solver basis)`` of one prepared shape: the network's arrays

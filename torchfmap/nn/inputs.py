@@ -32,6 +32,17 @@ from .modules import basis_arrays
 #: Per-vertex network inputs (``TrainConfig.inputs``): WKS channels, unit-area coordinates,
 #: or both (the WKS channels first, the three coordinates last, which augmentation moves).
 INPUTS = ("wks", "xyz", "wks+xyz")
+
+
+def input_channels(inputs: str, n_wks: int) -> int:
+    """Channels of one of :data:`INPUTS` with ``n_wks`` WKS channels."""
+    return sum({"wks": n_wks, "xyz": 3}[part] for part in inputs.split("+"))
+
+
+def has_coordinates(inputs: str | None) -> bool:
+    """Whether inputs of one of :data:`INPUTS` end with coordinates (what augmentation and the
+    facing search move); None (unknown inputs): False."""
+    return inputs is not None and inputs.split("+")[-1] == "xyz"
 #: Eigenpairs the WKS inputs are computed from (:func:`shape_arrays`'s ``k_wks``).
 K_WKS = 100
 #: Relative diffusion times of the feature-aware bases on the learned path.
