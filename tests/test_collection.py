@@ -219,8 +219,8 @@ def test_evaluate_pairs_pool_after_threaded_torch_work_in_the_parent_does_not_ha
         "for _ in range(3):\n"
         "    a = a @ a / 400\n"
         f"pairs = list(discover_pairs({str(tmp_path)!r}))\n"
-        "one = evaluate_pairs(pairs, k=60, threads=1)\n"
-        "two = evaluate_pairs(pairs, k=60, workers=2, threads=1)\n"
+        "one = evaluate_pairs(pairs, k=30, threads=1)\n"
+        "two = evaluate_pairs(pairs, k=30, workers=2, threads=1)\n"
         "assert all((p.errors == q.errors).all() for p, q in zip(one, two))\n"
         "print('ok')\n"
     )

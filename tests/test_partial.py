@@ -1,8 +1,6 @@
 """Partial-to-full matching (torchfmap.partial, match(partial=True)) and the cuts that make
 partial data (torchfmap.data.cuts)."""
 
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -143,23 +141,21 @@ def test_partial_refuses_what_it_would_not_use(blob_cut):
         match(cut.mesh, a, k=10, partial=True)  # swapped
 
 
-def test_cli_partial(blob_cut, tmp_path):
+def test_cli_partial(blob_cut, tmp_path, capsys):
+    from torchfmap.cli import main
+
     a, cut, gt_part = blob_cut
     save_mesh(a, tmp_path / "whole.off")
     save_mesh(cut.mesh, tmp_path / "part.off")
-    whole, part = str(tmp_path / "whole.off"), str(tmp_path / "part.off")
-    run = [sys.executable, "-m", "torchfmap", "match", whole, part]
-    done = subprocess.run([*run, "--partial", "--k", "20", "--out", str(tmp_path / "m.txt")],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    assert "partial basis, rank" in done.stdout
+    run = ["match", str(tmp_path / "whole.off"), str(tmp_path / "part.off")]
+    assert main([*run, "--partial", "--k", "20", "--out", str(tmp_path / "m.txt")]) == 0
+    assert "partial basis, rank" in capsys.readouterr().out
     assert len(np.loadtxt(tmp_path / "m.txt", dtype=np.int64)) == cut.n_vertices
-    done = subprocess.run([*run, "--k", "20", "--out", str(tmp_path / "m.txt")],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0 and "--partial" in done.stderr
-    done = subprocess.run([*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert done.returncode != 0 and "--partial" in done.stderr and "Traceback" not in done.stderr
+    assert main([*run, "--k", "20", "--out", str(tmp_path / "m.txt")]) == 0
+    assert "--partial" in capsys.readouterr().err
+    assert main([*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")]) != 0
+    err = capsys.readouterr().err
+    assert "--partial" in err and "Traceback" not in err
 
 
 def _collection(tmp_path, blob_cut, base=0):
@@ -203,26 +199,17 @@ def test_overlap_iou_exact_cases():
     assert overlap_iou(np.array([0.2, 0.9, 0.7, 0.0]), [0, 1], mass) == pytest.approx(2 / 6)
 
 
-def test_cli_eval_partial(tmp_path, blob_cut):
+def test_cli_eval_partial(tmp_path, blob_cut, capsys):
+    from torchfmap.cli import main
+
     folder = _collection(tmp_path, blob_cut)
-    cmd = [
-        sys.executable,
-        "-m",
-        "torchfmap",
-        "eval",
-        str(folder),
-        "--partial",
-        "--gt-landmarks",
-        "5",
-        "--k",
-        "20",
-    ]
-    done = subprocess.run([*cmd, "--quiet"], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    assert "IoU |" in done.stdout and "| blob | blob_cut60 |" in done.stdout
-    assert "maps 0-based" in done.stdout
-    done = subprocess.run([*cmd, "--pairs", "all"], capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0 and "--pairs" in done.stderr and "Traceback" not in done.stderr
+    cmd = ["eval", str(folder), "--partial", "--gt-landmarks", "5", "--k", "20"]
+    assert main([*cmd, "--quiet"]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert "IoU |" in out and "| blob | blob_cut60 |" in out and "maps 0-based" in out
+    assert main([*cmd, "--pairs", "all"]) != 0
+    err = capsys.readouterr().err
+    assert "--pairs" in err and "Traceback" not in err
 
 
 def test_given_descriptors_that_agree_recover_the_restriction():

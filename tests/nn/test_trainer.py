@@ -120,7 +120,7 @@ def test_ddp_ranks_agree_follow_the_time_budget_and_leave_only_the_checkpoint(tm
     from the config: a time budget stops it (the epochs alone would run far longer) and the
     cosine schedule reaches its floor there. Nothing but the checkpoint is left in its folder
     (the ranks' weights went through a temporary folder). (One spawn checks all.)"""
-    budget_s = 4.0
+    budget_s = 2.0
     config = TrainConfig(
         k=8, n_wks=8, k_net=8, epochs=None, minutes=budget_s / 60, width=16, c_out=16, n_blocks=1,
         clip_grad=1.0,
