@@ -27,3 +27,10 @@ def test_cli_bad_numbers_are_usage_errors(tmp_path, sphere2, capsys, argv):
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2 and "error: argument" in capsys.readouterr().err
+
+
+def test_a_count_says_zero_is_allowed(capsys):
+    """``--max-pairs`` takes 0 (all): its refusal of -1 says ">= 0", not ">= 1"."""
+    with pytest.raises(SystemExit):
+        main(["eval", ".", "--max-pairs", "-1"])
+    assert "integer >= 0" in capsys.readouterr().err

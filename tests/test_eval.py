@@ -223,6 +223,14 @@ def test_identity_only_for_one_template_unless_asked(shuffled_folder, tmp_path, 
     np.testing.assert_array_equal(gt.idx_x, gt.idx_y)
     assert main(["eval", str(shuffled_folder), "--k", "8", "--quiet"]) == 2
     assert "--gt identity" in capsys.readouterr().err
+    # meshes of different vertex counts have no identity map: the fix does not offer it
+    sizes = tmp_path / "sizes"
+    sizes.mkdir()
+    save_mesh(icosphere(1), sizes / "a.off")
+    save_mesh(icosphere(2), sizes / "b.off")
+    with pytest.raises(ParameterError, match="vertex counts differ") as err:
+        list(discover_pairs(sizes))
+    assert "identity" not in str(err.value)
     # the same template (same faces): identity is the convention, and --gt files refuses it
     same = tmp_path / "same"
     same.mkdir()

@@ -141,6 +141,16 @@ def test_partial_refuses_what_it_would_not_use(blob_cut):
         match(cut.mesh, a, k=10, partial=True)  # swapped
 
 
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_partial_in_other_units_is_refused_naming_the_units(blob_cut, scale):
+    """A whole in metres and a part in millimetres (or the reverse) puts the area ratio 1e6 away
+    from any real part's: refused, naming the units, never a map of rank 1."""
+    a, cut, _ = blob_cut
+    with pytest.raises(ParameterError, match="units") as err:
+        match(a, cut.mesh.scaled(scale), k=10, partial=True)
+    assert "whole shape first" not in str(err.value)  # the order was right
+
+
 def test_cli_partial(blob_cut, tmp_path, capsys):
     from torchfmap.cli import main
 

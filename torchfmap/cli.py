@@ -199,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--p2p-mode",
         choices=["pullback", "orthogonal"],
         default=None,
-        help="point-map rule (default: orthogonal for laplacian, else pullback)",
+        help="point-map rule (default: orthogonal for laplacian and hybrid, else pullback)",
     )
     p.add_argument(
         "--allow-components", action="store_true", help="accept meshes with several connected components"
@@ -215,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["x", "y", "z"],
         default="z",
         help="the meshes' vertical axis in --png and --html (not detected: y for y-up meshes such as "
-        "FAUST or TOSCA)",
+        "FAUST; TOSCA is z-up)",
     )
     _checkpoint_flags(
         p,

@@ -42,7 +42,12 @@ def positive_float(text: str) -> float:
 
 def count(text: str) -> int:
     """argparse type: an integer >= 0."""
-    return 0 if text.strip() == "0" else positive_int(text)
+    if text.strip() == "0":
+        return 0
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
 
 
 def time_list(text: str) -> list[float]:

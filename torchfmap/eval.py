@@ -261,7 +261,10 @@ def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
     by Euclidean farthest-point sampling (deterministic; for experiments with known landmarks)."""
     idx_x, idx_y = _as_correspondence(gt)
     if not 1 <= n <= len(idx_x):
-        raise ParameterError(f"n must be in [1, {len(idx_x)}], got {n}.")
+        raise ParameterError(
+            f"the number of landmarks must be in [1, {len(idx_x)}] (the ground-truth rows), got {n}. "
+            "Fix: ask for fewer landmarks (CLI: --gt-landmarks)."
+        )
     pts = mesh_x.vertices[idx_x]
     chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
     dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
@@ -379,11 +382,15 @@ def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pair
             (va, fa), (vb, fb) = read_arrays(meshes[a]), read_arrays(meshes[b])
             same = len(va) == len(vb) and (identity or (identity is None and np.array_equal(fa, fb)))
             if not same:
-                why = "their vertex counts differ" if len(va) != len(vb) else "their face lists differ"
+                if len(va) != len(vb):
+                    why, fix = "their vertex counts differ", "."
+                else:
+                    why = "their face lists differ"
+                    fix = ", or, if the meshes do share vertex order, pass identity=True"
+                    fix += " (CLI: --gt identity)."
                 raise ParameterError(
                     f"no ground truth for {a}/{b}: no corres/ folder, and {why}, so vertex i of one need "
-                    "not be vertex i of the other. Fix: add corres/<name>.vts files, or, if the meshes "
-                    "do share vertex order, pass identity=True (CLI: --gt identity)."
+                    f"not be vertex i of the other. Fix: add corres/<name>.vts files{fix}"
                 )
             gt = gt_identity(len(va))
         yield a, b, meshes[a], meshes[b], gt

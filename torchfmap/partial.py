@@ -46,6 +46,11 @@ from .results import MatchResult
 #: A part may be up to this much larger than the whole (meshing and measurement noise on a
 #: "part" that is in fact the whole shape); beyond it the shapes are taken to be swapped.
 AREA_SLACK = 1.05
+#: The smallest part, as a share of the whole's area, that a partial map is attempted for: the
+#: part's rank is about ``k * a`` (Weyl's law), under 1 at ``k = 100`` below this share, so a
+#: smaller ratio means meshes in different units (millimetres against metres: 1e-6) or a part
+#: too small to be matched by its spectrum.
+MIN_AREA_RATIO = 0.01
 
 __all__ = ["common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout"]
 
@@ -54,13 +59,28 @@ def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
     """``area(y) / area(x)`` in the meshes' own units, capped at 1.
 
     Raises:
-        ParameterError: the part is larger than the whole by more than :data:`AREA_SLACK`.
+        ParameterError: the part is larger than the whole by more than :data:`AREA_SLACK`
+            (swapped shapes or different units), or smaller than :data:`MIN_AREA_RATIO` of it
+            (different units, or a part too small for a spectral map).
     """
     a = mesh_y.area / mesh_x.area
+    units = (
+        "If the meshes are in different units (millimetres and metres make areas 1e6 apart), "
+        "scale one (Mesh.scaled, or rewrite the file) so both share them"
+    )
     if a > AREA_SLACK:
+        swapped = "pass the whole shape first (match(whole, part, partial=True)). "
+        if a > 1 / MIN_AREA_RATIO:  # no part of a whole in the same units is that much larger
+            swapped = ""
         raise ParameterError(
-            f"the part (mesh_y) has {a:.2f} times the area of the whole (mesh_x). Fix: pass the whole "
-            "shape first (match(full, part, partial=True)), with both meshes in the same units."
+            f"the part (mesh_y) has {a:.3g} times the area of the whole (mesh_x): a part is never "
+            f"larger than its whole. Fix: {swapped}{units}."
+        )
+    if a < MIN_AREA_RATIO:
+        raise ParameterError(
+            f"the part (mesh_y) has {a:.3g} of the area of the whole (mesh_x), below "
+            f"{MIN_AREA_RATIO:g}: fewer than one of its eigenfunctions would be matched. Fix: {units}; "
+            "a part this small is matched by landmarks or descriptors, not by a partial functional map."
         )
     return min(a, 1.0)
 

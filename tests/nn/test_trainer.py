@@ -161,3 +161,28 @@ def test_training_on_cuda_follows_the_cpu(tmp_path):
         assert next(trainer.net.parameters()).device.type == device
         losses[device] = [t["total"] for t in trainer.fit(progress=False).losses]
     np.testing.assert_allclose(losses["cuda"], losses["cpu"], rtol=1e-3)
+
+
+def test_a_solver_other_than_the_recorded_recipe_is_refused(tmp_path):
+    """The checkpoint records ``config.w_lap`` and inference solves with it: a trainer given a
+    solver with another weight would ship a model used with another solve than it learned."""
+    from torchfmap.nn import RegularizedFMSolver
+
+    files = _two_blobs(tmp_path / "m")
+    shapes = ShapeDataset(files, False, **TINY.dataset_kwargs(), progress=False)
+    net, _, loss_fn = build_model(TINY)
+    opt = torch.optim.Adam(net.parameters())
+    data = PairDataset(shapes)
+    with pytest.raises(ParameterError, match="w_lap"):
+        Trainer(
+            net,
+            data,
+            loss_fn,
+            opt,
+            config=TINY,
+            solver=RegularizedFMSolver(w_lap=0.1),
+            checkpoint=tmp_path / "c",
+        )
+    trainer = Trainer(net, data, loss_fn, opt, config=TINY, solver=RegularizedFMSolver(w_lap=TINY.w_lap),
+                      checkpoint=tmp_path / "c")  # fmt: skip
+    assert trainer.solver.w_lap == TINY.w_lap

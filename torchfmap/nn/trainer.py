@@ -34,6 +34,19 @@ def _cosine_factors(scheduler) -> list[CosineBudget]:
     return [f for f in getattr(scheduler, "lr_lambdas", []) if isinstance(f, CosineBudget)]
 
 
+def _check_solver_fits(solver, config: TrainConfig) -> None:
+    """Refuse a solver whose Laplacian weight is not the recipe's: the checkpoint records
+    ``config.w_lap`` and :class:`~torchfmap.nn.LearnedMatcher` solves with it, so the model
+    would be used with another solve than it was trained with."""
+    w_lap = getattr(solver, "w_lap", None)
+    if w_lap is not None and float(w_lap) != float(config.w_lap):
+        raise ParameterError(
+            f"the solver's w_lap={w_lap:g} is not config.w_lap={config.w_lap:g}, which the checkpoint "
+            "records and inference solves with. Fix: RegularizedFMSolver(w_lap=config.w_lap), "
+            f"or TrainConfig(w_lap={w_lap:g}), or solver=None (the config's)."
+        )
+
+
 class Trainer:
     """Unsupervised training of ``net`` on the pairs of ``data`` (a
     :class:`~torchfmap.nn.data.PairDataset`).
@@ -64,7 +77,8 @@ class Trainer:
     Raises:
         ParameterError: a network that does not follow the protocol, a config without a budget,
             an unknown augmentation or device, or (with a checkpoint) a recipe network that the
-            config does not describe.
+            config does not describe or a solver whose ``w_lap`` is not the config's (the
+            checkpoint records the config's, and inference solves with it).
     """
 
     def __init__(
@@ -97,6 +111,7 @@ class Trainer:
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         if self.checkpoint is not None:
             check_config_fits(net, self.config)  # now, not at the first save
+            _check_solver_fits(self.solver, self.config)
         self.state, self.best_state = TrainState(), None
         ddp = torch.distributed.is_available() and torch.distributed.is_initialized()
         self.world_size = torch.distributed.get_world_size() if ddp else 1
