@@ -4,7 +4,9 @@ error lines name the class once."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+import torchfmap
 from torchfmap import Mesh, save_mesh
 from torchfmap.cli import in_cli_terms, main
 from torchfmap.data import icosphere
@@ -30,6 +32,35 @@ def test_python_fixes_become_flags():
     assert "--k (basis size, default 50)" in in_cli_terms(
         "k (basis size) must be an integer in [1, 11], got 50"
     )
+
+
+def _whole_and_part():
+    from torchfmap.data.cuts import cut_plane
+
+    whole = icosphere(3)
+    return whole, cut_plane(whole, 0.5, seed=0).mesh
+
+
+def test_partial_and_mesh_fixes_become_flags():
+    """The partial checks, the unreferenced-vertex refusal and the collapse warning, said by the
+    library, reach the command line with flags (or what the command line cannot do, said so)."""
+    from torchfmap.match_checks import warn_if_partial
+    from torchfmap.mesh_checks import validate_mesh
+
+    texts = []
+    for call in (
+        lambda: torchfmap.match(*_whole_and_part(), partial=True, basis="diffusion"),
+        lambda: validate_mesh(np.eye(4, 3), np.array([[0, 1, 2]])),
+    ):
+        with pytest.raises(torchfmap.TorchFmapError) as err:
+            call()
+        texts.append(in_cli_terms(str(err.value)))
+    with pytest.warns(torchfmap.MapWarning) as record:
+        warn_if_partial(*_whole_and_part())
+    texts.append(in_cli_terms(str(record[0].message)))
+    for text in texts:
+        assert "=True" not in text.replace("allow_unreferenced=True", ""), text
+    assert "--partial" in texts[0] and "--partial" in texts[2]
 
 
 def test_cli_errors_name_flags(tmp_path, capsys):

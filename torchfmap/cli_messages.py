@@ -19,6 +19,16 @@ CLI_TERMS = (
     (re.compile(r"\btimes are the heat times"), "--times are the heat times"),
     (re.compile(r"`?w_lap=([\w.]+)`?"), r"--w-lap \1"),
     (re.compile(r"`?identity=True`? \(CLI: --gt identity\)"), "--gt identity"),
+    (re.compile(r"match\(whole, part, partial=True\) \(torchfmap match WHOLE PART --partial\)"), "--partial"),
+    (re.compile(r"match\(whole, part, partial=True\)"), "torchfmap match WHOLE PART --partial"),
+    (re.compile(r"\bpartial=True"), "--partial"),
+    (
+        re.compile(
+            r"pass allow_unreferenced=True to load the mesh as it is and work on `mesh\.referenced\(\)`"
+        ),
+        "load it in Python with allow_unreferenced=True and save `mesh.referenced()`",
+    ),
+    (re.compile(r"the weights \(w_lap, w_orient\)"), "the weight --w-lap"),
     (re.compile(r"\(CLI: ([^)]*)\)"), r"(\1)"),
     (re.compile(r"keep one with `mesh\.largest_component\(\)`, or"), "keep the largest component, or"),
     (re.compile(r"\bk \(basis size\)"), "--k (basis size, default 50)"),
