@@ -31,7 +31,7 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     lm = landmarks_from_gt(x, gt, 8)
     shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
     start = match(x, y, landmarks=lm, basis="laplacian", k=20, shapes=shapes)
-    refiner = KINDS["laplacian"].refiner("zoomout", k_final=40)
+    refiner = KINDS["laplacian"].refiner("zoomout", k_final=40, landmarks=lm)
     refined = refine_result(start, refiner, *shapes)
     direct = match(x, y, landmarks=lm, basis="laplacian", k=20, refine="zoomout", k_final=40, shapes=shapes)
     np.testing.assert_array_equal(refined.p2p_yx, direct.p2p_yx)

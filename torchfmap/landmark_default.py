@@ -160,7 +160,7 @@ def match_landmark_default(
     def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
         refiner = kind.refiner(
             refine, k_final=k_final, mode=p2p_mode, n_fixed=len(pairs),
-            times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples,
+            times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples, landmarks=pairs,
         )  # fmt: skip
         return refine_result(result, refiner, shape_x, shape_y)
 

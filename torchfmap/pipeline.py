@@ -229,7 +229,7 @@ def match(
     if refine is not None:
         refiner = kind.refiner(
             refine, k_final=k_final, mode=p2p_mode, n_fixed=0 if pairs is None else len(pairs), times=times,
-            zoomout_samples=zoomout_samples, eigenbases=eigenbases,
+            zoomout_samples=zoomout_samples, eigenbases=eigenbases, landmarks=pairs,
         )  # fmt: skip
         result = refine_result(result, refiner, shape_x, shape_y)
     warn_collapsed(result.p2p_yx, mesh_x.n_vertices)

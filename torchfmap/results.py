@@ -43,7 +43,8 @@ def refine_result(
 ) -> MatchResult:
     """``result`` (of :func:`~torchfmap.match`, unrefined) refined by ``refiner`` (called as
     ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)``, e.g.
-    ``get_kind(result.kind).refiner('zoomout')``) on the prepared shapes it was solved on. With
+    ``get_kind(result.kind).refiner('zoomout', landmarks=pairs)``, as :func:`~torchfmap.match`
+    builds it) on the prepared shapes it was solved on. With
     landmarks (``result.distortion`` set), a refinement that raises the geodesic distortion is
     dropped (:func:`keeps_refinement`): the result then keeps its map, with ``refined=False``.
 

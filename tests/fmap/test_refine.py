@@ -178,3 +178,29 @@ def test_energy_guard_keeps_the_first_lowest_energy_map(permuted_bases):
     off = EnergyGuard(bx, by, sizes, enabled=False)
     off.offer(perm)
     assert off.p2p_yx is None and not off.replaces(scrambled)
+
+
+def test_zoomout_anchors_keep_the_true_map_and_carry_a_map_from_no_information(permuted_bases):
+    """Anchors that correspond exactly (geodesic distances to 6 landmark pairs; on a permuted
+    copy they are the same rows, permuted): the true map is a fixed point (both parts of the
+    embedding agree there, distance 0), and from a random start, where ZoomOut alone stays at
+    chance, the anchors bring the map well below chance."""
+    from torchfmap import GeodesicSolver
+
+    x, y, perm, bx, by = permuted_bases
+    ax = GeodesicSolver(x).distances(np.arange(0, 600, 100)).T  # (V, 6)
+    anchors = (ax, ax[perm])
+    _, kept = zoomout(p2p_to_fmap(perm, bx, by, 15, 15), bx, by, 40, step=5, anchors=anchors)
+    np.testing.assert_array_equal(kept, perm)
+    start = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
+    C = p2p_to_fmap(start, bx, by, 15, 15)
+    gt = gt_from_map(perm)
+    chance = geodesic_errors(x, zoomout(C, bx, by, 40, step=5)[1], gt).mean()
+    anchored = geodesic_errors(x, zoomout(C, bx, by, 40, step=5, anchors=anchors)[1], gt).mean()
+    assert anchored < 0.5 * chance
+    samples = (np.arange(0, x.n_vertices, 2), np.sort(perm[np.arange(0, y.n_vertices, 2)]))
+    _, on_samples = zoomout(C, bx, by, 40, step=5, anchors=anchors, subsample=samples)
+    assert geodesic_errors(x, on_samples, gt).mean() < 0.5 * chance
+    for bad in ((ax, ax[:10]), (ax, ax[:, :3]), (ax[:, :0], ax[:, :0]), (ax, np.full_like(ax, np.nan)), "no"):
+        with pytest.raises(ParameterError, match="anchors"):
+            zoomout(C, bx, by, 40, step=5, anchors=bad)

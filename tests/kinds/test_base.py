@@ -115,3 +115,29 @@ def test_each_kind_returns_its_own_refiner(bent_pair, name):
     for bad in ("nearest", "seeded", None):
         with pytest.raises(ParameterError, match=r"unknown refinement .*Fix: 'icp', 'zoomout'\.$"):
             kind.refiner(bad)
+
+
+def test_eigenbasis_zoomout_keeps_the_distances_to_the_landmarks(bent_pair):
+    """With the match's landmarks, the eigenbasis refiner matches every vertex's geodesic
+    distances to them as well (``landmark_coordinates``: zero at the landmark itself, one
+    column per pair), and match() hands them over: its refined map is ZoomOut's with those
+    anchors (the accuracy is the bench's: ``python -m bench accuracy --case landmark_default``)."""
+    from torchfmap.fmap import zoomout
+    from torchfmap.kinds.refiners import ZoomOut, landmark_coordinates
+
+    x, y, gt = bent_pair
+    lm = landmarks_from_gt(x, gt, 6)
+    shapes = (prepare_shape(x, 32), prepare_shape(y, 32))
+    ax, ay = landmark_coordinates(*shapes, lm)
+    assert ax.shape == (x.n_vertices, 6) and ay.shape == (y.n_vertices, 6)
+    np.testing.assert_array_equal(ax[lm[:, 0], np.arange(6)], 0.0)
+    np.testing.assert_array_equal(ay[lm[:, 1], np.arange(6)], 0.0)
+    refiner = KINDS["laplacian"].refiner("zoomout", landmarks=lm)
+    assert isinstance(refiner, ZoomOut) and refiner.landmarks is lm
+    start = match(x, y, landmarks=lm, k=16, basis="laplacian", shapes=shapes)
+    refined = match(x, y, landmarks=lm, k=16, basis="laplacian", refine="zoomout", shapes=shapes)
+    bx, by = shapes[0].eigenbasis, shapes[1].eigenbasis
+    anchored = zoomout(start.C_xy, bx, by, 32, anchors=(ax, ay))[1]
+    plain = zoomout(start.C_xy, bx, by, 32)[1]
+    assert not np.array_equal(anchored, plain)  # the anchors changed the map
+    np.testing.assert_array_equal(refined.p2p_yx, anchored if refined.refined else start.p2p_yx)

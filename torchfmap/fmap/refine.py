@@ -75,16 +75,52 @@ def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarra
     return sx.astype(np.int64), sy.astype(np.int64)
 
 
-def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode):
+def _check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
+    if anchors is None:
+        return None
+    try:
+        ax, ay = (np.asarray(a, dtype=np.float64) for a in anchors)
+    except (TypeError, ValueError) as err:
+        raise ParameterError("anchors must be a pair (A_x (V_x, m), A_y (V_y, m)) of arrays.") from err
+    if ax.ndim != 2 or ay.ndim != 2 or ax.shape[1] != ay.shape[1] or not ax.shape[1]:
+        raise ParameterError(
+            f"anchors must be (V_x, m) and (V_y, m) arrays, m >= 1; got {ax.shape}, {ay.shape}."
+        )
+    if (len(ax), len(ay)) != (basis_x.n_vertices, basis_y.n_vertices):
+        raise ParameterError(
+            f"anchors have {len(ax)} and {len(ay)} rows; the bases {basis_x.n_vertices} and "
+            f"{basis_y.n_vertices} vertices. Fix: one row per vertex, source first."
+        )
+    if not (np.isfinite(ax).all() and np.isfinite(ay).all()):
+        raise ParameterError("anchors hold NaN or infinite values. Fix: finite coordinates only.")
+    return ax, ay
+
+
+def _embedded_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors) -> np.ndarray:
+    """The point map of ``C (cy, cx)`` by the rule ``mode`` (as
+    :func:`~torchfmap.fmap.convert.values_to_p2p`, ``phi_*`` the rows it compares), with the
+    ``anchors`` rows ``(A_x, A_y)`` appended to both embeddings at equal weight: scaled so that
+    their mean row norm on ``y`` is the spectral embedding's."""
+    cy, cx = C.shape
+    if mode == "pullback":
+        query, ref = phi_y[:, :cy] @ C, phi_x[:, :cx]
+    else:
+        query, ref = phi_y[:, :cy], phi_x[:, :cx] @ C.T
+    if anchors is not None:
+        ax, ay = anchors
+        norm = np.linalg.norm(ay, axis=1).mean()
+        w = np.linalg.norm(query, axis=1).mean() / norm if norm > 0 else 0.0
+        query, ref = np.hstack([query, w * ay]), np.hstack([ref, w * ax])
+    return nearest_neighbor(query, ref, precision="single")
+
+
+def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode, anchors=None):
     """One ZoomOut step on samples: match samples of y to samples of x with ``C``, then the
     least-squares map ``C (ky, kx)`` with ``Φ_y[S_y] C ≈ Φ_x[S_x[p2p]]`` (no mass on samples)."""
     sx, sy = samples
-    cy, cx = C.shape
     phi_x, phi_y = bx.values[sx], by.values[sy]
-    if mode == "pullback":
-        p2p = nearest_neighbor(phi_y[:, :cy] @ C, phi_x[:, :cx], precision="single")
-    else:
-        p2p = nearest_neighbor(phi_y[:, :cy], phi_x[:, :cx] @ C.T, precision="single")
+    rows = None if anchors is None else (anchors[0][sx], anchors[1][sy])
+    p2p = _embedded_p2p(C, phi_x, phi_y, mode, rows)
     return np.linalg.lstsq(phi_y[:, :ky], phi_x[p2p, :kx], rcond=None)[0]
 
 
@@ -98,6 +134,7 @@ def zoomout(
     mode: Mode = "orthogonal",
     subsample=None,
     guard: bool = True,
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ):
     """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
 
@@ -117,6 +154,12 @@ def zoomout(
             (nearest neighbours between samples, least-squares maps), as in the ZoomOut
             paper's accelerated variant; only the final point map uses every vertex. The cost
             of an iteration drops from ``V_x V_y k`` to ``S_x S_y k``.
+        anchors: ``(A_x (V_x, m), A_y (V_y, m))``: coordinates that correspond on both shapes
+            (e.g. geodesic distances to landmark pairs,
+            :func:`~torchfmap.kinds.refiners.landmark_coordinates`), appended
+            to the spectral embedding of every point-map step at equal weight, so the map also
+            keeps each vertex's distances to the landmarks. The spectral embedding alone is
+            ambiguous where the shapes are not isometric; the anchors tie it to known pairs.
 
     Returns:
         ``(C_xy (k_final, k_final), p2p_yx (V_y,))``.
@@ -133,24 +176,29 @@ def zoomout(
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     samples = _check_samples(subsample, basis_x, basis_y)
+    anchors = _check_anchors(anchors, basis_x, basis_y)
     k = min(C.shape)
     sizes = list(range(k, k_final, step)) + [k_final]
     best = EnergyGuard(basis_x, basis_y, sizes, enabled=guard)
+
+    def to_p2p(C):
+        return _embedded_p2p(C, basis_x.values, basis_y.values, mode, anchors)
+
     if samples is None:
-        p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+        p2p = to_p2p(C)
         best.offer(p2p)
         while k < k_final:
             k = min(k + step, k_final)
             C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
-            p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+            p2p = to_p2p(C)
             best.offer(p2p)
     else:
         if guard:
-            best.offer(fmap_to_p2p(C, basis_x, basis_y, mode=mode))
+            best.offer(to_p2p(C))
         while k < k_final:
             k = min(k + step, k_final)
-            C = _sample_step(C, basis_x, basis_y, k, k, samples, mode)
-        p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+            C = _sample_step(C, basis_x, basis_y, k, k, samples, mode, anchors)
+        p2p = to_p2p(C)
         best.offer(p2p)
     if best.replaces(p2p):
         p2p = best.p2p_yx

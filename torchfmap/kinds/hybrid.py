@@ -150,7 +150,7 @@ class HybridKind(BasisKind):
         side_x = np.hstack([ex.values @ C_e.T, w * (fx.values @ C_f.T)])
         return side_x, np.hstack([ey.values, w * fy.values])
 
-    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases):
+    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
         """:class:`HybridZoomOut` to ``k_final`` columns in all (the eigen blocks of given
         hybrid ``eigenbases``, or the shapes' own eigenbases, hold the eigenfunctions it grows
         in)."""

@@ -93,17 +93,31 @@ def grown_eigenbases(shape_x: PreparedShape, shape_y: PreparedShape, eigenbases,
     return check_eigenbases(eigenbases, k_final)
 
 
+def landmark_coordinates(
+    shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(A_x (V_x, L), A_y (V_y, L))``: every vertex's geodesic distances to the ``(L, 2)``
+    landmark pairs ``(x vertex, y vertex)``, in units of each shape's ``sqrt(area)`` (rows
+    computed by, and kept in, each shape's ``distances``). Column ``l`` is the same function on
+    both shapes wherever the map between them preserves distances to landmark ``l``."""
+    pairs = np.asarray(landmarks, dtype=np.int64).reshape(-1, 2)
+    return shape_x.distances.rows(pairs[:, 0]).T, shape_y.distances.rows(pairs[:, 1]).T
+
+
 @dataclass(frozen=True)
 class ZoomOut:
     """ZoomOut in eigenbases (:func:`~torchfmap.fmap.zoomout`), grown from ``C_xy``'s size to
     ``k_final`` (default: twice that size) in ``eigenbases`` (given ones, whose first columns
     ``basis_x, basis_y`` are) or, when None, the shapes' own eigenbases; on ``samples``
-    farthest-point samples per shape if given. Returns the map in the grown bases (no seeds)."""
+    farthest-point samples per shape if given; with ``landmarks`` ``(L, 2)``, every point-map
+    step also matches the vertices' geodesic distances to them (:func:`landmark_coordinates`
+    as ZoomOut's ``anchors``). Returns the map in the grown bases (no seeds)."""
 
     k_final: int | None = None
     mode: str = "orthogonal"
     samples: int | None = None
     eigenbases: tuple[Basis, Basis] | None = None
+    landmarks: np.ndarray | None = None
 
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
         k_final = self.k_final if self.k_final is not None else 2 * min(np.shape(C_xy))
@@ -114,7 +128,8 @@ class ZoomOut:
                 farthest_point_sampling(m, min(self.samples, m.n_vertices), metric="euclidean")
                 for m in (shape_x.mesh, shape_y.mesh)
             )
-        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples)
+        anchors = None if self.landmarks is None else landmark_coordinates(shape_x, shape_y, self.landmarks)
+        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples, anchors=anchors)
         return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
 
 
