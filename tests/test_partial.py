@@ -16,7 +16,7 @@ from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
 from torchfmap.eval_partial import discover_partial_pairs, overlap_iou
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.io import save_mesh
-from torchfmap.partial import common_frame, match_partial, overlap_indicator, partial_rank
+from torchfmap.partial import common_frame, match_partial, overlap_indicator, partial_rank, partial_zoomout
 
 
 @pytest.fixture(scope="module")
@@ -261,3 +261,29 @@ def test_shot_is_local_and_rigid_invariant():
     np.testing.assert_allclose(Fp[far], F[cut.vertices][far], atol=1e-8)
     with pytest.raises(ParameterError, match="radius"):
         shot(a, 0.0)
+
+
+def test_partial_zoomout_keeps_the_landmark_distances_in_the_wholes_units():
+    """With landmarks, partial ZoomOut also matches the vertices' geodesic distances to them;
+    the part's distance rows (units of its own sqrt(area)) times sqrt(area ratio) are the
+    whole's, away from the cut, so both sides are in one unit (a part cut from the whole
+    itself: the median relative difference is the heat method's discretisation error)."""
+    from torchfmap.kinds.refiners import landmark_coordinates
+    from torchfmap.partial import area_ratio
+
+    whole = demo_pair()[0]
+    cut = cut_plane(whole, 0.6, seed=1)
+    shapes = (prepare_shape(whole, 100), prepare_shape(cut.mesh, 100))
+    idx = np.linspace(0, cut.n_vertices - 1, 5).astype(int)
+    lm = np.stack([cut.vertices[idx], idx], axis=1)
+    ax, ay = landmark_coordinates(*shapes, lm)
+    a = area_ratio(whole, cut.mesh)
+    on_whole = ax[cut.vertices]
+    far = on_whole > 0.1  # relative differences away from the landmarks themselves
+    rel = np.abs(ay * np.sqrt(a) - on_whole)[far] / on_whole[far]
+    assert np.median(rel) < 0.05
+    r = match(whole, cut.mesh, landmarks=lm, k=30, refine="zoomout", partial=True, shapes=shapes)
+    start = match(whole, cut.mesh, landmarks=lm, k=30, partial=True, shapes=shapes)
+    full, part = shapes[0].eigenbasis, common_frame(shapes[1].eigenbasis, a)
+    _, anchored = partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
+    np.testing.assert_array_equal(r.p2p_yx, anchored)

@@ -40,6 +40,8 @@ from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
+from .fmap.refine import anchored_p2p
+from .kinds.refiners import landmark_coordinates
 from .mesh import Mesh
 from .results import MatchResult
 
@@ -137,19 +139,26 @@ def overlap_indicator(C_xy: np.ndarray, full: Basis, part: Basis) -> np.ndarray:
 
 
 def partial_zoomout(
-    p2p_yx: np.ndarray, full: Basis, part: Basis, k: int, k_final: int, step: int | None = None
+    p2p_yx: np.ndarray,
+    full: Basis,
+    part: Basis,
+    k: int,
+    k_final: int,
+    step: int | None = None,
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut for a part: from ``k`` to ``k_final`` columns of the whole, each step fitting
     ``C = Φ_y⁺ Π Φ_x`` on the part's first ``r(k)`` eigenfunctions (:func:`partial_rank`) and
     converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
-    ``Φ_x Cᵀ``). Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    ``Φ_x Cᵀ``, with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended as in
+    :func:`~torchfmap.fmap.zoomout`). Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
     step = zoomout_step(k) if step is None else step
     sizes = list(range(k + step, k_final, step)) + [k_final]
     C = None
     for kk in sizes:
         r = partial_rank(full.eigenvalues, part.eigenvalues, kk)
         C = p2p_to_fmap(p2p_yx, full, part, kk, r)
-        p2p_yx = fmap_to_p2p(C, full, part, mode="orthogonal")
+        p2p_yx = anchored_p2p(C, full.values, part.values, "orthogonal", anchors)
     return C, p2p_yx
 
 
@@ -224,7 +233,11 @@ def match_partial(
     initial = p2p
     if refine:
         t0 = time.perf_counter()
-        C, p2p = partial_zoomout(p2p, full, part, k, k_final)
+        anchors = None
+        if landmarks is not None:  # distances in the whole's units: the part's times sqrt(a)
+            ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
+            anchors = (ax, ay * np.sqrt(a))
+        C, p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)
         timings["refine"] = time.perf_counter() - t0
     r_final = C.shape[0]
     result = MatchResult(

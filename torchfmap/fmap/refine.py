@@ -96,8 +96,8 @@ def _check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray,
     return ax, ay
 
 
-def _embedded_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors) -> np.ndarray:
-    """The point map of ``C (cy, cx)`` by the rule ``mode`` (as
+def anchored_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors=None) -> np.ndarray:
+    """``p2p_yx`` ``(V_y,)``: the point map of ``C (cy, cx)`` by the rule ``mode`` (as
     :func:`~torchfmap.fmap.convert.values_to_p2p`, ``phi_*`` the rows it compares), with the
     ``anchors`` rows ``(A_x, A_y)`` appended to both embeddings at equal weight: scaled so that
     their mean row norm on ``y`` is the spectral embedding's."""
@@ -120,7 +120,7 @@ def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode,
     sx, sy = samples
     phi_x, phi_y = bx.values[sx], by.values[sy]
     rows = None if anchors is None else (anchors[0][sx], anchors[1][sy])
-    p2p = _embedded_p2p(C, phi_x, phi_y, mode, rows)
+    p2p = anchored_p2p(C, phi_x, phi_y, mode, rows)
     return np.linalg.lstsq(phi_y[:, :ky], phi_x[p2p, :kx], rcond=None)[0]
 
 
@@ -182,7 +182,7 @@ def zoomout(
     best = EnergyGuard(basis_x, basis_y, sizes, enabled=guard)
 
     def to_p2p(C):
-        return _embedded_p2p(C, basis_x.values, basis_y.values, mode, anchors)
+        return anchored_p2p(C, basis_x.values, basis_y.values, mode, anchors)
 
     if samples is None:
         p2p = to_p2p(C)
