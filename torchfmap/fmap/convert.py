@@ -157,15 +157,26 @@ def values_to_p2p(
     mode: Literal["pullback", "orthogonal"],
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The point-map rules of :func:`fmap_to_p2p` on plain arrays: ``C_xy (K_y, K_x)``,
     ``phi_x (V_x, K_x)``, ``phi_y (V_y, K_y)`` -> ``p2p_yx (V_y,)`` (for callers whose bases
-    are arrays or tensors, e.g. the learned path)."""
+    are arrays or tensors, e.g. the learned path). ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))``,
+    coordinates that correspond on both shapes (checked by the caller, e.g.
+    :func:`~torchfmap.fmap.zoomout`), are appended to both embeddings at equal weight: scaled so
+    that their mean row norm on ``y`` is the spectral embedding's."""
     if mode == "pullback":
-        return nearest_neighbor(phi_y @ C_xy, phi_x, search=search, precision=precision)
-    if mode == "orthogonal":
-        return nearest_neighbor(phi_y, phi_x @ C_xy.T, search=search, precision=precision)
-    raise ParameterError(f"unknown mode {mode!r}. Fix: 'pullback' or 'orthogonal'.")
+        query, ref = phi_y @ C_xy, phi_x
+    elif mode == "orthogonal":
+        query, ref = phi_y, phi_x @ C_xy.T
+    else:
+        raise ParameterError(f"unknown mode {mode!r}. Fix: 'pullback' or 'orthogonal'.")
+    if anchors is not None:
+        ax, ay = anchors
+        norm = np.linalg.norm(ay, axis=1).mean()
+        w = np.linalg.norm(query, axis=1).mean() / norm if norm > 0 else 0.0
+        query, ref = np.hstack([query, w * ay]), np.hstack([ref, w * ax])
+    return nearest_neighbor(query, ref, search=search, precision=precision)
 
 
 def fmap_to_p2p_bijective(

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .convert import check_p2p, fmap_to_p2p, nearest_neighbor, p2p_to_fmap
+from .convert import check_p2p, fmap_to_p2p, p2p_to_fmap, values_to_p2p
 from .defaults import zoomout_step
 
 Mode = Literal["pullback", "orthogonal"]
@@ -97,21 +97,10 @@ def _check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray,
 
 
 def anchored_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors=None) -> np.ndarray:
-    """``p2p_yx`` ``(V_y,)``: the point map of ``C (cy, cx)`` by the rule ``mode`` (as
-    :func:`~torchfmap.fmap.convert.values_to_p2p`, ``phi_*`` the rows it compares), with the
-    ``anchors`` rows ``(A_x, A_y)`` appended to both embeddings at equal weight: scaled so that
-    their mean row norm on ``y`` is the spectral embedding's."""
+    """``p2p_yx`` ``(V_y,)`` of ``C (cy, cx)`` from the first ``cx`` / ``cy`` columns of the rows
+    ``phi_x``, ``phi_y`` (:func:`~torchfmap.fmap.convert.values_to_p2p`, with its ``anchors``)."""
     cy, cx = C.shape
-    if mode == "pullback":
-        query, ref = phi_y[:, :cy] @ C, phi_x[:, :cx]
-    else:
-        query, ref = phi_y[:, :cy], phi_x[:, :cx] @ C.T
-    if anchors is not None:
-        ax, ay = anchors
-        norm = np.linalg.norm(ay, axis=1).mean()
-        w = np.linalg.norm(query, axis=1).mean() / norm if norm > 0 else 0.0
-        query, ref = np.hstack([query, w * ay]), np.hstack([ref, w * ax])
-    return nearest_neighbor(query, ref, precision="single")
+    return values_to_p2p(C, phi_x[:, :cx], phi_y[:, :cy], mode=mode, anchors=anchors)
 
 
 def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode, anchors=None):
