@@ -61,6 +61,8 @@ def test_partial_and_mesh_fixes_become_flags():
     for text in texts:
         assert "=True" not in text.replace("allow_unreferenced=True", ""), text
     assert "--partial" in texts[0] and "--partial" in texts[2]
+    collapse = "Fix: check the weights (w_lap, w_orient), the landmarks"  # quality.warn_collapsed's
+    assert in_cli_terms(collapse) == "Fix: check the weight --w-lap, the landmarks"
 
 
 def test_cli_errors_name_flags(tmp_path, capsys):
