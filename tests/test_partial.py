@@ -287,3 +287,5 @@ def test_partial_zoomout_keeps_the_landmark_distances_in_the_wholes_units():
     full, part = shapes[0].eigenbasis, common_frame(shapes[1].eigenbasis, a)
     _, anchored = partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
     np.testing.assert_array_equal(r.p2p_yx, anchored)
+    with pytest.raises(ParameterError, match="anchors"):  # the check of fmap.zoomout's anchors
+        partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay[:10]))

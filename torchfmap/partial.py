@@ -40,7 +40,7 @@ from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
-from .fmap.refine import anchored_p2p
+from .fmap.refine import anchored_p2p, check_anchors
 from .kinds.refiners import landmark_coordinates
 from .mesh import Mesh
 from .results import MatchResult
@@ -152,6 +152,7 @@ def partial_zoomout(
     converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
     ``Φ_x Cᵀ``, with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended as in
     :func:`~torchfmap.fmap.zoomout`). Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    anchors = check_anchors(anchors, full, part)
     step = zoomout_step(k) if step is None else step
     sizes = list(range(k + step, k_final, step)) + [k_final]
     C = None

@@ -75,7 +75,9 @@ def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarra
     return sx.astype(np.int64), sy.astype(np.int64)
 
 
-def _check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
+def check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
+    """``anchors`` as ``(A_x (V_x, m), A_y (V_y, m))`` float64 arrays, one finite row per vertex of
+    each basis (None passes). Raises ParameterError naming what is wrong."""
     if anchors is None:
         return None
     try:
@@ -165,7 +167,7 @@ def zoomout(
     if step < 1:
         raise ParameterError(f"step must be >= 1, got {step}.")
     samples = _check_samples(subsample, basis_x, basis_y)
-    anchors = _check_anchors(anchors, basis_x, basis_y)
+    anchors = check_anchors(anchors, basis_x, basis_y)
     k = min(C.shape)
     sizes = list(range(k, k_final, step)) + [k_final]
     best = EnergyGuard(basis_x, basis_y, sizes, enabled=guard)
