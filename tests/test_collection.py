@@ -349,3 +349,25 @@ def test_a_lost_worker_is_worker_lost_with_the_finished_pairs(tmp_path):
     assert 0 < len(lost.value.finished) < len(pairs) and lost.value.total == len(pairs)
     assert [(r.source, r.target) for r in seen] == [(r.source, r.target) for r in lost.value.finished]
     assert "Fix:" in str(lost.value)
+
+
+def test_a_pool_worker_sends_back_a_message_the_pipe_writes_whole(tmp_path):
+    """A local pool's worker hands back a path, not the results: a worker killed while writing a
+    longer message to the pool's result pipe leaves half of it there, and Python's pool then
+    waits forever instead of reporting itself broken. A message within ``PIPE_BUF`` is written
+    whole or not at all; the file holds exactly the chunk's results."""
+    import pickle
+    import select
+
+    from torchfmap.collection import _evaluate_chunk, _evaluate_chunk_to_file, _read_chunk
+    from torchfmap.eval import discover_pairs
+
+    pairs = list(discover_pairs(_identity_folder(tmp_path), True, "all"))[:3]
+    args = (0, 200, {"k": 20})
+    path = _evaluate_chunk_to_file(str(tmp_path), 7, pairs, *args, threads=1, shapes={})
+    assert len(pickle.dumps(path, protocol=pickle.HIGHEST_PROTOCOL)) + 64 < select.PIPE_BUF
+    back, direct = _read_chunk(path), _evaluate_chunk(pairs, *args, threads=1, shapes={})
+    assert [(r.source, r.target) for r in back] == [(r.source, r.target) for r in direct]
+    for a, b in zip(back, direct, strict=True):
+        np.testing.assert_array_equal(a.errors, b.errors)
+    assert not list(tmp_path.glob("chunk*"))  # read once, removed

@@ -106,26 +106,35 @@ def _sixteen_shapes(tmp_path: Path) -> tuple[Path, Path, int, list[str]]:
 
 def _start(cmd: list[str]) -> tuple[subprocess.Popen, list[str]]:
     """The command with Ctrl-C as in a terminal (a suite started in the background inherits SIGINT
-    ignored), its stderr collected by a thread (the only reader of it: see ``_finish``)."""
+    ignored), its stderr and stdout collected by threads (their only readers: see ``_finish``)."""
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     err: list[str] = []
-    proc.err_reader = threading.Thread(
-        target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True
-    )
-    proc.err_reader.start()
+    proc.out_text = []
+    proc.readers = [
+        threading.Thread(target=lambda s=stream, t=sink: t.extend(iter(lambda: s.read(1), "")), daemon=True)
+        for stream, sink in ((proc.stderr, err), (proc.stdout, proc.out_text))
+    ]
+    for reader in proc.readers:
+        reader.start()
     return proc, err
 
 
 def _finish(proc: subprocess.Popen, timeout: float) -> str:
-    """The command's stdout once it exits, and its stderr read to the end by ``_start``'s thread
-    (``communicate`` would read stderr too, taking part of it from that thread)."""
-    out = proc.stdout.read()
-    proc.wait(timeout=timeout)
-    proc.err_reader.join(timeout=timeout)
-    return out
+    """The command's stdout once it exits within ``timeout`` seconds (else it is killed and the
+    test fails: a hang is a failure, not a stuck suite), read to the end by ``_start``'s threads
+    (``communicate`` would read the pipes too, taking part of them from those threads)."""
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        for pid in [proc.pid, *_workers(proc.pid)]:
+            os.kill(pid, signal.SIGKILL)
+        pytest.fail(f"the command did not exit within {timeout} s")
+    for reader in proc.readers:
+        reader.join(timeout=timeout)
+    return "".join(proc.out_text)
 
 
 def _wait_for_progress(proc, err, total: int) -> int:

@@ -16,7 +16,10 @@ from __future__ import annotations
 import inspect
 import multiprocessing
 import os
+import pickle
+import shutil
 import signal
+import tempfile
 import time
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -218,6 +221,27 @@ def _evaluate_chunk(
         return out
 
 
+def _evaluate_chunk_to_file(folder: str, index: int, pairs, *args, **kwargs) -> str:
+    """A local pool's chunk: :func:`_evaluate_chunk`, its results pickled to a file in
+    ``folder``, whose path (a short message) is returned. A pool's results otherwise come back
+    through one pipe, and a worker killed while writing a long result leaves half a message
+    there that Python's pool waits for forever (it never reports the pool broken); a message
+    shorter than the pipe's atomic write (``PIPE_BUF``) is written whole or not at all."""
+    results = _evaluate_chunk(pairs, *args, **kwargs)
+    path = os.path.join(folder, f"chunk{index}.pkl")
+    with open(path + ".tmp", "wb") as f:
+        pickle.dump(results, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(path + ".tmp", path)
+    return path
+
+
+def _read_chunk(path: str) -> list[PairResult]:
+    with open(path, "rb") as f:
+        results = pickle.load(f)
+    os.remove(path)
+    return results
+
+
 def _check_matcher(matcher, settings: dict) -> None:
     """Refuse, before any work, settings that ``matcher`` does not take (named, with the fix)."""
     try:
@@ -357,13 +381,18 @@ def evaluate_pairs(
     order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
     futures: dict = {}
     done: dict[int, list[PairResult]] = {}
+    folder = tempfile.mkdtemp(prefix="torchfmap-chunks-") if own else None
     try:
         args = (gt_landmarks, max_points, match_kwargs)
         for i in order:
-            futures[pool.submit(_evaluate_chunk, chunks[i], *args, threads=threads, matcher=matcher)] = i
+            if own:
+                task = (_evaluate_chunk_to_file, folder, i, chunks[i], *args)
+            else:
+                task = (_evaluate_chunk, chunks[i], *args)
+            futures[pool.submit(*task, threads=threads, matcher=matcher)] = i
         for future in as_completed(futures):
             i = futures[future]
-            done[i] = future.result()
+            done[i] = _read_chunk(future.result()) if folder else future.result()
             bar.update(len(chunks[i]))
             if on_results is not None:
                 on_results(done[i])
@@ -384,6 +413,8 @@ def evaluate_pairs(
         bar.close()
         if own:
             pool.shutdown(cancel_futures=True)
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
     return [r for i in range(len(chunks)) for r in done[i]]
 
 
