@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pytest
 
-from torchfmap import Basis, MapWarning, ParameterError, SeedError, save_mesh
+from torchfmap import Basis, MapWarning, Mesh, ParameterError, SeedError, save_mesh
 from torchfmap.bases.prepared import prepare_shape
 from torchfmap.cli import build_parser, main
 from torchfmap.data import icosphere
@@ -289,6 +289,23 @@ def test_swapped_bases_are_refused(bent_pair, saved):
     with pytest.raises(ParameterError, match="fit the meshes in the other order"):
         match(x, y, bases=(by, bx))
     np.testing.assert_array_equal(bx.pair_landmarks, by.pair_landmarks)
+
+
+def test_a_basis_of_another_mesh_with_as_many_vertices_is_refused(bent_pair, saved):
+    """Vertex areas fingerprint the mesh a basis was built on: another pose of the same
+    connectivity is refused, naming the basis; the same mesh written to a file with 6 digits and
+    read back (areas moved by rounding only) is accepted."""
+    from torchfmap.match_checks import MASS_FIT_TOL, mass_mismatch
+
+    x, y, _ = bent_pair
+    _, bx, by = saved
+    other = x.copy(bend(x.vertices, 0.6))  # as many vertices, the same faces, another pose
+    assert mass_mismatch(by, other) > 10 * MASS_FIT_TOL
+    with pytest.raises(ParameterError, match="basis_y was not built on mesh_y.*torchfmap basis"):
+        match(x, other, bases=(bx, by))
+    rounded = Mesh(np.array([[float(f"{c:.6g}") for c in v] for v in y.vertices]), y.faces)
+    assert mass_mismatch(by, rounded) < MASS_FIT_TOL
+    assert match(x, rounded, bases=(bx, by)).p2p_yx.shape == (y.n_vertices,)
 
 
 @pytest.mark.parametrize("kind", ["diffusion", "harmonic", "stack"])

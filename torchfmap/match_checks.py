@@ -88,14 +88,42 @@ def check_k_final(kind: BasisKind, refine, k: int, k_final) -> None:
         raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
 
 
+#: A given basis fits its mesh when its vertex areas (normalised to sum 1) are within this
+#: relative L1 distance of the mesh's own, in one of the mass schemes torchfmap builds: areas of
+#: the same mesh differ by rounding (coordinates written with 6 digits move about 1e-6 of the
+#: area), while another mesh with as many vertices (another pose of one template, another
+#: meshing) moves percents of it.
+MASS_FIT_TOL = 1e-3
+
+
+def _lumped_areas(mesh: Mesh):
+    """The mesh's vertex areas normalised to sum 1 in each mass scheme torchfmap builds, cheapest
+    first: barycentric (the row sums of the FEM mass too), Voronoi, intrinsic Delaunay."""
+    import robust_laplacian
+
+    from .operators.laplacian import mass_matrix
+
+    for scheme in ("barycentric", "voronoi", "robust"):
+        if scheme == "robust":
+            m = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces)[1]
+        else:
+            m = mass_matrix(mesh, scheme)
+        a = np.asarray(m.sum(axis=1), dtype=np.float64).ravel()
+        yield a / a.sum()
+
+
 def mass_mismatch(basis: Basis, mesh: Mesh) -> float:
-    """Relative L1 difference of ``basis``'s lumped mass and ``mesh``'s, both normalised to sum
-    1 (0 for a basis built on this mesh, in any frame; large for another mesh's basis)."""
-    b = np.asarray(basis.mass.diagonal(), dtype=np.float64)
-    m = np.bincount(
-        mesh.faces.ravel(), weights=np.repeat(mesh.face_areas / 3.0, 3), minlength=mesh.n_vertices
-    )
-    return float(np.abs(b / b.sum() - m / m.sum()).sum())
+    """Relative L1 difference of ``basis``'s vertex areas (its mass's row sums) and ``mesh``'s,
+    both normalised to sum 1, in the mass scheme of torchfmap that fits best (0 up to rounding
+    for a basis built on this mesh, in any frame; percents for another mesh's basis)."""
+    b = np.asarray(basis.mass.sum(axis=1), dtype=np.float64).ravel()
+    b = b / b.sum()
+    best = np.inf
+    for areas in _lumped_areas(mesh):
+        best = min(best, float(np.abs(b - areas).sum()))
+        if best <= MASS_FIT_TOL:
+            break
+    return best
 
 
 def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, bool]:
@@ -113,16 +141,23 @@ def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, 
                 f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
                 "pass the basis built on that mesh (bases in the order source, target)."
             )
-    # bases of meshes with different vertex counts are in order by the check above; of equal
-    # counts, vertex areas are a fingerprint of the mesh a basis was built on
-    same_size = mesh_x.n_vertices == mesh_y.n_vertices
-    given = mass_mismatch(bx, mesh_x) + mass_mismatch(by, mesh_y) if same_size else 0.0
-    swapped = mass_mismatch(bx, mesh_y) + mass_mismatch(by, mesh_x) if same_size else 0.0
-    if swapped < 0.25 * given:
+    # vertex areas are a fingerprint of the mesh a basis was built on
+    fit = [mass_mismatch(bx, mesh_x), mass_mismatch(by, mesh_y)]
+    if max(fit) > MASS_FIT_TOL:
+        same_size = mesh_x.n_vertices == mesh_y.n_vertices
+        if same_size and mass_mismatch(bx, mesh_y) + mass_mismatch(by, mesh_x) <= 2 * MASS_FIT_TOL:
+            raise ParameterError(
+                "the given bases fit the meshes in the other order (their vertex areas are those of "
+                "the other mesh). Fix: give the bases in the order source, target (CLI: --bases "
+                "SRC.npz TGT.npz)."
+            )
+        name = "x" if fit[0] > MASS_FIT_TOL else "y"
         raise ParameterError(
-            "the given bases fit the meshes in the other order (their vertex masses are those of "
-            f"the other mesh: mismatch {given:.3f} as given, {swapped:.3f} swapped). Fix: give the "
-            "bases in the order source, target (CLI: --bases SRC.npz TGT.npz)."
+            f"basis_{name} was not built on mesh_{name}: its vertex areas differ from the mesh's "
+            f"({max(fit):.2g} of the area lies elsewhere; a basis of this mesh differs by rounding "
+            "only), so it is the basis of another mesh with as many vertices (another pose or "
+            f"meshing). Fix: build it on this mesh (`torchfmap basis MESH --out FILE.npz`, or "
+            "match without bases=), or pass the meshes the bases were built on."
         )
     seeded = any(c.seed >= 0 for b in (bx, by) for c in b.provenance)
     px, py = bx.pair_landmarks, by.pair_landmarks
