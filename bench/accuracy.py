@@ -334,14 +334,23 @@ def partial(cfg: Settings, report: Report) -> None:
     whole source by the full-shape ``match`` and by ``match(partial=True)``, raw and refined, with
     ``L`` landmarks (ground-truth rows spread by FPS; the full-shape map then in the eigenbasis).
     Errors on the whole shape over the part's ground-truth rows; overlap IoU of ``v > 0.5``
-    against the true part (area-weighted)."""
+    against the true part (area-weighted). ``learned``: a model whose features replace SHOT in
+    the partial solve (:meth:`~torchfmap.nn.LearnedMatcher.features`; null: not run)."""
     from torchfmap import match
     from torchfmap.data.cuts import cut_holes, cut_plane
     from torchfmap.eval import Correspondence, geodesic_errors, landmarks_from_gt
+    from torchfmap.partial import match_partial
 
     rows = []
+    learned = None
+    if cfg.learned:
+        from torchfmap.nn import LearnedMatcher
+
+        learned = LearnedMatcher.from_checkpoint(cfg.learned, device="cpu")
+    methods = ("full-shape", "partial", "learned") if learned else ("full-shape", "partial")
     for name, whole, other, gt_w, gt_o in _partial_pairs(cfg):
         shape_w = prepare_shape(whole, 2 * cfg.k + 100)
+        feat_w = learned.features(whole, shape=shape_w) if learned else None
         vertex_area = shape_w.operators[1].diagonal()  # lumped mass: area weights (any scale)
         for ratio in cfg.ratios:
             for how in cfg.cuts:
@@ -355,25 +364,26 @@ def partial(cfg: Settings, report: Report) -> None:
                 truth = np.zeros(whole.n_vertices, bool)
                 truth[gt.idx_x] = True
                 shape_p = prepare_shape(cut.mesh, 2 * cfg.k + 100)
+                feat_p = learned.features(cut.mesh, shape=shape_p) if learned else None
                 a = cut.mesh.area / other.area
                 for n in cfg.L:
                     lm = landmarks_from_gt(whole, gt, n) if n else None
-                    for method, kwargs in (
-                        ("full-shape", {"basis": "laplacian"} if n else {}),
-                        ("partial", {"partial": True}),
-                    ):
+                    for method in methods:
                         t0 = time.perf_counter()
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
-                            r = match(
-                                whole,
-                                cut.mesh,
-                                landmarks=lm,
-                                k=cfg.k,
-                                refine="zoomout",
-                                shapes=(shape_w, shape_p),
-                                **kwargs,
-                            )
+                            if method == "learned":  # the features' time is not counted
+                                r = match_partial(
+                                    shape_w, shape_p, landmarks=lm, k=cfg.k, refine="zoomout",
+                                    descriptors=(feat_w, feat_p),
+                                )  # fmt: skip
+                            else:
+                                r = match(
+                                    whole, cut.mesh, landmarks=lm, k=cfg.k, refine="zoomout",
+                                    shapes=(shape_w, shape_p),
+                                    **({"partial": True} if method == "partial" else
+                                       {"basis": "laplacian"} if n else {}),
+                                )  # fmt: skip
                         t = time.perf_counter() - t0
                         for refine, p2p in (("-", r.p2p_yx_initial), ("zoomout", r.p2p_yx)):
                             row = dict(
@@ -388,7 +398,7 @@ def partial(cfg: Settings, report: Report) -> None:
                             row["mean"] = float(
                                 geodesic_errors(whole, p2p, gt, solver=shape_w.distances).mean()
                             )
-                            if r.overlap is not None and refine == "zoomout":
+                            if method == "partial" and refine == "zoomout":
                                 est = r.overlap > 0.5
                                 row["iou"] = float(
                                     vertex_area[est & truth].sum() / vertex_area[est | truth].sum()
@@ -403,8 +413,8 @@ def partial(cfg: Settings, report: Report) -> None:
             band = [r for r in rows if lo < r["ratio"] <= hi and r["L"] == n]
             if not band:
                 continue
-            line = {"area ratio": f"({lo}, {hi}]", "L": n, "cuts": len(band) // 4}
-            for method in ("full-shape", "partial"):
+            line = {"area ratio": f"({lo}, {hi}]", "L": n, "cuts": len(band) // (2 * len(methods))}
+            for method in methods:
                 for refine in ("-", "zoomout"):
                     errs = [r["mean"] for r in band if (r["method"], r["refine"]) == (method, refine)]
                     line[f"{method} {refine}"] = 100 * float(np.mean(errs))
@@ -419,8 +429,10 @@ def partial(cfg: Settings, report: Report) -> None:
         "Partial-to-full: mean geodesic error x100 on the whole, over the part's rows",
         out,
         note="full-shape: match(whole, part) (eigenbasis with landmarks); partial: match(whole, part, "
-        "partial=True). '-': the unrefined map of the same call; IoU: overlap v > 0.5 against the true "
-        "part, area-weighted; times include ZoomOut, same process.",
+        "partial=True); "
+        + (f"learned: the partial solve with {cfg.learned} features in place of SHOT; " if learned else "")
+        + "'-': the unrefined map of the same call; IoU (of the partial mode): overlap v > 0.5 against "
+        "the true part, area-weighted; times include ZoomOut, same process.",
     )
 
 

@@ -13,6 +13,7 @@ from .bases import Basis
 from .errors import MapWarning, ParameterError
 from .kinds import BasisKind, get_kind, kind_of
 from .mesh import Mesh
+from .operators.laplacian import laplacian, mass_matrix
 
 
 def check_meshes(mesh_x, mesh_y) -> None:
@@ -99,15 +100,8 @@ MASS_FIT_TOL = 1e-3
 def _lumped_areas(mesh: Mesh):
     """The mesh's vertex areas normalised to sum 1 in each mass scheme torchfmap builds, cheapest
     first: barycentric (the row sums of the FEM mass too), Voronoi, intrinsic Delaunay."""
-    import robust_laplacian
-
-    from .operators.laplacian import mass_matrix
-
     for scheme in ("barycentric", "voronoi", "robust"):
-        if scheme == "robust":
-            m = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces)[1]
-        else:
-            m = mass_matrix(mesh, scheme)
+        m = laplacian(mesh, scheme="robust").mass if scheme == "robust" else mass_matrix(mesh, scheme)
         a = np.asarray(m.sum(axis=1), dtype=np.float64).ravel()
         yield a / a.sum()
 

@@ -286,3 +286,18 @@ def test_a_model_trained_facing_anywhere_tries_the_targets_facings(permuted, mon
     sx = inference._pair(*[matcher._items(prepare_shape(mesh_x, 12), 0)[0]] * 2, "cpu")[0]
     eye = torch.eye(TINY.k, dtype=torch.float64)
     assert real(eye, sx.basis, sx.basis) < 1e-9 < real(eye[[1, 0, *range(2, TINY.k)]], sx.basis, sx.basis)
+
+
+def test_features_follow_the_vertices_and_reuse_a_prepared_shape(permuted):
+    """``features`` is ``(V, c_out)`` float64; WKS inputs are intrinsic, so a vertex-permuted copy
+    gets the permuted features (to float32 rounding through the network); a prepared shape is
+    reused, and one of another mesh is refused."""
+    mesh_x, mesh_y, perm = permuted
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    fx = matcher.features(mesh_x)
+    assert fx.shape == (mesh_x.n_vertices, TINY.c_out) and fx.dtype == np.float64
+    fy = matcher.features(mesh_y, shape=prepare_shape(mesh_y, 20))
+    scale = np.abs(fx).max()
+    np.testing.assert_allclose(fy, fx[perm], rtol=0, atol=1e-4 * scale)
+    with pytest.raises(ParameterError, match="shapes must be"):
+        matcher.features(mesh_x, shape=prepare_shape(mesh_y, 20))

@@ -307,6 +307,31 @@ class LearnedMatcher:
         item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
         return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES)
 
+    def features(self, mesh: Mesh, *, shape: PreparedShape | None = None) -> np.ndarray:
+        """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
+        adaptation, no facings), e.g. as :func:`~torchfmap.partial.match_partial`'s
+        ``descriptors`` or for retrieval.
+
+        Args:
+            shape: ``prepare_shape(mesh, n)`` to reuse (its eigenbasis is grown in place when
+                the network needs more).
+
+        Raises:
+            ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, or the mesh is too
+                small for the model's ``k``.
+        """
+        check_meshes(mesh, mesh)
+        cfg = self.config
+        need = min(max(cfg.k, cfg.k_net, K_WKS), mesh.n_vertices - 1)
+        if shape is None:
+            shape = prepare_shape(mesh, need)
+        else:
+            shape = with_eigenpairs(check_prepared((shape, shape), (mesh, mesh))[0], need)
+        item, _ = self._items(shape, 0)
+        with torch.no_grad():
+            batch, _ = _pair(item, item, self.device)
+            return features(self.net, batch)[0].to(torch.float64).cpu().numpy()
+
     def __call__(
         self,
         mesh_x: Mesh,
