@@ -314,7 +314,9 @@ def evaluate_pairs(
             :class:`LandmarkFiles` to read each pair's landmarks from its file
             (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
         max_points: score at most this many points per pair.
-        workers: local worker processes (1: this process).
+        workers: local worker processes (1: this process). Each hands back a chunk's results
+            through a file in a temporary folder (``TMPDIR``; removed when the run ends, left
+            behind only if this process is killed).
         threads: threads per worker. ``None``: this process's threads as they are when
             ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
             (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
@@ -411,10 +413,12 @@ def evaluate_pairs(
         raise
     finally:
         bar.close()
-        if own:
-            pool.shutdown(cancel_futures=True)
-        if folder is not None:
-            shutil.rmtree(folder, ignore_errors=True)
+        try:
+            if own:
+                pool.shutdown(cancel_futures=True)
+        finally:
+            if folder is not None:
+                shutil.rmtree(folder, ignore_errors=True)
     return [r for i in range(len(chunks)) for r in done[i]]
 
 

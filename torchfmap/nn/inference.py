@@ -297,6 +297,12 @@ class LearnedMatcher:
         cfg = self.config
         return FACINGS if has_coordinates(cfg.inputs) and cfg.augment == "up" else (0.0,)
 
+    def _eigenpairs(self, n_vertices: int, k_final: int = 0) -> int:
+        """Eigenpairs one preparation of a mesh of ``n_vertices`` needs: the solver's basis, the
+        network's, the WKS inputs' and ZoomOut's ``k_final``, at most ``n_vertices - 1``."""
+        cfg = self.config
+        return min(max(cfg.k, cfg.k_net, K_WKS, k_final), n_vertices - 1)
+
     def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
         """``(dataset item, solver basis)`` of one prepared shape: the network's arrays
         (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) and the float64
@@ -321,12 +327,13 @@ class LearnedMatcher:
                 small for the model's ``k``.
         """
         check_meshes(mesh, mesh)
-        cfg = self.config
-        need = min(max(cfg.k, cfg.k_net, K_WKS), mesh.n_vertices - 1)
+        need = self._eigenpairs(mesh.n_vertices)
         if shape is None:
             shape = prepare_shape(mesh, need)
+        elif not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
+            raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
         else:
-            shape = with_eigenpairs(check_prepared((shape, shape), (mesh, mesh))[0], need)
+            shape = with_eigenpairs(shape, need)
         item, _ = self._items(shape, 0)
         with torch.no_grad():
             batch, _ = _pair(item, item, self.device)
@@ -371,7 +378,7 @@ class LearnedMatcher:
         t0 = time.perf_counter()
         sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
         k0, k_final = _zoomout_sizes(cfg.k, k_final, sizes) if refine else (cfg.k, None)
-        need = min(max(cfg.k, cfg.k_net, K_WKS, k_final or 0), min(sizes) - 1)  # one eigendecomposition
+        need = self._eigenpairs(min(sizes), k_final or 0)  # one eigendecomposition
         if shapes is None:
             shapes = (prepare_shape(mesh_x, need), prepare_shape(mesh_y, need))
         else:
