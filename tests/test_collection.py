@@ -377,3 +377,31 @@ def test_a_pool_worker_sends_back_a_message_the_pipe_writes_whole(tmp_path):
     for a, b in zip(back, direct, strict=True):
         np.testing.assert_array_equal(a.errors, b.errors)
     assert not list(tmp_path.glob("chunk*"))  # read once, removed
+
+
+def test_a_callers_process_pool_gets_results_through_files_and_leaves_none(tmp_path, monkeypatch):
+    """A ProcessPoolExecutor passed as ``executor`` is on this machine: its chunks come back
+    through files as a local pool's do (the same rows as one process), and the run removes them."""
+    import multiprocessing
+    import tempfile
+    from concurrent.futures import ProcessPoolExecutor
+
+    from torchfmap.collection import evaluate_pairs
+    from torchfmap.eval import discover_pairs
+
+    pairs = list(discover_pairs(_identity_folder(tmp_path), True, "all"))
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    made = []
+    real = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
+    one = evaluate_pairs(pairs, k=20, threads=1)
+    assert not made  # one process: no files
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        pooled = evaluate_pairs(pairs, k=20, threads=1, executor=pool)
+    assert len(made) == 1 and made[0].startswith(str(scratch))
+    assert [(r.source, r.target) for r in pooled] == [(r.source, r.target) for r in one]
+    for a, b in zip(one, pooled, strict=True):
+        np.testing.assert_array_equal(a.errors, b.errors)
+    assert not list(scratch.iterdir())

@@ -314,9 +314,10 @@ def evaluate_pairs(
             :class:`LandmarkFiles` to read each pair's landmarks from its file
             (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
         max_points: score at most this many points per pair.
-        workers: local worker processes (1: this process). Each hands back a chunk's results
-            through a file in a temporary folder (``TMPDIR``; removed when the run ends, left
-            behind only if this process is killed).
+        workers: local worker processes (1: this process). Their chunks' results come back
+            through files in a temporary folder (``TMPDIR``; removed when the run ends, left
+            behind only if this process is killed), as those of a ``ProcessPoolExecutor``
+            given as ``executor`` do.
         threads: threads per worker. ``None``: this process's threads as they are when
             ``workers == 1`` and no ``executor`` is given, else ``max(1, cpu_count // workers)``
             (:func:`pool_threads`; no oversubscription) or the executor's own setting. Pass it to
@@ -383,11 +384,14 @@ def evaluate_pairs(
     order = sorted(range(len(chunks)), key=lambda i: -float(_chunk_costs(chunks[i]).sum()))
     futures: dict = {}
     done: dict[int, list[PairResult]] = {}
-    folder = tempfile.mkdtemp(prefix="torchfmap-chunks-") if own else None
+    # a process pool on this machine (ours or the caller's) gets results through files: see
+    # _evaluate_chunk_to_file; a cluster's executor keeps its own transport
+    local = isinstance(pool, ProcessPoolExecutor)
+    folder = tempfile.mkdtemp(prefix="torchfmap-chunks-") if local else None
     try:
         args = (gt_landmarks, max_points, match_kwargs)
         for i in order:
-            if own:
+            if local:
                 task = (_evaluate_chunk_to_file, folder, i, chunks[i], *args)
             else:
                 task = (_evaluate_chunk, chunks[i], *args)
