@@ -30,6 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import check_count
+from ._files import atomic_write
 from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import EvaluationInterrupted, ParameterError, WorkerLost
@@ -222,16 +223,15 @@ def _evaluate_chunk(
 
 
 def _evaluate_chunk_to_file(folder: str, index: int, pairs, *args, **kwargs) -> str:
-    """A local pool's chunk: :func:`_evaluate_chunk`, its results pickled to a file in
-    ``folder``, whose path (a short message) is returned. A pool's results otherwise come back
-    through one pipe, and a worker killed while writing a long result leaves half a message
+    """A process pool's chunk: :func:`_evaluate_chunk`, its results pickled to a file in
+    ``folder`` (:func:`~torchfmap._files.atomic_write`: a full disk is a ``FileWriteError``
+    naming the file), whose path (a short message) is returned. A pool's results otherwise come
+    back through one pipe, and a worker killed while writing a long result leaves half a message
     there that Python's pool waits for forever (it never reports the pool broken); a message
     shorter than the pipe's atomic write (``PIPE_BUF``) is written whole or not at all."""
     results = _evaluate_chunk(pairs, *args, **kwargs)
     path = os.path.join(folder, f"chunk{index}.pkl")
-    with open(path + ".tmp", "wb") as f:
-        pickle.dump(results, f, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(path + ".tmp", path)
+    atomic_write(path, lambda fh: pickle.dump(results, fh, protocol=pickle.HIGHEST_PROTOCOL))
     return path
 
 
