@@ -334,8 +334,10 @@ def partial(cfg: Settings, report: Report) -> None:
     whole source by the full-shape ``match`` and by ``match(partial=True)``, raw and refined, with
     ``L`` landmarks (ground-truth rows spread by FPS; the full-shape map then in the eigenbasis).
     Errors on the whole shape over the part's ground-truth rows; overlap IoU of ``v > 0.5``
-    against the true part (area-weighted). ``learned``: a model whose features replace SHOT in
-    the partial solve (:meth:`~torchfmap.nn.LearnedMatcher.features`; null: not run)."""
+    against the true part (area-weighted). ``learned``: a model matched by
+    ``LearnedMatcher(..., partial=True)`` (its features in place of SHOT, the model's ``k``;
+    with landmarks, its features in :func:`~torchfmap.partial.match_partial` at ``k``; null:
+    not run)."""
     from torchfmap import match
     from torchfmap.data.cuts import cut_holes, cut_plane
     from torchfmap.eval import Correspondence, geodesic_errors, landmarks_from_gt
@@ -350,7 +352,6 @@ def partial(cfg: Settings, report: Report) -> None:
     methods = ("full-shape", "partial", "learned") if learned else ("full-shape", "partial")
     for name, whole, other, gt_w, gt_o in _partial_pairs(cfg):
         shape_w = prepare_shape(whole, 2 * cfg.k + 100)
-        feat_w = learned.features(whole, shape=shape_w) if learned else None
         vertex_area = shape_w.operators[1].diagonal()  # lumped mass: area weights (any scale)
         for ratio in cfg.ratios:
             for how in cfg.cuts:
@@ -364,7 +365,6 @@ def partial(cfg: Settings, report: Report) -> None:
                 truth = np.zeros(whole.n_vertices, bool)
                 truth[gt.idx_x] = True
                 shape_p = prepare_shape(cut.mesh, 2 * cfg.k + 100)
-                feat_p = learned.features(cut.mesh, shape=shape_p) if learned else None
                 a = cut.mesh.area / other.area
                 for n in cfg.L:
                     lm = landmarks_from_gt(whole, gt, n) if n else None
@@ -372,10 +372,14 @@ def partial(cfg: Settings, report: Report) -> None:
                         t0 = time.perf_counter()
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
-                            if method == "learned":  # the features' time is not counted
-                                r = match_partial(
+                            if method == "learned":  # the model's k; its features are computed
+                                r = learned(
+                                    whole, cut.mesh, refine="zoomout", shapes=(shape_w, shape_p),
+                                    partial=True,
+                                ) if lm is None else match_partial(
                                     shape_w, shape_p, landmarks=lm, k=cfg.k, refine="zoomout",
-                                    descriptors=(feat_w, feat_p),
+                                    descriptors=(learned.features(whole, shape=shape_w),
+                                                 learned.features(cut.mesh, shape=shape_p)),
                                 )  # fmt: skip
                             else:
                                 r = match(
@@ -430,7 +434,11 @@ def partial(cfg: Settings, report: Report) -> None:
         out,
         note="full-shape: match(whole, part) (eigenbasis with landmarks); partial: match(whole, part, "
         "partial=True); "
-        + (f"learned: the partial solve with {cfg.learned} features in place of SHOT; " if learned else "")
+        + (
+            f"learned: the partial solve with {cfg.learned} features in place of SHOT (their time counted); "
+            if learned
+            else ""
+        )
         + "'-': the unrefined map of the same call; IoU (of the partial mode): overlap v > 0.5 against "
         "the true part, area-weighted; times include ZoomOut, same process.",
     )

@@ -82,7 +82,8 @@ def _sets(cfg: Settings) -> dict[str, list[str]]:
 def checkpoints(cfg: Settings, report: Report) -> None:
     """Errors of trained checkpoints on validation sets: untrained baseline (same recipe and
     seed), the functional map's point map (orthogonal and pull-back rules), nearest features,
-    ZoomOut, and test-time adaptation, with seconds per pair and the loss curves."""
+    ZoomOut (the matcher's, anchored by the features; with ``all_rules`` also without them),
+    and test-time adaptation, with seconds per pair and the loss curves."""
     rows, curves, described = [], {}, set()
     for set_name, specs in _sets(cfg).items():
         for label, path in _checkpoints(cfg.checkpoints):
@@ -120,6 +121,12 @@ def checkpoints(cfg: Settings, report: Report) -> None:
                     add("trained, features", lambda: predict_p2p(net, solver, x, y, mode="features"), pair)  # noqa: B023
                 if cfg.zoomout:
                     add("trained, fmap + zoomout", lambda: zoomout(net, shapes), pair)  # noqa: B023
+                    if cfg.all_rules:  # the baseline: ZoomOut not anchored by the features
+                        add(
+                            "trained, fmap + zoomout without features",
+                            lambda: zoomout_from(base, shapes, config.k, 2 * config.k),  # noqa: B023
+                            pair,
+                        )
                 if cfg.adapt and i < cfg.adapt_pairs:
                     add("trained, fmap (adapt subset)", lambda: base, pair)  # noqa: B023
                     tuned = adapt(net, solver, loss_fn, x, y, steps=cfg.adapt, lr=cfg.adapt_lr)
@@ -277,7 +284,8 @@ def adapt_sweep(cfg: Settings, report: Report) -> None:
 
 def zoomout_from(p2p_yx, shapes, k0: int, k_final: int) -> np.ndarray:
     """ZoomOut of a given map in the prepared shapes' eigenbases, ``k0`` -> ``k_final`` (capped
-    at ``V - 1``): the eigenbasis kind's refiner, as ``match`` and ``LearnedMatcher`` refine."""
+    at ``V - 1``): the eigenbasis kind's refiner, as ``match`` refines (``LearnedMatcher`` also
+    anchors it by the network's features)."""
     cap = min(s.mesh.n_vertices for s in shapes) - 1
     k0, k_final = min(k0, cap), min(k_final, cap)
     shapes = tuple(with_eigenpairs(s, k_final) for s in shapes)

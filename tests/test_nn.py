@@ -14,7 +14,8 @@ HOMES = {
     "train": ("TrainState", "unsupervised_score"),
     "trainer": ("Trainer",),
     "devices": ("resolve_device",),
-    "inference": ("LearnedMatcher", "predict_p2p", "adapt", "evaluate"),
+    "inference": ("LearnedMatcher",),
+    "item_inference": ("predict_p2p", "adapt", "evaluate"),
     "shipped": ("shipped_models",),
 }
 

@@ -163,9 +163,13 @@ def test_cli_partial(blob_cut, tmp_path, capsys):
     assert len(np.loadtxt(tmp_path / "m.txt", dtype=np.int64)) == cut.n_vertices
     assert main([*run, "--k", "20", "--out", str(tmp_path / "m.txt")]) == 0
     assert "--partial" in capsys.readouterr().err
-    assert main([*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")]) != 0
+    learned = [*run, "--partial", "--checkpoint", "faust_r", "--out", str(tmp_path / "m.txt")]
+    assert main([*learned, "--adapt", "2"]) != 0  # adaptation's loss is the whole-shape loss
     err = capsys.readouterr().err
-    assert "--partial" in err and "Traceback" not in err
+    assert "--adapt" in err and "--partial" in err and "Traceback" not in err
+    assert main([*learned, "--refine", "zoomout"]) == 0
+    assert "faust_r" in (out := capsys.readouterr().out) and "partial: rank" in out
+    assert len(np.loadtxt(tmp_path / "m.txt", dtype=np.int64)) == cut.n_vertices
 
 
 def _collection(tmp_path, blob_cut, base=0):
@@ -220,6 +224,10 @@ def test_cli_eval_partial(tmp_path, blob_cut, capsys):
     assert main([*cmd, "--pairs", "all"]) != 0
     err = capsys.readouterr().err
     assert "--pairs" in err and "Traceback" not in err
+    # a trained network's features in the partial solve: the same table, IoU included
+    assert main(["eval", str(folder), "--partial", "--checkpoint", "faust_r", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "IoU |" in out and "| blob | blob_cut60 |" in out and "faust_r" in out and "partial" in out
 
 
 def test_given_descriptors_that_agree_recover_the_restriction():

@@ -172,10 +172,10 @@ def _learned_matcher(args: argparse.Namespace):
                     "classical pipeline runs on the CPU and is not trained)."
                 )
         return None
-    if getattr(args, "partial", False):
+    if getattr(args, "partial", False) and args.adapt:
         raise TorchFmapError(
-            "--partial is the classical partial functional map; the trained networks match whole shapes. "
-            "Fix: drop --checkpoint (torchfmap match WHOLE PART --partial)."
+            "--adapt tunes the network by the whole-shape loss, which a part breaks. Fix: drop --adapt "
+            "with --partial."
         )
     fixed = [f"--{n.replace('_', '-')}" for n in CHECKPOINT_FIXES if getattr(args, n, None) is not None]
     if fixed:
@@ -220,8 +220,10 @@ def cmd_match(args: argparse.Namespace) -> int:
     tgt = load_mesh(args.target, allow_components=args.allow_components)
     matcher = _learned_matcher(args)
     if matcher is not None:
-        result = matcher(src, tgt, refine=args.refine, k_final=args.k_final)
+        result = matcher(src, tgt, refine=args.refine, k_final=args.k_final, partial=args.partial)
         how = _learned_how(matcher, args, result.basis_x.k)
+        if result.overlap is not None:
+            how += f", partial: {_partial_how(result)}"
         return _write_map(args, src, tgt, result.p2p_yx, f"with {how}, {sum(result.timings.values()):.2f} s")
     landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
     bases = tuple(Basis.load(path) for path in args.bases) if args.bases else None
@@ -251,10 +253,15 @@ def cmd_match(args: argparse.Namespace) -> int:
         judge = "geodesic distortion and held-out landmarks" if result.fold_scores else "geodesic distortion"
         chose = f"chosen by {judge} ({result.scores()} sqrt(area)), "
     if result.overlap is not None:
-        share = float((result.overlap > 0.5).mean())
-        chose = f"rank {result.partial_rank}, overlap {share:.0%} of the source's vertices, "
+        chose = f"{_partial_how(result)}, "
     how = f"({result.kind} basis, {chose}K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
+
+
+def _partial_how(result) -> str:
+    """A partial map's rank and estimated overlap, in words."""
+    share = float((result.overlap > 0.5).mean())
+    return f"rank {result.partial_rank}, overlap {share:.0%} of the source's vertices"
 
 
 def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
@@ -304,7 +311,9 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
     matcher = _learned_matcher(args)
     if matcher is not None:
         settings = {"matcher": matcher, "refine": args.refine, "k_final": args.k_final}
-        return settings, _learned_how(matcher, args)
+        if args.partial:
+            settings["partial"] = True
+        return settings, _learned_how(matcher, args) + (", partial" if args.partial else "")
     k = 50 if args.k is None else args.k
     settings = dict(
         gt_landmarks=LandmarkFiles(args.landmarks) if args.landmarks else args.gt_landmarks,

@@ -1,4 +1,5 @@
-"""Inference (``torchfmap.nn.inference``): point-map rules of dataset items, the learned matcher
+"""Inference (``torchfmap.nn.inference``, ``item_inference``): point-map rules of dataset items,
+the learned matcher
 (a ``MatchResult`` like ``match``'s, float64 point maps searched on the device, ZoomOut sized
 from the model's k, one Laplacian and one eigendecomposition per mesh, prepared shapes reused,
 pickling, refinement names as in ``match``, device plumbing) and CPU-vs-CUDA maps where CUDA
@@ -13,6 +14,7 @@ import pytest
 import torch
 
 import torchfmap.nn.inference as inference
+import torchfmap.nn.item_inference as item_inference
 from torchfmap import Mesh, prepare_shape
 from torchfmap.errors import ParameterError
 from torchfmap.fmap import nearest_neighbor, values_to_p2p
@@ -44,7 +46,7 @@ def permuted():
 def test_predict_p2p_point_map_rules(tmp_path, blob_files):
     """Both point-map rules give valid maps; the orthogonal rule is the pull-back rule applied
     to the transpose (for an orthogonal C they coincide up to ties); unknown rules are refused."""
-    from torchfmap.nn.inference import predict_p2p
+    from torchfmap.nn.item_inference import predict_p2p
 
     shapes = ShapeDataset(blob_files, tmp_path, k=8, n_wks=8, progress=False)
     config = TrainConfig(k=8, n_wks=8, width=8, c_out=8, n_blocks=1)
@@ -100,9 +102,9 @@ def test_zoomout_grows_from_the_models_k_to_2k_capped_for_small_meshes(permuted,
     seen = []
     real = inference._zoomout
 
-    def spy(p2p, shapes, k0, k_final):
+    def spy(p2p, shapes, k0, k_final, feats):
         seen.append((k0, k_final))
-        return real(p2p, shapes, k0, k_final)
+        return real(p2p, shapes, k0, k_final, feats)
 
     monkeypatch.setattr(inference, "_zoomout", spy)
     matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
@@ -116,7 +118,32 @@ def test_zoomout_grows_from_the_models_k_to_2k_capped_for_small_meshes(permuted,
     assert matcher(mesh_x, mesh_y, refine="zoomout").basis_x.k == 161 and seen[-1] == (100, 161)
     monkeypatch.undo()
     shapes = (prepare_shape(mesh_x, 16), prepare_shape(mesh_y, 16))
-    assert (inference._zoomout(perm, shapes, 8, 16).p2p_yx == perm).all()
+    feats = (mesh_x.vertices, mesh_y.vertices)
+    assert (inference._zoomout(perm, shapes, 8, 16, feats).p2p_yx == perm).all()
+
+
+def test_zoomout_matches_the_networks_features_of_both_shapes(permuted, monkeypatch):
+    """The learned map's ZoomOut is anchored by the features the network gave the pair (those of
+    :meth:`LearnedMatcher.features`, float64), so the refinement keeps what the network learned
+    where the spectral embeddings disagree."""
+    mesh_x, mesh_y, _ = permuted
+    seen = []
+    real = inference._zoomout
+
+    def spy(p2p, shapes, k0, k_final, feats):
+        seen.append(feats)
+        return real(p2p, shapes, k0, k_final, feats)
+
+    monkeypatch.setattr(inference, "_zoomout", spy)
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    matcher(mesh_x, mesh_y, refine="zoomout")
+    assert len(seen) == 1
+    fx, fy = seen[0]
+    assert fx.dtype == fy.dtype == np.float64
+    for got, mesh in ((fx, mesh_x), (fy, mesh_y)):
+        want = matcher.features(mesh)
+        # the same float32 network on the same inputs, batched alike: equal to its rounding
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e3 * 2**-24 * np.abs(want).max())
 
 
 def test_the_learned_matcher_names_its_refinement_as_match_does(permuted):
@@ -283,7 +310,7 @@ def test_a_model_trained_facing_anywhere_tries_the_targets_facings(permuted, mon
     )
     matcher(mesh_x, mesh_x)
     assert len(seen) == 4
-    sx = inference._pair(*[matcher._items(prepare_shape(mesh_x, 12), 0)[0]] * 2, "cpu")[0]
+    sx = item_inference.pair_batches(*[matcher._items(prepare_shape(mesh_x, 12), 0)[0]] * 2, "cpu")[0]
     eye = torch.eye(TINY.k, dtype=torch.float64)
     assert real(eye, sx.basis, sx.basis) < 1e-9 < real(eye[[1, 0, *range(2, TINY.k)]], sx.basis, sx.basis)
 
@@ -303,3 +330,25 @@ def test_features_follow_the_vertices_and_reuse_a_prepared_shape(permuted):
     np.testing.assert_allclose(fy, fx[perm], rtol=0, atol=1e3 * 2**-24 * scale)
     with pytest.raises(ParameterError, match="shape must be prepare_shape"):
         matcher.features(mesh_x, shape=prepare_shape(mesh_y, 20))
+
+
+def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permuted):
+    """``partial=True``: the partial functional map of the model's ``k`` with the network's
+    features as its descriptors (the same map as ``match_partial`` given them), an overlap on the
+    whole and the model's name; adaptation (a whole-shape loss) is refused with it."""
+    from torchfmap.data.cuts import cut_plane
+    from torchfmap.partial import match_partial
+
+    mesh_x = permuted[0]
+    part = cut_plane(mesh_x, 0.6, seed=0).mesh
+    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    shapes = (prepare_shape(mesh_x, 20), prepare_shape(part, 20))
+    result = matcher(mesh_x, part, partial=True, refine="zoomout", shapes=shapes)
+    assert result.kind == "partial" and result.model == matcher.name and result.refined
+    assert result.overlap.shape == (mesh_x.n_vertices,) and result.p2p_yx.shape == (part.n_vertices,)
+    feats = (matcher.features(mesh_x, shape=shapes[0]), matcher.features(part, shape=shapes[1]))
+    want = match_partial(*shapes, k=TINY.k, refine="zoomout", descriptors=feats)
+    np.testing.assert_array_equal(result.p2p_yx, want.p2p_yx)
+    tuned = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu", adapt_steps=1)
+    with pytest.raises(ParameterError, match="adapt"):
+        tuned(mesh_x, part, partial=True)

@@ -19,7 +19,7 @@ from torchfmap.nn import Budget, Trainer
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint
 from torchfmap.nn.config import TrainConfig, build_model
 from torchfmap.nn.data import PairDataset, ShapeDataset
-from torchfmap.nn.inference import evaluate
+from torchfmap.nn.item_inference import evaluate
 from torchfmap.nn.trainer import spawn_ddp
 
 from ..conftest import bend, bumpy_blob, data_path

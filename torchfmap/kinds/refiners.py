@@ -104,20 +104,38 @@ def landmark_coordinates(
     return shape_x.distances.rows(pairs[:, 0]).T, shape_y.distances.rows(pairs[:, 1]).T
 
 
+def stacked_anchors(*blocks: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(A_x, A_y)``: the given ``(V_x, m_i)`` / ``(V_y, m_i)`` anchor blocks side by side, each
+    divided by its mean row norm on ``y`` first, so that every block weighs alike (ZoomOut then
+    scales the whole to the spectral embedding, :func:`~torchfmap.fmap.convert.values_to_p2p`).
+    None blocks are skipped; None when none is given; a single block is returned as it is."""
+    given = [b for b in blocks if b is not None]
+    if len(given) <= 1:
+        return given[0] if given else None
+    scaled = []
+    for ax, ay in given:
+        norm = np.linalg.norm(ay, axis=1).mean()
+        scaled.append((ax / norm, ay / norm) if norm > 0 else (ax, ay))
+    return np.hstack([a for a, _ in scaled]), np.hstack([b for _, b in scaled])
+
+
 @dataclass(frozen=True)
 class ZoomOut:
     """ZoomOut in eigenbases (:func:`~torchfmap.fmap.zoomout`), grown from ``C_xy``'s size to
     ``k_final`` (default: twice that size) in ``eigenbases`` (given ones, whose first columns
     ``basis_x, basis_y`` are) or, when None, the shapes' own eigenbases; on ``samples``
-    farthest-point samples per shape if given; with ``landmarks`` ``(L, 2)``, every point-map
-    step also matches the vertices' geodesic distances to them (:func:`landmark_coordinates`
-    as ZoomOut's ``anchors``). Returns the map in the grown bases (no seeds)."""
+    farthest-point samples per shape if given. Anchors (:func:`stacked_anchors`, ZoomOut's
+    ``anchors``) tie every point-map step to what is known to correspond: with ``landmarks``
+    ``(L, 2)`` the vertices' geodesic distances to them (:func:`landmark_coordinates`); with
+    ``features`` ``((V_x, D), (V_y, D))`` per-vertex descriptors of both shapes (a trained
+    network's, which the learned path passes). Returns the map in the grown bases (no seeds)."""
 
     k_final: int | None = None
     mode: str = "orthogonal"
     samples: int | None = None
     eigenbases: tuple[Basis, Basis] | None = None
     landmarks: np.ndarray | None = None
+    features: tuple[np.ndarray, np.ndarray] | None = None
 
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
         k_final = self.k_final if self.k_final is not None else 2 * min(np.shape(C_xy))
@@ -128,7 +146,8 @@ class ZoomOut:
                 farthest_point_sampling(m, min(self.samples, m.n_vertices), metric="euclidean")
                 for m in (shape_x.mesh, shape_y.mesh)
             )
-        anchors = None if self.landmarks is None else landmark_coordinates(shape_x, shape_y, self.landmarks)
+        distances = None if self.landmarks is None else landmark_coordinates(shape_x, shape_y, self.landmarks)
+        anchors = stacked_anchors(distances, self.features)
         C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples, anchors=anchors)
         return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
 

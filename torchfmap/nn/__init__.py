@@ -17,7 +17,8 @@ Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
 :mod:`~torchfmap.nn.config` (the reference recipe and its budget), :mod:`~torchfmap.nn.train`
 (the losses of a pair batch), :mod:`~torchfmap.nn.trainer` (the loop, DDP),
 :mod:`~torchfmap.nn.devices`, :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`
-(:class:`LearnedMatcher`: a trained network called like :func:`torchfmap.match`).
+(:class:`LearnedMatcher`: a trained network called like :func:`torchfmap.match`),
+:mod:`~torchfmap.nn.item_inference` (point maps, adaptation and evaluation of dataset items).
 """
 
 from . import functional
@@ -34,8 +35,9 @@ from .data import (
 )
 from .devices import resolve_device
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
-from .inference import LearnedMatcher, adapt, evaluate, predict_p2p
+from .inference import LearnedMatcher
 from .inputs import network_inputs, shape_arrays, shape_item
+from .item_inference import adapt, evaluate, predict_p2p
 from .modules import (
     BasisModule,
     RegularizedFMSolver,

@@ -1,7 +1,6 @@
 """Inference with a trained network: matching two meshes (:class:`LearnedMatcher`, called like
 :func:`torchfmap.match` and returning its :class:`~torchfmap.results.MatchResult`), point maps
-of dataset items (:func:`predict_p2p`), unsupervised test-time adaptation (:func:`adapt`) and
-evaluation of a dataset's pairs with the classical metrics (:func:`evaluate`)."""
+(point maps of dataset items, adaptation and evaluation: :mod:`~torchfmap.nn.item_inference`)."""
 
 from __future__ import annotations
 
@@ -15,22 +14,21 @@ import torch
 from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
-from ..eval import geodesic_errors
-from ..fmap.convert import NN_BLOCK_BYTES, nearest_neighbor, p2p_to_fmap, values_to_p2p
+from ..fmap.convert import NN_BLOCK_BYTES, p2p_to_fmap
 from ..fmap.refine import Refined
 from ..kinds import get_kind
+from ..kinds.refiners import ZoomOut
 from ..match_checks import check_meshes, check_unused, warn_if_partial
 from ..mesh import Mesh
+from ..partial import match_partial
 from ..results import MatchResult
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
 from .config import TrainConfig, build_solver
-from .data import ShapeBatch, ShapeDataset, collate_pairs
 from .devices import resolve_device
 from .inputs import K_WKS, SEED_TIMES, has_coordinates, shape_arrays, shape_item
-from .modules import RegularizedFMSolver
+from .item_inference import adapt, pair_batches, solve_xy
 from .networks import check_network, features
-from .train import pair_loss
 
 #: Yaw angles (radians) tried by :meth:`LearnedMatcher.facings` for models trained facing anywhere.
 FACINGS = (0.0, np.pi / 2, np.pi, 3 * np.pi / 2)
@@ -44,97 +42,6 @@ def laplacian_defect(C: torch.Tensor, basis_x, basis_y) -> float:
     W = [(b.U[0] * b.lam[0][None, :]) @ b.U[0].T for b in (basis_x, basis_y)]
     W = [w.to(torch.float64) for w in W]
     return float(torch.linalg.norm(C @ W[0] - W[1] @ C) / torch.linalg.norm(C))
-
-
-def _pair(x: dict, y: dict, device) -> tuple[ShapeBatch, ShapeBatch]:
-    """Both items as batches of one, collated once."""
-    batch = collate_pairs([(x, y)])
-    return batch["x"].to(device), batch["y"].to(device)
-
-
-def _solve_xy(solver, fx, fy, bx, by) -> torch.Tensor:
-    """``C_xy (B, K_y, K_x)`` only: the reference solver is asked for one direction."""
-    if isinstance(solver, RegularizedFMSolver) and solver.both:
-        solver = copy.copy(solver)  # a shallow copy: same settings, one direction
-        solver.both = False
-    return solver(fx, fy, bx, by)[0]
-
-
-@torch.no_grad()
-def predict_p2p(
-    net, solver, x: dict, y: dict, *, mode: str = "fmap", p2p_mode: str = "orthogonal", device="cpu"
-) -> np.ndarray:
-    """``p2p_yx`` of one pair of dataset items (:class:`~torchfmap.nn.data.ShapeDataset`).
-
-    ``mode='fmap'``: learned features -> ``C_xy`` -> point map by ``p2p_mode``:
-    ``'orthogonal'`` (default: nearest neighbour of each row of ``Φ_y`` among the rows of
-    ``Φ_x C_xyᵀ``; the recipe's orthogonality loss makes ``C_xy`` near-orthogonal, and this is
-    the rule :func:`torchfmap.fmap.fmap_to_p2p` uses for such maps) or ``'pullback'``
-    (rows of ``Φ_y C_xy`` among those of ``Φ_x``). ``mode='features'``: nearest neighbours in
-    the (normalised) feature space.
-    """
-    check_network(net)
-    net.eval()
-    sx, sy = _pair(x, y, device)
-    fx, fy = features(net, sx), features(net, sy)
-    if mode == "features":
-        a = torch.nn.functional.normalize(fy[0], dim=-1).double().cpu().numpy()
-        b = torch.nn.functional.normalize(fx[0], dim=-1).double().cpu().numpy()
-        return nearest_neighbor(a, b, precision="single")
-    if mode != "fmap":
-        raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
-    if p2p_mode not in ("orthogonal", "pullback"):
-        raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
-    C = _solve_xy(solver, fx, fy, sx.basis, sy.basis)[0].double().cpu().numpy()
-    return values_to_p2p(C, x["values"].double().numpy(), y["values"].double().numpy(), mode=p2p_mode)
-
-
-def adapt(
-    net,
-    solver,
-    loss_fn,
-    x: dict,
-    y: dict,
-    *,
-    steps: int = 10,
-    lr: float = 1e-4,
-    device="cpu",
-    generator: torch.Generator | None = None,
-):
-    """Unsupervised test-time adaptation: a copy of ``net`` after ``steps`` Adam steps of
-    ``loss_fn`` on the pair ``(x, y)`` itself (no ground truth). ``net`` is left unchanged.
-    The loss's random draws come from ``generator`` (None: a new one on ``device`` seeded 0, so
-    the same call gives the same network)."""
-    if steps < 0:
-        raise ParameterError(f"steps must be >= 0, got {steps}.")
-    check_network(net)
-    generator = torch.Generator(device=device).manual_seed(0) if generator is None else generator
-    tuned = copy.deepcopy(net).to(device).train()
-    opt = torch.optim.Adam(tuned.parameters(), lr=lr)
-    batch = collate_pairs([(x, y), (y, x)])
-    batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
-    for _ in range(steps):
-        terms = pair_loss(tuned, solver, loss_fn, batch, generator)
-        opt.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        opt.step()
-    return tuned.eval()
-
-
-def evaluate(
-    net, shapes: ShapeDataset, pairs, gts, solver=None, *, mode: str = "fmap", max_points=500, device="cpu"
-) -> float:
-    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``
-    (``solver=None``: the recipe's, :func:`~torchfmap.nn.build_solver` of a default
-    :class:`~torchfmap.nn.TrainConfig`, as :func:`~torchfmap.nn.train` trains with)."""
-    solver = solver if solver is not None else build_solver(TrainConfig())[0]
-    errors = []
-    for (a, b), gt in zip(pairs, gts, strict=True):
-        x, y = shapes[a], shapes[b]
-        p2p = predict_p2p(net, solver, x, y, mode=mode, device=device)
-        mesh_x = Mesh(x["vertices"].numpy(), x["faces"].numpy(), validate=False)
-        errors.append(geodesic_errors(mesh_x, p2p, gt, max_points=max_points).mean())
-    return float(np.mean(errors))
 
 
 def _nearest_rows(
@@ -181,13 +88,21 @@ def _zoomout_sizes(k: int, k_final: int | None, n_vertices: tuple[int, int]) -> 
     return min(k, cap), min(2 * k if k_final is None else k_final, cap)
 
 
-def _zoomout(p2p_yx: np.ndarray, shapes: tuple[PreparedShape, ...], k0: int, k_final: int) -> Refined:
+def _zoomout(
+    p2p_yx: np.ndarray,
+    shapes: tuple[PreparedShape, ...],
+    k0: int,
+    k_final: int,
+    features: tuple[np.ndarray, np.ndarray],
+) -> Refined:
     """ZoomOut of ``p2p_yx`` in the shapes' eigenbases, from ``(k0, k0)`` to ``k_final``: the
-    eigenbasis kind's refinement, as :func:`torchfmap.match` refines (the one call site of the
-    learned path)."""
+    eigenbasis kind's refinement (:class:`~torchfmap.kinds.refiners.ZoomOut`), every point-map
+    step also matching the network's ``features`` ``((V_x, D), (V_y, D))`` as anchors, so the
+    refinement keeps what the network learned where the spectral embeddings of non-isometric
+    shapes disagree (the one call site of the learned path)."""
     bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
     C_xy = p2p_to_fmap(p2p_yx, bx, by)
-    refiner = get_kind("laplacian").refiner("zoomout", k_final=k_final, mode="orthogonal")
+    refiner = ZoomOut(k_final=k_final, mode="orthogonal", features=features)
     return refiner(C_xy, p2p_yx, *shapes, bx, by)
 
 
@@ -336,8 +251,30 @@ class LearnedMatcher:
             shape = with_eigenpairs(shape, need)
         item, _ = self._items(shape, 0)
         with torch.no_grad():
-            batch, _ = _pair(item, item, self.device)
+            batch, _ = pair_batches(item, item, self.device)
             return features(self.net, batch)[0].to(torch.float64).cpu().numpy()
+
+    def _partial(self, mesh_x: Mesh, mesh_y: Mesh, refine, k_final, shapes) -> MatchResult:
+        """The partial map of :meth:`__call__` (``partial=True``)."""
+        if self.adapt_steps:
+            raise ParameterError(
+                "test-time adaptation tunes the network by the whole-shape loss, which a part "
+                "breaks. Fix: adapt_steps=0 (CLI: no --adapt) with partial=True."
+            )
+        t0 = time.perf_counter()
+        sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
+        k0, k_final = _zoomout_sizes(self.config.k, k_final, sizes) if refine else (self.config.k, None)
+        need = self._eigenpairs(min(sizes), k_final or 0)
+        if shapes is None:
+            shapes = (prepare_shape(mesh_x, need), prepare_shape(mesh_y, need))
+        else:
+            shapes = tuple(with_eigenpairs(s, need) for s in check_prepared(shapes, (mesh_x, mesh_y)))
+        feats = (self.features(mesh_x, shape=shapes[0]), self.features(mesh_y, shape=shapes[1]))
+        seconds = time.perf_counter() - t0
+        result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
+        result.timings = {"prepare+network": seconds, **result.timings}
+        result.model = self.name
+        return result
 
     def __call__(
         self,
@@ -347,6 +284,7 @@ class LearnedMatcher:
         refine: str | None = None,
         k_final: int | None = None,
         shapes: tuple[PreparedShape, PreparedShape] | None = None,
+        partial: bool = False,
     ) -> MatchResult:
         """The map ``y -> x`` of the pair: ``p2p_yx (V_y,)``, ``C_xy`` and the bases it lives in
         (the model's basis of ``k`` columns; with ZoomOut the eigenbases of ``k_final``),
@@ -357,22 +295,34 @@ class LearnedMatcher:
         Args:
             refine: ``'zoomout'`` (from the network's map, in the eigenbases, from the model's
                 ``k`` eigenfunctions to ``k_final``; default ``2k``; both capped at ``V - 1`` of
-                the smaller mesh) or None.
+                the smaller mesh; every point-map step also matches the network's features) or
+                None.
             shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse across
                 pairs (their eigenbases are grown in place when the call needs more).
+            partial: ``y`` is a part of ``x`` (same units): the partial functional map of
+                :func:`~torchfmap.partial.match_partial` of the model's ``k`` (ZoomOut to
+                ``k_final``, default ``2k``) with the network's features
+                (:meth:`features`, as each shape lies: no facings) as its descriptors. The
+                features of a part agree with the whole's only where the network's inputs do:
+                coordinate inputs (``--inputs xyz``) do near the part's vertices, WKS (global)
+                does not. The result has ``overlap`` and ``partial_rank`` as ``match``'s.
 
         Raises:
             ParameterError: inputs that are not meshes, another refinement, ``k_final`` without
                 ZoomOut or below ``k``,
-                ``shapes`` not of these meshes, or meshes too small for the model's ``k``.
+                ``shapes`` not of these meshes, or meshes too small for the model's ``k``;
+                ``partial`` with test-time adaptation, or with a part larger than the whole.
         """
         check_meshes(mesh_x, mesh_y)
-        warn_if_partial(mesh_x, mesh_y)
+        if not partial:
+            warn_if_partial(mesh_x, mesh_y)
         if refine not in (None, "zoomout"):
             raise ParameterError(
                 f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
             )
         check_unused(get_kind("laplacian"), refine, k_final, None)
+        if partial:
+            return self._partial(mesh_x, mesh_y, refine, k_final, shapes)
         cfg = self.config
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -393,10 +343,10 @@ class LearnedMatcher:
         timings["adapt"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         with torch.no_grad():
-            sx, sy = _pair(ix, iy, self.device)
+            sx, sy = pair_batches(ix, iy, self.device)
             solver = self.solver.to(self.device)
             fx = features(net, sx)
-            C, least = None, float("inf")
+            C, fy, least = None, None, float("inf")
             for angle in self.facings():  # one facing, or the most isometric of several
                 turned = (
                     sy._replace(
@@ -407,10 +357,11 @@ class LearnedMatcher:
                     if angle
                     else sy
                 )
-                C_a = _solve_xy(solver, fx, features(net, turned), sx.basis, sy.basis)[0]
+                fy_a = features(net, turned)
+                C_a = solve_xy(solver, fx, fy_a, sx.basis, sy.basis)[0]
                 defect = laplacian_defect(C_a, sx.basis, sy.basis)
                 if C is None or defect < least:
-                    C, least = C_a, defect
+                    C, fy, least = C_a, fy_a, defect
         timings["network+fmap"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         C = C.to(torch.float64)
@@ -422,7 +373,8 @@ class LearnedMatcher:
         if refine is None:
             return result
         t0 = time.perf_counter()
-        refined = _zoomout(p2p, shapes, k0, k_final)
+        feats = tuple(f[0].to(torch.float64).cpu().numpy() for f in (fx, fy))
+        refined = _zoomout(p2p, shapes, k0, k_final, feats)
         timings["refine"] = time.perf_counter() - t0
         return MatchResult(
             refined.p2p_yx, refined.C_xy, refined.basis_x, refined.basis_y, p2p, timings, kind=cfg.basis,

@@ -1,0 +1,48 @@
+"""Refiners (``torchfmap.kinds.refiners``): the anchors of eigenbasis ZoomOut, from landmarks
+and from per-vertex features, each block weighing alike."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from torchfmap.bases import prepare_shape
+from torchfmap.eval import geodesic_errors, gt_from_map
+from torchfmap.fmap import p2p_to_fmap
+from torchfmap.kinds.refiners import ZoomOut, stacked_anchors
+
+
+def test_stacked_anchors_weigh_every_block_alike_whatever_its_units():
+    """Each block is divided by its mean row norm on ``y``: a block given in other units (x 1000)
+    stacks to the same arrays; a single block is passed on as given, none gives None."""
+    rng = np.random.default_rng(0)
+    a = (rng.normal(size=(30, 4)), rng.normal(size=(20, 4)))
+    b = (rng.normal(size=(30, 2)), rng.normal(size=(20, 2)))
+    ax, ay = stacked_anchors(a, None, b)
+    assert ax.shape == (30, 6) and ay.shape == (20, 6)
+    for cols, (bx, by) in ((slice(0, 4), a), (slice(4, 6), b)):
+        # one block's rows on y: mean norm 1, and x scaled by the same number
+        np.testing.assert_allclose(np.linalg.norm(ay[:, cols], axis=1).mean(), 1.0, rtol=1e-12)
+        np.testing.assert_allclose(ax[:, cols] * np.linalg.norm(by, axis=1).mean(), bx, rtol=1e-12)
+    big = stacked_anchors(a, (1000 * b[0], 1000 * b[1]))
+    np.testing.assert_allclose(big[0], ax, rtol=1e-12)
+    np.testing.assert_allclose(big[1], ay, rtol=1e-12)
+    assert stacked_anchors(None, a) is a and stacked_anchors(None, None) is None
+
+
+def test_zoomout_with_features_that_correspond_carries_a_map_from_no_information(permuted_bases):
+    """Features that correspond exactly (coordinates; on a permuted copy the same rows permuted):
+    from a random start, where eigenbasis ZoomOut alone stays at chance, the features bring the
+    map well below chance, and the true map is a fixed point."""
+    x, y, perm, _, _ = permuted_bases
+    shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
+    bx, by = (s.eigenbasis.truncated(15) for s in shapes)
+    feats = (x.vertices, x.vertices[perm])
+    start = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
+    gt = gt_from_map(perm)
+    C = p2p_to_fmap(start, bx, by)
+    chance = geodesic_errors(x, ZoomOut(40)(C, start, *shapes, bx, by).p2p_yx, gt).mean()
+    guided = ZoomOut(40, features=feats)(C, start, *shapes, bx, by)
+    assert geodesic_errors(x, guided.p2p_yx, gt).mean() < 0.5 * chance
+    assert guided.basis_x.k == 40 and guided.C_xy.shape == (40, 40)
+    kept = ZoomOut(40, features=feats)(p2p_to_fmap(perm, bx, by), perm, *shapes, bx, by)
+    np.testing.assert_array_equal(kept.p2p_yx, perm)
