@@ -366,6 +366,7 @@ def partial(cfg: Settings, report: Report) -> None:
                 truth[gt.idx_x] = True
                 shape_p = prepare_shape(cut.mesh, 2 * cfg.k + 100)
                 a = cut.mesh.area / other.area
+                feats = None  # the model's features of this cut, computed once when landmarks need them
                 for n in cfg.L:
                     lm = landmarks_from_gt(whole, gt, n) if n else None
                     for method in methods:
@@ -378,8 +379,10 @@ def partial(cfg: Settings, report: Report) -> None:
                                     partial=True,
                                 ) if lm is None else match_partial(
                                     shape_w, shape_p, landmarks=lm, k=cfg.k, refine="zoomout",
-                                    descriptors=(learned.features(whole, shape=shape_w),
-                                                 learned.features(cut.mesh, shape=shape_p)),
+                                    descriptors=feats or (feats := (
+                                        learned.features(whole, shape=shape_w),
+                                        learned.features(cut.mesh, shape=shape_p),
+                                    )),
                                 )  # fmt: skip
                             else:
                                 r = match(

@@ -1,6 +1,6 @@
 """Inference with a trained network: matching two meshes (:class:`LearnedMatcher`, called like
-:func:`torchfmap.match` and returning its :class:`~torchfmap.results.MatchResult`), point maps
-(point maps of dataset items, adaptation and evaluation: :mod:`~torchfmap.nn.item_inference`)."""
+:func:`torchfmap.match` and returning its :class:`~torchfmap.results.MatchResult`); point maps
+of dataset items, adaptation and evaluation are in :mod:`~torchfmap.nn.item_inference`."""
 
 from __future__ import annotations
 
@@ -93,16 +93,16 @@ def _zoomout(
     shapes: tuple[PreparedShape, ...],
     k0: int,
     k_final: int,
-    features: tuple[np.ndarray, np.ndarray],
+    feats: tuple[np.ndarray, np.ndarray],
 ) -> Refined:
     """ZoomOut of ``p2p_yx`` in the shapes' eigenbases, from ``(k0, k0)`` to ``k_final``: the
     eigenbasis kind's refinement (:class:`~torchfmap.kinds.refiners.ZoomOut`), every point-map
-    step also matching the network's ``features`` ``((V_x, D), (V_y, D))`` as anchors, so the
+    step also matching the network's features ``feats`` ``((V_x, D), (V_y, D))`` as anchors, so the
     refinement keeps what the network learned where the spectral embeddings of non-isometric
     shapes disagree (the one call site of the learned path)."""
     bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
     C_xy = p2p_to_fmap(p2p_yx, bx, by)
-    refiner = ZoomOut(k_final=k_final, mode="orthogonal", features=features)
+    refiner = ZoomOut(k_final=k_final, mode="orthogonal", features=feats)
     return refiner(C_xy, p2p_yx, *shapes, bx, by)
 
 
