@@ -79,12 +79,19 @@ def _sets(cfg: Settings) -> dict[str, list[str]]:
     return {name: expand(specs) for name, specs in cfg.sets.items()}
 
 
+#: The row of the ground truth's own floor (:func:`torchfmap.eval.error_floor`): a remeshing's
+#: coarser regions raise it, so a ratio of errors across meshings is read against it.
+FLOOR = "ground truth's floor (best vertex map)"
+
+
 def checkpoints(cfg: Settings, report: Report) -> None:
     """Errors of trained checkpoints on validation sets: untrained baseline (same recipe and
     seed), the functional map's point map (orthogonal and pull-back rules), nearest features,
     ZoomOut (the matcher's, anchored by the features; with ``all_rules`` also without them),
-    and test-time adaptation, with seconds per pair and the loss curves."""
+    and test-time adaptation, with seconds per pair and the loss curves; and the floor of each
+    set's ground truth (:data:`FLOOR`)."""
     rows, curves, described = [], {}, set()
+    floors: dict[str, float] = {}
     for set_name, specs in _sets(cfg).items():
         for label, path in _checkpoints(cfg.checkpoints):
             net, config, ckpt = load_checkpoint(path)
@@ -133,6 +140,10 @@ def checkpoints(cfg: Settings, report: Report) -> None:
                     add(f"adapt {cfg.adapt}, fmap", lambda: predict_p2p(tuned, solver, x, y), pair)  # noqa: B023
                     if cfg.zoomout:
                         add(f"adapt {cfg.adapt} + zoomout", lambda: zoomout(tuned, shapes), pair)  # noqa: B023
+                if pair.name not in floors:  # one per pair, whatever the model
+                    floors[pair.name] = pair.floor()
+                errors.setdefault(FLOOR, []).append(floors[pair.name])
+                seconds[FLOOR] = float("nan")
                 pair.free()
                 log(
                     f"{set_name} {label} pair {i + 1}/{len(data.pairs)}: "

@@ -40,7 +40,15 @@ import numpy as np
 import torchfmap
 from torchfmap.data import demo_pair_paths, stretch_deform
 from torchfmap.errors import ParameterError
-from torchfmap.eval import Correspondence, auc, evaluate_map, gt_from_map, gt_from_vts, landmarks_from_gt
+from torchfmap.eval import (
+    Correspondence,
+    auc,
+    error_floor,
+    evaluate_map,
+    gt_from_map,
+    gt_from_vts,
+    landmarks_from_gt,
+)  # fmt: skip
 from torchfmap.io import (
     load_mesh,
     mesh_files,
@@ -235,7 +243,7 @@ class Pair:
     def _load(self, path_x: Path, path_y: Path, gt: Correspondence) -> None:
         self.path_x, self.path_y = Path(path_x), Path(path_y)
         self.x, self.y = torchfmap.load_mesh(path_x), torchfmap.load_mesh(path_y)
-        self.gt = gt
+        self.gt = self.gt_all = gt
 
     def _load_vts(self, folder: Path, a: str, b: str, suffix: str) -> None:
         corres = folder / "corres"
@@ -284,6 +292,12 @@ class Pair:
             log(f"  {self.name}: evaluate_map check: max |diff| {np.abs(ref - err).max():.2e}")
             self.checked = True
         return err
+
+    def floor(self) -> float:
+        """Mean :func:`torchfmap.eval.error_floor` (normalised) of all the pair's ground truth, not
+        the subsample scored (a subsample rarely holds the rows that share a vertex): what the best
+        vertex-to-vertex map scores."""
+        return float(error_floor(self.x, self.gt_all).mean())
 
     def free(self) -> None:
         """Drop the distance rows (memory)."""

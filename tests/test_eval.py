@@ -11,11 +11,13 @@ from torchfmap import ParameterError, load_mesh, save_mesh
 from torchfmap.cli import main
 from torchfmap.data import icosphere
 from torchfmap.eval import (
+    Correspondence,
     MapReport,
     auc,
     bijectivity_error,
     coverage,
     discover_pairs,
+    error_floor,
     evaluate_map,
     geodesic_errors,
     gt_from_map,
@@ -272,3 +274,30 @@ def test_evaluation_refuses_invalid_maps(sphere2):
     with pytest.raises(ParameterError, match="max_points"):
         geodesic_errors(small, good, gt, max_points=0)
     assert n > small.n_vertices
+
+
+def test_error_floor_is_the_best_shared_image_of_rows_that_share_a_target_vertex():
+    """Rows sharing a target vertex must share its image: each group's floor is the least mean
+    error over sending the vertex to one of the group's source vertices, computed here by trying
+    every candidate with geodesic_errors; a target vertex with one source vertex has floor 0."""
+    sphere = icosphere(3)
+    rng = np.random.default_rng(0)
+    idx_y = np.repeat(np.arange(30), [1, 2, 3] * 10)  # groups of 1, 2 and 3 rows
+    idx_x = rng.choice(sphere.n_vertices, len(idx_y), replace=False)
+    gt = Correspondence(idx_x, idx_y)
+    floor = error_floor(sphere, gt)
+    assert floor.shape == idx_x.shape and np.all(floor >= 0)
+    for y in range(30):
+        rows = np.flatnonzero(idx_y == y)
+        tried = []
+        for c in idx_x[rows]:
+            p2p = np.zeros(30, dtype=np.int64)
+            p2p[y] = c
+            tried.append(geodesic_errors(sphere, p2p, gt)[rows])
+        best = min(np.mean(t) for t in tried)  # ties (a group of two) may pick either source
+        np.testing.assert_allclose(floor[rows].mean(), best, rtol=1e-12, atol=1e-12)
+        assert any(np.allclose(floor[rows], t, rtol=1e-12, atol=1e-12) for t in tried)
+        assert (len(rows) == 1) == (floor[rows].max() == 0.0)
+    np.testing.assert_array_equal(error_floor(sphere, gt_identity(sphere.n_vertices)), 0.0)
+    with pytest.raises(ParameterError, match="outside mesh_x"):
+        error_floor(sphere, Correspondence(np.array([sphere.n_vertices]), np.array([0])))

@@ -16,7 +16,17 @@ from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
 from torchfmap.eval_partial import discover_partial_pairs, overlap_iou
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.io import save_mesh
-from torchfmap.partial import common_frame, match_partial, overlap_indicator, partial_rank, partial_zoomout
+from torchfmap.mesh import Mesh
+from torchfmap.partial import (
+    common_frame,
+    match_partial,
+    overlap_indicator,
+    partial_rank,
+    partial_zoomout,
+    reseeded_map,
+)  # fmt: skip
+from torchfmap.quality import geodesic_distortion
+from torchfmap.results import keeps_refinement
 
 
 @pytest.fixture(scope="module")
@@ -294,6 +304,43 @@ def test_partial_zoomout_keeps_the_landmark_distances_in_the_wholes_units():
     start = match(whole, cut.mesh, landmarks=lm, k=30, partial=True, shapes=shapes)
     full, part = shapes[0].eigenbasis, common_frame(shapes[1].eigenbasis, a)
     _, anchored = partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
-    np.testing.assert_array_equal(r.p2p_yx, anchored)
+    reseeded = reseeded_map(*shapes, anchored, lm)
+    _, again = partial_zoomout(reseeded, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
+    distortion = [geodesic_distortion(*shapes, q, area_ratio=a) for q in (reseeded, again)]
+    np.testing.assert_array_equal(r.p2p_yx, again if keeps_refinement(*distortion) else reseeded)
     with pytest.raises(ParameterError, match="anchors"):  # the check of fmap.zoomout's anchors
         partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay[:10]))
+
+
+@pytest.mark.parametrize("how", ["plane", "holes"])
+def test_reseeded_map_keeps_the_true_map_of_a_part_cut_from_the_whole(how):
+    """A part cut from the whole itself: the seeds' images by the true map are exact, and every
+    seed's function exp(-d²/σ²) is the whole's away from the cut, so the true map is a fixed
+    point up to the vertices where the cut lengthens paths. A map off by one vertex everywhere
+    would have a mean error of about one edge length: the mean must stay well under it."""
+    whole = demo_pair()[0]
+    cut = cut_plane(whole, 0.6, seed=1) if how == "plane" else cut_holes(whole, 0.6, 3, seed=1)
+    shapes = prepare_shape(whole, 10), prepare_shape(cut.mesh, 10)
+    lm = np.stack([cut.vertices[[0, 50, 100]], [0, 50, 100]], axis=1)
+    p2p = reseeded_map(*shapes, cut.vertices, lm)
+    assert p2p.shape == (cut.n_vertices,) and p2p.dtype == np.int64
+    err = geodesic_errors(whole, p2p, gt_from_map(cut.vertices))
+    assert err.mean() < 0.5 * whole.mean_edge_length / np.sqrt(whole.area)
+    # intrinsic: a rigid motion of the part changes nothing (round-off may flip exact ties)
+    rot = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    moved = Mesh(cut.mesh.vertices @ rot.T + 5.0, cut.mesh.faces)
+    again = reseeded_map(shapes[0], prepare_shape(moved, 10), cut.vertices, lm)
+    assert np.mean(again == p2p) > 0.99
+
+
+def test_reseeded_map_bounds_its_seeds_and_checks_its_settings():
+    sphere = icosphere(2)
+    cut = cut_plane(sphere, 0.6, seed=0)
+    shapes = prepare_shape(sphere, 10), prepare_shape(cut.mesh, 10)
+    p2p = reseeded_map(*shapes, cut.vertices, n_seeds=10**6)  # more seeds than vertices: all of them
+    assert p2p.shape == (cut.n_vertices,) and 0 <= p2p.min() and p2p.max() < sphere.n_vertices
+    err = geodesic_errors(sphere, p2p, gt_from_map(cut.vertices))  # as in the test above
+    assert err.mean() < 0.5 * sphere.mean_edge_length / np.sqrt(sphere.area)
+    for bad in ({"n_seeds": 0}, {"width": 0.0}, {"width": float("nan")}):
+        with pytest.raises(ParameterError, match="reseeded_map"):
+            reseeded_map(*shapes, cut.vertices, **bad)

@@ -7,6 +7,7 @@ import pytest
 
 from torchfmap import Mesh, ParameterError
 from torchfmap.bases.prepared import prepare_shape
+from torchfmap.data import demo_pair
 from torchfmap.quality import distortion_anchors, geodesic_distortion, orientation_agreement
 
 from .conftest import bumpy_blob, random_rotation
@@ -63,3 +64,21 @@ def test_orientation_agreement_tells_a_mirror_image(shapes):
     assert orientation_agreement(x, mirror, np.arange(x.n_vertices)) == pytest.approx(-1.0)
     # a constant map has no image triangle at all
     assert orientation_agreement(x, y, np.zeros(y.n_vertices, dtype=np.int64)) == 0.0
+
+
+def test_geodesic_distortion_of_a_part_reads_its_distances_in_the_wholes_units():
+    """A part cut from the whole, with its exact map: in the whole's units (``area_ratio``) the
+    distortion is only the cut's detours and the discretisation; read in the part's own unit-area
+    frame, every distance is off by ``1 / sqrt(a) - 1`` of itself."""
+    from torchfmap.data.cuts import cut_plane
+    from torchfmap.partial import area_ratio
+
+    whole = demo_pair()[0]
+    cut = cut_plane(whole, 0.6, seed=1)
+    shapes = prepare_shape(whole, 0), prepare_shape(cut.mesh, 0)
+    a = area_ratio(whole, cut.mesh)
+    right = geodesic_distortion(*shapes, cut.vertices, area_ratio=a)
+    wrong = geodesic_distortion(*shapes, cut.vertices)
+    mean_distance = shapes[1].distances.rows(distortion_anchors(shapes[1])).mean() * np.sqrt(a)
+    assert wrong > 0.5 * (1 / np.sqrt(a) - 1) * mean_distance
+    assert right < 0.25 * wrong

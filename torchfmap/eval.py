@@ -137,6 +137,60 @@ def geodesic_errors(
     return errors / np.sqrt(mesh_x.area) if normalize else errors
 
 
+def error_floor(
+    mesh_x: Mesh,
+    gt: Correspondence,
+    *,
+    solver: GeodesicSolver | DistanceRows | None = None,
+    normalize: bool = True,
+) -> np.ndarray:
+    """The error a vertex-to-vertex map cannot avoid against ``gt``: ``(P,)``, one per row.
+
+    Ground truth built by nearest vertices (a template's points on a remeshed surface, as in
+    FAUST_r, SMAL_r and any remesh) gives several rows the same target vertex ``idx_y`` with
+    different source vertices ``idx_x``; a point map sends that vertex to one vertex, so those rows
+    cannot all score zero. Each group of rows sharing a target vertex is given the one of its
+    source vertices of least mean distance to the group's sources; the rows' distances to it
+    are returned (zero where a target vertex has one source vertex). The optimum may lie between
+    the group's sources: an upper bound on the floor, tight for small groups. A coarser meshing
+    raises it; compare :func:`geodesic_errors` across meshings above it.
+
+    Args:
+        mesh_x: the source mesh.
+        gt: :class:`Correspondence` ``(idx_x, idx_y)``.
+        solver: distances on ``mesh_x`` (built here when None), 256 source rows at a time.
+        normalize: divide by ``sqrt(area_x)``.
+    """
+    idx_x, idx_y = _as_correspondence(gt)
+    if len(idx_y) != len(idx_x):
+        raise ParameterError("ground-truth index arrays differ in length.")
+    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
+        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    floor = np.zeros(len(idx_x))
+    order = np.argsort(idx_y, kind="stable")
+    groups = [
+        g for g in np.split(order, np.flatnonzero(np.diff(idx_y[order])) + 1) if len(np.unique(idx_x[g])) > 1
+    ]  # fmt: skip
+    cands = [np.unique(idx_x[g]) for g in groups]
+    table = [np.zeros((len(g), len(c))) for g, c in zip(groups, cands, strict=True)]  # row -> each candidate
+    wanted: dict[int, list[int]] = {}  # source vertex -> the groups whose rows it is
+    for n in range(len(groups)):
+        for c in cands[n].tolist():
+            wanted.setdefault(c, []).append(n)
+    solver = solver or GeodesicSolver(mesh_x)
+    sources = np.fromiter(wanted, dtype=np.int64, count=len(wanted))
+    for start in range(0, len(sources), 256):  # bounded memory: 256 distance rows at a time
+        batch = sources[start : start + 256]
+        for row, x in zip(np.maximum(solver.distances(batch), 0.0), batch.tolist(), strict=True):
+            for n in wanted[x]:  # distances from the true source, as geodesic_errors measures them
+                at = idx_x[groups[n]] == x
+                table[n][at] = row[cands[n]]
+                table[n][at, cands[n] == x] = 0.0
+    for g, t in zip(groups, table, strict=True):
+        floor[g] = t[:, np.argmin(t.mean(axis=0))]
+    return floor / np.sqrt(mesh_x.area) if normalize else floor
+
+
 def pck_curve(errors: np.ndarray, thresholds=None) -> tuple[np.ndarray, np.ndarray]:
     """Cumulative accuracy: fraction of errors ``<= thr`` for each threshold ``(T,)``."""
     errors = np.asarray(errors, dtype=np.float64)

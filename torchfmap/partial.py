@@ -21,6 +21,15 @@ Why a full-shape map fails on a part, and what this module changes:
   times. Both shapes' descriptors are scaled by the whole's column norms.
 - **Refinement restricted to the first ``r`` columns** (:func:`partial_zoomout`): ZoomOut grows
   ``k`` and the rank with it.
+- **A second pass re-seeded from the first map** (:func:`reseeded_map`): farthest points on the
+  part and their images on the whole become seeds, and every vertex is placed by diffusion
+  functions at the seeds, ``exp(-d²/4t)`` of the geodesic distance ``d`` at a small time ``t``
+  (Varadhan's form of the heat kernel). A seed's function is local: it is the same on the part
+  and on the whole wherever the path to the seed does not cross the cut, where every
+  eigenfunction of the part differs from the whole's. ZoomOut then runs once more from that map,
+  kept unless it raises the geodesic distortion (the guard of every refinement,
+  :func:`~torchfmap.results.keeps_refinement`, the part's distances in the whole's units):
+  from a map still far off it helps, from one the seeds already hold it blurs.
 - **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
   constant function carried back, ``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, is the band-limited indicator of
   where the part lies on the whole (``MatchResult.overlap``, in ``[0, 1]``).
@@ -38,12 +47,14 @@ from .bases import Basis
 from .bases.prepared import PreparedShape
 from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
-from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
+from .fmap import fmap_to_p2p, nearest_neighbor, p2p_to_fmap, solve_fmap
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
 from .fmap.refine import anchored_p2p, check_anchors
 from .kinds.refiners import landmark_coordinates
 from .mesh import Mesh
-from .results import MatchResult
+from .quality import geodesic_distortion
+from .results import MatchResult, keeps_refinement
+from .seeds import farthest_point_sampling
 
 #: A part may be up to this much larger than the whole (meshing and measurement noise on a
 #: "part" that is in fact the whole shape); beyond it the shapes are taken to be swapped.
@@ -54,7 +65,17 @@ AREA_SLACK = 1.05
 #: too small to be matched by its spectrum.
 MIN_AREA_RATIO = 0.01
 
-__all__ = ["common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout"]
+#: Seeds of the re-seeded pass (:func:`reseeded_map`), landmarks included; fewer on a part of
+#: fewer vertices.
+RESEED_SEEDS = 100
+#: Width ``σ = 2 sqrt(t)`` of the re-seeded pass's diffusion functions ``exp(-d²/σ²)``, in units
+#: of the whole's ``sqrt(area)``: a few seeds' spacing (100 seeds on a unit area are about
+#: 0.1 apart), so that each vertex is placed by its nearest seeds.
+RESEED_WIDTH = 0.15
+
+__all__ = [
+    "common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout", "reseeded_map",
+]  # fmt: skip
 
 
 def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
@@ -163,6 +184,44 @@ def partial_zoomout(
     return C, p2p_yx
 
 
+def reseeded_map(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    p2p_yx: np.ndarray,
+    landmarks: np.ndarray | None = None,
+    *,
+    n_seeds: int = RESEED_SEEDS,
+    width: float = RESEED_WIDTH,
+) -> np.ndarray:
+    """``(V_y,)`` a map of the part ``y`` into the whole ``x`` re-seeded from ``p2p_yx`` ``(V_y,)``.
+
+    Seeds on the part: the landmarks' part vertices ``(L, 2)`` (whole, part) first, then
+    farthest points up to ``n_seeds`` in all; their images on the whole: the landmarks' whole
+    vertices, then ``p2p_yx`` of the others. On each shape, each seed gives the function
+    ``exp(-(d / width)²)`` of the geodesic distance ``d`` to it, in units of the whole's
+    ``sqrt(area)`` on both (the part's distances scaled by ``sqrt(a)``); every part vertex goes
+    to the whole vertex whose values at all seeds are nearest to its own. Both meshes in the same
+    units, as :func:`match_partial` requires.
+
+    Raises:
+        ParameterError: ``n_seeds`` < 1 or ``width`` not > 0.
+    """
+    if n_seeds < 1 or not width > 0:
+        raise ParameterError(f"reseeded_map needs n_seeds >= 1 and width > 0, got {n_seeds}, {width}.")
+    given = np.zeros((0, 2)) if landmarks is None else landmarks
+    pairs = np.asarray(given, dtype=np.int64).reshape(-1, 2)
+    p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
+    n = int(min(max(n_seeds, len(pairs)), shape_y.mesh.n_vertices))
+    on_part = farthest_point_sampling(
+        shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0
+    )  # fmt: skip
+    on_whole = np.concatenate([pairs[:, 0], p2p_yx[on_part[len(pairs) :]]])
+    unique, column = np.unique(on_whole, return_inverse=True)  # two seeds may share an image
+    d_x = shape_x.distances.rows(unique).T[:, column]
+    d_y = shape_y.distances.rows(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
+    return nearest_neighbor(np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2)))
+
+
 def match_partial(
     shape_x: PreparedShape,
     shape_y: PreparedShape,
@@ -184,11 +243,13 @@ def match_partial(
     vertex of the whole, ``C_xy`` is ``(r, k)`` (``(r(k_final), k_final)`` refined) in the
     whole's eigenbasis and the part's eigenbasis in the whole's frame, ``overlap`` ``(V_x,)``
     the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
-    ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout`, to
-    ``k_final``, default ``2k``); ``landmarks`` ``(L, 2)`` checked pairs (whole, part) are
-    pointwise constraints and heat-kernel descriptors. ``descriptors``: ``(V_x, D)``, ``(V_y, D)``
-    pointwise features to solve with instead of SHOT (e.g. features of a network trained for parts;
-    they must agree on the part and on the whole where the part lies).
+    ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout` to
+    ``k_final``, default ``2k``, then :func:`reseeded_map` and :func:`partial_zoomout` once more
+    from that map, kept under the distortion guard: see the module's text). ``landmarks``:
+    ``(L, 2)`` checked pairs (whole, part), pointwise constraints and heat-kernel descriptors.
+    ``descriptors``: ``(V_x, D)``, ``(V_y, D)`` pointwise features to solve with instead of SHOT
+    (e.g. features of a network trained for parts; they must agree on the part and on the whole
+    where the part lies).
 
     Raises:
         ParameterError: the part is larger than the whole, ``refine`` other than None or
@@ -239,6 +300,14 @@ def match_partial(
             ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
             anchors = (ax, ay * np.sqrt(a))
         C, p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)
+        p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)
+        C_again, again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)
+        before, after = (geodesic_distortion(shape_x, shape_y, q, area_ratio=a) for q in (p2p, again))
+        if keeps_refinement(before, after):
+            C, p2p = C_again, again
+        else:  # the re-seeded map, and its functional map at the final size
+            r_final = partial_rank(full.eigenvalues, part.eigenvalues, k_final)
+            C = p2p_to_fmap(p2p, full, part, k_final, r_final)
         timings["refine"] = time.perf_counter() - t0
     r_final = C.shape[0]
     result = MatchResult(

@@ -65,19 +65,26 @@ def distortion_anchors(shape_y: PreparedShape, n_anchors: int = N_ANCHORS) -> np
 
 
 def geodesic_distortion(
-    shape_x: PreparedShape, shape_y: PreparedShape, p2p_yx, anchors: np.ndarray | None = None
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    p2p_yx,
+    anchors: np.ndarray | None = None,
+    *,
+    area_ratio: float = 1.0,
 ) -> float:
-    """``mean_{a, v} |d_y(a, v) - d_x(p(a), p(v))|`` over anchors ``a`` on ``y`` (default
+    """``mean_{a, v} |s d_y(a, v) - d_x(p(a), p(v))|`` over anchors ``a`` on ``y`` (default
     :func:`distortion_anchors`) and every vertex ``v`` of ``y``, ``p = p2p_yx``, in units of
-    ``sqrt(area)`` (prepared shapes live in their unit-area frame). Lower is better; ``0`` for an
-    exact isometry. Distance rows are computed by, and kept in, each shape's ``distances``.
+    ``sqrt(area)`` (prepared shapes live in their unit-area frame). ``s = sqrt(area_ratio)``:
+    for a part ``y`` of ``x`` (area ratio ``a``, :mod:`torchfmap.partial`), ``y``'s distances in
+    ``x``'s units. Lower is better; ``0`` for an exact isometry. Distance rows are computed by,
+    and kept in, each shape's ``distances``.
 
     Raises:
         ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``.
     """
     p2p = check_p2p(p2p_yx, shape_y.mesh.n_vertices, shape_x.mesh.n_vertices, "p2p_yx")
     anchors = distortion_anchors(shape_y) if anchors is None else np.asarray(anchors, dtype=np.int64)
-    d_y = shape_y.distances.rows(anchors)
+    d_y = shape_y.distances.rows(anchors) * np.sqrt(area_ratio)
     images, inverse = np.unique(p2p[anchors], return_inverse=True)
     d_x = shape_x.distances.rows(images)[inverse]
     return float(np.mean(np.abs(d_y - d_x[:, p2p])))
