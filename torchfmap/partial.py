@@ -28,8 +28,8 @@ Why a full-shape map fails on a part, and what this module changes:
   and on the whole wherever the path to the seed does not cross the cut, where every
   eigenfunction of the part differs from the whole's. ZoomOut then runs once more from that map,
   kept unless it raises the geodesic distortion (the guard of every refinement,
-  :func:`~torchfmap.results.keeps_refinement`, the part's distances in the whole's units):
-  from a map still far off it helps, from one the seeds already hold it blurs.
+  :func:`~torchfmap.results.keeps_refinement`, the part's distances in the whole's units), and
+  the pass once more after it: ZoomOut corrects what is far off, and blurs what the seeds hold.
 - **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
   constant function carried back, ``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, is the band-limited indicator of
   where the part lies on the whole (``MatchResult.overlap``, in ``[0, 1]``).
@@ -244,8 +244,8 @@ def match_partial(
     whole's eigenbasis and the part's eigenbasis in the whole's frame, ``overlap`` ``(V_x,)``
     the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
     ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout` to
-    ``k_final``, default ``2k``, then :func:`reseeded_map` and :func:`partial_zoomout` once more
-    from that map, kept under the distortion guard: see the module's text). ``landmarks``:
+    ``k_final``, default ``2k``, then :func:`reseeded_map`, :func:`partial_zoomout` kept under the
+    distortion guard, and :func:`reseeded_map` again: see the module's text). ``landmarks``:
     ``(L, 2)`` checked pairs (whole, part), pointwise constraints and heat-kernel descriptors.
     ``descriptors``: ``(V_x, D)``, ``(V_y, D)`` pointwise features to solve with instead of SHOT
     (e.g. features of a network trained for parts; they must agree on the part and on the whole
@@ -299,15 +299,14 @@ def match_partial(
         if landmarks is not None:  # distances in the whole's units: the part's times sqrt(a)
             ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
             anchors = (ax, ay * np.sqrt(a))
-        C, p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)
+        p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)[1]
         p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)
-        C_again, again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)
+        again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)[1]
         before, after = (geodesic_distortion(shape_x, shape_y, q, area_ratio=a) for q in (p2p, again))
         if keeps_refinement(before, after):
-            C, p2p = C_again, again
-        else:  # the re-seeded map, and its functional map at the final size
-            r_final = partial_rank(full.eigenvalues, part.eigenvalues, k_final)
-            C = p2p_to_fmap(p2p, full, part, k_final, r_final)
+            p2p = again
+        p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)  # last: ZoomOut blurs what seeds hold
+        C = p2p_to_fmap(p2p, full, part, k_final, partial_rank(full.eigenvalues, part.eigenvalues, k_final))
         timings["refine"] = time.perf_counter() - t0
     r_final = C.shape[0]
     result = MatchResult(
