@@ -212,8 +212,9 @@ def reseeded_map(
     pairs = np.asarray(given, dtype=np.int64).reshape(-1, 2)
     p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
     n = int(min(max(n_seeds, len(pairs)), shape_y.mesh.n_vertices))
-    on_part = farthest_point_sampling(
-        shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0
+    on_part = farthest_point_sampling(  # the shape's prefactored solver, not a new one
+        shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
+        solver=shape_y.distances.solver,
     )  # fmt: skip
     on_whole = np.concatenate([pairs[:, 0], p2p_yx[on_part[len(pairs) :]]])
     unique, column = np.unique(on_whole, return_inverse=True)  # two seeds may share an image
