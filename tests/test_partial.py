@@ -11,7 +11,7 @@ from torchfmap.data import demo_pair
 from torchfmap.data.cuts import cut_holes, cut_plane
 from torchfmap.data.synthetic import icosphere
 from torchfmap.descriptors import shot
-from torchfmap.errors import MapWarning, ParameterError
+from torchfmap.errors import MapWarning, ParameterError, SeedError
 from torchfmap.eval import geodesic_errors, gt_from_map, landmarks_from_gt
 from torchfmap.eval_partial import discover_partial_pairs, overlap_iou
 from torchfmap.fmap import p2p_to_fmap
@@ -345,3 +345,9 @@ def test_reseeded_map_bounds_its_seeds_and_checks_its_settings():
     for bad in ({"n_seeds": 0}, {"width": 0.0}, {"width": float("nan")}):
         with pytest.raises(ParameterError, match="reseeded_map"):
             reseeded_map(*shapes, cut.vertices, **bad)
+    with pytest.raises(ParameterError, match="p2p_yx"):  # a map of the wrong length
+        reseeded_map(*shapes, cut.vertices[:-1])
+    with pytest.raises(ParameterError, match="landmarks on the whole"):
+        reseeded_map(*shapes, cut.vertices, np.array([[sphere.n_vertices, 0]]))
+    with pytest.raises(SeedError, match="landmarks on the part"):
+        reseeded_map(*shapes, cut.vertices, np.array([[0, 1], [2, 1]]))

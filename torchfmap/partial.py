@@ -43,11 +43,13 @@ import time
 
 import numpy as np
 
+from ._checks import check_vertex_indices
 from .bases import Basis
 from .bases.prepared import PreparedShape
 from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
 from .fmap import fmap_to_p2p, nearest_neighbor, p2p_to_fmap, solve_fmap
+from .fmap.convert import check_p2p
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
 from .fmap.refine import anchored_p2p, check_anchors
 from .kinds.refiners import landmark_coordinates
@@ -204,14 +206,21 @@ def reseeded_map(
     units, as :func:`match_partial` requires.
 
     Raises:
-        ParameterError: ``n_seeds`` < 1 or ``width`` not > 0.
+        ParameterError: ``n_seeds`` < 1 or ``width`` not > 0; ``p2p_yx`` not ``(V_y,)`` indices
+            into ``x``; landmarks outside the whole.
+        SeedError: landmarks outside the part or repeated on it.
     """
     if n_seeds < 1 or not width > 0:
         raise ParameterError(f"reseeded_map needs n_seeds >= 1 and width > 0, got {n_seeds}, {width}.")
+    n_x, n_y = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
+    p2p_yx = check_p2p(p2p_yx, n_y, n_x, "p2p_yx")
     given = np.zeros((0, 2)) if landmarks is None else landmarks
     pairs = np.asarray(given, dtype=np.int64).reshape(-1, 2)
-    p2p_yx = np.asarray(p2p_yx, dtype=np.int64)
-    n = int(min(max(n_seeds, len(pairs)), shape_y.mesh.n_vertices))
+    if len(pairs):
+        check_vertex_indices(pairs[:, 1], n_y, "landmarks on the part")
+        if pairs[:, 0].min() < 0 or pairs[:, 0].max() >= n_x:
+            raise ParameterError(f"landmarks on the whole must be vertices in [0, {n_x}). Fix: 0-based.")
+    n = int(min(max(n_seeds, len(pairs)), n_y))
     on_part = farthest_point_sampling(  # the shape's prefactored solver, not a new one
         shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
         solver=shape_y.distances.solver,

@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 
 from .bases.prepared import PreparedShape
-from .errors import MapWarning
+from .errors import MapWarning, ParameterError
 from .fmap.convert import check_p2p, values_to_p2p
 from .mesh import Mesh
 from .seeds import consistent_seeds, farthest_point_sampling
@@ -80,9 +80,11 @@ def geodesic_distortion(
     and kept in, each shape's ``distances``.
 
     Raises:
-        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``.
+        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``; ``area_ratio`` not > 0.
     """
     p2p = check_p2p(p2p_yx, shape_y.mesh.n_vertices, shape_x.mesh.n_vertices, "p2p_yx")
+    if not area_ratio > 0:
+        raise ParameterError(f"area_ratio must be > 0 (the part's area over the whole's), got {area_ratio}.")
     anchors = distortion_anchors(shape_y) if anchors is None else np.asarray(anchors, dtype=np.int64)
     d_y = shape_y.distances.rows(anchors) * np.sqrt(area_ratio)
     images, inverse = np.unique(p2p[anchors], return_inverse=True)
