@@ -347,7 +347,7 @@ def test_reseeded_map_bounds_its_seeds_and_checks_its_settings():
             reseeded_map(*shapes, cut.vertices, **bad)
     with pytest.raises(ParameterError, match="p2p_yx"):  # a map of the wrong length
         reseeded_map(*shapes, cut.vertices[:-1])
-    with pytest.raises(ParameterError, match="landmarks on the whole"):
+    with pytest.raises(SeedError, match="source landmarks"):
         reseeded_map(*shapes, cut.vertices, np.array([[sphere.n_vertices, 0]]))
-    with pytest.raises(SeedError, match="landmarks on the part"):
+    with pytest.raises(SeedError, match="target landmarks"):
         reseeded_map(*shapes, cut.vertices, np.array([[0, 1], [2, 1]]))

@@ -43,7 +43,7 @@ import time
 
 import numpy as np
 
-from ._checks import check_vertex_indices
+from ._checks import check_landmark_pairs
 from .bases import Basis
 from .bases.prepared import PreparedShape
 from .descriptors import landmark_descriptors, shot
@@ -207,19 +207,14 @@ def reseeded_map(
 
     Raises:
         ParameterError: ``n_seeds`` < 1 or ``width`` not > 0; ``p2p_yx`` not ``(V_y,)`` indices
-            into ``x``; landmarks outside the whole.
-        SeedError: landmarks outside the part or repeated on it.
+            into ``x``; landmarks not ``(L, 2)``.
+        SeedError: landmarks outside either mesh or repeated (:func:`check_landmark_pairs`).
     """
     if n_seeds < 1 or not width > 0:
         raise ParameterError(f"reseeded_map needs n_seeds >= 1 and width > 0, got {n_seeds}, {width}.")
     n_x, n_y = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
     p2p_yx = check_p2p(p2p_yx, n_y, n_x, "p2p_yx")
-    given = np.zeros((0, 2)) if landmarks is None else landmarks
-    pairs = np.asarray(given, dtype=np.int64).reshape(-1, 2)
-    if len(pairs):
-        check_vertex_indices(pairs[:, 1], n_y, "landmarks on the part")
-        if pairs[:, 0].min() < 0 or pairs[:, 0].max() >= n_x:
-            raise ParameterError(f"landmarks on the whole must be vertices in [0, {n_x}). Fix: 0-based.")
+    pairs = np.zeros((0, 2), np.int64) if landmarks is None else check_landmark_pairs(landmarks, n_x, n_y)
     n = int(min(max(n_seeds, len(pairs)), n_y))
     on_part = farthest_point_sampling(  # the shape's prefactored solver, not a new one
         shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
