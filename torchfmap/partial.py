@@ -39,6 +39,7 @@ Both meshes must be in the same units (the area ratio is read off them).
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -51,7 +52,7 @@ from .errors import ParameterError
 from .fmap import fmap_to_p2p, nearest_neighbor, p2p_to_fmap, solve_fmap
 from .fmap.convert import check_p2p
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
-from .fmap.refine import anchored_p2p, check_anchors
+from .fmap.refine import SpectralStep, check_anchors, zoomout_iterations
 from .kinds.refiners import landmark_coordinates
 from .mesh import Mesh
 from .quality import geodesic_distortion
@@ -178,12 +179,9 @@ def partial_zoomout(
     anchors = check_anchors(anchors, full, part)
     step = zoomout_step(k) if step is None else step
     sizes = list(range(k + step, k_final, step)) + [k_final]
-    C = None
-    for kk in sizes:
-        r = partial_rank(full.eigenvalues, part.eigenvalues, kk)
-        C = p2p_to_fmap(p2p_yx, full, part, kk, r)
-        p2p_yx = anchored_p2p(C, full.values, part.values, "orthogonal", anchors)
-    return C, p2p_yx
+    rank = functools.partial(partial_rank, full.eigenvalues, part.eigenvalues)
+    spectral = SpectralStep(full, part, "orthogonal", anchors, rank=rank)
+    return zoomout_iterations(spectral, sizes, p2p_yx=check_p2p(p2p_yx, part.n_vertices, full.n_vertices))
 
 
 def reseeded_map(

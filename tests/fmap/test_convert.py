@@ -17,7 +17,7 @@ from torchfmap.fmap import (
     p2p_to_fmap,
     zoomout,
 )
-from torchfmap.fmap.convert import Neighbors, nearest_neighbor_distance
+from torchfmap.fmap.nearest import Neighbors, local_nearest, nearest_neighbor_distance, surface_sampling
 
 
 @pytest.mark.parametrize(
@@ -102,3 +102,66 @@ def test_check_p2p_and_landmark_pairs():
         check_landmark_pairs([[7, 0]], 3, 5)
     with pytest.raises(SeedError, match="swap the columns"):  # fits only as (y vertex, x vertex)
         check_landmark_pairs([[4, 0], [3, 2]], 3, 5)
+
+
+def _sampling(mesh, n):
+    from torchfmap.operators import laplacian
+
+    return surface_sampling(mesh.vertices, laplacian(mesh)[1].diagonal(), n)
+
+
+def test_surface_sampling_partitions_the_vertices_into_cells_around_spread_samples(permuted_bases):
+    """Every vertex is in exactly one cell, the nearest sample's (each sample in its own); the
+    cells' weights add up to the total mass; each sample's neighbours start with itself; the
+    ring of a sample is exactly the vertices of its neighbours' cells; the samples are distinct
+    and no closer than a fraction of the covering radius a uniform spread allows."""
+    x = permuted_bases[0]
+    from torchfmap.operators import laplacian
+
+    mass = laplacian(x)[1].diagonal()
+    sm = surface_sampling(x.vertices, mass, 60)
+    assert len(np.unique(sm.index)) == 60
+    np.testing.assert_array_equal(sm.cell[sm.index], np.arange(60))
+    dist = np.linalg.norm(x.vertices[:, None, :] - x.vertices[sm.index][None], axis=2)
+    np.testing.assert_allclose(dist[np.arange(x.n_vertices), sm.cell], dist.min(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(sm.weight.sum(), mass.sum(), rtol=1e-12)
+    np.testing.assert_array_equal(sm.neighbors[:, 0], np.arange(60))
+    np.testing.assert_array_equal(np.sort(sm.order), np.arange(x.n_vertices))
+    for s in (0, 17, 59):
+        ring = sm.ring[sm.ring_start[s] : sm.ring_start[s + 1]]
+        expected = np.flatnonzero(np.isin(sm.cell, sm.neighbors[s]))
+        np.testing.assert_array_equal(np.sort(ring), expected)
+    # farthest points: the closest two samples are at least half the covering radius apart
+    gaps = np.linalg.norm(x.vertices[sm.index][:, None] - x.vertices[sm.index][None], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    assert gaps.min() >= 0.5 * dist.min(axis=1).max()
+    everyone = surface_sampling(x.vertices, mass, 10**6)
+    np.testing.assert_array_equal(everyone.index, np.arange(x.n_vertices))
+    for bad in ((x.vertices[:, :2], mass, 5), (x.vertices, mass[:-1], 5), (x.vertices, mass, 0)):
+        with pytest.raises(ParameterError):
+            surface_sampling(*bad)
+
+
+def test_local_nearest_equals_the_exhaustive_search_for_a_continuous_map(permuted_bases):
+    """On a vertex-permuted copy, the rows of a smooth embedding (the first eigenfunctions,
+    pulled through the true map) find the same nearest rows locally as exhaustively: the map is
+    continuous, so every vertex's partner lies near its samples' partners; the samples' own
+    search (``only_samples``) agrees on the samples and leaves the rest at -1."""
+    x, y, perm, bx, by = permuted_bases
+    C = p2p_to_fmap(perm, bx, by, 20, 20)
+    query, reference = by.values[:, :20], bx.values[:, :20] @ C.T
+    exact = nearest_neighbor(query, reference, precision="double")
+    sx, sy = _sampling(x, 80), _sampling(y, 80)
+    local = local_nearest(query, reference, sy, sx, precision="double")
+    np.testing.assert_array_equal(local, exact)
+    only = local_nearest(query, reference, sy, sx, precision="double", only_samples=True)
+    np.testing.assert_array_equal(only[sy.index], exact[sy.index])
+    assert (np.delete(only, sy.index) == -1).all()
+    with pytest.raises(ParameterError, match="one row per vertex"):
+        local_nearest(query[:-1], reference, sy, sx)
+    with pytest.raises(ParameterError, match="coarse"):
+        local_nearest(query, reference, sy, sx, coarse=np.zeros(3, dtype=np.int64))
+    # fmap_to_p2p with the samplings is the same search
+    np.testing.assert_array_equal(
+        fmap_to_p2p(C, bx, by, mode="orthogonal", precision="double", samplings=(sx, sy)), exact
+    )

@@ -204,3 +204,50 @@ def test_zoomout_anchors_keep_the_true_map_and_carry_a_map_from_no_information(p
     for bad in ((ax, ax[:10]), (ax, ax[:, :3]), (ax[:, :0], ax[:, :0]), (ax, np.full_like(ax, np.nan)), "no"):
         with pytest.raises(ParameterError, match="anchors"):
             zoomout(C, bx, by, 40, step=5, anchors=bad)
+
+
+def test_zoomout_on_surface_samples_recovers_the_map_and_keeps_the_true_one(permuted_bases):
+    """ZoomOut on surface samples (fits weighted by the cells' areas, each sample matched among
+    every vertex near its match, the final map searched locally, :class:`Samples.of_surfaces`):
+    the true map of a permuted copy is a fixed point, and a noisy start is carried to the
+    exhaustive ZoomOut's answer, with no step comparing every vertex with every vertex."""
+    from torchfmap.fmap.nearest import surface_sampling
+    from torchfmap.fmap.refine import Samples
+    from torchfmap.operators import laplacian
+
+    x, y, perm, bx, by = permuted_bases
+    samples = Samples.of_surfaces(
+        *(surface_sampling(m.vertices, laplacian(m)[1].diagonal(), 150) for m in (x, y))
+    )
+    C = p2p_to_fmap(perm, bx, by, 15, 15)
+    _, fixed = zoomout(C, bx, by, 40, step=5, subsample=samples, p2p_yx=perm)
+    np.testing.assert_array_equal(fixed, perm)
+    noisy = C + 0.15 * np.random.default_rng(0).normal(size=C.shape)
+    start = fmap_to_p2p(noisy, bx, by, mode="orthogonal")
+    _, exact = zoomout(noisy, bx, by, 40, step=5)
+    _, sampled = zoomout(noisy, bx, by, 40, step=5, subsample=samples, p2p_yx=start)
+    assert np.mean(sampled == perm) >= np.mean(exact == perm) - 0.02 and np.mean(sampled == perm) > 0.9
+
+
+def test_every_zoomout_variant_runs_the_one_loop(permuted_bases, monkeypatch):
+    """Plain, partial and hybrid ZoomOut and the fixed-size iterations all step through
+    :func:`~torchfmap.fmap.refine.zoomout_iterations` (one implementation of the loop)."""
+    import torchfmap.fmap.refine as refine
+    import torchfmap.kinds.hybrid as hybrid
+    import torchfmap.kinds.refiners as refiners
+    import torchfmap.partial as partial
+
+    calls = []
+    real = refine.zoomout_iterations
+
+    def spy(step, sizes, **kw):
+        calls.append(type(step).__name__)
+        return real(step, sizes, **kw)
+
+    for module in (refine, hybrid, refiners, partial):
+        monkeypatch.setattr(module, "zoomout_iterations", spy, raising=False)
+    x, y, perm, bx, by = permuted_bases
+    zoomout(p2p_to_fmap(perm, bx, by, 10, 10), bx, by, 20)
+    zoomout_sequence(perm, [bx, bx], [by, by])
+    partial.partial_zoomout(perm, bx, by, 10, 20)
+    assert calls == ["SpectralStep", "SequenceStep", "SpectralStep"]

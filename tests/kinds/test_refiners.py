@@ -46,3 +46,23 @@ def test_zoomout_with_features_that_correspond_carries_a_map_from_no_information
     assert guided.basis_x.k == 40 and guided.C_xy.shape == (40, 40)
     kept = ZoomOut(40, features=feats)(p2p_to_fmap(perm, bx, by), perm, *shapes, bx, by)
     np.testing.assert_array_equal(kept.p2p_yx, perm)
+
+
+def test_dense_pairs_match_and_refine_on_samples_as_well_as_exhaustively(permuted_pair, monkeypatch):
+    """Past ``LOCAL_SEARCH_PAIRS`` (lowered here so a small pair crosses it) the raw point map
+    and ZoomOut run on surface samples and search locally; on a vertex-permuted copy they find
+    the true map as well as the exhaustive paths do, and the samplings are kept in the shapes."""
+    import torchfmap as tf
+    import torchfmap.kinds.refiners as refiners
+
+    x, y, perm, _ = permuted_pair
+    exact = tf.match(x, y, k=20, refine="zoomout")
+    monkeypatch.setattr(refiners, "LOCAL_SEARCH_PAIRS", 1)
+    monkeypatch.setattr(refiners, "SURFACE_SAMPLES", 200)
+    shapes = tuple(tf.prepare_shape(m, 40) for m in (x, y))
+    dense = tf.match(x, y, k=20, refine="zoomout", shapes=shapes)
+    assert refiners.is_dense(*shapes)
+    assert all(("surface_sampling", 200) in s.derived for s in shapes)
+    for attr in ("p2p_yx_initial", "p2p_yx"):
+        assert np.mean(getattr(dense, attr) == perm) >= np.mean(getattr(exact, attr) == perm) - 0.02
+    assert np.mean(dense.p2p_yx == perm) > 0.95

@@ -17,7 +17,7 @@ import torchfmap.nn.inference as inference
 import torchfmap.nn.item_inference as item_inference
 from torchfmap import Mesh, prepare_shape
 from torchfmap.errors import ParameterError
-from torchfmap.fmap import nearest_neighbor, values_to_p2p
+from torchfmap.fmap import values_to_p2p
 from torchfmap.nn import LearnedMatcher, TrainConfig, build_model, save_checkpoint
 from torchfmap.nn.data import ShapeDataset
 from torchfmap.results import MatchResult
@@ -56,22 +56,6 @@ def test_predict_p2p_point_map_rules(tmp_path, blob_files):
         assert p2p.shape == (162,) and p2p.min() >= 0 and p2p.max() < 162
     with pytest.raises(ParameterError, match="p2p_mode"):
         predict_p2p(net, solver, shapes[0], shapes[1], p2p_mode="nearest")
-
-
-def test_nearest_rows_is_the_float64_brute_force_search_in_blocks():
-    """The device search gives the indices of the numpy float64 brute force, whatever the block
-    size (here blocks of 3 rows, and one block); inputs of another shape or dtype are refused."""
-    rng = np.random.default_rng(1)
-    query, reference = rng.normal(size=(50, 7)), rng.normal(size=(40, 7))
-    expected = nearest_neighbor(query, reference, search="brute", precision="double")
-    q, r = torch.as_tensor(query), torch.as_tensor(reference)
-    for block_bytes in (3 * 8 * 40, 2**30):
-        found = inference._nearest_rows(q, r, block_bytes=block_bytes)
-        np.testing.assert_array_equal(found.numpy(), expected)
-    with pytest.raises(ParameterError, match="one dtype"):
-        inference._nearest_rows(q, r.float())
-    with pytest.raises(ParameterError, match=r"\(M, D\)"):
-        inference._nearest_rows(q, r[:, :3])
 
 
 def test_learned_matcher_returns_a_match_result_with_float64_maps(permuted):
@@ -233,23 +217,24 @@ class _DeviceSpy(torch.nn.Module):
 
 
 def test_network_solver_and_point_map_search_run_on_the_matchers_device(permuted, monkeypatch):
-    """The device plumbing on the CPU: ``device`` resolves once, the network's parameters, its
-    inputs and both point-map search tensors are on it, operators and eigenbases stay float64
-    numpy. With ``torch.device('meta')`` (no data, any machine) the network is moved there."""
+    """The device plumbing on the CPU: ``device`` resolves once, the network's parameters and
+    its inputs are on it; operators, eigenbases and the point-map search stay float64 numpy
+    (the one search of :func:`~torchfmap.fmap.fmap_to_p2p`). With ``torch.device('meta')`` (no
+    data, any machine) the network is moved there."""
     mesh_x, mesh_y, _ = permuted
     spy = _DeviceSpy(build_model(TINY)[0])
     matcher = LearnedMatcher(spy, TINY, device="cpu")
     searched = []
-    real = inference._nearest_rows
+    real = inference.fmap_to_p2p
 
-    def search(query, reference, **kw):
-        searched.append((query.device, reference.device, query.dtype))
-        return real(query, reference, **kw)
+    def search(C, bx, by, **kw):
+        searched.append((type(C), C.dtype, kw["precision"]))
+        return real(C, bx, by, **kw)
 
-    monkeypatch.setattr(inference, "_nearest_rows", search)
+    monkeypatch.setattr(inference, "fmap_to_p2p", search)
     result = matcher(mesh_x, mesh_y)
     assert spy.devices == [torch.device("cpu")] * 2
-    assert searched == [(torch.device("cpu"), torch.device("cpu"), torch.float64)]
+    assert searched == [(np.ndarray, np.float64, "double")]
     assert isinstance(result.basis_x.values, np.ndarray)
     meta = LearnedMatcher(build_model(TINY)[0], TINY, device=torch.device("meta"))
     assert meta.device.type == "meta" and all(p.is_meta for p in meta.net.parameters())

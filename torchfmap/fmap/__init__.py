@@ -1,17 +1,25 @@
 """Functional maps: the regularised solver (any basis), conversions and refinement."""
 
-from .convert import (
+from .convert import check_p2p, fmap_to_p2p, fmap_to_p2p_bijective, p2p_to_fmap, values_to_p2p
+from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
+from .nearest import (
     Neighbors,
-    check_p2p,
-    fmap_to_p2p,
-    fmap_to_p2p_bijective,
+    SurfaceSampling,
+    local_nearest,
     nearest_neighbor,
     nearest_neighbor_distance,
-    p2p_to_fmap,
-    values_to_p2p,
+    surface_sampling,
 )
-from .core import laplacian_mask, rotate_and_solve, solve_rowwise, spectral_frame
-from .refine import EnergyGuard, Refined, icp_refine, zoomout, zoomout_energy, zoomout_sequence
+from .refine import (
+    EnergyGuard,
+    Refined,
+    Samples,
+    icp_refine,
+    zoomout,
+    zoomout_energy,
+    zoomout_iterations,
+    zoomout_sequence,
+)
 from .solver import (
     FmapProblem,
     build_problem,
@@ -31,6 +39,7 @@ __all__ = [
     "fmap_to_p2p_bijective",
     "icp_refine",
     "laplacian_mask",
+    "local_nearest",
     "multiplication_operator",
     "Neighbors",
     "nearest_neighbor",
@@ -38,12 +47,16 @@ __all__ = [
     "orientation_operators",
     "p2p_to_fmap",
     "Refined",
+    "Samples",
     "rotate_and_solve",
     "solve_fmap",
     "solve_rowwise",
     "spectral_frame",
+    "SurfaceSampling",
+    "surface_sampling",
     "values_to_p2p",
     "zoomout",
     "zoomout_energy",
+    "zoomout_iterations",
     "zoomout_sequence",
 ]

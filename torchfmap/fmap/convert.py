@@ -1,4 +1,4 @@
-"""Point-to-point maps <-> functional maps, with memory-bounded nearest-neighbour search.
+"""Point-to-point maps <-> functional maps (nearest neighbours: :mod:`~torchfmap.fmap.nearest`).
 
 Direction is in every name: ``p2p_yx[v]`` is the vertex of ``x`` matched to vertex ``v`` of
 ``y`` (so functions pull back as ``f_y = f_x[p2p_yx]``), and ``C_xy`` ``(K_y, K_x)`` maps
@@ -11,105 +11,13 @@ classical choice for (near-)orthogonal ``C`` in eigenbases.
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-
-#: Memory budget (bytes) of one block of the brute-force distance matrix.
-NN_BLOCK_BYTES = 128 * 2**20
-#: At or below this dimension a KD-tree beats brute force.
-KDTREE_MAX_DIM = 12
-
-
-class Neighbors(NamedTuple):
-    """Result of :func:`nearest_neighbor_distance`: ``index (M,)`` int64, ``distance (M,)`` float64."""
-
-    index: np.ndarray
-    distance: np.ndarray
-
-
-def nearest_neighbor(
-    query: np.ndarray,
-    reference: np.ndarray,
-    *,
-    search: Literal["auto", "brute", "kdtree"] = "auto",
-    precision: Literal["double", "single"] = "double",
-    block_bytes: int = NN_BLOCK_BYTES,
-) -> np.ndarray:
-    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for every row of
-    ``query (M, D)``; :func:`nearest_neighbor_distance` also returns the distances.
-
-    Brute force evaluates ``|r|² - 2 q·r`` for a block of queries at a time in one reused
-    ``(block, N)`` buffer of at most ``block_bytes`` (memory is bounded whatever ``M`` and
-    ``N``); a KD-tree is used for low dimensions under ``search='auto'``. Ties go to the
-    lowest index.
-
-    ``precision='single'`` runs the brute-force products in float32 (faster: see
-    ``python -m bench speed --case nn_speed``); rows whose nearest and second-nearest distances differ by
-    less than float32
-    round-off may then resolve differently from float64.
-    """
-    return _nearest(query, reference, search, precision, block_bytes)[0]
-
-
-def nearest_neighbor_distance(
-    query: np.ndarray,
-    reference: np.ndarray,
-    *,
-    search: Literal["auto", "brute", "kdtree"] = "auto",
-    precision: Literal["double", "single"] = "double",
-    block_bytes: int = NN_BLOCK_BYTES,
-) -> Neighbors:
-    """:func:`nearest_neighbor` with the distances: ``Neighbors(index (M,), distance (M,))``,
-    the distances in float64 whatever ``precision``."""
-    idx, dist, query, reference = _nearest(query, reference, search, precision, block_bytes)
-    if dist is None:
-        diff = query - reference[idx]
-        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    return Neighbors(idx, dist)
-
-
-def _nearest(query, reference, search: str, precision: str, block_bytes: int):
-    """``(index, distance or None, query, reference)``: the search of :func:`nearest_neighbor`."""
-    query = np.ascontiguousarray(query, dtype=np.float64)
-    reference = np.ascontiguousarray(reference, dtype=np.float64)
-    if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
-        raise ParameterError(
-            f"query {query.shape} and reference {reference.shape} must be (M, D) and (N, D)."
-        )
-    if not (np.isfinite(query).all() and np.isfinite(reference).all()):
-        raise ParameterError("nearest-neighbour inputs contain NaN or inf. Fix: check the map and bases.")
-    if precision not in ("double", "single"):
-        raise ParameterError(f"unknown precision {precision!r}. Fix: 'double' or 'single'.")
-    if search == "auto":
-        search = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
-    if search == "kdtree":
-        dist, idx = cKDTree(reference).query(query, k=1)
-        return idx.astype(np.int64), dist, query, reference
-    if search != "brute":
-        raise ParameterError(f"unknown search {search!r}. Fix: 'auto', 'brute' or 'kdtree'.")
-    dtype = np.float32 if precision == "single" else np.float64
-    # |r|² - 2 q·r as ONE product [q, 1] · [-2r, |r|²]ᵀ (|q|² is constant per row: not needed
-    # for the argmin), so each block costs a GEMM and an argmin, no elementwise passes
-    n_dim = reference.shape[1]
-    ref_aug = np.empty((len(reference), n_dim + 1), dtype=dtype)
-    ref_aug[:, :n_dim] = -2.0 * reference
-    ref_aug[:, n_dim] = np.einsum("ij,ij->i", reference, reference)
-    block = max(1, min(len(query), int(block_bytes // (np.dtype(dtype).itemsize * max(1, len(reference))))))
-    buffer = np.empty((block, len(reference)), dtype=dtype)
-    q_aug = np.ones((block, n_dim + 1), dtype=dtype)
-    idx = np.empty(len(query), dtype=np.int64)
-    for start in range(0, len(query), block):
-        m = min(block, len(query) - start)
-        q_aug[:m, :n_dim] = query[start : start + m]
-        d = buffer[:m]
-        np.matmul(q_aug[:m], ref_aug.T, out=d)
-        idx[start : start + m] = np.argmin(d, axis=1)
-    return idx, None, query, reference
+from .nearest import SurfaceSampling, local_nearest, nearest_neighbor
 
 
 def _check_fmap(C_xy: np.ndarray, k_x: int, k_y: int) -> np.ndarray:
@@ -132,6 +40,7 @@ def fmap_to_p2p(
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
     rows: np.ndarray | None = None,
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ) -> np.ndarray:
     """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis);
     ``rows`` ``(R,)``: only these vertices of ``y`` (an ``(R,)`` map).
@@ -139,12 +48,17 @@ def fmap_to_p2p(
     ``mode``: ``'pullback'`` (nearest neighbour of each row of ``Φ_y C_xy`` among the rows of
     ``Φ_x``; valid in any basis, the default) or ``'orthogonal'`` (of each row of ``Φ_y`` among
     the rows of ``Φ_x C_xyᵀ``; the classical choice in eigenbases, a kind's ``p2p_mode``).
+    ``samplings``: both shapes' :class:`SurfaceSampling` ``(x, y)``: every vertex of ``y``
+    searched locally (:func:`local_nearest`, sub-quadratic on dense meshes; not with ``rows``).
 
     The nearest-neighbour search runs in float32 by default (see :func:`nearest_neighbor`):
     a vertex whose two best matches are equally good to 1e-6 may pick either.
     """
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
     ky, kx = C_xy.shape
+    if samplings is not None and rows is None:
+        query, reference = embedding_pair(C_xy, basis_x.values[:, :kx], basis_y.values[:, :ky], mode=mode)
+        return local_nearest(query, reference, samplings[1], samplings[0], precision=precision)
     phi_y = basis_y.values[:, :ky] if rows is None else basis_y.values[rows, :ky]
     return values_to_p2p(C_xy, basis_x.values[:, :kx], phi_y, mode=mode, search=search, precision=precision)
 
@@ -165,6 +79,20 @@ def values_to_p2p(
     coordinates that correspond on both shapes (checked by the caller, e.g.
     :func:`~torchfmap.fmap.zoomout`), are appended to both embeddings at equal weight: scaled so
     that their mean row norm on ``y`` is the spectral embedding's."""
+    query, ref = embedding_pair(C_xy, phi_x, phi_y, mode=mode, anchors=anchors)
+    return nearest_neighbor(query, ref, search=search, precision=precision)
+
+
+def embedding_pair(
+    C_xy: np.ndarray,
+    phi_x: np.ndarray,
+    phi_y: np.ndarray,
+    *,
+    mode: Literal["pullback", "orthogonal"],
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(E_y (V_y, D), E_x (V_x, D))``: the query and reference rows whose nearest neighbours
+    are the point map of :func:`values_to_p2p` (same arguments)."""
     if mode == "pullback":
         query, ref = phi_y @ C_xy, phi_x
     elif mode == "orthogonal":
@@ -176,7 +104,7 @@ def values_to_p2p(
         norm = np.linalg.norm(ay, axis=1).mean()
         w = np.linalg.norm(query, axis=1).mean() / norm if norm > 0 else 0.0
         query, ref = np.hstack([query, w * ay]), np.hstack([ref, w * ax])
-    return nearest_neighbor(query, ref, search=search, precision=precision)
+    return query, ref
 
 
 def fmap_to_p2p_bijective(

@@ -38,3 +38,15 @@ ZOOMOUT_STEP_DIVISOR = 10
 def zoomout_step(k: int) -> int:
     """Default ZoomOut step for a start of ``k`` eigenfunctions."""
     return max(1, k // ZOOMOUT_STEP_DIVISOR)
+
+
+#: Above this many vertex pairs ``V_x V_y`` (two meshes of 10K vertices), point maps and every
+#: ZoomOut leave the exhaustive nearest-neighbour search: iterations run on
+#: :data:`SURFACE_SAMPLES` samples per shape and the map of every vertex is searched near where
+#: its samples went (:func:`~torchfmap.fmap.nearest.local_nearest`); at or below it, every
+#: vertex is compared with every vertex (``python -m bench speed --case dense``).
+LOCAL_SEARCH_PAIRS = 10_000**2
+#: Samples per shape of the sampled ZoomOut and the local search
+#: (:func:`~torchfmap.fmap.nearest.surface_sampling`): their least-squares fits hold ``k_final``
+#: columns many times over.
+SURFACE_SAMPLES = 3000

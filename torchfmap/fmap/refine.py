@@ -17,14 +17,18 @@ kind of basis (``ICP``, ``ZoomOut``, ... in ``torchfmap.kinds.refiners``) call t
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
+from tqdm import tqdm
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .convert import check_p2p, fmap_to_p2p, p2p_to_fmap, values_to_p2p
+from .convert import check_p2p, embedding_pair, fmap_to_p2p, p2p_to_fmap, values_to_p2p
 from .defaults import zoomout_step
+from .nearest import SurfaceSampling, local_nearest, nearest_neighbor
 
 Mode = Literal["pullback", "orthogonal"]
 
@@ -60,19 +64,25 @@ def icp_refine(
     return C, p2p
 
 
-def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
+def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> Samples | None:
+    """``subsample`` (a pair of vertex arrays, or :class:`Samples`) as :class:`Samples`, checked."""
     if subsample is None:
         return None
-    try:
-        sx, sy = (np.asarray(s) for s in subsample)
-    except (TypeError, ValueError) as err:
-        raise ParameterError("subsample must be a pair (vertices of x, vertices of y).") from err
+    if isinstance(subsample, Samples):
+        sx, sy = subsample.x, subsample.y
+    else:
+        try:
+            sx, sy = (np.asarray(s) for s in subsample)
+        except (TypeError, ValueError) as err:
+            raise ParameterError("subsample must be a pair (vertices of x, vertices of y).") from err
     for s, b, name in ((sx, basis_x, "x"), (sy, basis_y, "y")):
         if s.ndim != 1 or not len(s) or not np.issubdtype(s.dtype, np.integer):
             raise ParameterError(f"subsample of {name} must be a non-empty 1-D array of vertex indices.")
         if s.min() < 0 or s.max() >= b.n_vertices:
             raise ParameterError(f"subsample of {name} has vertices outside [0, {b.n_vertices}).")
-    return sx.astype(np.int64), sy.astype(np.int64)
+    if isinstance(subsample, Samples):
+        return subsample
+    return Samples(sx.astype(np.int64), sy.astype(np.int64))
 
 
 def check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
@@ -105,14 +115,167 @@ def anchored_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors=No
     return values_to_p2p(C, phi_x[:, :cx], phi_y[:, :cy], mode=mode, anchors=anchors)
 
 
-def _sample_step(C, bx: Basis, by: Basis, kx: int, ky: int, samples, mode: Mode, anchors=None):
-    """One ZoomOut step on samples: match samples of y to samples of x with ``C``, then the
-    least-squares map ``C (ky, kx)`` with ``Φ_y[S_y] C ≈ Φ_x[S_x[p2p]]`` (no mass on samples)."""
-    sx, sy = samples
-    phi_x, phi_y = bx.values[sx], by.values[sy]
-    rows = None if anchors is None else (anchors[0][sx], anchors[1][sy])
-    p2p = anchored_p2p(C, phi_x, phi_y, mode, rows)
-    return np.linalg.lstsq(phi_y[:, :ky], phi_x[p2p, :kx], rcond=None)[0]
+class Samples(NamedTuple):
+    """Where ZoomOut iterates when not on every vertex: ``x (S_x,)`` and ``y (S_y,)`` sampled
+    vertices, ``weight (S_y,)`` the quadrature weights of the least-squares fit on ``y``'s
+    samples (None: unweighted), ``surfaces``: both shapes'
+    :class:`~torchfmap.fmap.nearest.SurfaceSampling` (whose ``index`` are ``x`` and ``y``) when
+    the final point map is searched locally (:func:`~torchfmap.fmap.nearest.local_nearest`),
+    None for the exhaustive search."""
+
+    x: np.ndarray
+    y: np.ndarray
+    weight: np.ndarray | None = None
+    surfaces: tuple[SurfaceSampling, SurfaceSampling] | None = None
+
+    @classmethod
+    def of_surfaces(cls, sampling_x: SurfaceSampling, sampling_y: SurfaceSampling) -> Samples:
+        """Iterations on the samples of two surfaces, fitted with their cells' areas, the final
+        map searched locally."""
+        return cls(sampling_x.index, sampling_y.index, sampling_y.weight, (sampling_x, sampling_y))
+
+
+class ZoomOutStep(Protocol):
+    """One variant of ZoomOut (:func:`zoomout_iterations`): how a point map gives a functional
+    map at a size, and how a functional map gives the embeddings whose nearest neighbours are
+    the next point map. ``rows``: None (every vertex), or the :class:`Samples` the step works on:
+    ``fit`` then gets the images (vertices of ``x``) of ``y``'s samples ``rows.y``, and ``embed``
+    returns the rows of the samples only."""
+
+    def fit(self, p2p_yx: np.ndarray, size, rows: Samples | None) -> np.ndarray: ...
+
+    def embed(self, C: np.ndarray, size, rows: Samples | None) -> tuple[np.ndarray, np.ndarray]:
+        """``(E_y, E_x)``: query rows of ``y``, reference rows of ``x`` (of ``rows`` if given)."""
+        ...
+
+
+def least_squares_fit(phi_y: np.ndarray, target: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
+    """``C`` minimising ``Σ_s w_s ‖phi_y[s] C - target[s]‖²`` (unweighted when ``weight`` is
+    None): the functional map fitted on samples, the quadrature of ``C = Φ_yᵀ B_y Φ_x[p2p]``
+    when ``w`` are the samples' areas."""
+    if weight is not None:
+        root = np.sqrt(weight)[:, None]
+        phi_y, target = phi_y * root, target * root
+    return np.linalg.lstsq(phi_y, target, rcond=None)[0]
+
+
+@dataclass(frozen=True)
+class SpectralStep:
+    """ZoomOut's step in a pair of bases (:class:`ZoomOutStep`): at size ``k``, ``C`` is
+    ``(rank(k), k)`` (``rank`` None: ``k``; a part's rank schedule for partial maps), fitted by
+    projection (``C = Φ_yᵀ B_y Φ_x[p2p]``) on every vertex or by least squares on samples; the
+    point map by ``mode`` with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended
+    (:func:`~torchfmap.fmap.convert.embedding_pair`)."""
+
+    basis_x: Basis
+    basis_y: Basis
+    mode: Mode = "orthogonal"
+    anchors: tuple[np.ndarray, np.ndarray] | None = None
+    rank: Callable[[int], int] | None = None
+
+    def sizes(self, k: int) -> tuple[int, int]:
+        return k, (k if self.rank is None else self.rank(k))
+
+    def fit(self, p2p_yx, size, rows):
+        kx, ky = self.sizes(size)
+        if rows is None:
+            return p2p_to_fmap(p2p_yx, self.basis_x, self.basis_y, kx, ky)
+        phi_y = self.basis_y.values[rows.y, :ky]
+        return least_squares_fit(phi_y, self.basis_x.values[p2p_yx, :kx], rows.weight)
+
+    def embed(self, C, size, rows):
+        cy, cx = C.shape
+        phi_x, phi_y, anchors = self.basis_x.values, self.basis_y.values, self.anchors
+        if rows is not None:
+            phi_x, phi_y = phi_x[rows.x], phi_y[rows.y]
+            anchors = None if anchors is None else (anchors[0][rows.x], anchors[1][rows.y])
+        return embedding_pair(C, phi_x[:, :cx], phi_y[:, :cy], mode=self.mode, anchors=anchors)
+
+
+def zoomout_iterations(
+    step: ZoomOutStep,
+    sizes,
+    *,
+    C_xy: np.ndarray | None = None,
+    p2p_yx: np.ndarray | None = None,
+    samples: Samples | None = None,
+    guard: EnergyGuard | None = None,
+    progress: bool = False,
+):
+    """The one ZoomOut loop, under every variant (plain, anchored, partial, hybrid, fixed size,
+    the learned path's): ``C = step.fit(p2p, size)``, then the point map from
+    ``step.embed(C, size)``, for each of ``sizes`` in turn (bounded by their number).
+
+    Start from ``C_xy`` (converted to a point map first) or from ``p2p_yx`` ``(V_y,)``; exactly
+    one. With ``samples`` the iterations fit and match samples only (cost per iteration
+    ``S_x S_y k`` instead of ``V_x V_y k``); the final point map is the nearest row of every
+    vertex, searched near where the samples went when ``samples.surfaces`` is given
+    (:func:`~torchfmap.fmap.nearest.local_nearest`), exhaustively otherwise. ``guard``
+    (:class:`EnergyGuard`) is offered the start and every point map on every vertex (with
+    samples: the start, when given as ``p2p_yx``, and the end), and its lowest-energy map is
+    returned, refitted at the last size. ``progress``: a bar over the sizes.
+
+    Returns ``(C, p2p_yx (V_y,))``: the last (or the guard's) map and its ``C`` at the last size.
+
+    Raises:
+        ParameterError: both or neither start given, or no size.
+    """
+    sizes = list(sizes)
+    if (C_xy is None) == (p2p_yx is None) or (p2p_yx is not None and not sizes):
+        raise ParameterError(
+            "ZoomOut starts from exactly one of C_xy and p2p_yx (a point map needs at least one size)."
+        )
+    C = None if C_xy is None else np.asarray(C_xy, dtype=np.float64)
+    bar = tqdm(total=len(sizes), desc="ZoomOut", unit="size", disable=not progress, leave=False)
+    if samples is None:
+        p2p = p2p_yx if C is None else nearest_neighbor(*step.embed(C, None, None), precision="single")
+        if guard is not None:
+            guard.offer(p2p)
+        for size in sizes:
+            C = step.fit(p2p, size, None)
+            p2p = nearest_neighbor(*step.embed(C, size, None), precision="single")
+            if guard is not None:
+                guard.offer(p2p)
+            bar.update()
+    else:
+        if C is None:
+            if guard is not None:
+                guard.offer(p2p_yx)
+            images = np.asarray(p2p_yx)[samples.y]
+        else:
+            images, coarse = _sample_images(step, C, None, samples)
+        for size in sizes:
+            C = step.fit(images, size, samples)
+            images, coarse = _sample_images(step, C, size, samples)
+            bar.update()
+        query, reference = step.embed(C, sizes[-1] if sizes else None, None)
+        if samples.surfaces is None:
+            p2p = nearest_neighbor(query, reference, precision="single")
+        else:
+            p2p = local_nearest(query, reference, samples.surfaces[1], samples.surfaces[0], coarse=coarse)
+        if guard is not None:
+            guard.offer(p2p)
+    bar.close()
+    if guard is not None and guard.replaces(p2p):
+        p2p = guard.p2p_yx
+        C = step.fit(p2p, sizes[-1], None) if sizes else C
+    return C, p2p
+
+
+def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples):
+    """``(images (S_y,), coarse (S_y,))``: the vertices of ``x`` that ``C`` sends ``y``'s samples
+    to, and the samples of ``x`` they were found near. The samples are matched among ``x``'s
+    samples; with surface samplings, each is then matched among every vertex near its match
+    (:func:`~torchfmap.fmap.nearest.local_nearest`), so the fit sees no error of the samples'
+    spacing on ``x``."""
+    query, reference = step.embed(C, size, samples)
+    coarse = nearest_neighbor(query, reference, precision="single")
+    if samples.surfaces is None:
+        return samples.x[coarse], coarse
+    query, reference = step.embed(C, size, None)
+    sampling_x, sampling_y = samples.surfaces
+    images = local_nearest(query, reference, sampling_y, sampling_x, coarse=coarse, only_samples=True)
+    return images[samples.y], coarse
 
 
 def zoomout(
@@ -126,6 +289,8 @@ def zoomout(
     subsample=None,
     guard: bool = True,
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
+    p2p_yx: np.ndarray | None = None,
+    progress: bool = False,
 ):
     """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
 
@@ -144,13 +309,18 @@ def zoomout(
         subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
             (nearest neighbours between samples, least-squares maps), as in the ZoomOut
             paper's accelerated variant; only the final point map uses every vertex. The cost
-            of an iteration drops from ``V_x V_y k`` to ``S_x S_y k``.
+            of an iteration drops from ``V_x V_y k`` to ``S_x S_y k``. A :class:`Samples`
+            (e.g. :meth:`Samples.of_surfaces`) also weighs the fit by the samples' areas and
+            searches the final map locally, so no step compares every vertex with every vertex.
         anchors: ``(A_x (V_x, m), A_y (V_y, m))``: coordinates that correspond on both shapes
             (e.g. geodesic distances to landmark pairs,
             :func:`~torchfmap.kinds.refiners.landmark_coordinates`), appended
             to the spectral embedding of every point-map step at equal weight, so the map also
             keeps each vertex's distances to the landmarks. The spectral embedding alone is
             ambiguous where the shapes are not isometric; the anchors tie it to known pairs.
+        p2p_yx: ``(V_y,)`` the point map ``C_xy`` came from, if known: with ``subsample`` the
+            guard scores it as the start (without, the start is ``C_xy``'s own point map).
+        progress: a progress bar over the iterations.
 
     Returns:
         ``(C_xy (k_final, k_final), p2p_yx (V_y,))``.
@@ -171,30 +341,14 @@ def zoomout(
     k = min(C.shape)
     sizes = list(range(k, k_final, step)) + [k_final]
     best = EnergyGuard(basis_x, basis_y, sizes, enabled=guard)
-
-    def to_p2p(C):
-        return anchored_p2p(C, basis_x.values, basis_y.values, mode, anchors)
-
-    if samples is None:
-        p2p = to_p2p(C)
-        best.offer(p2p)
-        while k < k_final:
-            k = min(k + step, k_final)
-            C = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
-            p2p = to_p2p(C)
-            best.offer(p2p)
-    else:
-        if guard:
-            best.offer(to_p2p(C))
-        while k < k_final:
-            k = min(k + step, k_final)
-            C = _sample_step(C, basis_x, basis_y, k, k, samples, mode, anchors)
-        p2p = to_p2p(C)
-        best.offer(p2p)
-    if best.replaces(p2p):
-        p2p = best.p2p_yx
-        C = p2p_to_fmap(p2p, basis_x, basis_y, k_final, k_final)
-    return C, p2p
+    spectral = SpectralStep(basis_x, basis_y, mode, anchors)
+    if samples is not None and p2p_yx is not None:
+        p2p_yx = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
+        return zoomout_iterations(spectral, sizes[1:] or sizes, p2p_yx=p2p_yx, samples=samples, guard=best,
+                                  progress=progress)  # fmt: skip
+    if samples is not None and guard:  # the start scored on every vertex, as without samples
+        best.offer(anchored_p2p(C, basis_x.values, basis_y.values, mode, anchors))
+    return zoomout_iterations(spectral, sizes[1:], C_xy=C, samples=samples, guard=best, progress=progress)
 
 
 class EnergyGuard:
@@ -236,6 +390,26 @@ def zoomout_energy(p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, sizes) ->
     return total
 
 
+@dataclass(frozen=True)
+class SequenceStep:
+    """ZoomOut's step over explicit sequences of bases (:func:`zoomout_sequence`): at size ``i``
+    the pair ``(bases_x[i], bases_y[i])``, ``C`` fitted in it and converted by ``mode``."""
+
+    bases_x: tuple[Basis, ...]
+    bases_y: tuple[Basis, ...]
+    mode: Mode
+
+    def fit(self, p2p_yx, size, rows):
+        bx, by = self.bases_x[size], self.bases_y[size]
+        if rows is None:
+            return p2p_to_fmap(p2p_yx, bx, by)
+        return least_squares_fit(by.values[rows.y], bx.values[p2p_yx], rows.weight)
+
+    def embed(self, C, size, rows):
+        size = len(self.bases_x) - 1 if size is None else size
+        return SpectralStep(self.bases_x[size], self.bases_y[size], self.mode).embed(C, size, rows)
+
+
 def zoomout_sequence(
     p2p_yx: np.ndarray,
     bases_x: list[Basis],
@@ -247,27 +421,22 @@ def zoomout_sequence(
     """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
 
     Starting from a point map, for each pair ``(bases_x[i], bases_y[i])``: project, then
-    convert back. With ``subsample`` ``(vertices of x, vertices of y)``, only the first
-    projection uses every vertex; the later steps match samples to samples and fit ``C`` by
-    least squares (as :func:`zoomout`'s accelerated variant), and only the final point map
-    is computed on every vertex. ``mode``: the point-map conversion (default ``'pullback'``,
-    valid in any basis). Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
+    convert back (:func:`zoomout_iterations` with a :class:`SequenceStep`). With ``subsample``
+    ``(vertices of x, vertices of y)`` (or :class:`Samples`), only the first projection uses
+    every vertex; the later steps match samples to samples and fit ``C`` by least squares (as
+    :func:`zoomout`'s accelerated variant), and only the final point map is computed on every
+    vertex. ``mode``: the point-map conversion (default ``'pullback'``, valid in any basis).
+    Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
     """
     if len(bases_x) != len(bases_y) or not bases_x:
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
     p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
     samples = _check_samples(subsample, bases_x[0], bases_y[0])
-    C = None
-    for bx, by in zip(bases_x, bases_y, strict=True):
-        if samples is None or C is None:
-            C = p2p_to_fmap(p2p, bx, by)
-        else:
-            C = _sample_step(C, bx, by, bx.k, by.k, samples, mode)
-        if samples is None:
-            p2p = fmap_to_p2p(C, bx, by, mode=mode)
-    if samples is not None:
-        p2p = fmap_to_p2p(C, bases_x[-1], bases_y[-1], mode=mode)
-    return C, p2p
+    step = SequenceStep(tuple(bases_x), tuple(bases_y), mode)
+    if samples is None:
+        return zoomout_iterations(step, range(len(bases_x)), p2p_yx=p2p)
+    C = p2p_to_fmap(p2p, bases_x[0], bases_y[0])  # the first projection on every vertex
+    return zoomout_iterations(step, range(1, len(bases_x)), C_xy=C, samples=samples)
 
 
 class Refined(NamedTuple):

@@ -32,8 +32,9 @@ from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize, orthonormalize_pair
 from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
-from ..fmap.convert import fmap_to_p2p, nearest_neighbor
+from ..fmap.convert import fmap_to_p2p
 from ..fmap.defaults import W_ORIENT
+from ..fmap.nearest import SurfaceSampling, local_nearest, nearest_neighbor
 from ..seeds import corresponding_seeds, farthest_point_sampling
 from .refiners import ICP, FixedSizeIterations, SeedMoves, check_refine
 
@@ -151,15 +152,25 @@ class BasisKind:
         return None
 
     def to_p2p(
-        self, C_xy: np.ndarray, basis_x: Basis, basis_y: Basis, mode: str, rows: np.ndarray | None = None
+        self,
+        C_xy: np.ndarray,
+        basis_x: Basis,
+        basis_y: Basis,
+        mode: str,
+        rows: np.ndarray | None = None,
+        samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
     ) -> np.ndarray:
         """``p2p_yx (V_y,)`` of ``C_xy`` in a pair of this kind's bases: nearest neighbours of
         :meth:`embeddings` when the kind defines them, else
         :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``. ``rows`` ``(R,)``: only these
-        vertices of ``y`` (``(R,)`` returned), e.g. held-out landmarks."""
+        vertices of ``y`` (``(R,)`` returned), e.g. held-out landmarks. ``samplings``: both
+        shapes' :class:`~torchfmap.fmap.nearest.SurfaceSampling` ``(x, y)``: every vertex searched
+        locally (:func:`~torchfmap.fmap.nearest.local_nearest`, sub-quadratic on dense meshes)."""
         pair = self.embeddings(C_xy, basis_x, basis_y)
         if pair is None:
-            return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode, rows=rows)
+            return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode, rows=rows, samplings=samplings)
+        if samplings is not None and rows is None:
+            return local_nearest(pair[1], pair[0], samplings[1], samplings[0])
         return nearest_neighbor(pair[1] if rows is None else pair[1][rows], pair[0], precision="single")
 
     def refiner(

@@ -32,12 +32,13 @@ from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, with_eigenpairs
 from ..bases.stack import concatenate
 from ..errors import ParameterError
-from ..fmap.convert import check_p2p, p2p_to_fmap
+from ..fmap.convert import check_p2p
 from ..fmap.defaults import W_LAP_SMOOTH, W_ORIENT, zoomout_step
-from ..fmap.refine import EnergyGuard, Refined
+from ..fmap.nearest import SurfaceSampling
+from ..fmap.refine import EnergyGuard, Refined, Samples, SpectralStep, zoomout_iterations
 from .base import BasisKind
 from .diffusion import DIFFUSION
-from .refiners import grown_eigenbases
+from .refiners import grown_eigenbases, pair_samplings
 
 
 def join_blocks(eigen: Basis, feature: Basis) -> Basis:
@@ -145,10 +146,8 @@ class HybridKind(BasisKind):
         ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` and ``[Φ_e, w Φ_f]`` (the off-diagonal blocks of ``C_xy`` are
         not used)."""
         (ex, fx), (ey, fy) = split_blocks(basis_x), split_blocks(basis_y)
-        w = self.feature_weight
-        C_e, C_f = C_xy[: ey.k, : ex.k], C_xy[ey.k :, ex.k :]
-        side_x = np.hstack([ex.values @ C_e.T, w * (fx.values @ C_f.T)])
-        return side_x, np.hstack([ey.values, w * fy.values])
+        side_y, side_x = HybridStep(ex, ey, fx, fy, self.feature_weight).embed(C_xy, ex.k, None)
+        return side_x, side_y
 
     def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
         """:class:`HybridZoomOut` to ``k_final`` columns in all (the eigen blocks of given
@@ -172,8 +171,9 @@ class HybridZoomOut:
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
         k_final = self.k_final if self.k_final is not None else 2 * basis_x.k
         C, p2p, bx, by = hybrid_zoomout(
-            p2p_yx, shape_x, shape_y, basis_x, basis_y, self.kind, k_final, eigenbases=self.eigenbases
-        )
+            p2p_yx, shape_x, shape_y, basis_x, basis_y, self.kind, k_final, eigenbases=self.eigenbases,
+            samplings=pair_samplings(shape_x, shape_y),
+        )  # fmt: skip
         return Refined(C, p2p, bx, by, seeds)
 
 
@@ -189,6 +189,7 @@ def hybrid_zoomout(
     *,
     guard: bool = True,
     eigenbases: tuple[Basis, Basis] | None = None,
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
     """ZoomOut of a hybrid pair of bases (this module): the eigen block
     grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
@@ -201,7 +202,9 @@ def hybrid_zoomout(
     every iterate are scored over the eigen sizes and the lowest-energy point map is returned,
     with both blocks refitted from it at the final size. ``eigenbases``: the eigenfunctions the
     eigen block grows in (given ones); None: the shapes' own, computed in place when they hold
-    fewer than ``k_final - k_f``.
+    fewer than ``k_final - k_f``. ``samplings``: both shapes'
+    :class:`~torchfmap.fmap.nearest.SurfaceSampling`: the iterations run on their samples and
+    the final map is searched locally (:func:`~torchfmap.fmap.refine.zoomout_iterations`).
 
     Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
 
@@ -220,25 +223,44 @@ def hybrid_zoomout(
         raise ParameterError(f"step must be >= 1, got {step}.")
     p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
     sizes = list(range(k_e, k_end, step)) + [k_end]
+    best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
+    samples = None if samplings is None else Samples.of_surfaces(*samplings)
+    step = HybridStep(eig_x, eig_y, fx, fy, kind.feature_weight)
+    C, p2p = zoomout_iterations(step, sizes, p2p_yx=p2p, guard=best, samples=samples)
+    bx, by = join_blocks(eig_x.truncated(k_end), fx), join_blocks(eig_y.truncated(k_end), fy)
+    return C, p2p, bx, by
 
-    def refit(p2p: np.ndarray, size: int) -> np.ndarray:
+
+@dataclass(frozen=True)
+class HybridStep:
+    """ZoomOut's step in hybrid bases (:func:`~torchfmap.fmap.refine.zoomout_iterations`): at
+    eigen size ``size``, ``C = diag(C_e (size, size), C_f (k_f, k_f))`` fitted per block, and the
+    point map from the joint embedding ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` against ``[Φ_e, w Φ_f]``
+    (:meth:`HybridKind.embeddings`)."""
+
+    eig_x: Basis
+    eig_y: Basis
+    feat_x: Basis
+    feat_y: Basis
+    weight: float
+
+    def fit(self, p2p_yx, size, rows):
+        k_f = self.feat_x.k
         C = np.zeros((size + k_f, size + k_f))
-        C[:size, :size] = p2p_to_fmap(p2p, eig_x, eig_y, size, size)
-        C[size:, size:] = p2p_to_fmap(p2p, fx, fy, k_f, k_f)
+        eigen = (self.eig_x, self.eig_y, slice(0, size), size)
+        for bx, by, sl, k in (eigen, (self.feat_x, self.feat_y, slice(size, None), k_f)):
+            C[sl, sl] = SpectralStep(bx, by).fit(p2p_yx, k, rows)
         return C
 
-    best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
-    best.offer(p2p)
-    for size in sizes:  # bounded: one pass per size
-        bx = join_blocks(eig_x.truncated(size), fx)
-        by = join_blocks(eig_y.truncated(size), fy)
-        C = refit(p2p, size)
-        p2p = kind.to_p2p(C, bx, by, "orthogonal")
-        best.offer(p2p)
-    if best.replaces(p2p):
-        p2p = best.p2p_yx
-        C = refit(p2p, k_end)
-    return C, p2p, bx, by
+    def embed(self, C, size, rows):
+        k_f = self.feat_x.k
+        size = len(C) - k_f
+        ex, ey, fx, fy = (b.values for b in (self.eig_x, self.eig_y, self.feat_x, self.feat_y))
+        if rows is not None:
+            ex, fx, ey, fy = ex[rows.x], fx[rows.x], ey[rows.y], fy[rows.y]
+        C_e, C_f, w = C[:size, :size], C[size:, size:], self.weight
+        side_x = np.hstack([ex[:, :size] @ C_e.T, w * (fx @ C_f.T)])
+        return np.hstack([ey[:, :size], w * fy]), side_x
 
 
 HYBRID = HybridKind(

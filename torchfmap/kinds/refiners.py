@@ -27,8 +27,17 @@ from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize_pair
 from ..bases.prepared import PreparedShape, with_eigenpairs
 from ..errors import ParameterError
-from ..fmap.convert import fmap_to_p2p
-from ..fmap.refine import Refined, icp_refine, zoomout, zoomout_sequence
+from ..fmap.defaults import LOCAL_SEARCH_PAIRS, SURFACE_SAMPLES
+from ..fmap.nearest import SurfaceSampling, surface_sampling
+from ..fmap.refine import (
+    Refined,
+    Samples,
+    SequenceStep,
+    icp_refine,
+    zoomout,
+    zoomout_iterations,
+    zoomout_sequence,
+)
 from ..seeds import farthest_point_sampling, replace_seeds
 
 #: The refinements of :func:`torchfmap.match` (``refine=``; None: no refinement).
@@ -42,6 +51,30 @@ FEATURE_SEED_MOVES = 2
 #: of each round uses every vertex), so the cost of an iteration does not grow with ``V²``
 #: (accuracy against every-vertex iterations: ``python -m bench accuracy --case feature_accuracy``).
 FEATURE_SAMPLES_PER_COLUMN = 25
+
+
+def shape_sampling(shape: PreparedShape, n_samples: int = SURFACE_SAMPLES) -> SurfaceSampling:
+    """The shape's :func:`~torchfmap.fmap.nearest.surface_sampling` of ``n_samples`` (at most
+    every vertex), computed once per shape and size (kept in the prepared shape)."""
+    n = min(int(n_samples), shape.mesh.n_vertices)
+    mass = shape.operators[1].diagonal()
+    return shape.derive(("surface_sampling", n), lambda: surface_sampling(shape.mesh.vertices, mass, n))
+
+
+def is_dense(shape_x: PreparedShape, shape_y: PreparedShape) -> bool:
+    """Whether the pair is past :data:`~torchfmap.fmap.defaults.LOCAL_SEARCH_PAIRS`: point maps
+    and refinements then search locally around samples instead of comparing every vertex with
+    every vertex."""
+    return shape_x.mesh.n_vertices * shape_y.mesh.n_vertices > LOCAL_SEARCH_PAIRS
+
+
+def pair_samplings(shape_x: PreparedShape, shape_y: PreparedShape, n_samples: int | None = None):
+    """``(SurfaceSampling of x, of y)`` of ``n_samples`` each (None: the default, and only for
+    a dense pair, :func:`is_dense`; otherwise None)."""
+    if n_samples is None and not is_dense(shape_x, shape_y):
+        return None
+    n = SURFACE_SAMPLES if n_samples is None else n_samples
+    return shape_sampling(shape_x, n), shape_sampling(shape_y, n)
 
 
 def check_refine(refine, *, optional: bool = True) -> str | None:
@@ -123,12 +156,14 @@ def stacked_anchors(*blocks: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.n
 class ZoomOut:
     """ZoomOut in eigenbases (:func:`~torchfmap.fmap.zoomout`), grown from ``C_xy``'s size to
     ``k_final`` (default: twice that size) in ``eigenbases`` (given ones, whose first columns
-    ``basis_x, basis_y`` are) or, when None, the shapes' own eigenbases; on ``samples``
-    farthest-point samples per shape if given. Anchors (:func:`stacked_anchors`, ZoomOut's
-    ``anchors``) tie every point-map step to what is known to correspond: with ``landmarks``
-    ``(L, 2)`` the vertices' geodesic distances to them (:func:`landmark_coordinates`); with
-    ``features`` ``((V_x, D), (V_y, D))`` per-vertex descriptors of both shapes (a trained
-    network's, which the learned path passes). Returns the map in the grown bases (no seeds)."""
+    ``basis_x, basis_y`` are) or, when None, the shapes' own eigenbases; on ``samples`` samples
+    per shape (:func:`shape_sampling`) if given, or by default on a dense pair
+    (:func:`is_dense`), the final map then searched locally; ``progress``: a bar over the sizes.
+    Anchors (:func:`stacked_anchors`, ZoomOut's ``anchors``) tie every point-map step to what is
+    known to correspond: with ``landmarks`` ``(L, 2)`` the vertices' geodesic distances to them
+    (:func:`landmark_coordinates`); with ``features`` ``((V_x, D), (V_y, D))`` per-vertex
+    descriptors of both shapes (a trained network's, which the learned path passes). Returns
+    the map in the grown bases (no seeds)."""
 
     k_final: int | None = None
     mode: str = "orthogonal"
@@ -136,27 +171,33 @@ class ZoomOut:
     eigenbases: tuple[Basis, Basis] | None = None
     landmarks: np.ndarray | None = None
     features: tuple[np.ndarray, np.ndarray] | None = None
+    progress: bool = False
 
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
         k_final = self.k_final if self.k_final is not None else 2 * min(np.shape(C_xy))
         full_x, full_y = grown_eigenbases(shape_x, shape_y, self.eigenbases, k_final)
-        samples = None
-        if self.samples is not None:
-            samples = tuple(
-                farthest_point_sampling(m, min(self.samples, m.n_vertices), metric="euclidean")
-                for m in (shape_x.mesh, shape_y.mesh)
-            )
+        samplings = pair_samplings(shape_x, shape_y, self.samples)
+        samples = None if samplings is None else Samples.of_surfaces(*samplings)
         distances = None if self.landmarks is None else landmark_coordinates(shape_x, shape_y, self.landmarks)
         anchors = stacked_anchors(distances, self.features)
-        C, p2p = zoomout(C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples, anchors=anchors)
+        C, p2p = zoomout(
+            C_xy, full_x, full_y, k_final, mode=self.mode, subsample=samples, anchors=anchors,
+            p2p_yx=None if samples is None else p2p_yx, progress=self.progress,
+        )  # fmt: skip
         return Refined(C, p2p, full_x.truncated(k_final), full_y.truncated(k_final), None)
 
 
-def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The farthest-point samples ``(S,)`` per shape that fixed-size iterations in bases of ``k``
-    columns are fitted on (:data:`FEATURE_SAMPLES_PER_COLUMN` ``x k``, at most every vertex)."""
+def feature_samples(shape_x: PreparedShape, shape_y: PreparedShape, k: int) -> Samples:
+    """The samples fixed-size iterations in bases of ``k`` columns are fitted on:
+    :data:`FEATURE_SAMPLES_PER_COLUMN` ``x k`` farthest points per shape (at most every vertex);
+    on a dense pair (:func:`is_dense`) the shapes' surface samplings, whose final map is
+    searched locally."""
+    samplings = pair_samplings(shape_x, shape_y)
+    if samplings is not None:
+        return Samples.of_surfaces(*samplings)
     n_samples = min(FEATURE_SAMPLES_PER_COLUMN * k, shape_x.mesh.n_vertices, shape_y.mesh.n_vertices)
-    return tuple(farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y))
+    fps = (farthest_point_sampling(s.mesh, n_samples, metric="euclidean") for s in (shape_x, shape_y))
+    return Samples(*fps)
 
 
 def fixed_size_iterations(p2p_yx, bx: Basis, by: Basis, mode, samples) -> tuple[np.ndarray, np.ndarray]:
@@ -204,6 +245,8 @@ class SeedMoves:
             seeds = replace_seeds(shape_x.distances, shape_y.distances, seeds, p2p, self.n_fixed)
             raw_y = self.functions(shape_y, seeds[:, 1], self.times)
             bx, by = (b.truncated(basis_x.k) for b in orthonormalize_pair(raw_x, raw_y))
-            p2p = fmap_to_p2p(np.eye(by.k, bx.k), bx, by, mode=self.mode)
+            start = np.eye(by.k, bx.k)  # the rebuilt bases correspond column by column
+            rebuilt = SequenceStep((bx,), (by,), self.mode)
+            p2p = zoomout_iterations(rebuilt, [], C_xy=start, samples=samples)[1]
             C, p2p = fixed_size_iterations(p2p, bx, by, self.mode, samples)
         return Refined(C, p2p, bx, by, seeds)

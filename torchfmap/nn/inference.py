@@ -14,10 +14,10 @@ import torch
 from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
-from ..fmap.convert import NN_BLOCK_BYTES, p2p_to_fmap
+from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
 from ..fmap.refine import Refined
 from ..kinds import get_kind
-from ..kinds.refiners import ZoomOut
+from ..kinds.refiners import ZoomOut, pair_samplings
 from ..match_checks import check_meshes, check_unused, warn_if_partial
 from ..mesh import Mesh
 from ..partial import match_partial
@@ -42,35 +42,6 @@ def laplacian_defect(C: torch.Tensor, basis_x, basis_y) -> float:
     W = [(b.U[0] * b.lam[0][None, :]) @ b.U[0].T for b in (basis_x, basis_y)]
     W = [w.to(torch.float64) for w in W]
     return float(torch.linalg.norm(C @ W[0] - W[1] @ C) / torch.linalg.norm(C))
-
-
-def _nearest_rows(
-    query: torch.Tensor, reference: torch.Tensor, *, block_bytes: int = NN_BLOCK_BYTES
-) -> torch.Tensor:
-    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for each row of
-    ``query (M, D)``, on their device and in their dtype: :func:`~torchfmap.fmap.nearest_neighbor`'s
-    brute force (``|r|² - 2 q·r``, ties to the lowest index) in blocks of at most ``block_bytes``
-    of distances, so memory is bounded whatever ``M`` and ``N``.
-
-    Raises:
-        ParameterError: not ``(M, D)`` and ``(N, D)`` tensors of one dtype and device.
-    """
-    if (
-        query.dim() != 2 or reference.dim() != 2 or query.shape[1] != reference.shape[1]
-        or query.dtype != reference.dtype or query.device != reference.device
-    ):  # fmt: skip
-        raise ParameterError(
-            f"query {tuple(query.shape)} ({query.dtype}, {query.device}) and reference "
-            f"{tuple(reference.shape)} ({reference.dtype}, {reference.device}) must be (M, D) and "
-            "(N, D) of one dtype on one device."
-        )
-    squared = (reference * reference).sum(dim=1)
-    block = max(1, int(block_bytes // (query.element_size() * max(1, len(reference)))))
-    out = torch.empty(len(query), dtype=torch.int64, device=query.device)
-    for start in range(0, len(query), block):
-        q = query[start : start + block]
-        out[start : start + len(q)] = torch.addmm(squared[None, :], q, reference.T, alpha=-2.0).argmin(dim=1)
-    return out
 
 
 def _zoomout_sizes(k: int, k_final: int | None, n_vertices: tuple[int, int]) -> tuple[int, int]:
@@ -114,9 +85,9 @@ class LearnedMatcher:
     eigendecomposition, float64 on the CPU, serving the network's inputs
     (:func:`~torchfmap.nn.inputs.shape_arrays`), its basis and ZoomOut); the network (adapted to
     the pair first when ``adapt_steps > 0``, :func:`adapt`) and the solver run on ``device``,
-    and so does the point map: nearest neighbours of the rows of ``Φ_y`` among those of
-    ``Φ_x C_xyᵀ`` (:func:`_nearest_rows`; the orthogonal rule of
-    :func:`~torchfmap.fmap.fmap_to_p2p`), in float64 from the shapes' float64 basis values.
+    and the point map is the orthogonal rule of :func:`~torchfmap.fmap.fmap_to_p2p` (nearest
+    neighbours of the rows of ``Φ_y`` among those of ``Φ_x C_xyᵀ``) in float64 on the CPU, from
+    the shapes' float64 basis values, searched locally on dense pairs.
 
     Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
     and its recipe. It keeps nothing between calls: shapes are reused only when the caller
@@ -364,10 +335,9 @@ class LearnedMatcher:
                     C, fy, least = C_a, fy_a, defect
         timings["network+fmap"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        C = C.to(torch.float64)
-        phi_x, phi_y = (torch.as_tensor(b.values, dtype=torch.float64, device=self.device) for b in (bx, by))
-        p2p = _nearest_rows(phi_y, phi_x @ C.T).cpu().numpy()
-        C_xy = C.cpu().numpy()
+        C_xy = C.to(torch.float64).cpu().numpy()
+        samplings = pair_samplings(*shapes)  # dense pairs: searched locally
+        p2p = fmap_to_p2p(C_xy, bx, by, mode="orthogonal", precision="double", samplings=samplings)
         timings["p2p"] = time.perf_counter() - t0
         result = MatchResult(p2p, C_xy, bx, by, p2p, timings, kind=cfg.basis, model=self.name)
         if refine is None:

@@ -13,7 +13,8 @@ import torch
 
 from ..errors import ParameterError
 from ..eval import geodesic_errors
-from ..fmap.convert import nearest_neighbor, values_to_p2p
+from ..fmap.convert import values_to_p2p
+from ..fmap.nearest import nearest_neighbor
 from ..mesh import Mesh
 from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs

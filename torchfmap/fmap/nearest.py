@@ -1,0 +1,318 @@
+"""Nearest-neighbour search between the rows of two embeddings: exhaustive (memory-bounded
+blocks, or a KD-tree in low dimensions) and, for maps between surfaces, local around samples
+(:func:`surface_sampling`, :func:`local_nearest`), which no dense mesh's map outgrows."""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import ParameterError
+
+#: Memory budget (bytes) of one block of the brute-force distance matrix.
+NN_BLOCK_BYTES = 128 * 2**20
+#: At or below this dimension a KD-tree beats brute force.
+KDTREE_MAX_DIM = 12
+
+
+class Neighbors(NamedTuple):
+    """Result of :func:`nearest_neighbor_distance`: ``index (M,)`` int64, ``distance (M,)`` float64."""
+
+    index: np.ndarray
+    distance: np.ndarray
+
+
+def nearest_neighbor(
+    query: np.ndarray,
+    reference: np.ndarray,
+    *,
+    search: Literal["auto", "brute", "kdtree"] = "auto",
+    precision: Literal["double", "single"] = "double",
+    block_bytes: int = NN_BLOCK_BYTES,
+) -> np.ndarray:
+    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for every row of
+    ``query (M, D)``; :func:`nearest_neighbor_distance` also returns the distances.
+
+    Brute force evaluates ``|r|² - 2 q·r`` for a block of queries at a time in one reused
+    ``(block, N)`` buffer of at most ``block_bytes`` (memory is bounded whatever ``M`` and
+    ``N``); a KD-tree is used for low dimensions under ``search='auto'``. Ties go to the
+    lowest index.
+
+    ``precision='single'`` runs the brute-force products in float32 (faster: see
+    ``python -m bench speed --case nn_speed``); rows whose nearest and second-nearest distances differ by
+    less than float32
+    round-off may then resolve differently from float64.
+    """
+    return _nearest(query, reference, search, precision, block_bytes)[0]
+
+
+def nearest_neighbor_distance(
+    query: np.ndarray,
+    reference: np.ndarray,
+    *,
+    search: Literal["auto", "brute", "kdtree"] = "auto",
+    precision: Literal["double", "single"] = "double",
+    block_bytes: int = NN_BLOCK_BYTES,
+) -> Neighbors:
+    """:func:`nearest_neighbor` with the distances: ``Neighbors(index (M,), distance (M,))``,
+    the distances in float64 whatever ``precision``."""
+    idx, dist, query, reference = _nearest(query, reference, search, precision, block_bytes)
+    if dist is None:
+        diff = query - reference[idx]
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    return Neighbors(idx, dist)
+
+
+def _nearest(query, reference, search: str, precision: str, block_bytes: int):
+    """``(index, distance or None, query, reference)``: the search of :func:`nearest_neighbor`."""
+    query = np.ascontiguousarray(query, dtype=np.float64)
+    reference = np.ascontiguousarray(reference, dtype=np.float64)
+    if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
+        raise ParameterError(
+            f"query {query.shape} and reference {reference.shape} must be (M, D) and (N, D)."
+        )
+    if not (np.isfinite(query).all() and np.isfinite(reference).all()):
+        raise ParameterError("nearest-neighbour inputs contain NaN or inf. Fix: check the map and bases.")
+    if precision not in ("double", "single"):
+        raise ParameterError(f"unknown precision {precision!r}. Fix: 'double' or 'single'.")
+    if search == "auto":
+        search = "kdtree" if query.shape[1] <= KDTREE_MAX_DIM else "brute"
+    if search == "kdtree":
+        dist, idx = cKDTree(reference).query(query, k=1)
+        return idx.astype(np.int64), dist, query, reference
+    if search != "brute":
+        raise ParameterError(f"unknown search {search!r}. Fix: 'auto', 'brute' or 'kdtree'.")
+    dtype = np.float32 if precision == "single" else np.float64
+    # |r|² - 2 q·r as ONE product [q, 1] · [-2r, |r|²]ᵀ (|q|² is constant per row: not needed
+    # for the argmin), so each block costs a GEMM and an argmin, no elementwise passes
+    n_dim = reference.shape[1]
+    ref_aug = np.empty((len(reference), n_dim + 1), dtype=dtype)
+    ref_aug[:, :n_dim] = -2.0 * reference
+    ref_aug[:, n_dim] = np.einsum("ij,ij->i", reference, reference)
+    block = max(1, min(len(query), int(block_bytes // (np.dtype(dtype).itemsize * max(1, len(reference))))))
+    buffer = np.empty((block, len(reference)), dtype=dtype)
+    q_aug = np.ones((block, n_dim + 1), dtype=dtype)
+    idx = np.empty(len(query), dtype=np.int64)
+    for start in range(0, len(query), block):
+        m = min(block, len(query) - start)
+        q_aug[:m, :n_dim] = query[start : start + m]
+        d = buffer[:m]
+        np.matmul(q_aug[:m], ref_aug.T, out=d)
+        idx[start : start + m] = np.argmin(d, axis=1)
+    return idx, None, query, reference
+
+
+class SurfaceSampling(NamedTuple):
+    """A shape's vertices grouped around evenly spread samples (:func:`surface_sampling`):
+    the coarse level of the local nearest-neighbour search (:func:`local_nearest`) and of
+    ZoomOut on samples.
+
+    ``index (S,)`` the sampled vertices; ``cell (V,)`` the sample (``0..S-1``) nearest each
+    vertex in space; ``weight (S,)`` each cell's area (the vertex masses summed, the quadrature
+    weights of least-squares fits on samples); ``neighbors (S, m)`` each sample's ``m`` nearest
+    samples, itself first; ``order (V,)`` the vertices sorted by cell and ``start (S + 1,)`` where
+    each cell's run begins in it; ``ring (R,)`` the vertices of each sample's neighbouring cells,
+    sample by sample, sample ``s``'s from ``ring_start[s]`` to ``ring_start[s + 1]``."""
+
+    index: np.ndarray
+    cell: np.ndarray
+    weight: np.ndarray
+    neighbors: np.ndarray
+    order: np.ndarray
+    start: np.ndarray
+    ring: np.ndarray
+    ring_start: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.cell)
+
+    def members(self, cells) -> np.ndarray:
+        """The vertices ``(R,)`` of the given cells, cell by cell."""
+        return np.concatenate([self.order[self.start[c] : self.start[c + 1]] for c in cells])
+
+
+#: Neighbouring samples each sample knows (:class:`SurfaceSampling`): a cell and its first ring.
+SAMPLE_NEIGHBORS = 8
+#: Voxels per sample of the thinning before farthest-point sampling (:func:`surface_sampling`).
+VOXELS_PER_SAMPLE = 4
+
+
+def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> SurfaceSampling:
+    """``n_samples`` evenly spread vertices of a surface and the cells around them.
+
+    The vertices ``points (V, 3)`` are first thinned to one per occupied voxel of a grid of about
+    :data:`VOXELS_PER_SAMPLE` ``x n_samples`` voxels over the surface (the one nearest the voxel's
+    centre), then farthest-point sampling in space picks ``n_samples`` of them: ``O(V)`` work
+    plus ``O(n_samples²)``, deterministic. Each vertex joins the cell of its nearest sample;
+    ``mass (V,)`` (lumped vertex areas) gives the cells' weights. ``n_samples >= V`` samples every
+    vertex.
+
+    Raises:
+        ParameterError: ``points`` not ``(V, 3)`` finite, ``mass`` not ``(V,)``, or
+            ``n_samples < 1``.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    mass = np.asarray(mass, dtype=np.float64).ravel()
+    if points.ndim != 2 or points.shape[1] != 3 or not len(points) or not np.isfinite(points).all():
+        raise ParameterError(f"points must be a finite (V, 3) array, got shape {points.shape}.")
+    if mass.shape != (len(points),):
+        raise ParameterError(f"mass must have one entry per vertex ({len(points)}), got {mass.shape}.")
+    if n_samples < 1:
+        raise ParameterError(f"n_samples must be >= 1, got {n_samples}.")
+    n = len(points)
+    if n_samples >= n:
+        index = np.arange(n, dtype=np.int64)
+    else:
+        candidates = _voxel_thinning(points, mass, VOXELS_PER_SAMPLE * n_samples)
+        index = candidates[_farthest_points(points[candidates], n_samples)]
+    tree = cKDTree(points[index])
+    cell = tree.query(points, k=1)[1].astype(np.int64)
+    cell[index] = np.arange(len(index))  # a sample is in its own cell, whatever the ties
+    m = min(SAMPLE_NEIGHBORS, len(index))
+    neighbors = tree.query(points[index], k=m)[1].reshape(len(index), m).astype(np.int64)
+    neighbors[:, 0] = np.arange(len(index))
+    order = np.argsort(cell, kind="stable")
+    start = np.searchsorted(cell[order], np.arange(len(index) + 1))
+    weight = np.bincount(cell, weights=mass, minlength=len(index))
+    ring_size = np.diff(start)[neighbors].sum(axis=1)
+    ring = _segments(order, start[neighbors.ravel()], np.diff(start)[neighbors.ravel()])
+    ring_start = np.concatenate([[0], np.cumsum(ring_size)])
+    return SurfaceSampling(index, cell, weight, neighbors, order, start, ring, ring_start)
+
+
+def _segments(values: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """``values[starts[i] : starts[i] + lengths[i]]`` for every ``i``, concatenated."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    total = int(lengths.sum())
+    if not total:
+        return values[:0]
+    first = np.cumsum(lengths) - lengths
+    offsets = (
+        np.arange(total) - np.repeat(first, lengths) + np.repeat(np.asarray(starts, dtype=np.int64), lengths)
+    )
+    return values[offsets]
+
+
+def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.ndarray:
+    """One vertex per occupied voxel of a grid of about ``n_voxels`` voxels over the surface
+    (edge ``sqrt(area / n_voxels)``, the area estimated by ``mass``): the vertex nearest the
+    voxel's centre. Returns the vertices ``(W,)``, sorted."""
+    area = float(mass.sum())
+    lo = points.min(axis=0)
+    extent = float(np.ptp(points, axis=0).max())
+    h = np.sqrt(area / n_voxels) if area > 0 else extent / max(1.0, np.cbrt(n_voxels))
+    h = h if h > 0 else 1.0
+    grid = np.floor((points - lo) / h).astype(np.int64)
+    centre = (grid + 0.5) * h + lo
+    off = np.einsum("ij,ij->i", points - centre, points - centre)
+    dims = grid.max(axis=0) + 1
+    key = (grid[:, 0] * dims[1] + grid[:, 1]) * dims[2] + grid[:, 2]
+    order = np.lexsort((off, key))  # by voxel, nearest the centre first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    return np.sort(order[first])
+
+
+def _farthest_points(points: np.ndarray, n: int) -> np.ndarray:
+    """``n`` rows of ``points (W, 3)`` by farthest-point sampling in space, from row 0."""
+    coords = [np.ascontiguousarray(points[:, j], dtype=np.float32) for j in range(3)]
+    chosen = np.empty(n, dtype=np.int64)
+    chosen[0] = 0
+    dist = np.full(len(points), np.inf, dtype=np.float32)
+    new, tmp = np.empty_like(dist), np.empty_like(dist)
+    for i in range(n):  # bounded: n picks
+        if i:
+            chosen[i] = int(np.argmax(dist))
+        new.fill(0.0)
+        for c in coords:
+            np.subtract(c, c[chosen[i]], out=tmp)
+            np.multiply(tmp, tmp, out=tmp)
+            new += tmp
+        np.minimum(dist, new, out=dist)
+    return chosen
+
+
+def local_nearest(
+    query: np.ndarray,
+    reference: np.ndarray,
+    sampling_q: SurfaceSampling,
+    sampling_r: SurfaceSampling,
+    *,
+    coarse: np.ndarray | None = None,
+    precision: Literal["double", "single"] = "single",
+    only_samples: bool = False,
+) -> np.ndarray:
+    """The nearest row of ``reference (N, D)`` for every row of ``query (M, D)``, searched near
+    where a coarse map puts each query vertex: sub-quadratic for maps between surfaces.
+
+    ``coarse (S_q,)``: for each sample of the query surface, the sample of the reference surface
+    (an index into ``sampling_r.index``) it is mapped to; None: the nearest sample rows
+    (:func:`nearest_neighbor` between the ``S_q`` and ``S_r`` sample rows). The vertices of one
+    query cell are then compared with the reference vertices in the cells around the images of
+    that cell's neighbouring samples (each image with its own neighbours). Why it finds the
+    nearest row: a map from a smooth embedding is continuous, so a vertex goes near where the
+    samples around it go; it differs from the exhaustive search only where the map jumps by more
+    than a sample's neighbourhood (the exhaustive search's answer there is no better a
+    correspondence). Cost ``O(M · m² · N / S_r · D)`` instead of ``O(M N D)``.
+    ``only_samples``: search for the query's samples only, each among the ring of its coarse
+    image (``sampling_r.ring``; the other entries of the returned ``(M,)`` are -1), at
+    ``O(S_q · m · N / S_r · D)``.
+
+    Raises:
+        ParameterError: rows that do not match the samplings, or a bad ``coarse``.
+    """
+    query = np.asarray(query)
+    reference = np.asarray(reference)
+    if len(query) != sampling_q.n_vertices or len(reference) != sampling_r.n_vertices:
+        raise ParameterError(
+            f"{len(query)} query and {len(reference)} reference rows for samplings of "
+            f"{sampling_q.n_vertices} and {sampling_r.n_vertices} vertices. Fix: one row per vertex."
+        )
+    if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
+        raise ParameterError(f"query {query.shape} and reference {reference.shape} must be (M, D), (N, D).")
+    if coarse is None:
+        coarse = nearest_neighbor(query[sampling_q.index], reference[sampling_r.index], precision=precision)
+    coarse = _check_coarse(coarse, len(sampling_q.index), len(sampling_r.index))
+    dtype = np.float32 if precision == "single" else np.float64
+    q = np.ascontiguousarray(query, dtype=dtype)
+    r = np.ascontiguousarray(reference, dtype=dtype)
+    r_sq = np.einsum("ij,ij->i", r, r)
+    out = np.full(len(q), -1, dtype=np.int64)
+    if only_samples:  # each sample among its image's ring, in blocks of bounded memory
+        owners = np.arange(len(sampling_q.index))
+        sizes = np.diff(sampling_r.ring_start)[coarse]
+        per_row = max(1, int(NN_BLOCK_BYTES // (q.itemsize * max(1, q.shape[1]))))
+        lo = 0
+        while lo < len(owners):  # bounded: each block takes at least one sample
+            hi = lo + max(1, int(np.searchsorted(np.cumsum(sizes[lo:]), per_row)))
+            size = sizes[lo:hi]
+            cand = _segments(sampling_r.ring, sampling_r.ring_start[coarse[lo:hi]], size)
+            who = np.repeat(owners[lo:hi], size)
+            d = r_sq[cand] - 2.0 * np.einsum("ij,ij->i", q[sampling_q.index[who]], r[cand])
+            best = np.lexsort((d, who))  # by sample, nearest first
+            first = np.concatenate([[0], np.cumsum(size)[:-1]])
+            out[sampling_q.index[lo:hi]] = cand[best[first]]
+            lo = hi
+        return out
+    near_r = sampling_r.neighbors
+    for s in range(len(sampling_q.index)):  # bounded: one block per query cell
+        members = sampling_q.order[sampling_q.start[s] : sampling_q.start[s + 1]]
+        if not len(members):
+            continue
+        cells = np.unique(near_r[coarse[sampling_q.neighbors[s]]])
+        cand = sampling_r.members(cells)
+        d = r_sq[cand][None, :] - 2.0 * (q[members] @ r[cand].T)
+        out[members] = cand[np.argmin(d, axis=1)]
+    return out
+
+
+def _check_coarse(coarse: np.ndarray, n_query: int, n_reference: int) -> np.ndarray:
+    coarse = np.asarray(coarse)
+    if coarse.shape != (n_query,) or not np.issubdtype(coarse.dtype, np.integer):
+        raise ParameterError(f"coarse must be ({n_query},) sample indices, got {coarse.shape}.")
+    if coarse.size and (coarse.min() < 0 or coarse.max() >= n_reference):
+        raise ParameterError(f"coarse has sample indices outside [0, {n_reference}).")
+    return coarse.astype(np.int64)
