@@ -37,7 +37,7 @@ from .common import CONFIG_DIR, RESULTS_DIR, Report, Settings, Skip, code_state,
 #: suite -> modules holding its cases (``CASES``: name -> function(settings, report)).
 SUITES = {
     "accuracy": ("bench.accuracy",),
-    "speed": ("bench.speed", "bench.speed_match", "bench.speed_torch"),
+    "speed": ("bench.speed", "bench.speed_match", "bench.speed_dense", "bench.speed_torch"),
     "learned": ("bench.learned",),
     "robustness": ("bench.fuzz",),
 }

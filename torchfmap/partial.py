@@ -52,8 +52,9 @@ from .errors import ParameterError
 from .fmap import fmap_to_p2p, nearest_neighbor, p2p_to_fmap, solve_fmap
 from .fmap.convert import check_p2p
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
-from .fmap.refine import SpectralStep, check_anchors, zoomout_iterations
-from .kinds.refiners import landmark_coordinates
+from .fmap.nearest import SurfaceSampling, local_nearest
+from .fmap.refine import Samples, SpectralStep, check_anchors, zoomout_iterations
+from .kinds.refiners import landmark_coordinates, pair_samplings
 from .mesh import Mesh
 from .quality import geodesic_distortion
 from .results import MatchResult, keeps_refinement
@@ -170,18 +171,23 @@ def partial_zoomout(
     k_final: int,
     step: int | None = None,
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ZoomOut for a part: from ``k`` to ``k_final`` columns of the whole, each step fitting
     ``C = Φ_y⁺ Π Φ_x`` on the part's first ``r(k)`` eigenfunctions (:func:`partial_rank`) and
     converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
     ``Φ_x Cᵀ``, with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended as in
-    :func:`~torchfmap.fmap.zoomout`). Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    :func:`~torchfmap.fmap.zoomout`); with ``samplings`` (the whole's and the part's
+    :class:`~torchfmap.fmap.nearest.SurfaceSampling`) on their samples, the final map searched
+    locally. Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
     anchors = check_anchors(anchors, full, part)
     step = zoomout_step(k) if step is None else step
     sizes = list(range(k + step, k_final, step)) + [k_final]
     rank = functools.partial(partial_rank, full.eigenvalues, part.eigenvalues)
     spectral = SpectralStep(full, part, "orthogonal", anchors, rank=rank)
-    return zoomout_iterations(spectral, sizes, p2p_yx=check_p2p(p2p_yx, part.n_vertices, full.n_vertices))
+    samples = None if samplings is None else Samples.of_surfaces(*samplings)
+    p2p_yx = check_p2p(p2p_yx, part.n_vertices, full.n_vertices)
+    return zoomout_iterations(spectral, sizes, p2p_yx=p2p_yx, samples=samples)
 
 
 def reseeded_map(
@@ -222,7 +228,12 @@ def reseeded_map(
     unique, column = np.unique(on_whole, return_inverse=True)  # two seeds may share an image
     d_x = shape_x.distances.rows(unique).T[:, column]
     d_y = shape_y.distances.rows(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
-    return nearest_neighbor(np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2)))
+    query, reference = np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2))
+    samplings = pair_samplings(shape_x, shape_y)
+    if samplings is None:
+        return nearest_neighbor(query, reference)
+    coarse = samplings[0].cell[p2p_yx[samplings[1].index]]  # near where the first map went
+    return local_nearest(query, reference, samplings[1], samplings[0], coarse=coarse, precision="double")
 
 
 def match_partial(
@@ -293,7 +304,8 @@ def match_partial(
         meshes=(shape_x.mesh, shape_y.mesh), landmarks=landmarks,
         w_lmk=w_lmk if landmarks is not None else 0.0,
     )  # fmt: skip
-    p2p = fmap_to_p2p(C, bx, by, mode="orthogonal")
+    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: searched locally
+    p2p = fmap_to_p2p(C, bx, by, mode="orthogonal", samplings=samplings)
     timings["fmap+p2p"] = time.perf_counter() - t0
     initial = p2p
     if refine:
@@ -302,9 +314,9 @@ def match_partial(
         if landmarks is not None:  # distances in the whole's units: the part's times sqrt(a)
             ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
             anchors = (ax, ay * np.sqrt(a))
-        p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)[1]
+        p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors, samplings=samplings)[1]
         p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)
-        again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors)[1]
+        again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors, samplings=samplings)[1]
         before, after = (geodesic_distortion(shape_x, shape_y, q, area_ratio=a) for q in (p2p, again))
         if keeps_refinement(before, after):
             p2p = again
