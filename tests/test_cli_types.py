@@ -14,6 +14,7 @@ from torchfmap.cli import main
         ["basis", "MESH", "--k", "-2", "--out", "OUT"],
         ["match", "MESH", "MESH", "--k", "0", "--out", "OUT"],
         ["eval", "FOLDER", "--max-points", "-5"],
+        ["eval", "FOLDER", "--max-points", "every"],
         ["eval", "FOLDER", "--max-pairs", "-1"],
         ["eval", "FOLDER", "--threads", "0"],
     ],
@@ -34,3 +35,16 @@ def test_a_count_says_zero_is_allowed(capsys):
     with pytest.raises(SystemExit):
         main(["eval", ".", "--max-pairs", "-1"])
     assert "integer >= 0" in capsys.readouterr().err
+
+
+def test_max_points_takes_auto_all_or_a_count(capsys):
+    """``--max-points``: auto (the default: a sample on dense meshes), all (None: every point) or
+    N; a refusal names the three."""
+    from torchfmap.cli import build_parser
+    from torchfmap.cli_types import point_count
+
+    assert build_parser().parse_args(["eval", "F"]).max_points == "auto"
+    assert (point_count("auto"), point_count("all"), point_count("300")) == ("auto", None, 300)
+    with pytest.raises(SystemExit):
+        main(["eval", ".", "--max-points", "0"])
+    assert "must be auto, all or an integer >= 1, got '0'" in capsys.readouterr().err

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import torchfmap.eval as eval_module
 from torchfmap import ParameterError, load_mesh, save_mesh
 from torchfmap.cli import main
 from torchfmap.data import icosphere
@@ -19,6 +20,7 @@ from torchfmap.eval import (
     discover_pairs,
     error_floor,
     evaluate_map,
+    evaluated_rows,
     geodesic_errors,
     gt_from_map,
     gt_from_vts,
@@ -301,3 +303,70 @@ def test_error_floor_is_the_best_shared_image_of_rows_that_share_a_target_vertex
     np.testing.assert_array_equal(error_floor(sphere, gt_identity(sphere.n_vertices)), 0.0)
     with pytest.raises(ParameterError, match="outside mesh_x"):
         error_floor(sphere, Correspondence(np.array([sphere.n_vertices]), np.array([0])))
+
+
+def _noisy_map(mesh, share: float, seed: int = 0) -> np.ndarray:
+    """The identity with ``share`` of the vertices sent to random vertices: heavy-tailed errors."""
+    rng = np.random.default_rng(seed)
+    p2p = np.arange(mesh.n_vertices)
+    moved = rng.random(mesh.n_vertices) < share
+    p2p[moved] = rng.integers(0, mesh.n_vertices, int(moved.sum()))
+    return p2p
+
+
+def test_a_sample_estimates_the_mean_error_within_its_standard_error(sphere3):
+    """n of P points drawn without replacement: the sampled mean is within 4 standard errors
+    (sd / sqrt(n) · sqrt(1 - n / P), from the full errors) of the mean over every point, and the
+    report's own standard error (from the sample) estimates it."""
+    gt, p2p = gt_identity(sphere3.n_vertices), _noisy_map(sphere3, 0.3)
+    full_report, full = evaluate_map(sphere3, sphere3, p2p, gt, max_points=None)
+    assert len(full) == full_report.n_points == full_report.n_total == sphere3.n_vertices
+    assert full_report.mean_error_se == 0.0 and full_report.sampling() == f"all {len(full)} points"
+    n, total = 100, len(full)
+    true_se = full.std(ddof=1) / np.sqrt(n) * np.sqrt(1 - n / total)
+    for seed in range(3):
+        report, errors = evaluate_map(sphere3, sphere3, p2p, gt, max_points=n, seed=seed)
+        assert len(errors) == report.n_points == n and report.n_total == total
+        assert abs(report.mean_error - full.mean()) < 4 * true_se
+        # the sample's standard deviation estimates the population's (heavy tails: a loose factor)
+        assert 0.5 * true_se < report.mean_error_se < 1.5 * true_se
+        assert f"{n} of {total} points" in report.sampling()
+    rows = evaluated_rows(total, total, n, seed=0)
+    np.testing.assert_array_equal(full[rows], geodesic_errors(sphere3, p2p, gt, max_points=n, seed=0))
+
+
+def test_auto_samples_above_the_size_and_says_so(sphere3, monkeypatch):
+    """max_points='auto' (the default) scores every point on source meshes of at most
+    FULL_EVAL_VERTICES vertices and SAMPLED_EVAL_POINTS of them above; None scores all."""
+    gt, p2p = gt_identity(sphere3.n_vertices), _noisy_map(sphere3, 0.2)
+    report, errors = evaluate_map(sphere3, sphere3, p2p, gt)
+    assert sphere3.n_vertices <= eval_module.FULL_EVAL_VERTICES and len(errors) == sphere3.n_vertices
+    monkeypatch.setattr(eval_module, "FULL_EVAL_VERTICES", sphere3.n_vertices - 1)
+    monkeypatch.setattr(eval_module, "SAMPLED_EVAL_POINTS", 50)
+    report, errors = evaluate_map(sphere3, sphere3, p2p, gt)
+    assert (report.n_points, report.n_total, len(errors)) == (50, sphere3.n_vertices, 50)
+    assert report.mean_error_se > 0 and report.sampling().startswith(f"50 of {sphere3.n_vertices} points")
+    report, errors = evaluate_map(sphere3, sphere3, p2p, gt, max_points=None)  # asked for: every point
+    assert report.n_points == report.n_total == len(errors) == sphere3.n_vertices
+    assert evaluated_rows(10, 10**6, "auto") is None  # fewer rows than the sample: all of them
+    rows = evaluated_rows(1000, 10**6, 7, seed=3)
+    assert len(np.unique(rows)) == 7 and np.all(np.diff(rows) > 0)
+    np.testing.assert_array_equal(rows, evaluated_rows(1000, 10**6, 7, seed=3))  # seeded
+    for bad in (0, -3, True, "all", 2.5):
+        with pytest.raises(ParameterError, match="max_points must be 'auto', None"):
+            evaluated_rows(10, 10, bad)
+
+
+def test_eval_command_states_the_sampling(tmp_path, sphere2, monkeypatch, capsys):
+    """The eval table gives a sampled pair's mean with its standard error and a footer saying how
+    many points were scored; --max-points all scores every point."""
+    for name in ("a", "b"):
+        save_mesh(sphere2, tmp_path / f"{name}.off")
+    monkeypatch.setattr(eval_module, "FULL_EVAL_VERTICES", 10)
+    monkeypatch.setattr(eval_module, "SAMPLED_EVAL_POINTS", 40)
+    assert main(["eval", str(tmp_path), "--k", "20", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert " ± " in out and f"40 of {sphere2.n_vertices} points" in out and "--max-points all" in out
+    assert main(["eval", str(tmp_path), "--k", "20", "--quiet", "--max-points", "all"]) == 0
+    out = capsys.readouterr().out
+    assert " ± " not in out and "Points:" not in out

@@ -83,3 +83,31 @@ def test_a_seam_of_coincident_vertices_is_reported_and_warned(sphere2):
     assert "coincident vertices (seams)" in report.summary()
     with pytest.warns(MeshWarning, match=rf"{len(shared)} vertices share their position.*weld_vertices"):
         Mesh(v2, f)
+
+
+def test_orientation_of_many_components_is_fixed_one_component_at_a_time(sphere2):
+    """Each component is searched in its own subgraph (a search of the whole face graph per
+    component made a mesh of many components quadratic): every copy of a sphere with faces
+    flipped, and one single face, come out consistent and outward, as one sphere alone does."""
+    from torchfmap.mesh_checks import orient_faces
+
+    n, nv = 60, sphere2.n_vertices
+    faces = sphere2.faces.copy()
+    faces[::3] = faces[::3, ::-1]
+    one, flipped_one = orient_faces(sphere2.vertices, faces)
+    verts = np.vstack([sphere2.vertices + 3 * c for c in range(n)] + [np.eye(3) + 3 * n])
+    many = np.vstack([faces + c * nv for c in range(n)] + [[[n * nv, n * nv + 1, n * nv + 2]]])
+    out, flipped = orient_faces(verts, many)
+    np.testing.assert_array_equal(out[:-1], np.vstack([one + c * nv for c in range(n)]))
+    assert flipped == n * flipped_one and out[-1].tolist() == many[-1].tolist()
+
+
+def test_duplicate_faces_with_indices_beyond_the_int64_key():
+    """Faces are keyed by one int64 per face while ``V**3`` fits; larger indices take the
+    row-wise path, with the same answer (the later copies, any corner order)."""
+    from torchfmap.mesh_checks import duplicate_faces
+
+    f = np.array([[0, 1, 2], [2, 1, 0], [3, 4, 5], [1, 2, 0], [5, 4, 6]])
+    np.testing.assert_array_equal(duplicate_faces(f), [1, 3])
+    np.testing.assert_array_equal(duplicate_faces(f + 3_000_000), [1, 3])
+    assert duplicate_faces(np.zeros((0, 3), dtype=int)).size == 0

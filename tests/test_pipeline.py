@@ -314,6 +314,8 @@ def test_a_basis_of_another_mesh_with_as_many_vertices_is_named(bent_pair, saved
             warnings.simplefilter("always")
             match(x, mesh, bases=(ex if basis is not by else bx, basis))
         assert not [w for w in caught if "vertex areas" in str(w.message)], mesh
+
+
 @pytest.mark.parametrize("kind", ["diffusion", "harmonic", "stack"])
 def test_feature_bases_have_exactly_k_orthonormal_corresponding_columns(kind):
     """Every feature-aware basis honours k: k B-orthonormal columns on both shapes, column i
@@ -464,3 +466,53 @@ def test_empty_times_are_refused(capsys):
     for flag in ("--lr", "--minutes"):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["train", "f", "--out", "m.ckpt", flag, "nan"])
+
+
+def test_a_k_too_large_for_the_memory_is_refused_before_any_work(monkeypatch, tmp_path, capsys):
+    """--k 2000 on a 2.5K mesh passed the range check, ran for minutes and died in a 59.6 GiB
+    MemoryError: the solve's estimate is checked first, by every path of match and by the CLI
+    (one line: the estimate, the memory available and the fix)."""
+    import torchfmap.landmark_default
+    import torchfmap.pipeline
+    from torchfmap import MemoryEstimateError
+    from torchfmap.data import demo_pair
+    from torchfmap.fmap.solver import solve_bytes
+
+    a, b, _ = demo_pair()
+    needed = solve_bytes(2000, 2000)  # the estimate, and half of it available
+    monkeypatch.setattr("torchfmap._checks.available_memory", lambda: needed // 2)
+    gib = f"{needed / 2**30:.1f} GiB of memory (its row systems grow as k^3), and {needed / 2**31:.1f} GiB"
+    for module in (torchfmap.pipeline, torchfmap.landmark_default):
+        monkeypatch.setattr(module, "prepare_shapes", lambda *a, **k: pytest.fail("the work started"))
+    for landmarks in (None, [[0, 0], [100, 100], [900, 900]]):
+        with pytest.raises(MemoryEstimateError) as info:
+            match(a, b, k=2000, landmarks=landmarks)
+        assert f"k = 2000 needs an estimated {gib} is available. Fix: a smaller k" in str(info.value)
+    paths = [str(save_mesh(m, tmp_path / f"{n}.off")) for n, m in (("a", a), ("b", b))]
+    assert main(["match", *paths, "--k", "2000", "--out", str(tmp_path / "m.txt"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and gib in err and "Fix: a smaller k (--k" in err
+
+
+def test_progress_names_each_step_on_stderr(capsys):
+    """progress=True: a status line on stderr names the steps as they start (the kinds' steps
+    and the landmark default's cross-validation); progress=False (the default) prints nothing."""
+    x = bumpy_blob(2)
+    y = x.copy(bend(x.vertices, 0.3))
+    match(x, y, k=15, k_descriptors=30, progress=True, refine="icp")
+    err = capsys.readouterr().err
+    steps = (
+        "operators",
+        "laplacian: eigenpairs",
+        "laplacian: functional map",
+        "laplacian: point map",
+        "refinement",
+    )
+    for step in steps:
+        assert f"match: {step}" in err, step
+    lm = landmarks_from_gt(x, gt_identity(x.n_vertices), 4)
+    match(x, y, k=15, k_descriptors=30, landmarks=lm, progress=True)
+    err = capsys.readouterr().err
+    assert "match: hybrid: basis" in err and "match: cross-validation: laplacian, fold 1 of 4" in err
+    match(x, y, k=15, k_descriptors=30)
+    assert capsys.readouterr().err == ""

@@ -84,3 +84,32 @@ def test_geodesic_distortion_of_a_part_reads_its_distances_in_the_wholes_units()
     assert right < 0.25 * wrong
     with pytest.raises(ParameterError, match="area_ratio"):
         geodesic_distortion(*shapes, cut.vertices, area_ratio=0.0)
+
+
+def test_the_landmark_reading_check_judges_a_bounded_number_of_pairs(monkeypatch):
+    """However many pairs a file holds, each reading is judged on at most MISREAD_MAX_LANDMARKS
+    of them (two distance solves per pair judged), spread over the file, and a file read 1-based
+    is still flagged; a 0 in any pair (judged or not) rules the shifted reading out."""
+    from torchfmap import quality
+    from torchfmap.eval import gt_from_map, landmarks_from_gt
+
+    a, b, gt_ba = demo_pair()
+    sa, sb = prepare_shape(a, 0), prepare_shape(b, 0)
+    lm = landmarks_from_gt(a, gt_from_map(gt_ba), 40)
+    judged = []
+    real = quality.landmark_distortion
+
+    def spy(x, y, pairs):
+        judged.append(len(pairs))
+        return real(x, y, pairs)
+
+    monkeypatch.setattr(quality, "landmark_distortion", spy)
+    with pytest.warns(UserWarning, match="read 1-based"):
+        quality.warn_if_off_by_one(sa, sb, lm + 1)
+    assert judged and max(judged) == quality.MISREAD_MAX_LANDMARKS
+    judged.clear()
+    zero = lm + 1
+    zero[5, 0] = 0  # pair 5 is not among the 10 judged (rows 0, 4, 9, ...), and it says: 0-based
+    assert 0 not in (lm[:, 0] + 1) and 5 not in np.linspace(0, 39, quality.MISREAD_MAX_LANDMARKS).round()
+    quality.warn_if_off_by_one(sa, sb, zero)
+    assert len(judged) <= 2  # the given reading and the swapped one: not the shifted one

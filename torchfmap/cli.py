@@ -18,10 +18,11 @@ from . import __version__
 from .cli_messages import error_line as _error_line
 from .cli_messages import in_cli_terms as in_cli_terms
 from .cli_messages import warning_line as _warning_line
-from .cli_types import count, nonnegative_float, positive_float, positive_int, time_list
+from .cli_types import count, nonnegative_float, point_count, positive_float, positive_int, time_list
 from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match
 from .commands_train import cmd_models, cmd_train
 from .errors import TorchFmapError
+from .eval import FULL_EVAL_VERTICES, SAMPLED_EVAL_POINTS
 from .kinds import KINDS, REFINE_METHODS
 
 DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
@@ -268,12 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     pairs = "which pairs: test_pairs.txt else consecutive (auto); i -> i+1 by name; all ordered; a file"
     p.add_argument("--pairs", default="auto", metavar="auto|consecutive|all|FILE", help=pairs)
     p.add_argument("--max-pairs", type=count, default=0, help="at most this many pairs (0: all)")
-    p.add_argument(
-        "--max-points",
-        type=positive_int,
-        default=None,
-        help="evaluate at most this many points per pair (default: all)",
-    )
+    points = f"ground-truth points scored per pair: auto (all on source meshes of up to {FULL_EVAL_VERTICES} "
+    points += f"vertices, a seeded random {SAMPLED_EVAL_POINTS} above: the table says so), all, or at most N"
+    p.add_argument("--max-points", type=point_count, default="auto", metavar="auto|all|N", help=points)
     p.add_argument("--png", help="save the PCK curves here (needs matplotlib)")
     p.add_argument(
         "--out", metavar="FILE.npz", help="keep the scored pairs here as they finish; the same command "

@@ -63,3 +63,13 @@ def time_list(text: str) -> list[float]:
     if not all(np.isfinite(t) and t > 0 for t in times):
         raise argparse.ArgumentTypeError(f"times must be finite and > 0, got {text!r}")
     return times
+
+
+def point_count(text: str) -> int | str | None:
+    """argparse type of ``--max-points``: ``'auto'``, ``'all'`` (None: every point) or an integer >= 1."""
+    if text.strip() in ("auto", "all"):
+        return None if text.strip() == "all" else "auto"
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be auto, all or an integer >= 1, got {text!r}") from None

@@ -182,13 +182,14 @@ def _evaluate_chunk(
     threads=None,
     matcher=None,
     results: list | None = None,
+    progress: bool = False,
 ) -> list[PairResult]:
     """Match and score ``pairs`` in order with ``threads`` threads (BLAS and torch:
     :func:`~torchfmap._threads.thread_limit`); each mesh is loaded and prepared once
     (``shapes``: path -> (mesh, PreparedShape), filled here) and handed to
     ``matcher(x, y, shapes=(sx, sy), **match_kwargs)`` (None: :func:`~torchfmap.match`), with
-    ``landmarks=`` when ``gt_landmarks`` gives them; ``on_pair()`` is called after each pair.
-    Results are appended to ``results`` (a new list when None), which is returned."""
+    ``landmarks=`` when ``gt_landmarks`` gives them; ``on_pair()`` is called after each pair,
+    ``progress``: a bar over its scoring. Results are appended to ``results`` (new when None)."""
     if shapes is None:
         shapes = _POOL_SHAPES if _POOL_SHAPES is not None else {}
     matcher = match if matcher is None else matcher
@@ -215,7 +216,8 @@ def _evaluate_chunk(
             # reuse its prefactored solver and the rows already solved (kept for one source at a time)
             if rows is None or rows.solver is not sx.distances.solver:
                 rows = DistanceRows(x, sx.distances.solver, max_bytes=EVAL_ROWS_BYTES)
-            report, errors = evaluate_map(x, y, p2p, gt, max_points=max_points, solver=rows)
+            scored = {"max_points": max_points, "solver": rows, "progress": progress}
+            report, errors = evaluate_map(x, y, p2p, gt, **scored)
             out.append(PairResult(a, b, report, errors, seconds, iou))
             if on_pair is not None:
                 on_pair()
@@ -282,7 +284,7 @@ def evaluate_pairs(
     pairs,
     *,
     gt_landmarks: int = 0,
-    max_points: int | None = None,
+    max_points="auto",
     workers: int = 1,
     threads: int | None = None,
     executor: Executor | None = None,
@@ -313,7 +315,7 @@ def evaluate_pairs(
         gt_landmarks: use this many ground-truth pairs per pair as landmarks, or a
             :class:`LandmarkFiles` to read each pair's landmarks from its file
             (:func:`~torchfmap.eval.landmarks_from_gt`; 0: none).
-        max_points: score at most this many points per pair.
+        max_points: the points scored per pair (:func:`~torchfmap.eval.evaluated_rows`; None: all).
         workers: local worker processes (1: this process). Their chunks' results come back
             through files in a temporary folder (``TMPDIR``; removed when the run ends, left
             behind only if this process is killed), as those of a ``ProcessPoolExecutor``
@@ -362,7 +364,7 @@ def evaluate_pairs(
         try:
             return _evaluate_chunk(
                 pairs, gt_landmarks, max_points, match_kwargs, on_pair=on_pair, threads=threads,
-                matcher=matcher, results=finished,
+                matcher=matcher, results=finished, progress=progress,
             )  # fmt: skip
         except KeyboardInterrupt:
             raise EvaluationInterrupted(finished, len(pairs)) from None

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import is_symmetric
+from ._progress import Steps
 from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
 from .data import demo_pair
@@ -216,8 +217,10 @@ def _learned_how(matcher, args: argparse.Namespace, grown: int | None = None) ->
 
 
 def cmd_match(args: argparse.Namespace) -> int:
-    src = load_mesh(args.source, allow_components=args.allow_components)
-    tgt = load_mesh(args.target, allow_components=args.allow_components)
+    with Steps("match", enabled=not args.quiet) as steps:  # dense meshes take seconds to read
+        steps("reading the meshes")
+        src = load_mesh(args.source, allow_components=args.allow_components)
+        tgt = load_mesh(args.target, allow_components=args.allow_components)
     matcher = _learned_matcher(args)
     if matcher is not None:
         result = matcher(src, tgt, refine=args.refine, k_final=args.k_final, partial=args.partial)
@@ -240,6 +243,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         p2p_mode=args.p2p_mode,
         bases=bases,
         partial=args.partial,
+        progress=not args.quiet,
     )
     refined = ""
     if args.refine:
@@ -402,11 +406,13 @@ def _print_table(results, title: str, protocol: str, png) -> None:
         "| source | target | mean err | median | AUC | coverage | time [s] |" + (" IoU |" if partial else "")
     )
     print("|---|---|---|---|---|---|---|" + ("---|" if partial else ""))
+    sampled = [r for r in results if 0 < r.report.n_points < r.report.n_total]
     for r in results:
         rep = r.report
         iou = f" {r.iou:.3f} |" if partial else ""
+        mean = f"{rep.mean_error:.4f}" + (f" ± {rep.mean_error_se:.4f}" if rep.mean_error_se else "")
         print(
-            f"| {r.source} | {r.target} | {rep.mean_error:.4f} | {rep.median_error:.4f} | {rep.auc:.3f} | "
+            f"| {r.source} | {r.target} | {mean} | {rep.median_error:.4f} | {rep.auc:.3f} | "
             f"{rep.coverage:.3f} | {r.seconds:.2f} |{iou}"
         )
     errors = np.concatenate([r.errors for r in results])
@@ -417,6 +423,11 @@ def _print_table(results, title: str, protocol: str, png) -> None:
         "/ sqrt(area); AUC: area under the PCK curve up to 0.25; coverage: fraction of source "
         "vertices the map reaches; time: matching only (preparing shapes and scoring excluded)."
     )
+    if sampled:
+        print(
+            f"Points: {len(sampled)} of {len(results)} pairs scored on a seeded random sample, e.g. "
+            f"{sampled[0].report.sampling()}: mean err ± its standard error (--max-points all: every point)."
+        )
     if png:
         curves = {f"{r.source}-{r.target}": pck_curve(r.errors) for r in results}
         curves = {"all pairs": pck_curve(errors), **(curves if len(curves) <= 8 else {})}

@@ -31,6 +31,11 @@ class ConvergenceError(TorchFmapError, RuntimeError):
     """An iterative solver stopped before reaching its tolerance (never returned silently)."""
 
 
+class MemoryEstimateError(ParameterError, MemoryError):
+    """A computation refused before it starts: its estimated memory exceeds what is available
+    (the message gives both, in GiB, and the fix). Also a :class:`MemoryError`."""
+
+
 class NotPositiveDefiniteError(ParameterError):
     """A Cholesky backend was asked for, but the matrix is not symmetric positive definite."""
 

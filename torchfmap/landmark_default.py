@@ -17,9 +17,11 @@ import time
 import numpy as np
 
 from ._checks import check_count
+from ._progress import SILENT, Steps
 from .bases.prepared import PreparedShape
 from .errors import ParameterError
 from .fmap import check_landmark_pairs
+from .fmap.solver import check_solve_memory
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_refine
 from .match_checks import check_k_final, check_unused
@@ -63,6 +65,7 @@ def landmark_scores(
     folds: int = CV_FOLDS,
     times=None,
     p2p_mode: P2PMode | None = None,
+    steps: Steps = SILENT,
     **solve,
 ) -> dict[str, float]:
     """Cross-validation of the basis by the user's landmarks: for each kind, the mean error at
@@ -72,8 +75,9 @@ def landmark_scores(
     Fold ``f`` of ``F = min(folds, L)`` holds out the landmark pairs ``i`` with ``i % F == f``;
     a held-out pair ``(a, b)`` scores ``d_x(p2p_yx[b], a)``, the geodesic distance on ``x`` (in
     units of ``sqrt(area)``) between where the map sends ``b`` and where it should. Kinds that
-    cannot be built on a fold are left out. ``times`` go to the feature-aware kinds; ``solve``:
-    the other settings of :func:`~torchfmap.solve.solve_pair`. Returns ``{kind: mean held-out
+    cannot be built on a fold are left out. ``times`` go to the feature-aware kinds; ``steps``
+    names each fold as it starts; ``solve``: the other settings of
+    :func:`~torchfmap.solve.solve_pair`. Returns ``{kind: mean held-out
     error}``.
 
     Raises:
@@ -91,6 +95,7 @@ def landmark_scores(
         errors = []
         try:
             for fold in range(n_folds):
+                steps(f"cross-validation: {name}, fold {fold + 1} of {n_folds}")
                 held = np.arange(len(pairs)) % n_folds == fold
                 C, bx, by, _, _ = solve_functional_map(
                     shape_x, shape_y, kind, k, landmarks=pairs[~held],
@@ -117,6 +122,7 @@ def match_landmark_default(
     shapes: tuple[PreparedShape, PreparedShape] | None = None,
     k_descriptors: int = 100,
     p2p_mode: P2PMode | None = None,
+    steps: Steps = SILENT,
     **solve,
 ) -> MatchResult:
     """The landmark default of :func:`match` (``basis=None`` or ``'auto'`` with landmarks): each
@@ -134,33 +140,40 @@ def match_landmark_default(
     meshes (e.g. too few vertices for their columns) are skipped, with the reason
     (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
     chosen map collapsed). ``landmarks``: ``(L, 2)``
-    pairs; ``solve``: the other solver settings of :func:`solve_pair`; the rest as :func:`match`.
+    pairs; ``steps``: a :class:`~torchfmap._progress.Steps` naming each step as it starts;
+    ``solve``: the other solver settings of :func:`solve_pair`; the rest as :func:`match`.
 
     Raises:
         ParameterError: what the eigenbasis refuses (it refuses only what every kind would),
-            or an unknown refinement.
+            or an unknown refinement; :class:`~torchfmap.MemoryEstimateError` for a ``k`` whose
+            solve would not fit in memory (before any work).
     """
     t0 = time.perf_counter()
     refine = check_refine(refine)
     pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
     check_count(k, 1, n_max, "k (basis size)")  # the eigenbasis's own check, before any work
+    check_solve_memory(k, k)
     need = [k, min(k_descriptors, n_max)]  # the eigenbasis: k, and its descriptors
     if refine == "zoomout":
         need.append(k_final or 2 * k)
+    steps("operators and eigenpairs")
     shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, min(max(need), n_max))
     prep = time.perf_counter() - t0
     pref = AUTO_KINDS[0]
     check_unused(get_kind(AUTO_KINDS[-1]), refine, k_final, None)
     check_k_final(get_kind(pref), refine, k, k_final)
+    steps("landmark reading check")
     warn_if_off_by_one(shape_x, shape_y, pairs)
     candidates: dict[str, MatchResult] = {}
     skipped: dict[str, str] = {}
 
     def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
+        steps(f"{kind.name}: refinement ({refine})")
         refiner = kind.refiner(
             refine, k_final=k_final, mode=p2p_mode, n_fixed=len(pairs),
             times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples, landmarks=pairs,
+            progress=steps is not SILENT,
         )  # fmt: skip
         return refine_result(result, refiner, shape_x, shape_y)
 
@@ -171,7 +184,7 @@ def match_landmark_default(
             grow = (k_final or 2 * k) if first and refine == "zoomout" and kind.grows else 0
             result = solve_pair(
                 shape_x, shape_y, kind, k, landmarks=pairs, times=times if kind.needs_landmarks else None,
-                n_eigen=grow, k_descriptors=k_descriptors, p2p_mode=p2p_mode, **solve,
+                n_eigen=grow, k_descriptors=k_descriptors, p2p_mode=p2p_mode, steps=steps, **solve,
             )  # fmt: skip
             candidates[name] = refined(result, kind) if first and refine is not None else result
         except ParameterError as err:
@@ -184,7 +197,7 @@ def match_landmark_default(
     fold_scores: dict[str, float] = {}
     t_cv = time.perf_counter()
     if len(pairs) >= CV_MIN_LANDMARKS:  # the landmarks as the judge: a clear verdict overrides
-        cv_solve = dict(solve, k_descriptors=k_descriptors, p2p_mode=p2p_mode)
+        cv_solve = dict(solve, k_descriptors=k_descriptors, p2p_mode=p2p_mode, steps=steps)
         fold_scores = landmark_scores(shape_x, shape_y, pairs, list(candidates), k, times=times, **cv_solve)
         top = min(fold_scores, key=fold_scores.get) if fold_scores else best
         if best in fold_scores and fold_scores[top] < CV_RATIO * fold_scores[best]:

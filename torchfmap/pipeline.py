@@ -18,11 +18,13 @@ import time
 import numpy as np
 
 from ._checks import check_count
+from ._progress import Steps
 from .bases import Basis
 from .bases.prepared import PreparedShape, prepare_shape
 from .errors import ParameterError
 from .fmap import check_landmark_pairs
 from .fmap.defaults import W_DCOMM, W_LMK
+from .fmap.solver import check_solve_memory
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_eigenbases, check_refine
 from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
@@ -74,6 +76,7 @@ def match(
     bases: tuple[Basis, Basis] | None = None,
     shapes: tuple[PreparedShape, PreparedShape] | None = None,
     partial: bool = False,
+    progress: bool = False,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
 
@@ -137,100 +140,112 @@ def match(
             part's rank, SHOT descriptors; ``result.overlap`` ``(V_x,)`` the estimated part on
             the whole). ``refine`` is ``'zoomout'`` or None; ``basis``, ``bases``, ``times``,
             ``p2p_mode``, ``zoomout_samples`` and the WKS settings do not apply.
+        progress: a status line on stderr (tqdm) naming each step as it starts, with the time
+            so far (dense meshes take minutes); the command line shows it unless ``--quiet``.
 
     Raises:
         ParameterError: inputs that are not meshes (e.g. paths: the fix names ``load_mesh``),
             unknown basis or refinement, a feature-aware basis without landmarks,
             an invalid ``k``, given bases that do not fit the meshes, or given eigenbases with
             fewer columns than ZoomOut's ``k_final``; :class:`~torchfmap.SeedError` for invalid
-            landmarks.
+            landmarks; :class:`~torchfmap.MemoryEstimateError` (a ParameterError) for a ``k`` whose
+            solve would not fit in the memory available (refused before any work).
     """
-    t0 = time.perf_counter()
-    check_meshes(mesh_x, mesh_y)
-    if not partial:
-        warn_if_partial(mesh_x, mesh_y)
-    refine = check_refine(refine)
-    pairs = None
-    if landmarks is not None and len(np.atleast_1d(landmarks)):
-        pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
-    if partial:
-        given = {"basis": basis, "bases": bases, "times": times, "p2p_mode": p2p_mode,
-                 "zoomout_samples": zoomout_samples}  # fmt: skip
-        unused = [name for name, value in given.items() if value is not None]
-        unused += ["refine='icp'"] if refine == "icp" else []
-        unused += ["n_descriptors / k_descriptors"] if (n_descriptors, k_descriptors) != (20, 100) else []
-        if unused:
+    with Steps("match", progress) as steps:  # a status line naming each step (progress=True)
+        t0 = time.perf_counter()
+        check_meshes(mesh_x, mesh_y)
+        if not partial:
+            warn_if_partial(mesh_x, mesh_y)
+        refine = check_refine(refine)
+        pairs = None
+        if landmarks is not None and len(np.atleast_1d(landmarks)):
+            pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
+        if partial:
+            given = {"basis": basis, "bases": bases, "times": times, "p2p_mode": p2p_mode,
+                     "zoomout_samples": zoomout_samples}  # fmt: skip
+            unused = [name for name, value in given.items() if value is not None]
+            unused += ["refine='icp'"] if refine == "icp" else []
+            unused += ["n_descriptors / k_descriptors"] if (n_descriptors, k_descriptors) != (20, 100) else []
+            if unused:
+                raise ParameterError(
+                    f"partial=True solves in the eigenbases with SHOT descriptors and refines by ZoomOut, so "
+                    f"{', '.join(unused)} would not be used. Fix: drop it, or match without partial=True."
+                )
+            n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
+            k = check_count(k, 1, n_max, "k (basis size)")
+            k_final = check_count(k_final or 2 * k, k, n_max, "k_final") if refine else None
+            check_solve_memory(k, k)
+            steps("operators and eigenpairs")
+            shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, k_final or k)
+            prep = time.perf_counter() - t0
+            weights = {"w_lap": w_lap, "w_orient": w_orient, "w_dcomm": w_dcomm, "w_lmk": w_lmk}
+            steps("partial functional map" + (" and ZoomOut" if refine else ""))
+            result = match_partial(
+                shape_x, shape_y, landmarks=pairs, k=k, refine=refine, k_final=k_final,
+                **{name: w for name, w in weights.items() if w is not None},
+            )  # fmt: skip
+            result.timings["operators+eigen"] += prep
+            warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
+            return result
+        if basis == "auto" and (pairs is None or bases is not None):
             raise ParameterError(
-                f"partial=True solves in the eigenbases with SHOT descriptors and refines by ZoomOut, so "
-                f"{', '.join(unused)} would not be used. Fix: drop it, or match without partial=True."
+                "basis='auto' chooses among bases built at landmarks. Fix: pass landmarks, or name a "
+                "basis (e.g. basis='laplacian')."
             )
+        solve = dict(
+            n_descriptors=n_descriptors, k_descriptors=k_descriptors, w_lap=w_lap, w_orient=w_orient,
+            w_dcomm=w_dcomm, w_lmk=w_lmk, w_prior=w_prior, p2p_mode=p2p_mode,
+        )  # fmt: skip
+        if basis in (None, "auto") and pairs is not None and bases is None:
+            result = match_landmark_default(
+                mesh_x, mesh_y, pairs, k=k, refine=refine, k_final=k_final, times=times,
+                zoomout_samples=zoomout_samples, shapes=shapes, steps=steps, **solve,
+            )  # fmt: skip
+            warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
+            return result
+        kind, together = get_kind(basis or "laplacian"), False
+        if bases is not None:  # together: built as a pair at corresponding seeds (columns correspond)
+            given_x, given_y, kind, together = given_bases_kind(bases, mesh_x, mesh_y, basis)
+        # ZoomOut of given eigenbases grows within them (from their first k columns)
+        given_eigen = bases is not None and refine == "zoomout" and kind.grows and not kind.needs_landmarks
+        if bases is not None and refine == "zoomout" and not given_eigen and not together:
+            raise ParameterError(
+                "ZoomOut grows nested bases: given bases only support it as eigenbases. Fix: "
+                "refine='icp', or basis='laplacian' with eigenbasis files."
+            )
+        if bases is not None and not given_eigen:
+            k = min(given_x.k, given_y.k)
         n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
         k = check_count(k, 1, n_max, "k (basis size)")
-        k_final = check_count(k_final or 2 * k, k, n_max, "k_final") if refine else None
-        shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, k_final or k)
+        check_count(k_descriptors, 2, 10**9, "k_descriptors")
+        check_unused(kind, refine, k_final, times)
+        check_k_final(kind, refine, k, k_final)
+        check_solve_memory(k, k)
+        grow = refine == "zoomout" and kind.grows
+        eigenbases = (given_x, given_y) if given_eigen else None
+        if given_eigen:  # refused before any work
+            check_eigenbases(eigenbases, k_final or 2 * k)
+        grow_shapes = (k_final or 2 * k) if grow and eigenbases is None else 0  # ZoomOut's eigenpairs
+        steps("operators")
+        shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, 0)
+        if pairs is not None:
+            steps("landmark reading check")
+            warn_if_off_by_one(shape_x, shape_y, pairs)
         prep = time.perf_counter() - t0
-        weights = {"w_lap": w_lap, "w_orient": w_orient, "w_dcomm": w_dcomm, "w_lmk": w_lmk}
-        result = match_partial(
-            shape_x, shape_y, landmarks=pairs, k=k, refine=refine, k_final=k_final,
-            **{name: w for name, w in weights.items() if w is not None},
+        given = None if bases is None else (given_x.truncated(k), given_y.truncated(k))
+        seeds = np.asarray(given_x.pair_landmarks) if together else None
+        result = solve_pair(
+            shape_x, shape_y, kind, k, landmarks=pairs, bases=given, seeds=seeds, times=times,
+            n_eigen=grow_shapes, steps=steps, **solve,
         )  # fmt: skip
         result.timings["operators+eigen"] += prep
+        if refine is not None:
+            steps(f"refinement ({refine})")
+            refiner = kind.refiner(
+                refine, k_final=k_final, mode=p2p_mode, n_fixed=0 if pairs is None else len(pairs),
+                times=times, zoomout_samples=zoomout_samples, eigenbases=eigenbases, landmarks=pairs,
+                progress=progress,
+            )  # fmt: skip
+            result = refine_result(result, refiner, shape_x, shape_y)
         warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
         return result
-    if basis == "auto" and (pairs is None or bases is not None):
-        raise ParameterError(
-            "basis='auto' chooses among bases built at landmarks. Fix: pass landmarks, or name a "
-            "basis (e.g. basis='laplacian')."
-        )
-    solve = dict(
-        n_descriptors=n_descriptors, k_descriptors=k_descriptors, w_lap=w_lap, w_orient=w_orient,
-        w_dcomm=w_dcomm, w_lmk=w_lmk, w_prior=w_prior, p2p_mode=p2p_mode,
-    )  # fmt: skip
-    if basis in (None, "auto") and pairs is not None and bases is None:
-        result = match_landmark_default(
-            mesh_x, mesh_y, pairs, k=k, refine=refine, k_final=k_final, times=times,
-            zoomout_samples=zoomout_samples, shapes=shapes, **solve,
-        )  # fmt: skip
-        warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
-        return result
-    kind, together = get_kind(basis or "laplacian"), False
-    if bases is not None:  # together: built as a pair at corresponding seeds (columns correspond)
-        given_x, given_y, kind, together = given_bases_kind(bases, mesh_x, mesh_y, basis)
-    # ZoomOut of given eigenbases grows within them (from their first k columns)
-    given_eigen = bases is not None and refine == "zoomout" and kind.grows and not kind.needs_landmarks
-    if bases is not None and refine == "zoomout" and not given_eigen and not together:
-        raise ParameterError(
-            "ZoomOut grows nested bases: given bases only support it as eigenbases. Fix: "
-            "refine='icp', or basis='laplacian' with eigenbasis files."
-        )
-    if bases is not None and not given_eigen:
-        k = min(given_x.k, given_y.k)
-    n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
-    k = check_count(k, 1, n_max, "k (basis size)")
-    check_count(k_descriptors, 2, 10**9, "k_descriptors")
-    check_unused(kind, refine, k_final, times)
-    check_k_final(kind, refine, k, k_final)
-    grow = refine == "zoomout" and kind.grows
-    eigenbases = (given_x, given_y) if given_eigen else None
-    if given_eigen:  # refused before any work
-        check_eigenbases(eigenbases, k_final or 2 * k)
-    grow_shapes = (k_final or 2 * k) if grow and eigenbases is None else 0  # ZoomOut's eigenpairs
-    shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, 0)
-    if pairs is not None:
-        warn_if_off_by_one(shape_x, shape_y, pairs)
-    prep = time.perf_counter() - t0
-    given = None if bases is None else (given_x.truncated(k), given_y.truncated(k))
-    seeds = np.asarray(given_x.pair_landmarks) if together else None
-    result = solve_pair(
-        shape_x, shape_y, kind, k, landmarks=pairs, bases=given, seeds=seeds, times=times,
-        n_eigen=grow_shapes, **solve,
-    )  # fmt: skip
-    result.timings["operators+eigen"] += prep
-    if refine is not None:
-        refiner = kind.refiner(
-            refine, k_final=k_final, mode=p2p_mode, n_fixed=0 if pairs is None else len(pairs), times=times,
-            zoomout_samples=zoomout_samples, eigenbases=eigenbases, landmarks=pairs,
-        )  # fmt: skip
-        result = refine_result(result, refiner, shape_x, shape_y)
-    warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
-    return result

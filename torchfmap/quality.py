@@ -42,6 +42,10 @@ MISREAD_MIN_LANDMARKS = 5
 OFF_BY_ONE_RATIO = 0.7
 #: ... or the pairs with swapped columns by this factor less.
 SWAPPED_RATIO = 0.5
+#: ... judging each reading on at most this many of the pairs, evenly spread over the file's
+#: order (45 distances among them; a misreading shifts most of them): the check costs two
+#: distance solves (each ``O(V)``) per pair judged and reading, bounded whatever the file holds.
+MISREAD_MAX_LANDMARKS = 10
 
 __all__ = [
     "COLLAPSE_COVERAGE",
@@ -125,17 +129,22 @@ def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks
     better than the given one, by :func:`landmark_distortion` (distances among landmarks agree
     on corresponding points): the pairs shifted by -1 (a 1-based file; at least
     :data:`MISREAD_MIN_LANDMARKS` pairs, better by :data:`OFF_BY_ONE_RATIO`) or with their
-    columns swapped (target vertex first; better by :data:`SWAPPED_RATIO`). Costs 2 geodesic
-    solves per landmark, reused by the feature-aware bases."""
+    columns swapped (target vertex first; better by :data:`SWAPPED_RATIO`). Judged on at most
+    :data:`MISREAD_MAX_LANDMARKS` pairs: at most ``6 · MISREAD_MAX_LANDMARKS`` geodesic solves
+    (those of the given pairs reused by the feature-aware bases)."""
     if len(landmarks) < MISREAD_MIN_LANDMARKS:
         return
+    one_based = landmarks.min() >= 1  # of every pair: one 0 rules the shifted reading out
+    nx, ny = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
+    swappable = landmarks[:, 1].max() < nx and landmarks[:, 0].max() < ny
+    if len(landmarks) > MISREAD_MAX_LANDMARKS:
+        landmarks = landmarks[np.linspace(0, len(landmarks) - 1, MISREAD_MAX_LANDMARKS).round().astype(int)]
     given = landmark_distortion(shape_x, shape_y, landmarks)
     readings = []
-    if landmarks.min() >= 1:
+    if one_based:
         fix = "landmarks are 0-based vertex indices; subtract 1 if the file is 1-based"
         readings.append(("shifted by -1 (were they read 1-based?)", landmarks - 1, OFF_BY_ONE_RATIO, fix))
-    nx, ny = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
-    if landmarks[:, 1].max() < nx and landmarks[:, 0].max() < ny:
+    if swappable:
         fix = "each line is 'source_vertex target_vertex'; swap the columns"
         readings.append(("with their columns swapped", landmarks[:, ::-1].copy(), SWAPPED_RATIO, fix))
     for what, other, ratio, fix in readings:

@@ -26,8 +26,10 @@ from .eval import MapReport
 #: Seconds between two rewrites of the file while pairs come in (each rewrite writes every kept
 #: pair: rewriting after each pair of a long run would cost quadratic time).
 SAVE_INTERVAL = 5.0
-#: Columns of the ``numbers`` array: the match time, the overlap IoU (NaN: none) and the report.
-_NUMBERS = ("seconds", "iou", "mean_error", "median_error", "auc", "coverage", "smoothness")
+#: Columns of the ``numbers`` array: the match time, the overlap IoU (NaN: none) and the report
+#: (a file written before the report's last three fields has only the first seven columns).
+_NUMBERS = ("seconds", "iou", "mean_error", "median_error", "auc", "coverage", "smoothness", "n_points",
+            "n_total", "mean_error_se")  # fmt: skip
 
 
 class SavedPairs:
@@ -72,8 +74,9 @@ class SavedPairs:
             )
         results = []
         for (source, target), row, err in zip(names, numbers, errors, strict=True):
-            values = dict(zip(_NUMBERS, row.tolist(), strict=True))
-            report = MapReport(*(values[k] for k in _NUMBERS[2:]))
+            values = dict(zip(_NUMBERS, row.tolist(), strict=False))
+            counts = {k: int(values[k]) for k in ("n_points", "n_total") if k in values}
+            report = MapReport(**{k: values[k] for k in _NUMBERS[2:] if k in values} | counts)
             iou = None if np.isnan(values["iou"]) else values["iou"]
             results.append(PairResult(str(source), str(target), report, err, values["seconds"], iou))
         return results

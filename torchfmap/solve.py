@@ -13,6 +13,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from ._checks import check_count
+from ._progress import SILENT, Steps
 from .bases import Basis
 from .bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from .descriptors import WKS_ENERGIES, landmark_descriptors, normalize_descriptors, wks
@@ -20,6 +21,7 @@ from .errors import ParameterError
 from .fmap import solve_fmap
 from .fmap.defaults import W_DCOMM, W_LMK, W_PRIOR
 from .kinds import BasisKind, get_kind
+from .kinds.refiners import pair_samplings
 from .mesh import Mesh
 from .quality import geodesic_distortion
 from .results import MatchResult
@@ -132,9 +134,11 @@ def solve_functional_map(
     w_lmk: float = W_LMK,
     w_prior: float | None = None,
     n_eigen: int = 0,
+    steps: Steps = SILENT,
 ) -> SolvedMap:
     """:func:`solve_pair` up to the functional map (its point map left to the caller: the
-    landmark cross-validation converts only the held-out landmarks); arguments as there.
+    landmark cross-validation converts only the held-out landmarks); arguments as there;
+    ``steps`` names each step as it starts (:class:`~torchfmap._progress.Steps`).
 
     Raises:
         ParameterError: as :func:`solve_pair`.
@@ -148,11 +152,13 @@ def solve_functional_map(
     w_prior = (W_PRIOR if w_prior is None else w_prior) if prior else 0.0
     need_desc = kind.uses_descriptors(w_prior)
     n_eigen = max(kind.n_eigen(k), n_eigen, k_descriptors if need_desc else 0)
+    steps(f"{kind.name}: eigenpairs")
     for shape in (shape_x, shape_y):
         with_eigenpairs(shape, n_eigen)
     timings["operators+eigen"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    steps(f"{kind.name}: basis")
     if bases is None:
         bx, by, seeds = match_bases(shape_x, shape_y, kind, k, landmarks, times)
     else:
@@ -160,6 +166,7 @@ def solve_functional_map(
     timings["basis"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    steps(f"{kind.name}: descriptors")
     if need_desc:
         desc_x, desc_y = match_descriptors(
             shape_x, shape_y, landmarks, n_descriptors=n_descriptors, k_descriptors=k_descriptors
@@ -177,6 +184,7 @@ def solve_functional_map(
             w_prior=w_prior if prior is not None else 0.0,
         )  # fmt: skip
 
+    steps(f"{kind.name}: functional map")
     C = kind.solve_map(bx, by, solve_block, w_prior)
     timings["fmap"] = time.perf_counter() - t0
     return SolvedMap(C, bx, by, seeds, timings)
@@ -203,7 +211,8 @@ def solve_pair(
     :func:`solve_functional_map`): ``bases``: given ``(basis_x, basis_y)`` of ``k`` columns,
     ``seeds`` their seed pairs ``(S, 2)`` if built together (then pulled to ``C = I``), else
     None; ``n_eigen``: eigenpairs to hold for a later ZoomOut; ``times``, ``n_descriptors``,
-    ``k_descriptors`` and the weights as :func:`match`. Returns an unrefined
+    ``k_descriptors`` and the weights as :func:`match`; ``steps``: a
+    :class:`~torchfmap._progress.Steps` naming each step as it starts. Returns an unrefined
     :class:`MatchResult` (``distortion`` set with landmarks; timings ``operators+eigen``,
     ``basis``, ``descriptors``, ``fmap+p2p``).
 
@@ -215,10 +224,12 @@ def solve_pair(
         shape_x, shape_y, kind, k, landmarks=landmarks, **settings
     )
     t0 = time.perf_counter()
-    p2p = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode)
+    settings.get("steps", SILENT)(f"{kind.name}: point map")
+    p2p = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode, samplings=pair_samplings(shape_x, shape_y))
     timings["fmap+p2p"] = timings.pop("fmap") + time.perf_counter() - t0
     distortion = None
     if landmarks is not None:  # the score that chooses among kinds and guards the refinement
+        settings.get("steps", SILENT)(f"{kind.name}: distortion")
         distortion = geodesic_distortion(shape_x, shape_y, p2p)
     return MatchResult(p2p, C, bx, by, p2p, timings, seeds, kind.name, distortion)
 

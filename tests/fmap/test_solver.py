@@ -360,3 +360,42 @@ def test_overflowing_descriptors_are_refused(sphere2):
     F = np.full((sphere2.n_vertices, 3), 1e300)
     with pytest.raises(ParameterError, match="overflow.*normalize_descriptors"):
         solve_fmap(basis, basis, F, F)
+
+
+def test_a_solve_too_large_for_the_memory_is_refused_before_any_work(monkeypatch, sphere2):
+    """The (K_y, K_x, K_x) row systems are counted twice (systems and factors, or blocks and
+    inverse) in the estimate; a solve above the memory available is refused with the estimate,
+    what is available and the fix, an unreadable memory refuses nothing."""
+    from torchfmap import MemoryEstimateError
+    from torchfmap.fmap import solver
+
+    assert solver.solve_bytes(2000, 2000) >= 2 * 8 * 2000**3  # the 59.6 GiB row blocks, and a twin
+    assert solver.solve_bytes(60, 40) == 8 * (
+        2 * 40 * 60 * 60 + 2 * solver.MAX_OPERATOR_DESCRIPTORS * (60**2 + 40**2)
+    )
+    basis = laplacian_eigenbasis(sphere2, 20)
+    desc = normalize_descriptors(wks(basis.eigenvalues, basis.values, 8))
+    monkeypatch.setattr("torchfmap._checks.available_memory", lambda: solver.solve_bytes(20, 20) - 1)
+    monkeypatch.setattr(solver, "build_problem", lambda *a, **k: pytest.fail("the work started"))
+    refused = r"k = 20 needs an estimated 0\.0 GiB .*GiB is available\. Fix: a smaller k"
+    with pytest.raises(MemoryEstimateError, match=refused) as info:
+        solve_fmap(basis, basis, desc, desc)
+    assert isinstance(info.value, ParameterError) and isinstance(info.value, MemoryError)
+    monkeypatch.undo()
+    monkeypatch.setattr("torchfmap._checks.available_memory", lambda: None)  # not Linux: nothing refused
+    C = solve_fmap(basis, basis, desc, desc)
+    assert C.shape == (20, 20) and np.isfinite(C).all()
+
+
+def test_multiplication_operator_with_a_shared_mass_product(sphere2):
+    """Several operators of one basis may share ``B Φ`` (computed once): the same operator."""
+    from torchfmap.bases.basis import Basis
+
+    L, B = laplacian(sphere2)  # a mass that is not diagonal: the identity Φᵀ B diag(f) Φ = (f ⊙ BΦ)ᵀ Φ
+    basis = laplacian_eigenbasis(sphere2, 12)
+    fem = Basis(basis.values, B + 0.1 * abs(L), basis.provenance, stiffness=L)
+    f = np.cos(3 * sphere2.vertices[:, 0])
+    direct = fem.values.T @ (fem.mass @ (f[:, None] * fem.values))
+    np.testing.assert_allclose(multiplication_operator(fem, f), direct, atol=1e-12)
+    shared = fem.mass @ fem.values
+    np.testing.assert_allclose(multiplication_operator(fem, f, shared), direct, atol=1e-12)

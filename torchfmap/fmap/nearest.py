@@ -136,6 +136,8 @@ class SurfaceSampling(NamedTuple):
 
 #: Neighbouring samples each sample knows (:class:`SurfaceSampling`): a cell and its first ring.
 SAMPLE_NEIGHBORS = 8
+#: A cell of more than this many times the mean vertex count is split (:func:`surface_sampling`).
+CROWDED_CELL = 2
 #: Voxels per sample of the thinning before farthest-point sampling (:func:`surface_sampling`).
 VOXELS_PER_SAMPLE = 4
 
@@ -146,7 +148,9 @@ def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> Su
     The vertices ``points (V, 3)`` are first thinned to one per occupied voxel of a grid of about
     :data:`VOXELS_PER_SAMPLE` ``x n_samples`` voxels over the surface (the one nearest the voxel's
     centre), then farthest-point sampling in space picks ``n_samples`` of them: ``O(V)`` work
-    plus ``O(n_samples²)``, deterministic. Each vertex joins the cell of its nearest sample;
+    plus ``O(n_samples²)``, deterministic. Where the vertex density varies, crowded cells are
+    split (more samples there, so there may be more than ``n_samples`` in all: read
+    ``len(index)``). Each vertex joins the cell of its nearest sample;
     ``mass (V,)`` (lumped vertex areas) gives the cells' weights. ``n_samples >= V`` samples every
     vertex.
 
@@ -168,6 +172,7 @@ def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> Su
     else:
         candidates = _voxel_thinning(points, mass, VOXELS_PER_SAMPLE * n_samples)
         index = candidates[_farthest_points(points[candidates], n_samples)]
+        index = _split_crowded_cells(points, index, -(-n // n_samples))
     tree = cKDTree(points[index])
     cell = tree.query(points, k=1)[1].astype(np.int64)
     cell[index] = np.arange(len(index))  # a sample is in its own cell, whatever the ties
@@ -194,6 +199,22 @@ def _segments(values: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np
         np.arange(total) - np.repeat(first, lengths) + np.repeat(np.asarray(starts, dtype=np.int64), lengths)
     )
     return values[offsets]
+
+
+def _split_crowded_cells(points: np.ndarray, index: np.ndarray, per_cell: int) -> np.ndarray:
+    """``index`` with samples added inside every cell of more than :data:`CROWDED_CELL` x
+    ``per_cell`` vertices (farthest points within it, one per ``per_cell`` of its vertices),
+    so that no cell of a mesh whose vertex density varies holds many times the mean: the local
+    search compares each cell with cells around its image, at a cost that grows with the
+    square of their vertex counts."""
+    cell = cKDTree(points[index]).query(points, k=1)[1]
+    sizes = np.bincount(cell, minlength=len(index))
+    extra = []
+    for c in np.flatnonzero(sizes > CROWDED_CELL * per_cell):  # bounded: one pass over the cells
+        members = np.flatnonzero(cell == c)
+        picks = _farthest_points(points[members], int(-(-sizes[c] // per_cell)))[1:]
+        extra.append(members[picks])
+    return np.unique(np.concatenate([index, *extra])) if extra else index
 
 
 def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.ndarray:
@@ -292,9 +313,10 @@ def local_nearest(
             cand = _segments(sampling_r.ring, sampling_r.ring_start[coarse[lo:hi]], size)
             who = np.repeat(owners[lo:hi], size)
             d = r_sq[cand] - 2.0 * np.einsum("ij,ij->i", q[sampling_q.index[who]], r[cand])
-            best = np.lexsort((d, who))  # by sample, nearest first
             first = np.concatenate([[0], np.cumsum(size)[:-1]])
-            out[sampling_q.index[lo:hi]] = cand[best[first]]
+            nearest = np.flatnonzero(d == np.minimum.reduceat(d, first)[who - lo])
+            _, at = np.unique(who[nearest], return_index=True)  # the first nearest of each sample
+            out[sampling_q.index[lo:hi]] = cand[nearest[at]]
             lo = hi
         return out
     near_r = sampling_r.neighbors

@@ -31,11 +31,12 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse.linalg as ssla
 
+from .. import _checks
 from .._checks import check_landmark_pairs
 from .._threads import torch_threads
 from ..bases.basis import Basis
 from ..descriptors import check_descriptors
-from ..errors import ConvergenceError, ParameterError
+from ..errors import ConvergenceError, MemoryEstimateError, ParameterError
 from ..mesh import Mesh
 from . import core
 from .defaults import W_LAP_SMOOTH, W_LMK, W_ORIENT
@@ -53,9 +54,37 @@ def basis_frame(basis: Basis) -> core.SpectralFrame:
     return core.SpectralFrame(lam.numpy(), U.numpy())
 
 
-def multiplication_operator(basis: Basis, f: np.ndarray) -> np.ndarray:
-    """``(K, K)`` ``Φᵀ B diag(f) Φ``: multiplication by ``f`` in the basis."""
-    return basis.values.T @ (basis.mass @ (f[:, None] * basis.values))
+def multiplication_operator(basis: Basis, f: np.ndarray, weighted: np.ndarray | None = None) -> np.ndarray:
+    """``(K, K)`` ``Φᵀ B diag(f) Φ``: multiplication by ``f`` in the basis, computed as
+    ``(f ⊙ BΦ)ᵀ Φ`` (``B`` is symmetric). ``weighted``: ``B Φ`` ``(V, K)`` when already at hand
+    (several operators of one basis share it: one sparse product, not one per operator)."""
+    weighted = basis.mass @ basis.values if weighted is None else weighted
+    return (f[:, None] * weighted).T @ basis.values
+
+
+def solve_bytes(k_x: int, k_y: int) -> int:
+    """Estimated peak bytes of the dense arrays of one :func:`solve_fmap` in bases of ``k_x`` and
+    ``k_y`` columns (float64): the ``(K_y, K_x, K_x)`` row systems twice (the exact row-wise
+    solve's systems and their LU factors; CG's row blocks beside a term of theirs, then beside
+    their inverse) and the ``2 · MAX_OPERATOR_DESCRIPTORS`` operator pairs of the coupling terms.
+    A lower bound: the bases and descriptors, which the caller holds, are not counted."""
+    return 8 * (2 * k_y * k_x * k_x + 2 * MAX_OPERATOR_DESCRIPTORS * (k_x * k_x + k_y * k_y))
+
+
+def check_solve_memory(k_x: int, k_y: int) -> None:
+    """Refuse a solve in bases of ``k_x`` and ``k_y`` columns whose :func:`solve_bytes` exceed
+    the memory available now (:func:`~torchfmap._checks.available_memory`), before any work.
+
+    Raises:
+        MemoryEstimateError: the estimate and the memory available in GiB, and the fix.
+    """
+    needed, available = solve_bytes(k_x, k_y), _checks.available_memory()
+    if available is not None and needed > available:
+        raise MemoryEstimateError(
+            f"the functional-map solve at k = {max(k_x, k_y)} needs an estimated {needed / 2**30:.1f} GiB "
+            f"of memory (its row systems grow as k^3), and {available / 2**30:.1f} GiB is available. Fix: "
+            "a smaller k (--k; the field uses 30-200)."
+        )
 
 
 #: Faces per chunk in :func:`orientation_operators` (bounds its work buffer to ~chunk·J·K floats).
@@ -276,9 +305,10 @@ def build_problem(
         np.linspace(0, desc_x.shape[1] - 1, min(MAX_OPERATOR_DESCRIPTORS, desc_x.shape[1])).astype(int)
     )
     if w_dcomm > 0:
+        bx, by = basis_x.mass @ basis_x.values, basis_y.mass @ basis_y.values  # shared by the operators
         for j in op_cols:
-            Dx = fx.U.T @ multiplication_operator(basis_x, desc_x[:, j]) @ fx.U
-            Dy = fy.U.T @ multiplication_operator(basis_y, desc_y[:, j]) @ fy.U
+            Dx = fx.U.T @ multiplication_operator(basis_x, desc_x[:, j], bx) @ fx.U
+            Dy = fy.U.T @ multiplication_operator(basis_y, desc_y[:, j], by) @ fy.U
             commute.append((*_unit_pair(Dx, Dy), w_dcomm, 1.0))
     if w_orient > 0:
         if meshes is None:
@@ -361,7 +391,12 @@ def solve_fmap(
 
     Returns:
         ``C_xy``.
+
+    Raises:
+        MemoryEstimateError: bases too large for the memory available (:func:`solve_bytes`),
+            before any work.
     """
+    check_solve_memory(basis_x.k, basis_y.k)
     has_landmarks = landmarks is not None and len(np.atleast_1d(landmarks)) > 0
     problem = build_problem(
         basis_x,

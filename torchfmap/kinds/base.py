@@ -184,6 +184,7 @@ class BasisKind:
         zoomout_samples: int | None = None,
         eigenbases: tuple[Basis, Basis] | None = None,
         landmarks: np.ndarray | None = None,
+        progress: bool = False,
     ):
         """This kind's refiner for ``method`` (:mod:`~torchfmap.kinds.refiners`): ``'icp'``
         (:class:`~torchfmap.kinds.refiners.ICP`, any kind) or ``'zoomout'`` (the kind's own,
@@ -193,7 +194,8 @@ class BasisKind:
         the heat times of seeded kinds; ``zoomout_samples``: farthest-point samples per shape
         of eigenbasis ZoomOut; ``eigenbases``: given eigenbases to grow within (None: the
         prepared shapes' own); ``landmarks``: the checked ``(L, 2)`` pairs of the match, which
-        eigenbasis ZoomOut keeps the map's distances to (seeded kinds hold them as seeds).
+        eigenbasis ZoomOut keeps the map's distances to (seeded kinds hold them as seeds);
+        ``progress``: a bar over ZoomOut's sizes where it grows bases.
 
         Raises:
             ParameterError: an unknown method (:func:`~torchfmap.kinds.refiners.check_refine`).
@@ -203,10 +205,12 @@ class BasisKind:
             return ICP(mode)
         return self.zoomout_refiner(
             k_final=k_final, mode=mode, n_fixed=n_fixed, times=times, zoomout_samples=zoomout_samples,
-            eigenbases=eigenbases, landmarks=landmarks,
+            eigenbases=eigenbases, landmarks=landmarks, progress=progress,
         )  # fmt: skip
 
-    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
+    def zoomout_refiner(
+        self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
+    ):
         """The refiner of ``refine='zoomout'`` in this kind (arguments as :meth:`refiner`). By
         default the bases keep their size: :class:`~torchfmap.kinds.refiners.FixedSizeIterations`."""
         return FixedSizeIterations(mode)
@@ -296,7 +300,9 @@ class SeededKind(BasisKind):
             )
         return basis.truncated(k)
 
-    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
+    def zoomout_refiner(
+        self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
+    ):
         """:class:`~torchfmap.kinds.refiners.SeedMoves` with this kind's :meth:`functions`: the
         fixed-size iterations, then the seeds of ``y`` moved and the bases rebuilt."""
         return SeedMoves(self.functions, mode, n_fixed, times)

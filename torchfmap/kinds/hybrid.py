@@ -149,13 +149,15 @@ class HybridKind(BasisKind):
         side_y, side_x = HybridStep(ex, ey, fx, fy, self.feature_weight).embed(C_xy, ex.k, None)
         return side_x, side_y
 
-    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
+    def zoomout_refiner(
+        self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
+    ):
         """:class:`HybridZoomOut` to ``k_final`` columns in all (the eigen blocks of given
         hybrid ``eigenbases``, or the shapes' own eigenbases, hold the eigenfunctions it grows
         in)."""
         if eigenbases is not None:
             eigenbases = tuple(split_blocks(b)[0] for b in eigenbases)
-        return HybridZoomOut(self, k_final, eigenbases)
+        return HybridZoomOut(self, k_final, eigenbases, progress)
 
 
 @dataclass(frozen=True)
@@ -167,12 +169,13 @@ class HybridZoomOut:
     kind: HybridKind
     k_final: int | None = None
     eigenbases: tuple[Basis, Basis] | None = None
+    progress: bool = False
 
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None) -> Refined:
         k_final = self.k_final if self.k_final is not None else 2 * basis_x.k
         C, p2p, bx, by = hybrid_zoomout(
             p2p_yx, shape_x, shape_y, basis_x, basis_y, self.kind, k_final, eigenbases=self.eigenbases,
-            samplings=pair_samplings(shape_x, shape_y),
+            samplings=pair_samplings(shape_x, shape_y), progress=self.progress,
         )  # fmt: skip
         return Refined(C, p2p, bx, by, seeds)
 
@@ -190,6 +193,7 @@ def hybrid_zoomout(
     guard: bool = True,
     eigenbases: tuple[Basis, Basis] | None = None,
     samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
+    progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
     """ZoomOut of a hybrid pair of bases (this module): the eigen block
     grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
@@ -204,7 +208,8 @@ def hybrid_zoomout(
     eigen block grows in (given ones); None: the shapes' own, computed in place when they hold
     fewer than ``k_final - k_f``. ``samplings``: both shapes'
     :class:`~torchfmap.fmap.nearest.SurfaceSampling`: the iterations run on their samples and
-    the final map is searched locally (:func:`~torchfmap.fmap.refine.zoomout_iterations`).
+    the final map is searched locally (:func:`~torchfmap.fmap.refine.zoomout_iterations`);
+    ``progress``: a bar over the sizes.
 
     Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
 
@@ -226,7 +231,7 @@ def hybrid_zoomout(
     best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
     samples = None if samplings is None else Samples.of_surfaces(*samplings)
     step = HybridStep(eig_x, eig_y, fx, fy, kind.feature_weight)
-    C, p2p = zoomout_iterations(step, sizes, p2p_yx=p2p, guard=best, samples=samples)
+    C, p2p = zoomout_iterations(step, sizes, p2p_yx=p2p, guard=best, samples=samples, progress=progress)
     bx, by = join_blocks(eig_x.truncated(k_end), fx), join_blocks(eig_y.truncated(k_end), fy)
     return C, p2p, bx, by
 

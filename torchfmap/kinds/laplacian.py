@@ -34,11 +34,13 @@ class EigenKind(BasisKind):
         ``times`` are not used."""
         return with_eigenpairs(shape, k).eigenbasis.truncated(k)
 
-    def zoomout_refiner(self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks):
+    def zoomout_refiner(
+        self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
+    ):
         """:class:`~torchfmap.kinds.refiners.ZoomOut`: the eigenbases grown from the map's size to
         ``k_final`` (the shapes' own, or the given ``eigenbases``), on ``zoomout_samples``
         farthest-point samples per shape if given, keeping the distances to ``landmarks``."""
-        return ZoomOut(k_final, mode, zoomout_samples, eigenbases, landmarks)
+        return ZoomOut(k_final, mode, zoomout_samples, eigenbases, landmarks, progress=progress)
 
 
 LAPLACIAN = EigenKind(
