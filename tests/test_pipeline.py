@@ -516,3 +516,18 @@ def test_progress_names_each_step_on_stderr(capsys):
     assert "match: hybrid: basis" in err and "match: cross-validation: laplacian, fold 1 of 4" in err
     match(x, y, k=15, k_descriptors=30)
     assert capsys.readouterr().err == ""
+
+
+def test_match_is_quiet_unless_asked_and_zoomout_shows_its_sizes_when_asked(permuted_pair, capsys):
+    """``progress=False`` (the default) writes nothing to stderr, with or without landmarks
+    (the landmark default refines every candidate); ``progress=True`` names the steps and shows
+    ZoomOut's bar over its sizes."""
+    from torchfmap import match
+
+    x, y, _, lm = permuted_pair
+    match(x, y, k=10, refine="zoomout")
+    match(x, y, k=10, refine="zoomout", landmarks=lm)
+    assert capsys.readouterr().err == ""
+    match(x, y, k=10, refine="zoomout", progress=True)
+    err = capsys.readouterr().err
+    assert "ZoomOut" in err and "refinement" in err

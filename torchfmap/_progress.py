@@ -19,6 +19,11 @@ class Steps:
         if self._bar is not None:
             self._bar.set_description_str(f"{self.desc}: {name}")  # redraws the line
 
+    @property
+    def enabled(self) -> bool:
+        """Whether the line is shown (for callers that pass the choice on, e.g. to a bar)."""
+        return self._bar is not None
+
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()

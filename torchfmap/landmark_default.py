@@ -173,7 +173,7 @@ def match_landmark_default(
         refiner = kind.refiner(
             refine, k_final=k_final, mode=p2p_mode, n_fixed=len(pairs),
             times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples, landmarks=pairs,
-            progress=steps is not SILENT,
+            progress=steps.enabled,
         )  # fmt: skip
         return refine_result(result, refiner, shape_x, shape_y)
 
