@@ -49,10 +49,10 @@ from .bases import Basis
 from .bases.prepared import PreparedShape
 from .descriptors import landmark_descriptors, shot
 from .errors import ParameterError
-from .fmap import fmap_to_p2p, nearest_neighbor, p2p_to_fmap, solve_fmap
+from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.convert import check_p2p
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
-from .fmap.nearest import SurfaceSampling, local_nearest
+from .fmap.nearest import SurfaceSampling, search_p2p
 from .fmap.refine import Samples, SpectralStep, check_anchors, zoomout_iterations
 from .kinds.refiners import landmark_coordinates, pair_samplings
 from .mesh import Mesh
@@ -185,7 +185,7 @@ def partial_zoomout(
     sizes = list(range(k + step, k_final, step)) + [k_final]
     rank = functools.partial(partial_rank, full.eigenvalues, part.eigenvalues)
     spectral = SpectralStep(full, part, "orthogonal", anchors, rank=rank)
-    samples = None if samplings is None else Samples.of_surfaces(*samplings)
+    samples = Samples.of_pair(samplings)
     p2p_yx = check_p2p(p2p_yx, part.n_vertices, full.n_vertices)
     return zoomout_iterations(spectral, sizes, p2p_yx=p2p_yx, samples=samples)
 
@@ -229,11 +229,9 @@ def reseeded_map(
     d_x = shape_x.distances.rows(unique).T[:, column]
     d_y = shape_y.distances.rows(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
     query, reference = np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2))
-    samplings = pair_samplings(shape_x, shape_y)
-    if samplings is None:
-        return nearest_neighbor(query, reference)
-    coarse = samplings[0].cell[p2p_yx[samplings[1].index]]  # near where the first map went
-    return local_nearest(query, reference, samplings[1], samplings[0], coarse=coarse, precision="double")
+    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: near where the first map went
+    coarse = None if samplings is None else samplings[0].cell[p2p_yx[samplings[1].index]]
+    return search_p2p(query, reference, samplings, coarse=coarse, precision="double")
 
 
 def match_partial(

@@ -119,8 +119,10 @@ def match(
             :func:`~torchfmap.kinds.seed_time` of the seed count).
         p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
             default: the kind's ``p2p_mode`` (``'orthogonal'`` for the eigenbasis).
-        zoomout_samples: run eigenbasis ZoomOut on this many farthest-point samples per shape
-            (the final point map uses every vertex).
+        zoomout_samples: run eigenbasis ZoomOut on about this many surface samples per shape
+            (:func:`~torchfmap.fmap.nearest.surface_sampling`; the final point map is every
+            vertex's, searched locally). None: every vertex up to ``LOCAL_SEARCH_PAIRS``
+            (``fmap.defaults``), surface samples past it (dense meshes).
         bases: ``(basis_x, basis_y)`` to solve in instead of building them (e.g. files written
             by ``torchfmap basis``; ``(V_x, K_x)`` and ``(V_y, K_y)``, B-orthonormal). Their
             columns are not assumed to correspond, so the map is solved from descriptors;

@@ -165,3 +165,20 @@ def test_local_nearest_equals_the_exhaustive_search_for_a_continuous_map(permute
     np.testing.assert_array_equal(
         fmap_to_p2p(C, bx, by, mode="orthogonal", precision="double", samplings=(sx, sy)), exact
     )
+
+
+def test_surface_sampling_of_repeated_points_gives_distinct_samples_and_no_empty_cell():
+    """Points that are copies of each other (a mesh with duplicated vertices): at most as many
+    samples as distinct points, every sample distinct and in its own non-empty cell, so every
+    ring holds vertices; NaN rows are refused by the local search."""
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    points = np.repeat(grid, 15, axis=0)
+    sm = surface_sampling(points, np.full(len(points), 25 / len(points)), 100)
+    assert len(np.unique(sm.index)) == len(sm.index) <= len(grid)
+    assert (np.diff(sm.start) > 0).all() and (np.diff(sm.ring_start) > 0).all()
+    embed = rng.normal(size=(len(points), 5))
+    bad = embed.copy()
+    bad[3] = np.nan
+    with pytest.raises(ParameterError, match="NaN"):
+        local_nearest(bad, embed, sm, sm)

@@ -66,3 +66,32 @@ def test_dense_pairs_match_and_refine_on_samples_as_well_as_exhaustively(permute
     for attr in ("p2p_yx_initial", "p2p_yx"):
         assert np.mean(getattr(dense, attr) == perm) >= np.mean(getattr(exact, attr) == perm) - 0.02
     assert np.mean(dense.p2p_yx == perm) > 0.95
+
+
+def test_shape_samplings_do_not_depend_on_the_meshs_units(permuted_pair):
+    """A prepared shape's operators live in its unit-area frame and its vertices in the file's
+    units: the surface sampling of a mesh in millimetres is the one in metres (same samples)."""
+    import torchfmap as tf
+    from torchfmap.kinds.refiners import shape_sampling
+
+    x = permuted_pair[0]
+    base = shape_sampling(tf.prepare_shape(x, 10), 200).index
+    for scale in (0.02, 100.0):
+        scaled = tf.Mesh(x.vertices * scale, x.faces)
+        np.testing.assert_array_equal(shape_sampling(tf.prepare_shape(scaled, 10), 200).index, base)
+
+
+def test_icp_on_a_dense_pair_searches_locally_and_keeps_the_true_map(permuted_bases, monkeypatch):
+    """ICP past ``LOCAL_SEARCH_PAIRS`` (lowered here) converts every point map locally: the true
+    map of a permuted copy stays a fixed point."""
+    import torchfmap as tf
+    import torchfmap.kinds.refiners as refiners
+
+    x, y, perm, _, _ = permuted_bases
+    monkeypatch.setattr(refiners, "LOCAL_SEARCH_PAIRS", 1)
+    monkeypatch.setattr(refiners, "SURFACE_SAMPLES", 150)
+    shapes = tuple(tf.prepare_shape(m, 20) for m in (x, y))
+    bx, by = (s.eigenbasis.truncated(20) for s in shapes)
+    C = tf.fmap.p2p_to_fmap(perm, bx, by)
+    refined = refiners.ICP()(C, perm, *shapes, bx, by)
+    assert np.mean(refined.p2p_yx == perm) > 0.99

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .nearest import SurfaceSampling, local_nearest, nearest_neighbor
+from .nearest import SurfaceSampling, nearest_neighbor, search_p2p
 
 
 def _check_fmap(C_xy: np.ndarray, k_x: int, k_y: int) -> np.ndarray:
@@ -49,7 +49,8 @@ def fmap_to_p2p(
     ``Φ_x``; valid in any basis, the default) or ``'orthogonal'`` (of each row of ``Φ_y`` among
     the rows of ``Φ_x C_xyᵀ``; the classical choice in eigenbases, a kind's ``p2p_mode``).
     ``samplings``: both shapes' :class:`SurfaceSampling` ``(x, y)``: every vertex of ``y``
-    searched locally (:func:`local_nearest`, sub-quadratic on dense meshes; not with ``rows``).
+    searched locally (:func:`~torchfmap.fmap.nearest.local_nearest`; not with ``rows``; ``search``
+    then does not apply).
 
     The nearest-neighbour search runs in float32 by default (see :func:`nearest_neighbor`):
     a vertex whose two best matches are equally good to 1e-6 may pick either.
@@ -58,7 +59,7 @@ def fmap_to_p2p(
     ky, kx = C_xy.shape
     if samplings is not None and rows is None:
         query, reference = embedding_pair(C_xy, basis_x.values[:, :kx], basis_y.values[:, :ky], mode=mode)
-        return local_nearest(query, reference, samplings[1], samplings[0], precision=precision)
+        return search_p2p(query, reference, samplings, precision=precision)
     phi_y = basis_y.values[:, :ky] if rows is None else basis_y.values[rows, :ky]
     return values_to_p2p(C_xy, basis_x.values[:, :kx], phi_y, mode=mode, search=search, precision=precision)
 

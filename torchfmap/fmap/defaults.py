@@ -50,3 +50,7 @@ LOCAL_SEARCH_PAIRS = 10_000**2
 #: (:func:`~torchfmap.fmap.nearest.surface_sampling`): their least-squares fits hold ``k_final``
 #: columns many times over.
 SURFACE_SAMPLES = 3000
+#: Above ``SURFACE_SAMPLES`` times this many vertices, one sample per this many: the local
+#: search compares each vertex with the vertices of a few cells around its image, so its cost
+#: grows with ``V² / S`` (``V`` at a fixed cell size), the samples' own search with ``S²``.
+VERTICES_PER_SAMPLE = 100

@@ -209,12 +209,15 @@ def _split_crowded_cells(points: np.ndarray, index: np.ndarray, per_cell: int) -
     square of their vertex counts."""
     cell = cKDTree(points[index]).query(points, k=1)[1]
     sizes = np.bincount(cell, minlength=len(index))
+    order = np.argsort(cell, kind="stable")
+    start = np.concatenate([[0], np.cumsum(sizes)])
     extra = []
     for c in np.flatnonzero(sizes > CROWDED_CELL * per_cell):  # bounded: one pass over the cells
-        members = np.flatnonzero(cell == c)
-        picks = _farthest_points(points[members], int(-(-sizes[c] // per_cell)))[1:]
+        members = order[start[c] : start[c + 1]]
+        own = int(np.flatnonzero(members == index[c])[0]) if (members == index[c]).any() else 0
+        picks = _farthest_points(points[members], int(-(-sizes[c] // per_cell)), first=own)[1:]
         extra.append(members[picks])
-    return np.unique(np.concatenate([index, *extra])) if extra else index
+    return np.unique(np.concatenate([index, *extra]))
 
 
 def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.ndarray:
@@ -237,16 +240,20 @@ def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.n
     return np.sort(order[first])
 
 
-def _farthest_points(points: np.ndarray, n: int) -> np.ndarray:
-    """``n`` rows of ``points (W, 3)`` by farthest-point sampling in space, from row 0."""
-    coords = [np.ascontiguousarray(points[:, j], dtype=np.float32) for j in range(3)]
+def _farthest_points(points: np.ndarray, n: int, first: int = 0) -> np.ndarray:
+    """At most ``n`` distinct rows of ``points (W, 3)`` by farthest-point sampling in space, from
+    row ``first``: fewer when fewer points are distinct."""
+    centred = points - points.min(axis=0)  # float32 keeps relative precision near the origin
+    coords = [np.ascontiguousarray(centred[:, j], dtype=np.float32) for j in range(3)]
     chosen = np.empty(n, dtype=np.int64)
-    chosen[0] = 0
+    chosen[0] = first
     dist = np.full(len(points), np.inf, dtype=np.float32)
     new, tmp = np.empty_like(dist), np.empty_like(dist)
     for i in range(n):  # bounded: n picks
         if i:
             chosen[i] = int(np.argmax(dist))
+            if dist[chosen[i]] <= 0:  # every point is a copy of a chosen one
+                return chosen[:i]
         new.fill(0.0)
         for c in coords:
             np.subtract(c, c[chosen[i]], out=tmp)
@@ -294,6 +301,8 @@ def local_nearest(
         )
     if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
         raise ParameterError(f"query {query.shape} and reference {reference.shape} must be (M, D), (N, D).")
+    if not (np.isfinite(query).all() and np.isfinite(reference).all()):
+        raise ParameterError("nearest-neighbour inputs contain NaN or inf. Fix: check the map and bases.")
     if coarse is None:
         coarse = nearest_neighbor(query[sampling_q.index], reference[sampling_r.index], precision=precision)
     coarse = _check_coarse(coarse, len(sampling_q.index), len(sampling_r.index))
@@ -326,9 +335,28 @@ def local_nearest(
             continue
         cells = np.unique(near_r[coarse[sampling_q.neighbors[s]]])
         cand = sampling_r.members(cells)
-        d = r_sq[cand][None, :] - 2.0 * (q[members] @ r[cand].T)
-        out[members] = cand[np.argmin(d, axis=1)]
+        block = max(1, int(NN_BLOCK_BYTES // (q.itemsize * len(cand))))
+        for lo in range(0, len(members), block):  # bounded memory: block x candidates
+            rows = members[lo : lo + block]
+            out[rows] = cand[np.argmin(r_sq[cand][None, :] - 2.0 * (q[rows] @ r[cand].T), axis=1)]
     return out
+
+
+def search_p2p(
+    query: np.ndarray,
+    reference: np.ndarray,
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
+    *,
+    coarse: np.ndarray | None = None,
+    precision: Literal["double", "single"] = "single",
+) -> np.ndarray:
+    """The point map ``(M,)``: the nearest row of ``reference (N, D)`` (rows of ``x``) for every
+    row of ``query (M, D)`` (rows of ``y``): exhaustively (:func:`nearest_neighbor`) when
+    ``samplings`` is None, else locally around the samples of both surfaces ``(x, y)``
+    (:func:`local_nearest`, ``coarse`` as there). The one choice between the two searches."""
+    if samplings is None:
+        return nearest_neighbor(query, reference, precision=precision)
+    return local_nearest(query, reference, samplings[1], samplings[0], coarse=coarse, precision=precision)
 
 
 def _check_coarse(coarse: np.ndarray, n_query: int, n_reference: int) -> np.ndarray:

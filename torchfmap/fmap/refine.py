@@ -26,9 +26,9 @@ from tqdm import tqdm
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
-from .convert import check_p2p, embedding_pair, fmap_to_p2p, p2p_to_fmap, values_to_p2p
+from .convert import check_p2p, embedding_pair, fmap_to_p2p, p2p_to_fmap
 from .defaults import zoomout_step
-from .nearest import SurfaceSampling, local_nearest, nearest_neighbor
+from .nearest import SurfaceSampling, local_nearest, nearest_neighbor, search_p2p
 
 Mode = Literal["pullback", "orthogonal"]
 
@@ -41,22 +41,24 @@ def icp_refine(
     tol: float = 1e-10,
     *,
     mode: Mode = "orthogonal",
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ):
     """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square.
 
     ``mode`` is the point-map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`): ``'orthogonal'``
     (the default) is the classical choice in eigenbases; ``'pullback'`` works in any basis.
+    ``samplings``: both shapes' surface samplings, every point map searched locally.
     """
     C = np.asarray(C_xy, dtype=np.float64)
     if C.shape[0] != C.shape[1]:
         raise ParameterError(f"ICP needs a square map, got {C.shape}. Fix: use the same K on both shapes.")
     k = C.shape[0]
-    p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode)
+    p2p = fmap_to_p2p(C, basis_x, basis_y, mode=mode, samplings=samplings)
     for _ in range(n_iter):
         target = p2p_to_fmap(p2p, basis_x, basis_y, k, k)
         u, _, vt = np.linalg.svd(target)
         new = u @ vt
-        p2p = fmap_to_p2p(new, basis_x, basis_y, mode=mode)
+        p2p = fmap_to_p2p(new, basis_x, basis_y, mode=mode, samplings=samplings)
         change = np.linalg.norm(new - C) / max(np.linalg.norm(C), 1e-300)
         C = new
         if change < tol:
@@ -108,13 +110,6 @@ def check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, 
     return ax, ay
 
 
-def anchored_p2p(C, phi_x: np.ndarray, phi_y: np.ndarray, mode: Mode, anchors=None) -> np.ndarray:
-    """``p2p_yx`` ``(V_y,)`` of ``C (cy, cx)`` from the first ``cx`` / ``cy`` columns of the rows
-    ``phi_x``, ``phi_y`` (:func:`~torchfmap.fmap.convert.values_to_p2p`, with its ``anchors``)."""
-    cy, cx = C.shape
-    return values_to_p2p(C, phi_x[:, :cx], phi_y[:, :cy], mode=mode, anchors=anchors)
-
-
 class Samples(NamedTuple):
     """Where ZoomOut iterates when not on every vertex: ``x (S_x,)`` and ``y (S_y,)`` sampled
     vertices, ``weight (S_y,)`` the quadrature weights of the least-squares fit on ``y``'s
@@ -133,6 +128,11 @@ class Samples(NamedTuple):
         """Iterations on the samples of two surfaces, fitted with their cells' areas, the final
         map searched locally."""
         return cls(sampling_x.index, sampling_y.index, sampling_y.weight, (sampling_x, sampling_y))
+
+    @classmethod
+    def of_pair(cls, samplings: tuple[SurfaceSampling, SurfaceSampling] | None) -> Samples | None:
+        """:meth:`of_surfaces` of ``(sampling_x, sampling_y)``, None for None (every vertex)."""
+        return None if samplings is None else cls.of_surfaces(*samplings)
 
 
 class ZoomOutStep(Protocol):
@@ -249,10 +249,7 @@ def zoomout_iterations(
             images, coarse = _sample_images(step, C, size, samples)
             bar.update()
         query, reference = step.embed(C, sizes[-1] if sizes else None, None)
-        if samples.surfaces is None:
-            p2p = nearest_neighbor(query, reference, precision="single")
-        else:
-            p2p = local_nearest(query, reference, samples.surfaces[1], samples.surfaces[0], coarse=coarse)
+        p2p = search_p2p(query, reference, samples.surfaces, coarse=coarse if samples.surfaces else None)
         if guard is not None:
             guard.offer(p2p)
     bar.close()
@@ -347,7 +344,7 @@ def zoomout(
         return zoomout_iterations(spectral, sizes[1:] or sizes, p2p_yx=p2p_yx, samples=samples, guard=best,
                                   progress=progress)  # fmt: skip
     if samples is not None and guard:  # the start scored on every vertex, as without samples
-        best.offer(anchored_p2p(C, basis_x.values, basis_y.values, mode, anchors))
+        best.offer(search_p2p(*spectral.embed(C, None, None), samples.surfaces))
     return zoomout_iterations(spectral, sizes[1:], C_xy=C, samples=samples, guard=best, progress=progress)
 
 

@@ -34,7 +34,7 @@ from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p
 from ..fmap.defaults import W_ORIENT
-from ..fmap.nearest import SurfaceSampling, local_nearest, nearest_neighbor
+from ..fmap.nearest import SurfaceSampling, nearest_neighbor, search_p2p
 from ..seeds import corresponding_seeds, farthest_point_sampling
 from .refiners import ICP, FixedSizeIterations, SeedMoves, check_refine
 
@@ -165,13 +165,13 @@ class BasisKind:
         :func:`~torchfmap.fmap.fmap_to_p2p` by ``mode``. ``rows`` ``(R,)``: only these
         vertices of ``y`` (``(R,)`` returned), e.g. held-out landmarks. ``samplings``: both
         shapes' :class:`~torchfmap.fmap.nearest.SurfaceSampling` ``(x, y)``: every vertex searched
-        locally (:func:`~torchfmap.fmap.nearest.local_nearest`, sub-quadratic on dense meshes)."""
+        locally (:func:`~torchfmap.fmap.nearest.local_nearest`)."""
         pair = self.embeddings(C_xy, basis_x, basis_y)
         if pair is None:
             return fmap_to_p2p(C_xy, basis_x, basis_y, mode=mode, rows=rows, samplings=samplings)
-        if samplings is not None and rows is None:
-            return local_nearest(pair[1], pair[0], samplings[1], samplings[0])
-        return nearest_neighbor(pair[1] if rows is None else pair[1][rows], pair[0], precision="single")
+        if rows is not None:
+            return nearest_neighbor(pair[1][rows], pair[0], precision="single")
+        return search_p2p(pair[1], pair[0], samplings)
 
     def refiner(
         self,
@@ -191,7 +191,7 @@ class BasisKind:
         :meth:`zoomout_refiner`). ``mode``: the point-map rule (default the kind's
         ``p2p_mode``); ``k_final``: the size ZoomOut grows eigenfunctions to (default twice the
         start); ``n_fixed``: the leading seed pairs that are landmarks (never moved); ``times``:
-        the heat times of seeded kinds; ``zoomout_samples``: farthest-point samples per shape
+        the heat times of seeded kinds; ``zoomout_samples``: surface samples per shape
         of eigenbasis ZoomOut; ``eigenbases``: given eigenbases to grow within (None: the
         prepared shapes' own); ``landmarks``: the checked ``(L, 2)`` pairs of the match, which
         eigenbasis ZoomOut keeps the map's distances to (seeded kinds hold them as seeds);

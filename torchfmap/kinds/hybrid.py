@@ -229,7 +229,7 @@ def hybrid_zoomout(
     p2p = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
     sizes = list(range(k_e, k_end, step)) + [k_end]
     best = EnergyGuard(eig_x, eig_y, sizes, enabled=guard)
-    samples = None if samplings is None else Samples.of_surfaces(*samplings)
+    samples = Samples.of_pair(samplings)
     step = HybridStep(eig_x, eig_y, fx, fy, kind.feature_weight)
     C, p2p = zoomout_iterations(step, sizes, p2p_yx=p2p, guard=best, samples=samples, progress=progress)
     bx, by = join_blocks(eig_x.truncated(k_end), fx), join_blocks(eig_y.truncated(k_end), fy)

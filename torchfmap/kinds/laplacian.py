@@ -39,7 +39,8 @@ class EigenKind(BasisKind):
     ):
         """:class:`~torchfmap.kinds.refiners.ZoomOut`: the eigenbases grown from the map's size to
         ``k_final`` (the shapes' own, or the given ``eigenbases``), on ``zoomout_samples``
-        farthest-point samples per shape if given, keeping the distances to ``landmarks``."""
+        surface samples per shape if given (by default on dense pairs), keeping the distances
+        to ``landmarks``."""
         return ZoomOut(k_final, mode, zoomout_samples, eigenbases, landmarks, progress=progress)
 
 

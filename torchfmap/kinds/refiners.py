@@ -27,7 +27,7 @@ from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize_pair
 from ..bases.prepared import PreparedShape, with_eigenpairs
 from ..errors import ParameterError
-from ..fmap.defaults import LOCAL_SEARCH_PAIRS, SURFACE_SAMPLES
+from ..fmap.defaults import LOCAL_SEARCH_PAIRS, SURFACE_SAMPLES, VERTICES_PER_SAMPLE
 from ..fmap.nearest import SurfaceSampling, surface_sampling
 from ..fmap.refine import (
     Refined,
@@ -57,7 +57,7 @@ def shape_sampling(shape: PreparedShape, n_samples: int = SURFACE_SAMPLES) -> Su
     """The shape's :func:`~torchfmap.fmap.nearest.surface_sampling` of ``n_samples`` (at most
     every vertex), computed once per shape and size (kept in the prepared shape)."""
     n = min(int(n_samples), shape.mesh.n_vertices)
-    mass = shape.operators[1].diagonal()
+    mass = shape.operators[1].diagonal() / shape.scale**2  # the operators' frame -> the mesh's units
     return shape.derive(("surface_sampling", n), lambda: surface_sampling(shape.mesh.vertices, mass, n))
 
 
@@ -69,12 +69,20 @@ def is_dense(shape_x: PreparedShape, shape_y: PreparedShape) -> bool:
 
 
 def pair_samplings(shape_x: PreparedShape, shape_y: PreparedShape, n_samples: int | None = None):
-    """``(SurfaceSampling of x, of y)`` of ``n_samples`` each (None: the default, and only for
-    a dense pair, :func:`is_dense`; otherwise None)."""
+    """``(SurfaceSampling of x, of y)`` of ``n_samples`` each (None: only for a dense pair,
+    :func:`is_dense`, otherwise None; :data:`~torchfmap.fmap.defaults.SURFACE_SAMPLES`, or one per
+    :data:`~torchfmap.fmap.defaults.VERTICES_PER_SAMPLE` vertices of a larger shape)."""
     if n_samples is None and not is_dense(shape_x, shape_y):
         return None
-    n = SURFACE_SAMPLES if n_samples is None else n_samples
-    return shape_sampling(shape_x, n), shape_sampling(shape_y, n)
+
+    def count(shape: PreparedShape) -> int:
+        return (
+            max(SURFACE_SAMPLES, shape.mesh.n_vertices // VERTICES_PER_SAMPLE)
+            if n_samples is None
+            else n_samples
+        )
+
+    return shape_sampling(shape_x, count(shape_x)), shape_sampling(shape_y, count(shape_y))
 
 
 def check_refine(refine, *, optional: bool = True) -> str | None:
@@ -97,7 +105,10 @@ class ICP:
     mode: str = "orthogonal"
 
     def __call__(self, C_xy, p2p_yx, shape_x, shape_y, basis_x: Basis, basis_y: Basis, seeds=None) -> Refined:
-        return Refined(*icp_refine(C_xy, basis_x, basis_y, mode=self.mode), basis_x, basis_y, seeds)
+        samplings = pair_samplings(shape_x, shape_y)  # dense pairs: searched locally
+        return Refined(
+            *icp_refine(C_xy, basis_x, basis_y, mode=self.mode, samplings=samplings), basis_x, basis_y, seeds
+        )
 
 
 def check_eigenbases(eigenbases: tuple[Basis, Basis], k_final: int) -> tuple[Basis, Basis]:
@@ -177,7 +188,7 @@ class ZoomOut:
         k_final = self.k_final if self.k_final is not None else 2 * min(np.shape(C_xy))
         full_x, full_y = grown_eigenbases(shape_x, shape_y, self.eigenbases, k_final)
         samplings = pair_samplings(shape_x, shape_y, self.samples)
-        samples = None if samplings is None else Samples.of_surfaces(*samplings)
+        samples = Samples.of_pair(samplings)
         distances = None if self.landmarks is None else landmark_coordinates(shape_x, shape_y, self.landmarks)
         anchors = stacked_anchors(distances, self.features)
         C, p2p = zoomout(
