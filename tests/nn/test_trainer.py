@@ -186,3 +186,43 @@ def test_a_solver_other_than_the_recorded_recipe_is_refused(tmp_path):
     trainer = Trainer(net, data, loss_fn, opt, config=TINY, solver=RegularizedFMSolver(w_lap=TINY.w_lap),
                       checkpoint=tmp_path / "c")  # fmt: skip
     assert trainer.solver.w_lap == TINY.w_lap
+
+
+def test_a_run_resumed_mid_epoch_ends_with_the_uninterrupted_runs_weights(tmp_path):
+    """Interrupted (Ctrl-C) after step 3 of an epoch of 6 batches, with a checkpoint at every
+    step, then resumed with the same recipe: the same pairs in the same order and the same
+    draws, so the weights equal those of one uninterrupted run (CPU, one thread)."""
+    mesh = bumpy_blob(2)
+    folder = tmp_path / "m"
+    folder.mkdir()
+    files = [
+        save_mesh(mesh.copy(bend(mesh.vertices, s)), folder / f"a{i}.off")
+        for i, s in enumerate((0.1, 0.2, 0.4))
+    ]
+    config = TINY.with_budget(Budget(steps=8))
+    shapes = ShapeDataset(files, False, **config.dataset_kwargs(), progress=False)
+
+    def run(path, interrupt_at=None):
+        def validate(net):
+            if interrupt_at is not None and trainer.state.step == interrupt_at:
+                raise KeyboardInterrupt
+            return 0.0
+
+        torch.manual_seed(0)
+        trainer = Trainer.from_config(
+            config, shapes, device="cpu", checkpoint=path, validate=validate, validate_every=1
+        )  # fmt: skip
+        assert trainer.batches_per_epoch > 3
+        trainer.resume()
+        trainer.fit(progress=False)
+        return trainer
+
+    with torch.random.fork_rng():
+        straight = run(tmp_path / "s.ckpt")
+        with pytest.raises(KeyboardInterrupt):
+            run(tmp_path / "r.ckpt", interrupt_at=3)
+        assert read_checkpoint(tmp_path / "r.ckpt")["train_state"]["batch"] == 2  # mid-epoch
+        resumed = run(tmp_path / "r.ckpt")
+    assert resumed.state.step == straight.state.step == 8
+    for a, b in zip(resumed.net.state_dict().values(), straight.net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)

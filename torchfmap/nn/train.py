@@ -124,11 +124,15 @@ def unsupervised_score(
 
 @dataclass
 class TrainState:
-    """What a run records and checkpoints: per-step losses, full epochs, seconds of training,
-    per-epoch times, validation scores ``(step, score)`` and the best score."""
+    """What a run records and checkpoints: per-step losses, full epochs, the batches done of the
+    current epoch, seconds of training, per-epoch times, validation scores ``(step, score)``,
+    the best score, and the state of the random draws (augmentation, loss sampling) where the
+    run stands, so that a run resumed mid-epoch goes on as the uninterrupted run would."""
 
     step: int = 0
     epoch: int = 0
+    batch: int = 0
+    draws: list | None = None
     seconds: float = 0.0
     losses: list = field(default_factory=list)
     epoch_seconds: list = field(default_factory=list)

@@ -70,9 +70,11 @@ class Trainer:
     network is wrapped in DistributedDataParallel, each rank trains on its share of the pairs,
     the ranks follow one clock (the slowest rank's) and only rank 0 writes.
 
-    Randomness comes from generators the trainer owns, seeded ``seed + epoch`` when
-    :meth:`fit` starts (so a resumed run re-seeds from its epoch): a CPU one shuffles the
-    pairs, one on ``device`` draws the loss's samples and the augmentation.
+    Randomness comes from generators the trainer owns, seeded ``seed + epoch`` at each epoch's
+    start: a CPU one shuffles the pairs, one on ``device`` draws the loss's samples and the
+    augmentation. A checkpoint records the batches done of its epoch and the draws' state, so a
+    run resumed mid-epoch skips those batches of the same order and draws as the uninterrupted
+    run would.
 
     Raises:
         ParameterError: a network that does not follow the protocol, a config without a budget,
@@ -214,6 +216,7 @@ class Trainer:
         path = self.checkpoint if path is None else Path(path)
         if path is None or not self.main:
             return None
+        self.state.draws = self.draws.get_state().cpu().tolist()
         return save_checkpoint(
             path, self.net, self.config,
             optimizer=self.optimizer.state_dict(),
@@ -273,8 +276,6 @@ class Trainer:
         time of the earlier ones); returns the :class:`~torchfmap.nn.train.TrainState`. The
         progress bar counts steps up to the step bound, or seconds of a time budget alone."""
         epochs, state = self.budget.epochs, self.state
-        self.shuffle.manual_seed(self.config.seed + state.epoch)
-        self.draws.manual_seed(self.config.seed + state.epoch)
         self._t_start = time.perf_counter() - state.seconds
         self.net.train()
         if state.step == 0 and not state.scores:
@@ -286,9 +287,17 @@ class Trainer:
         while (epochs is None or state.epoch < epochs) and not stop:
             if self.sampler is not None:
                 self.sampler.set_epoch(state.epoch)
+            self.shuffle.manual_seed(self.config.seed + state.epoch)  # each epoch's order, resumable
+            if state.batch and state.draws is not None:  # resumed mid-epoch: the draws where it stood
+                self.draws.set_state(torch.tensor(state.draws, dtype=torch.uint8))
+            else:
+                self.draws.manual_seed(self.config.seed + state.epoch)
             t_epoch = time.perf_counter()
-            for batch in self.loader:
+            for i, batch in enumerate(self.loader):
+                if i < state.batch:  # done before the run was interrupted
+                    continue
                 loss = self.step(batch)["total"]
+                state.batch += 1
                 if by_time:
                     now = time.perf_counter() - self._t_start
                     bar.update(min(round(now), bar.total) - min(round(last_tick), bar.total))
@@ -303,7 +312,7 @@ class Trainer:
                     stop = True
                     break
             else:
-                state.epoch += 1
+                state.epoch, state.batch = state.epoch + 1, 0
                 state.epoch_seconds.append(time.perf_counter() - t_epoch)
             state.seconds = time.perf_counter() - self._t_start
             self.save()
