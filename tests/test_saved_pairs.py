@@ -206,3 +206,40 @@ def test_ctrl_c_with_two_workers_exits_promptly_and_keeps_the_finished_pairs(tmp
     printed = _rows(out_text)
     assert len(printed) >= done and _kept(out) == set(printed)
     assert "interrupted after" in out_text and "| **all** |" in out_text
+
+
+def test_a_second_eval_on_a_file_in_use_is_refused_with_one_line(tmp_path, capsys):
+    """``eval --out S`` holds ``S.lock`` while it runs: a second run on the same file while the
+    first lives is refused at once with one line naming the file and the fix, and writes nothing;
+    once the holder is gone, its lock is taken over."""
+    folder = _identity_folder(tmp_path)
+    out = tmp_path / "scores.npz"
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        Path(f"{out}.lock").write_text(str(holder.pid))
+        args = ["eval", str(folder), "--gt", "identity", "--max-pairs", "1", "--k", "10", "--out", str(out)]
+        assert main(args) != 0
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "being written by another process" in err[0] and str(out) in err[0]
+        assert not out.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(args) == 0 and out.exists() and not Path(f"{out}.lock").exists()
+
+
+def test_ctrl_c_before_any_pair_finishes_names_no_file(tmp_path, capsys, monkeypatch):
+    """Interrupted before the first pair is scored, ``eval --out S`` does not tell the user the
+    finished pairs are in ``S`` (there are none and no file was written)."""
+    import torchfmap.commands as commands
+    from torchfmap.errors import EvaluationInterrupted
+
+    def interrupted(pairs, **kw):
+        raise EvaluationInterrupted([], len(pairs))
+
+    monkeypatch.setattr(commands, "evaluate_pairs", interrupted)
+    folder = _identity_folder(tmp_path)
+    out = tmp_path / "scores.npz"
+    assert main(["eval", str(folder), "--gt", "identity", "--k", "10", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted after 0" in err and str(out) not in err and not out.exists()

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._checks import is_symmetric
+from ._files import output_lock
 from ._progress import Steps
 from .bases import Basis, eigenpairs, prepare_shape
 from .collection import LandmarkFiles, MapFiles, evaluate_pairs
@@ -336,6 +337,15 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    """``torchfmap eval``: with ``--out``, one run at a time writes the file
+    (:func:`~torchfmap._files.output_lock`: a second run on a file in use is refused)."""
+    if not args.out:
+        return _eval(args)
+    with output_lock(args.out, "--out"):
+        return _eval(args)
+
+
+def _eval(args: argparse.Namespace) -> int:
     settings, title = _eval_method(args)
     # absolute paths: workers of a cluster may run in another folder
     identity = {None: None, "identity": True, "files": False}[args.gt]
@@ -386,7 +396,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         why = "Ctrl-C" if isinstance(stop, EvaluationInterrupted) else "a worker died"
         if finished:
             _print_table(finished, title, f"{protocol}; {stop} ({why})", None)
-        kept = f"; the finished pairs are in {args.out}: the same command resumes" if saved else ""
+        kept = ""
+        if saved is not None:
+            saved.flush()
+            if saved.done and Path(args.out).exists():  # no pair finished: no file to name
+                kept = f"; the finished pairs are in {args.out}: the same command resumes"
         print(f"torchfmap: {stop} ({why}){kept}", file=sys.stderr)
         return 130 if isinstance(stop, EvaluationInterrupted) else 1
     finally:  # whatever ended the run (an error in a pair too), the finished pairs are kept
