@@ -374,3 +374,29 @@ def test_partial_match_on_a_dense_pair_searches_locally_as_well(blob_cut, monkey
     p2p = reseeded_map(*shapes, part.vertices, np.stack([part.vertices[[0, 50]], [0, 50]], axis=1))
     local = geodesic_errors(whole, p2p, gt_from_map(part.vertices))
     assert local.mean() < 0.5 * whole.mean_edge_length / np.sqrt(whole.area)
+
+
+def test_overlap_iou_scores_the_region_whatever_the_parts_meshing():
+    """A part meshed four times coarser than its whole (a hemisphere of a coarser sphere, ground
+    truth the nearest whole vertex): the exact indicator of the hemisphere scores about 1 as a
+    region (the images alone cover a quarter of the region's vertices); a radius needs points."""
+    from torchfmap.eval_partial import part_radius
+    from torchfmap.operators import laplacian
+
+    whole, coarse = icosphere(4), icosphere(3)
+    keep = np.flatnonzero(coarse.vertices[:, 2] > 0)
+    faces = coarse.faces[np.isin(coarse.faces, keep).all(axis=1)]
+    remap = np.full(coarse.n_vertices, -1)
+    remap[keep] = np.arange(len(keep))
+    part = Mesh(coarse.vertices[keep], remap[faces])
+    images = np.argmin(np.linalg.norm(part.vertices[:, None] - whole.vertices[None], axis=2), axis=1)
+    mass = laplacian(whole)[1]
+    exact = (whole.vertices[:, 2] > 0).astype(float)
+    vertex_only = overlap_iou(exact, images, mass)
+    region = overlap_iou(
+        exact, images, mass, points=whole.vertices, radius=part_radius(part.vertices, part.faces)
+    )
+    assert vertex_only < 0.4 and region > 0.9
+    assert overlap_iou(1.0 - exact, images, mass, points=whole.vertices, radius=0.1) < 0.1
+    with pytest.raises(ParameterError, match="points"):
+        overlap_iou(exact, images, mass, radius=0.1)

@@ -35,7 +35,7 @@ from ._threads import thread_limit
 from .bases.prepared import prepare_shape
 from .errors import EvaluationInterrupted, ParameterError, WorkerLost
 from .eval import evaluate_map, landmarks_from_gt, shape_distance
-from .eval_partial import overlap_iou
+from .eval_partial import overlap_iou, part_radius
 from .io import find_file, load_mesh, read_landmark_pairs, read_map, shape_name
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows
@@ -211,7 +211,10 @@ def _evaluate_chunk(
             result = matcher(x, y, shapes=(sx, sy), **settings)
             seconds = time.perf_counter() - t0
             p2p, overlap = result.p2p_yx, getattr(result, "overlap", None)
-            iou = None if overlap is None else overlap_iou(overlap, gt.idx_x, sx.operators[1])
+            iou = None
+            if overlap is not None:  # the true part as a region of the whole, whatever the meshings
+                radius = part_radius(sy.mesh.vertices, sy.mesh.faces)
+                iou = overlap_iou(overlap, gt.idx_x, sx.operators[1], points=sx.mesh.vertices, radius=radius)
             # errors are geodesic on x, from its ground-truth points: pairs with the same source
             # reuse its prefactored solver and the rows already solved (kept for one source at a time)
             if rows is None or rows.solver is not sx.distances.solver:

@@ -10,14 +10,18 @@ import os
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .errors import ParameterError
 from .eval import Correspondence
 from .io import find_file, mesh_files, read_arrays, read_index_table, shape_name
 
-__all__ = ["PARTIAL_LAYOUT", "discover_partial_pairs", "overlap_iou"]
+__all__ = ["PARTIAL_LAYOUT", "discover_partial_pairs", "overlap_iou", "part_radius"]
 
 
+#: The true region of a part on its whole (:func:`part_radius`): within this many of the part's
+#: mean edge lengths of a ground-truth image.
+REGION_RADIUS = 0.75
 #: Sub-folders of a partial collection (:func:`discover_partial_pairs`): the whole shapes, the
 #: parts, and the parts' maps to their wholes.
 PARTIAL_LAYOUT = ("full", "partial", "corres")
@@ -66,14 +70,41 @@ def discover_partial_pairs(folder: str | os.PathLike, map_base: int = 0):
         yield whole, part, wholes[whole], path, Correspondence(gt_map[known], known)
 
 
-def overlap_iou(overlap: np.ndarray, true_vertices, mass) -> float:
+def overlap_iou(overlap: np.ndarray, true_vertices, mass, *, points=None, radius: float = 0.0) -> float:
     """Area-weighted intersection over union of the estimated part ``overlap > 0.5`` (``(V_x,)``,
-    :attr:`~torchfmap.MatchResult.overlap`) and the whole's vertices ``true_vertices`` (e.g. the
-    ground-truth images of the part's vertices); ``mass`` the whole's lumped mass, a ``(V_x, V_x)``
-    diagonal matrix or its ``(V_x,)`` diagonal (any scale)."""
+    :attr:`~torchfmap.MatchResult.overlap`) and the true part on the whole; ``mass`` the whole's
+    lumped mass, a ``(V_x, V_x)`` diagonal matrix or its ``(V_x,)`` diagonal (any scale).
+
+    The true part is a region, not a vertex sample: every vertex of the whole within ``radius``
+    of one of ``true_vertices`` (the ground-truth images of the part's vertices), ``points``
+    ``(V_x, 3)`` the whole's vertices. A part meshed more coarsely than its whole has images a
+    few of the whole's edges apart; with ``radius`` about the part's edge length (as
+    :func:`part_radius` gives) the region between them counts too. ``radius=0``: the images
+    alone (a part cut from the whole's own vertices).
+
+    Raises:
+        ParameterError: ``radius > 0`` without ``points``.
+    """
     area = np.asarray(mass.diagonal() if np.ndim(mass) == 2 else mass, dtype=np.float64)
     est = np.asarray(overlap) > 0.5
     true = np.zeros(len(area), dtype=bool)
-    true[np.asarray(true_vertices, dtype=np.int64)] = True
+    images = np.unique(np.asarray(true_vertices, dtype=np.int64))
+    true[images] = True
+    if radius > 0:
+        if points is None:
+            raise ParameterError("overlap_iou with a radius needs the whole's points (V_x, 3).")
+        points = np.asarray(points, dtype=np.float64)
+        near = cKDTree(points[images]).query(points, k=1, distance_upper_bound=radius)[0]
+        true |= np.isfinite(near)
     union = area[est | true].sum()
     return float(area[est & true].sum() / union) if union > 0 else 1.0
+
+
+def part_radius(part_vertices: np.ndarray, part_faces: np.ndarray) -> float:
+    """The radius of the true region of :func:`overlap_iou` for a part: :data:`REGION_RADIUS`
+    times its mean edge length, in the part's units (the whole's, as partial matching
+    requires). An equilateral triangle's points lie within ``1 / sqrt(3)`` of its edge of one of
+    its corners; the margin covers triangles of uneven shape."""
+    v, f = np.asarray(part_vertices, dtype=np.float64), np.asarray(part_faces, dtype=np.int64)
+    edges = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).ravel()
+    return float(REGION_RADIUS * edges.mean()) if len(edges) else 0.0
