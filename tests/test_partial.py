@@ -400,3 +400,17 @@ def test_overlap_iou_scores_the_region_whatever_the_parts_meshing():
     assert overlap_iou(1.0 - exact, images, mass, points=whole.vertices, radius=0.1) < 0.1
     with pytest.raises(ParameterError, match="points"):
         overlap_iou(exact, images, mass, radius=0.1)
+
+
+def test_partial_refinement_refuses_a_k_final_below_k_as_match_does(blob_cut):
+    """``match_partial(k=40, refine='zoomout', k_final=10)`` is refused by the one rule of
+    ZoomOut's sizes, as ``match(partial=True)`` refuses it (it returned a 7 x 10 map marked
+    refined)."""
+    a, cut, _ = blob_cut
+    shapes = prepare_shape(a, 80), prepare_shape(cut.mesh, 80)
+    for call in (
+        lambda: match_partial(*shapes, k=40, refine="zoomout", k_final=10),
+        lambda: match(a, cut.mesh, k=40, refine="zoomout", k_final=10, partial=True),
+    ):
+        with pytest.raises(ParameterError, match="k_final=10 is below k=40"):
+            call()

@@ -525,7 +525,7 @@ BASIS_KIND_PARAMETERS = {
     "torchfmap.kinds.hybrid.HybridZoomOut",
     "torchfmap.kinds.hybrid.HybridZoomOut.__init__",
     "torchfmap.match_checks.check_unused",
-    "torchfmap.match_checks.check_k_final",
+    "torchfmap.match_checks.check_zoomout_sizes",
     "torchfmap.solve.match_bases",
     "torchfmap.solve.solve_pair",
     "torchfmap.solve.solve_functional_map",

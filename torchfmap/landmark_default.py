@@ -24,7 +24,7 @@ from .fmap import check_landmark_pairs
 from .fmap.solver import check_solve_memory
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_refine
-from .match_checks import check_k_final, check_unused
+from .match_checks import check_unused, check_zoomout_sizes
 from .mesh import Mesh
 from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
 from .results import MatchResult, RefineMethod, refine_result
@@ -162,7 +162,7 @@ def match_landmark_default(
     prep = time.perf_counter() - t0
     pref = AUTO_KINDS[0]
     check_unused(get_kind(AUTO_KINDS[-1]), refine, k_final, None)
-    check_k_final(get_kind(pref), refine, k, k_final)
+    check_zoomout_sizes(get_kind(pref), refine, k, k_final)
     steps("landmark reading check")
     warn_if_off_by_one(shape_x, shape_y, pairs)
     candidates: dict[str, MatchResult] = {}

@@ -11,6 +11,7 @@ import numpy as np
 
 from .bases import Basis
 from .errors import MapWarning, ParameterError
+from .fmap.refine import check_k_final
 from .kinds import BasisKind, get_kind, kind_of
 from .mesh import Mesh
 from .operators.laplacian import laplacian, mass_matrix
@@ -83,10 +84,11 @@ def check_unused(kind: BasisKind, refine, k_final, times) -> None:
         )
 
 
-def check_k_final(kind: BasisKind, refine, k: int, k_final) -> None:
-    """Refuse a ZoomOut that would shrink: ``k_final < k`` in a kind whose ZoomOut grows."""
-    if refine == "zoomout" and kind.grows and k_final is not None and k_final < k:
-        raise ParameterError(f"k_final={k_final} is below k={k}: ZoomOut grows the basis. Fix: k_final >= k.")
+def check_zoomout_sizes(kind: BasisKind, refine, k: int, k_final) -> None:
+    """Refuse a ZoomOut that would shrink in a kind whose ZoomOut grows
+    (:func:`~torchfmap.fmap.refine.check_k_final`)."""
+    if refine == "zoomout" and kind.grows:
+        check_k_final(k, k_final)
 
 
 #: A given basis fits its mesh when its vertex areas (normalised to sum 1) are within this

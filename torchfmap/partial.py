@@ -53,7 +53,7 @@ from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .fmap.convert import check_p2p
 from .fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
 from .fmap.nearest import SurfaceSampling, search_p2p
-from .fmap.refine import Samples, SpectralStep, check_anchors, zoomout_iterations
+from .fmap.refine import Samples, SpectralStep, check_anchors, check_k_final, zoomout_iterations
 from .kinds.refiners import landmark_coordinates, pair_samplings
 from .mesh import Mesh
 from .quality import geodesic_distortion
@@ -265,13 +265,16 @@ def match_partial(
 
     Raises:
         ParameterError: the part is larger than the whole, ``refine`` other than None or
-            ``'zoomout'``, or either shape prepared with fewer eigenpairs than needed.
+            ``'zoomout'``, ``k_final < k`` (:func:`~torchfmap.fmap.refine.check_k_final`), or
+            either shape prepared with fewer eigenpairs than needed.
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if refine not in (None, "zoomout"):
         raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
     a = area_ratio(shape_x.mesh, shape_y.mesh)
+    if refine:
+        check_k_final(k, k_final)
     k_final = (2 * k if k_final is None else k_final) if refine else k
     n_x = k_final
     for name, shape in (("shape_x", shape_x), ("shape_y", shape_y)):

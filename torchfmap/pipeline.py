@@ -24,11 +24,12 @@ from .bases.prepared import PreparedShape, prepare_shape
 from .errors import ParameterError
 from .fmap import check_landmark_pairs
 from .fmap.defaults import W_DCOMM, W_LMK
+from .fmap.refine import check_k_final
 from .fmap.solver import check_solve_memory
 from .kinds import BasisKind, get_kind
 from .kinds.refiners import check_eigenbases, check_refine
 from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
-from .match_checks import check_k_final, check_meshes, check_unused, given_bases_kind, warn_if_partial
+from .match_checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
 from .mesh import Mesh
 from .partial import match_partial
 from .quality import OFF_BY_ONE_RATIO, landmark_distortion, warn_collapsed
@@ -175,6 +176,8 @@ def match(
                 )
             n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
             k = check_count(k, 1, n_max, "k (basis size)")
+            if refine:
+                check_k_final(k, k_final)
             k_final = check_count(k_final or 2 * k, k, n_max, "k_final") if refine else None
             check_solve_memory(k, k)
             steps("operators and eigenpairs")
@@ -221,7 +224,7 @@ def match(
         k = check_count(k, 1, n_max, "k (basis size)")
         check_count(k_descriptors, 2, 10**9, "k_descriptors")
         check_unused(kind, refine, k_final, times)
-        check_k_final(kind, refine, k, k_final)
+        check_zoomout_sizes(kind, refine, k, k_final)
         check_solve_memory(k, k)
         grow = refine == "zoomout" and kind.grows
         eigenbases = (given_x, given_y) if given_eigen else None

@@ -275,6 +275,21 @@ def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples):
     return images[samples.y], coarse
 
 
+def check_k_final(k: int, k_final: int | None) -> None:
+    """The one rule of ZoomOut's sizes, wherever they are given (``match``, partial matching,
+    the learned path, :func:`zoomout`): ZoomOut grows the basis from ``k``, so ``k_final``
+    (None: the default ``2k``) is at least ``k``.
+
+    Raises:
+        ParameterError: ``k_final < k``.
+    """
+    if k_final is not None and k_final < k:
+        raise ParameterError(
+            f"k_final={k_final} is below k={k}: ZoomOut grows the basis from k to k_final. Fix: "
+            f"k_final >= {k} (or no k_final: 2k)."
+        )
+
+
 def zoomout(
     C_xy: np.ndarray,
     basis_x: Basis,
@@ -323,11 +338,7 @@ def zoomout(
         ``(C_xy (k_final, k_final), p2p_yx (V_y,))``.
     """
     C = np.asarray(C_xy, dtype=np.float64)
-    if k_final < min(C.shape):
-        raise ParameterError(
-            f"k_final={k_final} is below the map's size {min(C.shape)}: ZoomOut only grows. Fix: "
-            "k_final >= the current K (or truncate C_xy first)."
-        )
+    check_k_final(min(C.shape), k_final)
     if k_final > min(basis_x.k, basis_y.k):
         raise ParameterError(f"k_final={k_final} exceeds the bases' sizes {basis_x.k}, {basis_y.k}.")
     step = zoomout_step(min(C.shape)) if step is None else step
