@@ -89,3 +89,40 @@ def test_bad_orthonormalisation_arguments(stack_input):
         orthonormalize(basis, scheme="cholqr", tol=1e-10)
     with pytest.raises(ParameterError, match=r"tol must be in \(0, 1\)"):
         orthonormalize(basis, tol=0)
+
+
+def test_mgs_by_panels_drops_what_column_by_column_gram_schmidt_drops():
+    """Wider than several panels (the block passes run): dependences that reach back across
+    panels are found, each column is judged by its remainder against *all* earlier kept
+    columns, and orthogonality holds to round-off (the contract of the column-by-column
+    scheme, whose reference runs here in the test)."""
+    from torchfmap.bases.orthonormalize import MGS_PANEL
+
+    mesh = bumpy_blob(3)
+    _, B = laplacian(mesh)
+    rng = np.random.default_rng(5)
+    K = 3 * MGS_PANEL + 5
+    F = rng.normal(size=(mesh.n_vertices, K))
+    F[:, MGS_PANEL + 3] = F[:, 0] - 3 * F[:, MGS_PANEL - 1]  # on two columns of panel 0
+    F[:, 2 * MGS_PANEL + 1] = F[:, 5] + F[:, MGS_PANEL + 7] + 1e-11 * rng.normal(size=mesh.n_vertices)
+    F[:, 3 * MGS_PANEL] = F[:, 2 * MGS_PANEL + 2] + 1e-5 * rng.normal(size=mesh.n_vertices)  # independent
+    tol = 1e-8
+    Q, kept = mgs(F, B, tol)
+    # reference: classical Gram-Schmidt twice, one column at a time, dense
+    Bd = B.toarray()
+    ref_q, ref_kept = np.zeros((mesh.n_vertices, 0)), []
+    for j in range(K):
+        v = F[:, j].copy()
+        norm0 = np.sqrt(v @ Bd @ v)
+        for _ in range(2):
+            v -= ref_q @ (ref_q.T @ (Bd @ v))
+        norm = np.sqrt(v @ Bd @ v)
+        if norm > tol * norm0:
+            ref_q = np.column_stack([ref_q, v / norm])
+            ref_kept.append(j)
+    assert kept.tolist() == ref_kept
+    assert MGS_PANEL + 3 not in ref_kept and 2 * MGS_PANEL + 1 not in ref_kept and 3 * MGS_PANEL in ref_kept
+    # orthonormal to round-off: a few ulps times the number of columns
+    assert np.abs(Q.T @ (B @ Q) - np.eye(len(kept))).max() < 100 * K * np.finfo(float).eps
+    # the same columns up to round-off amplified by the smallest kept remainder (1e-5)
+    assert np.abs(Q - ref_q).max() < K * np.finfo(float).eps / 1e-5 * np.abs(ref_q).max()

@@ -65,3 +65,29 @@ def test_a_prepared_shape_derives_each_quantity_once(blob):
         np.testing.assert_allclose(grad[key], ref[key], rtol=1e-12, atol=0, err_msg=key)
     grown = with_eigenpairs(shape, 8)
     assert grown is shape and shape.n_eigen == 8 and shape.derive("x", None) is first
+
+
+def test_seed_kernels_solve_all_times_of_a_call_together(monkeypatch):
+    """Several times are one Krylov solve per seed block (one factorisation for times within
+    ``KRYLOV_SPAN``), not one per time; pairs already held are kept as they were, and every
+    kernel is within the cache's tolerance of the exact one."""
+    import torchfmap.operators.krylov as krylov
+    from torchfmap.bases import diffusion_basis
+    from torchfmap.bases.prepared import SEED_HEAT_TOL, seed_kernels
+
+    x = bumpy_blob(3)
+    shape = prepare_shape(x, 0)
+    times = (0.01, 0.03, 0.1)  # within KRYLOV_SPAN of each other
+    assert times[-1] / times[0] <= krylov.KRYLOV_SPAN
+    seed_kernels(shape, [5], (0.03,))
+    held = shape.kernels[5, 0.03].copy()
+    calls = []
+    real = krylov.krylov_block
+    monkeypatch.setattr(krylov, "krylov_block", lambda *a, **kw: calls.append(a[3]) or real(*a, **kw))
+    basis = seed_kernels(shape, [5, 300], times)
+    assert len(calls) == 1 and len(calls[0]) == len(times)  # one block, all three times
+    np.testing.assert_array_equal(shape.kernels[5, 0.03], held)
+    unit = x.scaled(shape.scale)
+    exact = diffusion_basis(unit, [5, 300], times, operators=shape.operators, tol=1e-12, local=False)
+    scale = np.abs(exact.values).max(axis=0)
+    assert np.all(np.abs(basis.values - exact.values).max(axis=0) <= 2 * SEED_HEAT_TOL * scale)

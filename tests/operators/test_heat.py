@@ -158,3 +158,26 @@ def test_heat_tolerance_in_range_is_accepted(sphere2):
     """The bounds are inclusive at the bottom: the most demanding accepted tolerance still works."""
     K = heat_kernels(laplacian(sphere2), [0], [1e-2], tol=1e-14)
     assert np.isfinite(K).all()
+
+
+def test_krylov_blocks_fit_their_memory_budget():
+    """A block of Lanczos vectors stays within ``KRYLOV_BLOCK_BYTES`` (at least one column, at
+    most ``KRYLOV_BLOCK_COLUMNS``), so a million-vertex mesh gets narrower blocks, not more memory."""
+    from torchfmap.operators import krylov
+
+    cap = krylov.KRYLOV_STORE + 1
+    for n in (1_000, 300_000, 1_100_000, 50_000_000):
+        block = krylov.block_columns(n, 200, cap)
+        assert 1 <= block <= krylov.KRYLOV_BLOCK_COLUMNS
+        assert block == 1 or 8 * n * cap * block <= krylov.KRYLOV_BLOCK_BYTES
+    assert krylov.block_columns(1_000, 3, cap) == 3  # never wider than the columns asked
+
+
+def test_time_major_columns_are_a_view_of_the_kernels(heat_setting):
+    """``heat_kernels`` returns ``(T, V, S)`` laid out as ``(V, T, S)``: the diffusion basis'
+    time-major ``(V, T·S)`` values are a reshape of it, not a second copy."""
+    mesh, ops, seeds, times, ref = heat_setting
+    K = heat_kernels(ops, seeds, times, "krylov", tol=1e-8)
+    flat = K.transpose(1, 0, 2).reshape(mesh.n_vertices, -1)
+    assert np.shares_memory(flat, K)
+    np.testing.assert_array_equal(flat[:, len(seeds) : 2 * len(seeds)], K[1])

@@ -4,10 +4,11 @@ Two schemes, both processing columns *in the given order* (so a stack ordered di
 harmonic -> Laplacian keeps the earliest columns and drops later ones that add nothing):
 
 ``mgs``
-    Modified Gram-Schmidt in the inner product ``<f, g>_B = fᵀ B g`` (over blocks of
-    ``MGS_BLOCK`` previous columns) with one full re-orthogonalisation pass ("twice is
-    enough"). A column is dropped when its remainder has B-norm below ``tol`` times its
-    original B-norm. Orthogonality ``Φᵀ B Φ = I`` to ~1e-15.
+    Gram-Schmidt in the inner product ``<f, g>_B = fᵀ B g``, by panels of ``MGS_PANEL``
+    columns (matrix products against the earlier columns, column by column within a panel),
+    with one full re-orthogonalisation pass ("twice is enough"). A column is dropped when
+    its remainder has B-norm below ``tol`` times its original B-norm. Orthogonality
+    ``Φᵀ B Φ = I`` to ~1e-15.
 ``cholqr``
     Cholesky-QR2 in the B inner product: a Cholesky factorisation of the Gram matrix
     ``Fᵀ B F`` that skips (drops) columns whose pivot falls below ``tol**2`` times their
@@ -21,15 +22,16 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..errors import ParameterError
 from .basis import Basis, Column
 
 SCHEMES = ("mgs", "cholqr")
-#: Columns projected out together in :func:`mgs` (block-modified Gram-Schmidt: BLAS-2 speed,
-#: with the re-orthogonalisation pass keeping orthogonality at machine precision).
-MGS_BLOCK = 16
+#: Columns :func:`mgs` projects out of the earlier kept columns together, by matrix products
+#: (block Gram-Schmidt twice; within a panel, column by column twice).
+MGS_PANEL = 32
 
 
 def _mass_op(mass):
@@ -40,12 +42,21 @@ def _mass_op(mass):
 
 
 def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
-    """Modified Gram-Schmidt with re-orthogonalisation in the B inner product.
+    """Gram-Schmidt with re-orthogonalisation in the B inner product, by panels.
+
+    Columns are taken in panels of :data:`MGS_PANEL`: a panel is first projected out of
+    every column kept before it by block classical Gram-Schmidt, twice (two matrix products
+    per pass, ``Q_kᵀ (B P)`` and ``P -= Q_k C``: the kept columns are read twice per panel, not
+    twice per column, which makes the cost ``O(V K² / panel)`` in memory traffic instead of
+    ``O(V K²)``); then its columns one by one against the columns kept from the same panel,
+    twice. Every column is thus projected twice against every earlier kept column ("twice is
+    enough"), the same result as the column-by-column scheme to round-off.
 
     Args:
         F: ``(V, K)`` input columns.
         mass: ``(V, V)`` SPD mass matrix (or ``(V,)`` diagonal).
-        tol: relative drop tolerance.
+        tol: relative drop tolerance: a column is dropped when its remainder has B-norm below
+            ``tol`` times its own B-norm.
 
     Returns:
         ``(Q (V, R), kept (R,))``: B-orthonormal columns and the indices of the kept inputs.
@@ -53,28 +64,49 @@ def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]
     B = _mass_op(mass)
     F = np.asarray(F, dtype=np.float64)
     V, K = F.shape
-    Q = np.empty((V, K))
-    BQ = np.empty((V, K))  # B @ Q, kept to make each projection a dot product
+    Q = np.empty((V, K), order="F")  # columns contiguous: the panel's column steps are BLAS-1
     kept: list[int] = []
     r = 0
-    for j in range(K):
-        v = F[:, j].copy()
-        norm0 = np.sqrt(max(v @ (B @ v), 0.0))
-        if norm0 == 0.0 or not np.isfinite(norm0):
-            continue
-        for _ in range(2):  # the second pass is the re-orthogonalisation
-            for b in range(0, r, MGS_BLOCK):  # modified across blocks, classical within one
-                e = min(b + MGS_BLOCK, r)
-                v -= Q[:, b:e] @ (BQ[:, b:e].T @ v)
-        Bv = B @ v
-        norm = np.sqrt(max(v @ Bv, 0.0))
-        if norm <= tol * norm0:
-            continue
-        Q[:, r] = v / norm
-        BQ[:, r] = Bv / norm
-        kept.append(j)
-        r += 1
-    return Q[:, :r].copy(), np.asarray(kept, dtype=np.int64)
+    for p0 in range(0, K, MGS_PANEL):
+        P = np.array(F[:, p0 : p0 + MGS_PANEL], order="F")
+        norm0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", P, B @ P), 0.0))
+        for _ in range(2 if r else 0):  # block passes against the columns kept so far
+            P -= Q[:, :r] @ (Q[:, :r].T @ (B @ P))
+        r0 = r  # the columns kept from this panel start here
+        for j in range(P.shape[1]):
+            if norm0[j] == 0.0 or not np.isfinite(norm0[j]):
+                continue
+            v = P[:, j]
+            for _ in range(2 if r > r0 else 0):  # the second pass is the re-orthogonalisation
+                v -= Q[:, r0:r] @ (Q[:, r0:r].T @ (B @ v))
+            Bv = B @ v
+            norm = np.sqrt(max(v @ Bv, 0.0))
+            if norm <= tol * norm0[j]:
+                continue
+            Q[:, r] = v / norm
+            kept.append(p0 + j)
+            r += 1
+        if r0 and r > r0:
+            _polish(Q, B, r0, r)
+    Q = Q[:, :r]
+    return np.ascontiguousarray(Q), np.asarray(kept, dtype=np.int64)
+
+
+def _polish(Q: np.ndarray, B, r0: int, r: int) -> None:
+    """Columns ``r0:r`` of ``Q`` (one panel) projected once more out of columns ``:r0`` and
+    re-orthonormalised by one Cholesky-QR step, in place.
+
+    A column kept with a small remainder ``ρ`` (its norm over its input norm, at least the drop
+    tolerance) carries round-off of order ``ε/ρ`` along the earlier panels once it is divided by
+    its norm; the column-by-column scheme removes it with its second pass over every column,
+    here one block pass per panel does. The panel is then orthonormal to ``ε/ρ``, so its Gram
+    matrix is within that of the identity and Cholesky-QR is exact to round-off; the factor is
+    triangular, so column ``j`` still spans what the first ``j`` inputs add."""
+    panel = Q[:, r0:r]
+    panel -= Q[:, :r0] @ (Q[:, :r0].T @ (B @ panel))
+    gram = panel.T @ (B @ panel)
+    upper = np.linalg.cholesky(0.5 * (gram + gram.T)).T
+    Q[:, r0:r] = sla.solve_triangular(upper, panel.T, trans="T", lower=False).T
 
 
 def cholqr(F: np.ndarray, mass, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:

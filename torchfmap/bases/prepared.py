@@ -16,6 +16,7 @@ indices are the caller's; distances are in units of ``sqrt(area)``.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -151,9 +152,11 @@ def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
     orthonormalised: ``(V, T·S)`` values, time-major (small to large ``t``), provenance
     ``('diffusion', seed, t)``.
 
-    Kernels are independent per seed: only the ``(seed, time)`` pairs missing from
-    ``shape.kernels`` are solved (to :data:`SEED_HEAT_TOL`) and stored there, with the
-    factorisations of their solves kept in ``shape.derived`` for the next seeds at those times.
+    Kernels are independent per seed: only the seeds missing a ``(seed, time)`` pair from
+    ``shape.kernels`` are solved (to :data:`SEED_HEAT_TOL`), at every time of the call in one
+    Krylov space (:func:`~torchfmap.operators.krylov.krylov_heat`: one factorisation and one
+    set of solves for all the times, not one per time), and their missing pairs stored there;
+    the factorisations are kept in ``shape.derived`` for the next seeds at those times.
 
     Raises:
         ParameterError: invalid seeds, seeds missing a connected component, or times not > 0.
@@ -164,14 +167,14 @@ def seed_kernels(shape: PreparedShape, seeds, rel_times) -> Basis:
     times = tuple(sorted(float(t) for t in rel_times))
     if not times:
         raise ParameterError("no diffusion times. Fix: give at least one relative time > 0.")
-    for t in times:
-        missing = np.unique([int(s) for s in seeds if (int(s), t) not in shape.kernels])
-        if len(missing):  # heat_kernels checks the time
-            K = heat_kernels(
-                shape.operators, missing, [t * shape.area], tol=SEED_HEAT_TOL, local=False,
-                factors=shape.derive("heat factorisations", dict),
-            )[0]  # fmt: skip
-            shape.kernels.update({(int(s), t): K[:, j] for j, s in enumerate(missing)})
+    missing = np.unique([int(s) for s in seeds for t in times if (int(s), t) not in shape.kernels])
+    if len(missing):  # heat_kernels checks the times
+        K = heat_kernels(
+            shape.operators, missing, [t * shape.area for t in times], tol=SEED_HEAT_TOL, local=False,
+            factors=shape.derive("heat factorisations", dict),
+        )  # fmt: skip
+        for (i, t), (j, s) in itertools.product(enumerate(times), enumerate(missing)):
+            shape.kernels.setdefault((int(s), t), K[i, :, j])  # pairs already held stay as they are
     values = np.stack([shape.kernels[int(s), t] for t in times for s in seeds], axis=1)
     prov = [Column("diffusion", int(s), t) for t in times for s in seeds]
     L, B = shape.operators

@@ -260,7 +260,9 @@ def heat_kernels(
     n_eigen: int = 200,
     factors: dict | None = None,
 ) -> np.ndarray:
-    """Heat kernels ``K_t(p_i, ·)`` for every absolute time and seed: ``(T, V, S)``.
+    """Heat kernels ``K_t(p_i, ·)`` for every absolute time and seed: ``(T, V, S)`` (global
+    ``krylov`` solves lay it out as ``(V, T, S)`` in memory, so that the time-major ``(V, T·S)``
+    columns of :func:`~torchfmap.bases.diffusion_basis` are a view, not a copy).
 
     Args:
         operators: ``(L, B)`` of the mesh (``L`` symmetric).

@@ -5,6 +5,13 @@ The ``krylov`` method of :func:`~torchfmap.operators.heat.heat_apply`: Krylov sp
 columns, one sparse Cholesky of ``B + γL`` per group of times, reused by every column and
 every time in it; each column stops when every time has converged to ``tol`` (relative, in the
 B-norm).
+
+Where the time goes, and why the loop is written as it is: the sparse solves dominate and
+cost less per column in blocks (a multi-column triangular solve reads the factor once for
+every column), so a block is as wide as :data:`KRYLOV_BLOCK_COLUMNS` where the memory budget
+allows. Every other step is a pass over an ``(n, s)`` block, bound by memory bandwidth: the
+three-term recurrence subtracts with in-place BLAS products (``W -= Q diag(c)``, one pass,
+no temporary), and the approximation is assembled straight into the caller's output.
 """
 
 from __future__ import annotations
@@ -12,19 +19,20 @@ from __future__ import annotations
 import contextlib
 
 import numpy as np
+from scipy.linalg import blas
 
 from .._checks import lumped_diagonal
 from .._threads import blas_limiter
 from .solvers import factorize
 
 #: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
-KRYLOV_BLOCK_BYTES = 512 * 2**20
-#: Seeds per Krylov block: multi-column sparse solves cost less per column, but a block's work
-#: buffer is touched page by page (chosen by ``python -m bench speed --case bases``,
-#: ``bench/results/bases.md``).
+#: Columns per block are ``min(KRYLOV_BLOCK_COLUMNS, budget / (8 n KRYLOV_STORE))``, at least one.
+KRYLOV_BLOCK_BYTES = 3 * 2**30
+#: Seeds per Krylov block: multi-column sparse solves cost less per column up to about this
+#: width, beyond it about the same (``python -m bench speed --case bases``).
 KRYLOV_BLOCK_COLUMNS = 8
 #: Lanczos vectors per column the work buffer starts with (it grows when more are needed).
-KRYLOV_STORE = 40
+KRYLOV_STORE = 48
 #: Shift of the Krylov factorisation ``B + γL``, as a fraction of the smallest time it serves.
 KRYLOV_SHIFT = 0.3
 #: Times up to this factor above the smallest of a group share its Krylov space.
@@ -33,7 +41,20 @@ KRYLOV_SPAN = 50.0
 KRYLOV_SHIFT_SPAN_EXP = 0.15
 
 
-def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None) -> tuple[np.ndarray, int]:
+def _sub_scaled(W: np.ndarray, Q: np.ndarray, c: np.ndarray) -> None:
+    """``W -= Q · diag(c)`` in place for C-ordered ``(n, s)`` blocks: one BLAS pass, no
+    temporary (``W.T``, F-ordered, is updated by ``dgemm``)."""
+    blas.dgemm(-1.0, np.diag(c), Q.T, 1.0, W.T, overwrite_c=True)
+
+
+def _dots(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Column-wise dot products of two ``(n, s)`` blocks."""
+    return np.einsum("ij,ij->j", X, Y)
+
+
+def krylov_block(
+    fac, B, X, times, gamma, tol, max_iter, store=None, small=None, out=None
+) -> tuple[np.ndarray, int]:
     """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``.
 
     ``S = (B + γL)⁻¹ B`` is self-adjoint in the B inner product, so the three-term recurrence
@@ -44,25 +65,27 @@ def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None)
     reused across blocks (first-touch page faults of fresh memory cost as much as the
     arithmetic here). ``small``: a context manager factory run around the tiny ``(s, k, k)``
     eigenproblems (:func:`krylov_heat` passes one that limits BLAS to one thread there).
+    ``out``: an optional ``(T, n, s)`` array (any strides) the result is written into.
     Returns ``((T, n, s) approximations, iterations)``.
     """
     small = small if small is not None else contextlib.nullcontext
     n, s = X.shape
     d = lumped_diagonal(B)
 
-    def bmul(v: np.ndarray, out: np.ndarray) -> None:  # out = B v, in place when B is lumped
+    def bmul(v: np.ndarray, res: np.ndarray) -> None:  # res = B v, in place when B is lumped
         if d is not None:
-            np.multiply(v, d[:, None], out=out)
+            np.multiply(v, d[:, None], out=res)
         else:
-            out[...] = B @ v
+            res[...] = B @ v
 
     if store is None or store.shape[1] != n or store.shape[2] < s:
         store = np.empty((min(max_iter, KRYLOV_STORE) + 1, n, s))  # store[m]: the m-th Lanczos vectors
     store = store[:, :, :s]
+    if not store.flags.c_contiguous:  # a narrower last block: its own contiguous buffer
+        store = np.empty((store.shape[0], n, s))
     Bq = np.empty((n, s))  # B times the current vectors
-    tmp = np.empty((n, s))  # preallocated: fresh large temporaries cost page faults
     bmul(X, Bq)
-    beta0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", X, Bq), 0.0))
+    beta0 = np.sqrt(np.maximum(_dots(X, Bq), 0.0))
     beta0[beta0 == 0] = 1.0
     q = store[0]
     np.divide(X, beta0, out=q)
@@ -80,16 +103,16 @@ def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None)
             grow = min(store.shape[0], max_iter + 1 - store.shape[0])
             store = np.concatenate([store, np.empty((grow, n, s))], axis=0)
             q = store[m]
-        w = fac.solve(Bq)  # (n, s)
+        w = fac.solve(Bq)  # (n, s), a fresh C-ordered array
         if m > 0:
-            w -= np.multiply(store[m - 1], beta[:, m - 1], out=tmp)
-        a = np.einsum("ij,ij->j", w, Bq)
-        w -= np.multiply(q, a, out=tmp)
-        a2 = np.einsum("ij,ij->j", w, Bq)  # one cheap re-orthogonalisation against q_m
-        w -= np.multiply(q, a2, out=tmp)
+            _sub_scaled(w, store[m - 1], beta[:, m - 1])
+        a = _dots(w, Bq)
+        _sub_scaled(w, q, a)
+        a2 = _dots(w, Bq)  # one cheap re-orthogonalisation against q_m
+        _sub_scaled(w, q, a2)
         alpha[:, m] = a + a2
         bmul(w, Bq)
-        nb = np.sqrt(np.maximum(np.einsum("ij,ij->j", w, Bq), 0.0))
+        nb = np.sqrt(np.maximum(_dots(w, Bq), 0.0))
         beta[:, m] = nb
         safe = np.where(nb > 0, nb, 1.0)
         q = store[m + 1]
@@ -121,11 +144,18 @@ def krylov_block(fac, B, X, times, gamma, tol, max_iter, store=None, small=None)
     k = y.shape[2]
     final[:, ~done, :k] = y[:, ~done]  # max_iter reached: the last approximation
     coef = (final[:, :, :k] * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
-    out = np.empty((len(times), n, s))
-    for r0 in range(0, n, 4096):  # row chunks: cache-friendly transposes, then batched GEMM
-        chunk = np.ascontiguousarray(store[:k, r0 : r0 + 4096].transpose(2, 1, 0))  # (s, r, k)
-        out[:, r0 : r0 + 4096] = np.matmul(chunk, coef).transpose(2, 1, 0)
+    out = np.empty((len(times), n, s)) if out is None else out
+    rows = max(1, 2**18 // (k * s))  # row chunks of ~2 MiB: cache-friendly transposes, then GEMM
+    for r0 in range(0, n, rows):
+        chunk = np.ascontiguousarray(store[:k, r0 : r0 + rows].transpose(2, 1, 0))  # (s, r, k)
+        out[:, r0 : r0 + rows] = np.matmul(chunk, coef).transpose(2, 1, 0)
     return out, k
+
+
+def block_columns(n: int, s_total: int, cap: int) -> int:
+    """Columns per Krylov block for ``s_total`` columns of ``n`` rows and ``cap`` stored vectors
+    each: :data:`KRYLOV_BLOCK_COLUMNS` within :data:`KRYLOV_BLOCK_BYTES`, at least one."""
+    return max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
 
 
 def krylov_heat(
@@ -134,7 +164,10 @@ def krylov_heat(
     """Times within a factor :data:`KRYLOV_SPAN` share one Krylov space per column and one
     factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group). ``factors``: a
     dict kept by the caller for these ``L`` and ``B`` (e.g. a prepared shape's), ``γ ->``
-    factorisation, read and filled, so later calls at the same times factorise nothing."""
+    factorisation, read and filled, so later calls at the same times factorise nothing.
+
+    Returns ``(T, n, S)``, a view of an ``(n, T, S)`` C-ordered array: ``out.transpose(1, 0,
+    2).reshape(n, T * S)`` (time-major columns) is then free of copies."""
     times = np.asarray(times, dtype=np.float64)
     n, s_total = X.shape
     order = np.argsort(times)
@@ -147,9 +180,9 @@ def krylov_heat(
     # KRYLOV_STORE Lanczos vectors per column of a block fit in the budget (seeds are solved in
     # blocks: multi-column sparse solves cost less per column); one buffer serves all blocks
     cap = min(max_iter, KRYLOV_STORE) + 1
-    block = max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
+    block = block_columns(n, s_total, cap)
     store = np.empty((cap, n, block))
-    out = np.empty((len(times),) + X.shape)
+    out = np.empty((n, len(times), s_total)).transpose(1, 0, 2)
     one_thread = blas_limiter(1)  # BLAS threads for the tiny eigenproblems only
 
     for group in groups:
@@ -163,7 +196,11 @@ def krylov_heat(
                 factors[gamma] = fac
         for start in range(0, s_total, block):
             cols = slice(start, min(start + block, s_total))
-            out[group, :, cols], _ = krylov_block(
-                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store, one_thread
+            contiguous = group == list(range(group[0], group[-1] + 1))  # sorted times: always
+            target = out[group[0] : group[-1] + 1, :, cols] if contiguous else None
+            res, _ = krylov_block(
+                fac, B, X[:, cols], times[group], gamma, tol, max_iter, store, one_thread, target
             )
+            if not contiguous:
+                out[group, :, cols] = res
     return out
