@@ -21,7 +21,7 @@ def test_held_out_landmark_errors_are_distances_to_the_true_matches(bent_pair):
     sx, sy = prepare_shape(x, 30), prepare_shape(y, 30)
     scores = landmark_scores(sx, sy, pairs, AUTO_KINDS, 12)
     assert set(scores) == set(AUTO_KINDS)
-    diameter = sx.distances.rows(pairs[:1, 0]).max()
+    diameter = sx.distances.distances(pairs[:1, 0]).max()
     assert all(0 <= v < diameter for v in scores.values())
     edge = x.mean_edge_length / np.sqrt(x.area)
     assert scores["laplacian"] < 5 * edge

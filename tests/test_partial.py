@@ -414,3 +414,29 @@ def test_partial_refinement_refuses_a_k_final_below_k_as_match_does(blob_cut):
     ):
         with pytest.raises(ParameterError, match="k_final=10 is below k=40"):
             call()
+
+
+def test_reseeded_map_solves_each_seed_row_once(monkeypatch):
+    """The re-seeded pass's farthest-point seeds on the part take their rows from the prepared
+    shape's distance rows and keep them there, so the pass solves each seed's row once (it
+    solved every row twice: once for the sampling, once for the functions)."""
+    from torchfmap.operators.geodesic import GeodesicSolver
+
+    whole = demo_pair()[0]
+    cut = cut_plane(whole, 0.6, seed=1)
+    shapes = prepare_shape(whole, 10), prepare_shape(cut.mesh, 10)
+    solved = []
+    real_many, real_one = GeodesicSolver.distances, GeodesicSolver.distance
+
+    def many(self, sources):
+        solved.extend(np.atleast_1d(sources).tolist())
+        return real_many(self, sources)
+
+    def one(self, source):
+        solved.append(int(source))
+        return real_one(self, source)
+
+    monkeypatch.setattr(GeodesicSolver, "distances", many)
+    monkeypatch.setattr(GeodesicSolver, "distance", one)
+    reseeded_map(*shapes, cut.vertices, n_seeds=20)
+    assert len(solved) == len(set(solved)) and len(solved) <= 2 * 20

@@ -79,7 +79,7 @@ def test_geodesic_distortion_of_a_part_reads_its_distances_in_the_wholes_units()
     a = area_ratio(whole, cut.mesh)
     right = geodesic_distortion(*shapes, cut.vertices, area_ratio=a)
     wrong = geodesic_distortion(*shapes, cut.vertices)
-    mean_distance = shapes[1].distances.rows(distortion_anchors(shapes[1])).mean() * np.sqrt(a)
+    mean_distance = shapes[1].distances.distances(distortion_anchors(shapes[1])).mean() * np.sqrt(a)
     assert wrong > 0.5 * (1 / np.sqrt(a) - 1) * mean_distance
     assert right < 0.25 * wrong
     with pytest.raises(ParameterError, match="area_ratio"):

@@ -88,7 +88,7 @@ def landmark_scores(
             f"cross-validation holds landmarks out: {CV_MIN_LANDMARKS} or more are needed, got {len(pairs)}."
         )
     n_folds = min(folds, len(pairs))
-    rows = shape_x.distances.rows(pairs[:, 0])  # (L, V_x): distances from each true match
+    rows = shape_x.distances.distances(pairs[:, 0])  # (L, V_x): distances from each true match
     scores = {}
     for name in kinds:
         kind = get_kind(name)

@@ -220,14 +220,14 @@ def reseeded_map(
     p2p_yx = check_p2p(p2p_yx, n_y, n_x, "p2p_yx")
     pairs = np.zeros((0, 2), np.int64) if landmarks is None else check_landmark_pairs(landmarks, n_x, n_y)
     n = int(min(max(n_seeds, len(pairs)), n_y))
-    on_part = farthest_point_sampling(  # the shape's prefactored solver, not a new one
+    on_part = farthest_point_sampling(  # rows kept in the shape: solved once for seeds and functions
         shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
-        solver=shape_y.distances.solver,
+        distances=shape_y.distances,
     )  # fmt: skip
     on_whole = np.concatenate([pairs[:, 0], p2p_yx[on_part[len(pairs) :]]])
     unique, column = np.unique(on_whole, return_inverse=True)  # two seeds may share an image
-    d_x = shape_x.distances.rows(unique).T[:, column]
-    d_y = shape_y.distances.rows(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
+    d_x = shape_x.distances.distances(unique).T[:, column]
+    d_y = shape_y.distances.distances(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
     query, reference = np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2))
     samplings = pair_samplings(shape_x, shape_y)  # dense pairs: near where the first map went
     coarse = None if samplings is None else samplings[0].cell[p2p_yx[samplings[1].index]]

@@ -90,9 +90,9 @@ def geodesic_distortion(
     if not area_ratio > 0:
         raise ParameterError(f"area_ratio must be > 0 (the part's area over the whole's), got {area_ratio}.")
     anchors = distortion_anchors(shape_y) if anchors is None else np.asarray(anchors, dtype=np.int64)
-    d_y = shape_y.distances.rows(anchors) * np.sqrt(area_ratio)
+    d_y = shape_y.distances.distances(anchors) * np.sqrt(area_ratio)
     images, inverse = np.unique(p2p[anchors], return_inverse=True)
-    d_x = shape_x.distances.rows(images)[inverse]
+    d_x = shape_x.distances.distances(images)[inverse]
     return float(np.mean(np.abs(d_y - d_x[:, p2p])))
 
 
@@ -119,8 +119,8 @@ def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmark
     """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(a_i, b_i)``, in units of
     ``sqrt(area)``: small for corresponding landmarks on near-isometric shapes, large for
     landmarks that do not correspond (e.g. read with the wrong index base)."""
-    dx = shape_x.distances.rows(landmarks[:, 0])[:, landmarks[:, 0]]
-    dy = shape_y.distances.rows(landmarks[:, 1])[:, landmarks[:, 1]]
+    dx = shape_x.distances.distances(landmarks[:, 0])[:, landmarks[:, 0]]
+    dy = shape_y.distances.distances(landmarks[:, 1])[:, landmarks[:, 1]]
     return float(np.mean(np.abs(dx - dy)))
 
 

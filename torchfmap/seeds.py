@@ -139,17 +139,23 @@ def curvature_features(
 class _Distances:
     """Distances from one vertex, geodesic (heat method) or Euclidean."""
 
-    def __init__(self, mesh: Mesh, metric: str, solver: GeodesicSolver | None) -> None:
+    def __init__(
+        self, mesh: Mesh, metric: str, solver: GeodesicSolver | None, rows: DistanceRows | None = None
+    ) -> None:
         if metric not in ("geodesic", "euclidean"):
             raise ParameterError(f"metric must be 'geodesic' or 'euclidean', got {metric!r}.")
         self.mesh = mesh
         self.metric = metric
-        self.solver = solver if solver is not None or metric == "euclidean" else GeodesicSolver(mesh)
+        self.rows = rows
+        if rows is None:
+            self.solver = solver if solver is not None or metric == "euclidean" else GeodesicSolver(mesh)
 
     def __call__(self, i: int) -> np.ndarray:
         if self.metric == "euclidean":
             diff = self.mesh.vertices - self.mesh.vertices[i]
             return np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        if self.rows is not None:  # solved once, kept for whoever asks next
+            return np.maximum(self.rows(int(i)), 0.0)
         return np.maximum(self.solver.distance(int(i)), 0.0)
 
 
@@ -161,6 +167,7 @@ def farthest_point_sampling(
     landmarks=None,
     metric: Literal["geodesic", "euclidean"] = "geodesic",
     solver: GeodesicSolver | None = None,
+    distances: DistanceRows | None = None,
     return_radius: bool = False,
 ):
     """``k`` seeds by farthest-point sampling.
@@ -172,6 +179,10 @@ def farthest_point_sampling(
         landmarks: optional vertex indices kept first, in the given order; FPS continues from them.
         metric: ``'geodesic'`` (heat method, default) or ``'euclidean'``.
         solver: a prebuilt :class:`~torchfmap.GeodesicSolver` to reuse.
+        distances: the mesh's :class:`~torchfmap.operators.geodesic.DistanceRows` (geodesic
+            metric): the seeds' rows are taken from it and kept in it (e.g. a prepared shape's
+            ``distances``, so later users of the same rows do not solve them again); the covering
+            radius is then in its units.
         return_radius: also return the covering radius (largest distance to the nearest seed).
 
     Returns:
@@ -180,7 +191,7 @@ def farthest_point_sampling(
     n = mesh.n_vertices
     if k < 1 or k > n:
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got {k}.")
-    dist = _Distances(mesh, metric, solver)
+    dist = _Distances(mesh, metric, solver, distances)
     seeds: list[int] = []
     mind = np.full(n, np.inf)
     if landmarks is not None and len(np.atleast_1d(landmarks)):
@@ -249,13 +260,13 @@ def corresponding_seeds(
     r2 = 1.0 / n_seeds
     placed = [(int(a), int(b)) for a, b in pairs]
     used_x, used_y = {a for a, _ in placed}, {b for _, b in placed}
-    nearest = np.min(dx.rows([a for a, _ in placed]), axis=0)
+    nearest = np.min(dx.distances([a for a, _ in placed]), axis=0)
     nearest[list(used_x)] = -np.inf
     while len(placed) < n_seeds:  # bounded: one seed per pass, at most n_seeds passes
         s = int(np.argmax(nearest))
         d_s = np.array([dx(a)[s] for a, _ in placed])
         weights = 1.0 / (d_s**2 + r2)
-        cost = weights @ (dy.rows([b for _, b in placed]) - d_s[:, None]) ** 2
+        cost = weights @ (dy.distances([b for _, b in placed]) - d_s[:, None]) ** 2
         cost[list(used_y)] = np.inf
         v = int(np.argmin(cost))
         placed.append((s, v))

@@ -89,7 +89,7 @@ def test_distance_rows_are_cached_and_in_sqrt_area_units():
     a = rows(5)
     np.testing.assert_array_equal(rows(5), a)
     assert solved == [5] and a[5] == 0 and (a >= 0).all()
-    np.testing.assert_allclose(scaled.rows([5, 9]), rows.rows([5, 9]), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(scaled.distances([5, 9]), rows.distances([5, 9]), rtol=1e-6, atol=1e-9)
     assert solved == [5, 9]
 
 

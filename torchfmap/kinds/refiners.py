@@ -145,7 +145,7 @@ def landmark_coordinates(
     computed by, and kept in, each shape's ``distances``). Column ``l`` is the same function on
     both shapes wherever the map between them preserves distances to landmark ``l``."""
     pairs = np.asarray(landmarks, dtype=np.int64).reshape(-1, 2)
-    return shape_x.distances.rows(pairs[:, 0]).T, shape_y.distances.rows(pairs[:, 1]).T
+    return shape_x.distances.distances(pairs[:, 0]).T, shape_y.distances.distances(pairs[:, 1]).T
 
 
 def stacked_anchors(*blocks: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray] | None:

@@ -150,8 +150,6 @@ class DistanceRows:
             self._rows[i] = row
         return np.stack([self._rows[i] if i in self._rows else fresh[i] for i in s.tolist()])
 
-    rows = distances
-
 
 def geodesic_distances(mesh: Mesh, sources) -> np.ndarray:
     """``(S, V)`` heat-method distances from each source (one-shot; build a solver to reuse)."""
