@@ -13,16 +13,22 @@ models``); null for every shipped model.
 from __future__ import annotations
 
 import glob
+import multiprocessing
+import resource
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import torch
+import trimesh
 
-from torchfmap import prepare_shape
+from torchfmap import Mesh, prepare_shape
 from torchfmap.bases.prepared import with_eigenpairs
 from torchfmap.data import demo_pair_paths
+from torchfmap.eval import geodesic_errors, gt_from_vts
 from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
 from torchfmap.fmap import p2p_to_fmap
+from torchfmap.io import load_mesh, read_vts
 from torchfmap.kinds import get_kind
 from torchfmap.nn import (
     LearnedMatcher,
@@ -38,8 +44,10 @@ from torchfmap.nn import (
     shipped_models,
     unsupervised_score,
 )
+from torchfmap.nn.coarse import COARSE_VERTICES
 from torchfmap.nn.data import class_pairs
 from torchfmap.nn.train import pair_loss
+from torchfmap.operators.geodesic import GeodesicSolver
 
 from . import common
 from .common import Report, Settings, Skip, log, nanmean
@@ -366,4 +374,69 @@ def stage_two(cfg: Settings, report: Report) -> None:
     report.table("Second stage of the learned path against stage 1 (mean geodesic error x100)", rows)
 
 
+def _dense_pair(names: list[str], level: int, at_5k: bool):
+    """FAUST_r meshes Loop-subdivided ``level`` times (the original vertices keep their ids, so
+    the ``.vts`` rows apply), or with ``at_5k`` the same surface at 5K (the subdivided positions
+    of the original vertices on the original faces), and their ground truth."""
+    folder, meshes = common.require_data("faust_r_train"), []
+    for name in names:
+        m = load_mesh(folder / f"{name}.off")
+        v, f = (
+            trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=level)
+            if level
+            else (m.vertices, m.faces)
+        )
+        meshes.append(Mesh(v[: m.n_vertices], m.faces, name=name) if at_5k else Mesh(v, f, name=name))
+    return meshes, gt_from_vts(*(read_vts(folder / "corres" / f"{n}.vts") for n in names))
+
+
+def _dense_run(names, level, at_5k, coarse, checkpoint, threads, data_dir):
+    """One match in a fresh process: ``(p2p raw, p2p ZoomOut, seconds, peak RSS MiB)``."""
+    common.DATA_DIR = data_dir
+    torch.set_num_threads(threads)
+    (x, y), _ = _dense_pair(names, level, at_5k)
+    t0 = time.perf_counter()
+    res = LearnedMatcher.from_checkpoint(checkpoint, device="cpu", coarse=coarse)(x, y, refine="zoomout")
+    seconds = time.perf_counter() - t0
+    return res.p2p_yx_initial, res.p2p_yx, seconds, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def dense(cfg: Settings, report: Report) -> None:
+    """The learned path on dense meshes: a FAUST_r pair Loop-subdivided to ~80K / ~320K vertices
+    against the same surface at 5K, the network on every vertex and on a simplification, with
+    time, peak memory and error (raw and after ZoomOut)."""
+    rows, spawn = [], multiprocessing.get_context("spawn")
+    runs = [("same surface at 5K", True, None), ("every vertex", False, None)]
+    runs.append((f"simplified to {COARSE_VERTICES // 1000}K", False, COARSE_VERTICES))
+    for level in cfg.levels:
+        (mesh_x, _), gt = _dense_pair(cfg.pair, level, False)
+        solver, ref = GeodesicSolver(mesh_x), None
+        for route, at_5k, coarse in runs:
+            args = (cfg.pair, level, at_5k, coarse, cfg.checkpoint, cfg.threads, common.DATA_DIR)
+            with ProcessPoolExecutor(1, mp_context=spawn) as pool:  # a process per run: its own peak
+                out = common.attempt(route, lambda a=args, p=pool: p.submit(_dense_run, *a).result())
+            row = {"mesh": f"level {level}", "V": 5001 if at_5k else mesh_x.n_vertices, "route": route}
+            if isinstance(out, common.Failed):
+                rows.append({**row, "seconds": out})
+                continue
+            raw, zo, seconds, peak = out  # errors on the dense surface, the same rows for every map
+            err = [
+                100 * geodesic_errors(mesh_x, p, gt, max_points=cfg.max_points, solver=solver).mean()
+                for p in (raw, zo)
+            ]
+            ref = err if at_5k else ref
+            log(f"level {level} {route}: {seconds:.0f} s, {peak:.0f} MiB, errors {err[0]:.2f} / {err[1]:.2f}")
+            ratios = [e / r for e, r in zip(err, ref, strict=True)] if ref else [float("nan")] * 2
+            row |= {"seconds": seconds, "peak MiB": peak, "raw x100": err[0], "ZoomOut x100": err[1]}
+            rows.append(row | {"raw / 5K": ratios[0], "ZoomOut / 5K": ratios[1]})
+        report.rows_csv(rows)
+    note = (
+        f"Errors: mean geodesic error / sqrt(area) x100 on the subdivided surface at {cfg.max_points} "
+        "ground-truth rows, the same rows for every map (the 5K map's vertices are the dense mesh's first)."
+    )
+    title = f"`{cfg.checkpoint}`, {' -> '.join(cfg.pair)} Loop-subdivided, match + ZoomOut"
+    report.table(f"{title} ({cfg.threads} thread(s)): seconds with preparation, peak RSS", rows, note=note)
+
+
 CASES = {"checkpoints": checkpoints, "curve": curve, "adapt": adapt_sweep, "stage_two": stage_two}
+CASES["dense"] = dense

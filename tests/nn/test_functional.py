@@ -158,4 +158,3 @@ def test_vertex_mask_marks_the_real_vertices():
     mask = vertex_mask(torch.tensor([2, 4]), 4)
     assert mask.tolist() == [[True, True, False, False], [True, True, True, True]]
     assert vertex_mask(None, 4) is None
-

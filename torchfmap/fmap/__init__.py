@@ -8,6 +8,7 @@ from .nearest import (
     local_nearest,
     nearest_neighbor,
     nearest_neighbor_distance,
+    spread_samples,
     surface_sampling,
 )
 from .refine import (
@@ -52,6 +53,7 @@ __all__ = [
     "solve_fmap",
     "solve_rowwise",
     "spectral_frame",
+    "spread_samples",
     "SurfaceSampling",
     "surface_sampling",
     "values_to_p2p",

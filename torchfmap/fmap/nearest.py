@@ -145,10 +145,8 @@ VOXELS_PER_SAMPLE = 4
 def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> SurfaceSampling:
     """``n_samples`` evenly spread vertices of a surface and the cells around them.
 
-    The vertices ``points (V, 3)`` are first thinned to one per occupied voxel of a grid of about
-    :data:`VOXELS_PER_SAMPLE` ``x n_samples`` voxels over the surface (the one nearest the voxel's
-    centre), then farthest-point sampling in space picks ``n_samples`` of them: ``O(V)`` work
-    plus ``O(n_samples²)``, deterministic. Where the vertex density varies, crowded cells are
+    The samples are :func:`spread_samples` of the vertices ``points (V, 3)``: ``O(V)`` work plus
+    ``O(n_samples²)``, deterministic, by position only. Where the vertex density varies, crowded cells are
     split (more samples there, so there may be more than ``n_samples`` in all: read
     ``len(index)``). Each vertex joins the cell of its nearest sample;
     ``mass (V,)`` (lumped vertex areas) gives the cells' weights. ``n_samples >= V`` samples every
@@ -170,9 +168,7 @@ def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> Su
     if n_samples >= n:
         index = np.arange(n, dtype=np.int64)
     else:
-        candidates = _voxel_thinning(points, mass, VOXELS_PER_SAMPLE * n_samples)
-        index = candidates[_farthest_points(points[candidates], n_samples)]
-        index = _split_crowded_cells(points, index, -(-n // n_samples))
+        index = _split_crowded_cells(points, spread_samples(points, mass, n_samples), -(-n // n_samples))
     tree = cKDTree(points[index])
     cell = tree.query(points, k=1)[1].astype(np.int64)
     cell[index] = np.arange(len(index))  # a sample is in its own cell, whatever the ties
@@ -234,10 +230,27 @@ def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.n
     off = np.einsum("ij,ij->i", points - centre, points - centre)
     dims = grid.max(axis=0) + 1
     key = (grid[:, 0] * dims[1] + grid[:, 1]) * dims[2] + grid[:, 2]
-    order = np.lexsort((off, key))  # by voxel, nearest the centre first
+    # by voxel, nearest the centre first, ties by position (a vertex-permuted copy: the same points)
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], off, key))
     first = np.ones(len(order), dtype=bool)
     first[1:] = key[order][1:] != key[order][:-1]
     return np.sort(order[first])
+
+
+def spread_samples(points: np.ndarray, mass: np.ndarray, n: int) -> np.ndarray:
+    """At most ``n`` distinct vertices ``(S,)`` (sorted) spread evenly over a surface: one per
+    occupied voxel of a grid of about :data:`VOXELS_PER_SAMPLE` ``x n`` voxels (edge
+    ``sqrt(area / (4 n))``, the area from ``mass (V,)`` in the units of ``points (V, 3)``), then
+    farthest-point sampling in space among those, from the one farthest from their centroid.
+    Deterministic and chosen by position only (a vertex-permuted copy gets the same points);
+    ``O(V + n W)`` for ``W`` occupied voxels. Fewer than ``n`` only where fewer points are
+    distinct."""
+    candidates = _voxel_thinning(points, mass, VOXELS_PER_SAMPLE * n)
+    if len(candidates) < n:  # fewer voxels than samples: every vertex is a candidate
+        candidates = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
+    cand = points[candidates]
+    start = int(np.argmax(np.einsum("ij,ij->i", cand - cand.mean(axis=0), cand - cand.mean(axis=0))))
+    return np.sort(candidates[_farthest_points(cand, n, first=start)])
 
 
 def _farthest_points(points: np.ndarray, n: int, first: int = 0) -> np.ndarray:

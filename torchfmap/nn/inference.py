@@ -24,10 +24,14 @@ from ..partial import match_partial
 from ..results import MatchResult
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
+from .coarse import Simplification, check_coarse, coarse_size, simplify
 from .config import TrainConfig, build_solver
+from .data import ShapeBatch
 from .devices import resolve_device
+from .functional import BasisBatch
 from .inputs import K_WKS, SEED_TIMES, has_coordinates, shape_arrays, shape_item
 from .item_inference import adapt, pair_batches, solve_xy
+from .modules import basis_arrays
 from .networks import check_network, features
 
 #: Yaw angles (radians) tried by :meth:`LearnedMatcher.facings` for models trained facing anywhere.
@@ -77,6 +81,26 @@ def _zoomout(
     return refiner(C_xy, p2p_yx, *shapes, bx, by)
 
 
+def _solver_batch(basis: Basis, batch: ShapeBatch, simple: Simplification | None) -> BasisBatch:
+    """The solver's basis of one side as a batch of one: the item's (``batch.basis``) when the
+    network ran on the mesh itself, else ``basis`` (of the dense mesh) in ``batch``'s dtype and
+    on its device."""
+    if simple is None:
+        return batch.basis
+    like = batch.inputs
+    arrays = basis_arrays(basis)
+    t = {key: torch.as_tensor(a, dtype=like.dtype, device=like.device)[None] for key, a in arrays.items()}
+    valid = torch.ones(1, t["values"].shape[-1], dtype=like.dtype, device=like.device)
+    return BasisBatch(t["values"], t["mass"], t["lam"], t["U"], valid)
+
+
+def _carried(net, batch: ShapeBatch, simple: Simplification | None) -> torch.Tensor:
+    """The network's features ``(1, V, D)`` of one side: on its vertices, or on the
+    simplification's and carried to every dense vertex (:meth:`Simplification.carry`)."""
+    out = features(net, batch)
+    return out if simple is None else simple.carry(out)
+
+
 class LearnedMatcher:
     """Matches meshes with a trained network, called like :func:`torchfmap.match`.
 
@@ -88,6 +112,13 @@ class LearnedMatcher:
     and the point map is the orthogonal rule of :func:`~torchfmap.fmap.fmap_to_p2p` (nearest
     neighbours of the rows of ``Φ_y`` among those of ``Φ_x C_xyᵀ``) in float64 on the CPU, from
     the shapes' float64 basis values, searched locally on dense pairs.
+
+    **Dense meshes** (``coarse``): the network runs on a simplification of a mesh of more than
+    :data:`~torchfmap.nn.coarse.DENSE_NETWORK_VERTICES` vertices
+    (:func:`~torchfmap.nn.coarse.simplify`, :data:`~torchfmap.nn.coarse.COARSE_VERTICES`
+    vertices, prepared once and kept in the dense shape) and its features are carried to every
+    vertex; the map is solved in the dense mesh's own basis, so the dense mesh needs only
+    ``max(k, k_final)`` eigenpairs and no network input (WKS, gradients) of its own.
 
     Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
     and its recipe. It keeps nothing between calls: shapes are reused only when the caller
@@ -102,11 +133,15 @@ class LearnedMatcher:
         name: what the result's ``model`` names.
         device: ``'auto'`` / ``'cpu'`` / ``'cuda'`` / a :class:`torch.device`
             (:func:`~torchfmap.nn.devices.resolve_device`).
-        adapt_steps, adapt_lr: unsupervised test-time adaptation per pair (0: none).
+        adapt_steps, adapt_lr: unsupervised test-time adaptation per pair (0: none; on the
+            simplifications of dense meshes).
+        coarse: where the network runs (:func:`~torchfmap.nn.coarse.coarse_size`): ``'auto'``
+            (a simplification of dense meshes, see above), an int ``n`` (a simplification of
+            ``n`` vertices of every mesh of more), or None (every mesh itself).
 
     Raises:
-        ParameterError: ``adapt_steps`` not an integer >= 0, an unknown or absent device, or a
-            network that does not follow the protocol.
+        ParameterError: ``adapt_steps`` not an integer >= 0, an unknown or absent device, a
+            network that does not follow the protocol, or a bad ``coarse``.
     """
 
     def __init__(
@@ -118,7 +153,9 @@ class LearnedMatcher:
         device: str | torch.device | None = "auto",
         adapt_steps: int = 0,
         adapt_lr: float = 1e-4,
+        coarse: str | int | None = "auto",
     ) -> None:
+        self.coarse = check_coarse(coarse)
         if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
             raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
         check_network(net)
@@ -139,6 +176,7 @@ class LearnedMatcher:
         device: str | torch.device | None = "auto",
         adapt_steps: int = 0,
         adapt_lr: float = 1e-4,
+        coarse: str | int | None = "auto",
     ) -> LearnedMatcher:
         """The matcher of a checkpoint written by ``torchfmap train`` or of a shipped model's
         name (:func:`~torchfmap.nn.shipped.resolve_checkpoint`), read now (its best weights).
@@ -148,13 +186,14 @@ class LearnedMatcher:
                 :func:`~torchfmap.nn.checkpoints.load_checkpoint`), or as the constructor.
         """
         net, config, _ = load_checkpoint(name_or_path)
-        settings = dict(device=device, adapt_steps=adapt_steps, adapt_lr=adapt_lr)
+        settings = dict(device=device, adapt_steps=adapt_steps, adapt_lr=adapt_lr, coarse=coarse)
         matcher = cls(net, config, name=os.fspath(name_or_path), **settings)
         matcher.checkpoint = name_or_path
         return matcher
 
     def __getstate__(self) -> dict:
-        settings = {"device": self.device_setting, "adapt_steps": self.adapt_steps, "adapt_lr": self.adapt_lr}
+        settings = {"device": self.device_setting, "adapt_steps": self.adapt_steps, "adapt_lr": self.adapt_lr,
+                    "coarse": self.coarse}  # fmt: skip
         if self.checkpoint is not None:  # loaded again where it is unpickled
             return {"checkpoint": self.checkpoint, "settings": settings}
         net = copy.deepcopy(self.net).cpu()  # a CPU copy: it may be unpickled where there is no GPU
@@ -170,7 +209,7 @@ class LearnedMatcher:
     def __repr__(self) -> str:
         return (
             f"LearnedMatcher({self.name!r}, k={self.config.k}, basis={self.config.basis!r}, "
-            f"device={str(self.device)!r}, adapt_steps={self.adapt_steps})"
+            f"device={str(self.device)!r}, adapt_steps={self.adapt_steps}, coarse={self.coarse!r})"
         )
 
     def facings(self) -> tuple[float, ...]:
@@ -183,21 +222,40 @@ class LearnedMatcher:
         cfg = self.config
         return FACINGS if has_coordinates(cfg.inputs) and cfg.augment == "up" else (0.0,)
 
-    def _eigenpairs(self, n_vertices: int, k_final: int = 0) -> int:
-        """Eigenpairs one preparation of a mesh of ``n_vertices`` needs: the solver's basis, the
-        network's, the WKS inputs' and ZoomOut's ``k_final``, at most ``n_vertices - 1``."""
+    def _eigenpairs(self, n_vertices: int, k_final: int = 0, network: bool = True) -> int:
+        """Eigenpairs one preparation of a mesh of ``n_vertices`` needs: the solver's basis and
+        ZoomOut's ``k_final``, with the network's and the WKS inputs' when the network runs on
+        it (``network``), at most ``n_vertices - 1``."""
         cfg = self.config
-        return min(max(cfg.k, cfg.k_net, K_WKS, k_final), n_vertices - 1)
+        need = max(cfg.k, cfg.k_net, K_WKS, k_final) if network else max(cfg.k, k_final)
+        return min(need, n_vertices - 1)
 
-    def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis]:
-        """``(dataset item, solver basis)`` of one prepared shape: the network's arrays
-        (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) and the float64
-        basis the map is solved in (the same kind's ``shape_basis`` shape_arrays reads)."""
+    def _runs_on(self, mesh: Mesh) -> bool:
+        """Whether the network runs on ``mesh`` itself (not on a simplification)."""
+        return coarse_size(self.coarse, mesh.n_vertices) is None
+
+    def _network_shape(self, shape: PreparedShape) -> tuple[PreparedShape, Simplification | None]:
+        """The prepared shape the network runs on and the simplification it is of (None: the
+        shape itself), built once and kept in ``shape`` (:meth:`~torchfmap.PreparedShape.derive`)."""
+        n = coarse_size(self.coarse, shape.mesh.n_vertices)
+        if n is None:
+            return shape, None
+        simple = shape.derive(("simplification", n), lambda: simplify(shape.mesh, n))
+        coarse = shape.derive(("simplification shape", n), lambda: prepare_shape(simple.mesh, 0))
+        return with_eigenpairs(coarse, self._eigenpairs(simple.mesh.n_vertices)), simple
+
+    def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis, Simplification | None]:
+        """``(dataset item, solver basis, simplification)`` of one prepared shape: the network's
+        arrays (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) of the shape
+        the network runs on (:meth:`_network_shape`), the float64 basis of ``shape`` the map is
+        solved in (the same kind's ``shape_basis`` shape_arrays reads) and the simplification
+        (None when the network runs on ``shape``)."""
         cfg = self.config
-        arrays = shape_arrays(shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
+        net_shape, simple = self._network_shape(shape)
+        arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
         dtype = next(self.net.parameters()).dtype
         item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
-        return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES)
+        return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES), simple
 
     def features(self, mesh: Mesh, *, shape: PreparedShape | None = None) -> np.ndarray:
         """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
@@ -213,17 +271,27 @@ class LearnedMatcher:
                 small for the model's ``k``.
         """
         check_meshes(mesh, mesh)
-        need = self._eigenpairs(mesh.n_vertices)
+        need = self._eigenpairs(mesh.n_vertices, network=self._runs_on(mesh))
         if shape is None:
             shape = prepare_shape(mesh, need)
         elif not isinstance(shape, PreparedShape) or shape.mesh is not mesh:
             raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
         else:
             shape = with_eigenpairs(shape, need)
-        item, _ = self._items(shape, 0)
+        item, _, simple = self._items(shape, 0)
         with torch.no_grad():
             batch, _ = pair_batches(item, item, self.device)
-            return features(self.net, batch)[0].to(torch.float64).cpu().numpy()
+            return _carried(self.net, batch, simple)[0].to(torch.float64).cpu().numpy()
+
+    def _prepared(self, meshes: tuple[Mesh, Mesh], shapes, k_final: int) -> tuple[PreparedShape, ...]:
+        """The pair's prepared shapes (``shapes`` checked and grown, or new), each with the
+        eigenpairs :meth:`_eigenpairs` asks of it (at most ``V - 1`` of the smaller mesh)."""
+        n = min(m.n_vertices for m in meshes)
+        need = [self._eigenpairs(n, k_final, self._runs_on(m)) for m in meshes]
+        if shapes is None:
+            return tuple(prepare_shape(m, k) for m, k in zip(meshes, need, strict=True))
+        shapes = check_prepared(shapes, meshes)
+        return tuple(with_eigenpairs(s, k) for s, k in zip(shapes, need, strict=True))
 
     def _partial(self, mesh_x: Mesh, mesh_y: Mesh, refine, k_final, shapes) -> MatchResult:
         """The partial map of :meth:`__call__` (``partial=True``)."""
@@ -235,11 +303,7 @@ class LearnedMatcher:
         t0 = time.perf_counter()
         sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
         k0, k_final = _zoomout_sizes(self.config.k, k_final, sizes) if refine else (self.config.k, None)
-        need = self._eigenpairs(min(sizes), k_final or 0)
-        if shapes is None:
-            shapes = (prepare_shape(mesh_x, need), prepare_shape(mesh_y, need))
-        else:
-            shapes = tuple(with_eigenpairs(s, need) for s in check_prepared(shapes, (mesh_x, mesh_y)))
+        shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
         feats = (self.features(mesh_x, shape=shapes[0]), self.features(mesh_y, shape=shapes[1]))
         seconds = time.perf_counter() - t0
         result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
@@ -299,12 +363,8 @@ class LearnedMatcher:
         t0 = time.perf_counter()
         sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
         k0, k_final = _zoomout_sizes(cfg.k, k_final, sizes) if refine else (cfg.k, None)
-        need = self._eigenpairs(min(sizes), k_final or 0)  # one eigendecomposition
-        if shapes is None:
-            shapes = (prepare_shape(mesh_x, need), prepare_shape(mesh_y, need))
-        else:
-            shapes = tuple(with_eigenpairs(s, need) for s in check_prepared(shapes, (mesh_x, mesh_y)))
-        (ix, bx), (iy, by) = (self._items(s, i) for i, s in enumerate(shapes))
+        shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)  # one eigendecomposition each
+        (ix, bx, simple_x), (iy, by, simple_y) = (self._items(s, i) for i, s in enumerate(shapes))
         timings["prepare"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         net = self.net
@@ -316,7 +376,8 @@ class LearnedMatcher:
         with torch.no_grad():
             sx, sy = pair_batches(ix, iy, self.device)
             solver = self.solver.to(self.device)
-            fx = features(net, sx)
+            basis_x, basis_y = _solver_batch(bx, sx, simple_x), _solver_batch(by, sy, simple_y)
+            fx = _carried(net, sx, simple_x)
             C, fy, least = None, None, float("inf")
             for angle in self.facings():  # one facing, or the most isometric of several
                 turned = (
@@ -328,9 +389,9 @@ class LearnedMatcher:
                     if angle
                     else sy
                 )
-                fy_a = features(net, turned)
-                C_a = solve_xy(solver, fx, fy_a, sx.basis, sy.basis)[0]
-                defect = laplacian_defect(C_a, sx.basis, sy.basis)
+                fy_a = _carried(net, turned, simple_y)
+                C_a = solve_xy(solver, fx, fy_a, basis_x, basis_y)[0]
+                defect = laplacian_defect(C_a, basis_x, basis_y)
                 if C is None or defect < least:
                     C, fy, least = C_a, fy_a, defect
         timings["network+fmap"] = time.perf_counter() - t0

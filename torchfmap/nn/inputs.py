@@ -43,6 +43,8 @@ def has_coordinates(inputs: str | None) -> bool:
     """Whether inputs of one of :data:`INPUTS` end with coordinates (what augmentation and the
     facing search move); None (unknown inputs): False."""
     return inputs is not None and inputs.split("+")[-1] == "xyz"
+
+
 #: Eigenpairs the WKS inputs are computed from (:func:`shape_arrays`'s ``k_wks``).
 K_WKS = 100
 #: Relative diffusion times of the feature-aware bases on the learned path.
