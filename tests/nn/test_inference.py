@@ -141,7 +141,7 @@ def test_the_learned_matcher_names_its_refinement_as_match_does(permuted):
             matcher(mesh_x, mesh_y, refine=refine)
     with pytest.raises(ParameterError, match="without refine='zoomout' it changes nothing"):
         matcher(mesh_x, mesh_y, k_final=20)
-    with pytest.raises(ParameterError, match="below the model's k=8"):
+    with pytest.raises(ParameterError, match="k_final=5 is below k=8"):
         matcher(mesh_x, mesh_y, refine="zoomout", k_final=5)
     with pytest.raises(ParameterError, match="adapt_steps"):
         LearnedMatcher(build_model(TINY)[0], TINY, adapt_steps=-1)

@@ -15,7 +15,7 @@ from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
-from ..fmap.refine import Refined
+from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, pair_samplings
 from ..match_checks import check_meshes, check_unused, warn_if_partial
@@ -53,12 +53,9 @@ def _zoomout_sizes(k: int, k_final: int | None, n_vertices: tuple[int, int]) -> 
     (None: ``2k``), both capped at ``V - 1`` of the smaller mesh.
 
     Raises:
-        ParameterError: ``k_final < k``.
+        ParameterError: ``k_final < k`` (:func:`~torchfmap.fmap.refine.check_k_final`).
     """
-    if k_final is not None and k_final < k:
-        raise ParameterError(
-            f"k_final={k_final} is below the model's k={k}: ZoomOut grows. Fix: k_final >= {k}."
-        )
+    check_k_final(k, k_final)
     cap = min(n_vertices) - 1
     return min(k, cap), min(2 * k if k_final is None else k_final, cap)
 
