@@ -24,7 +24,7 @@ import numpy as np
 
 from torchfmap import prepare_shape
 from torchfmap.experimental.seeded import seeded_match
-from torchfmap.pipeline import AUTO_KINDS, AUTO_MARGIN
+from torchfmap.matching.pipeline import AUTO_KINDS, AUTO_MARGIN
 
 from .common import Report, Settings, fmt, log, require_data
 from .pairs import Pair, crash, expand, mean_of, pyfm_missing, pyfm_rows, record, run_match
@@ -336,12 +336,12 @@ def partial(cfg: Settings, report: Report) -> None:
     Errors on the whole shape over the part's ground-truth rows; overlap IoU of ``v > 0.5``
     against the true part (area-weighted). ``learned``: a model matched by
     ``LearnedMatcher(..., partial=True)`` (its features in place of SHOT, the model's ``k``;
-    with landmarks, its features in :func:`~torchfmap.partial.match_partial` at ``k``; null:
+    with landmarks, its features in :func:`~torchfmap.matching.partial.match_partial` at ``k``; null:
     not run)."""
     from torchfmap import match
     from torchfmap.data.cuts import cut_holes, cut_plane
-    from torchfmap.eval import Correspondence, geodesic_errors, landmarks_from_gt
-    from torchfmap.partial import match_partial
+    from torchfmap.evaluate.scores import Correspondence, geodesic_errors, landmarks_from_gt
+    from torchfmap.matching.partial import match_partial
 
     rows = []
     learned = None

@@ -161,7 +161,7 @@ def _read_cache(path):
 
 
 def _cache_bytes() -> bytes:
-    from torchfmap._files import save_arrays
+    from torchfmap._util.files import save_arrays
     from torchfmap.nn.data import CACHE_CHECKSUM_KEY
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -446,7 +446,7 @@ def _reseal(payload: bytes) -> bytes:
     content: the checksum guards against accidents, the readers must still check what they read)."""
     import hashlib
 
-    from torchfmap._files import CHECKED_MAGIC
+    from torchfmap._util.files import CHECKED_MAGIC
 
     return CHECKED_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
 
@@ -514,7 +514,7 @@ def checkpoint_mutant(draw, data: bytes, marker: Path) -> Mutant:
 
 def arrays_mutant(draw, reader: Reader, data: bytes) -> Mutant:
     """Mutations of checksummed ``.npz`` files (bases, cache entries)."""
-    from torchfmap._files import CHECKSUM_KEY, load_arrays, save_arrays
+    from torchfmap._util.files import CHECKSUM_KEY, load_arrays, save_arrays
     from torchfmap.nn.data import CACHE_CHECKSUM_KEY
 
     key = CACHE_CHECKSUM_KEY if reader.kind == "cache" else CHECKSUM_KEY

@@ -25,7 +25,7 @@ import trimesh
 from torchfmap import Mesh, prepare_shape
 from torchfmap.bases.prepared import with_eigenpairs
 from torchfmap.data import demo_pair_paths
-from torchfmap.eval import geodesic_errors, gt_from_vts
+from torchfmap.evaluate.scores import geodesic_errors, gt_from_vts
 from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.io import load_mesh, read_vts
@@ -87,7 +87,7 @@ def _sets(cfg: Settings) -> dict[str, list[str]]:
     return {name: expand(specs) for name, specs in cfg.sets.items()}
 
 
-#: The row of the ground truth's own floor (:func:`torchfmap.eval.error_floor`): a remeshing's
+#: The row of the ground truth's own floor (:func:`torchfmap.evaluate.scores.error_floor`): a remeshing's
 #: coarser regions raise it, so a ratio of errors across meshings is read against it.
 FLOOR = "ground truth's floor (best vertex map)"
 

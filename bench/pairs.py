@@ -17,11 +17,11 @@ Pair specs (``x`` the source, ``y`` the target; every map is ``p2p_yx``):
 Named sets, ``@name`` in a configuration's pair list (``@name:N``: its first N): see :data:`SETS`.
 
 Landmarks: ``L`` ground-truth rows spread over x by Euclidean farthest-point sampling
-(``torchfmap.eval.landmarks_from_gt``, deterministic), the same for every method of a pair;
+(``torchfmap.evaluate.scores.landmarks_from_gt``, deterministic), the same for every method of a pair;
 cat-lion's given pairs where a case asks for them. Errors: normalised geodesic error on x (heat
 method, divided by ``sqrt(area_x)``) at the ground-truth rows (all, every n-th or a seeded random
 subset), distance rows computed once per pair; the first map of a pair is also scored by
-``torchfmap.eval.evaluate_map`` and any difference logged (it must be ~0).
+``torchfmap.evaluate.scores.evaluate_map`` and any difference logged (it must be ~0).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import numpy as np
 import torchfmap
 from torchfmap.data import demo_pair_paths, stretch_deform
 from torchfmap.errors import ParameterError
-from torchfmap.eval import (
+from torchfmap.evaluate.scores import (
     Correspondence,
     auc,
     error_floor,
@@ -294,7 +294,7 @@ class Pair:
         return err
 
     def floor(self) -> float:
-        """Mean :func:`torchfmap.eval.error_floor` (normalised) of all the pair's ground truth, not
+        """Mean :func:`torchfmap.evaluate.scores.error_floor` (normalised) of all the pair's ground truth, not
         the subsample scored (a subsample rarely holds the rows that share a vertex): what the best
         vertex-to-vertex map scores."""
         return float(error_floor(self.x, self.gt_all).mean())

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 import torchfmap
-from torchfmap.collection import evaluate_pairs, pool_threads
-from torchfmap.eval import auc, discover_pairs
+from torchfmap.evaluate.collection import evaluate_pairs, pool_threads
+from torchfmap.evaluate.scores import auc, discover_pairs
 from torchfmap.fmap import nearest_neighbor
 
 from .common import (

@@ -27,7 +27,7 @@ import numpy as np
 
 import torchfmap as tf
 from torchfmap.data import demo_pair_paths
-from torchfmap.eval import evaluate_map, gt_from_map, landmarks_from_gt
+from torchfmap.evaluate.scores import evaluate_map, gt_from_map, landmarks_from_gt
 from torchfmap.io import read_landmark_pairs, read_map
 from torchfmap.operators import DistanceRows
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import torchfmap as tf
 from torchfmap.data import demo_pair_paths
 from torchfmap.errors import TorchFmapError
-from torchfmap.eval import evaluate_map, gt_from_map
+from torchfmap.evaluate.scores import evaluate_map, gt_from_map
 from torchfmap.io import read_map, write_map
 from torchfmap.nn import LearnedMatcher
 from torchfmap.operators import DistanceRows

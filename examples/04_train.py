@@ -28,7 +28,7 @@ from pathlib import Path
 
 from torchfmap.data import demo_pair_paths
 from torchfmap.errors import ParameterError
-from torchfmap.eval import discover_pairs, gt_from_map
+from torchfmap.evaluate.scores import discover_pairs, gt_from_map
 from torchfmap.io import mesh_files, read_map
 from torchfmap.nn import (
     Budget,
@@ -47,7 +47,7 @@ from torchfmap.nn.trainer import spawn_ddp
 
 def ground_truth(folder: Path, names: list[str], limit: int) -> tuple[list, list]:
     """``(index pairs, ground truths)`` of at most ``limit`` pairs: the demo's shipped map, or
-    the folder's (:func:`torchfmap.eval.discover_pairs`); none when it has no ground truth."""
+    the folder's (:func:`torchfmap.evaluate.scores.discover_pairs`); none when it has no ground truth."""
     demo_x, demo_y, demo_gt = demo_pair_paths()
     if folder.resolve() == demo_x.parent.resolve():
         pair = (names.index("blob_a"), names.index("blob_b"))

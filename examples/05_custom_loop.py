@@ -30,7 +30,7 @@ from torch import nn
 
 import torchfmap as tf
 from torchfmap.data import demo_pair_paths
-from torchfmap.eval import evaluate_map, gt_from_map
+from torchfmap.evaluate.scores import evaluate_map, gt_from_map
 from torchfmap.fmap import nearest_neighbor
 from torchfmap.io import read_map
 from torchfmap.nn import (

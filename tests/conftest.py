@@ -147,7 +147,7 @@ def make_bent_pair(strength: float = 0.3, seed: int = 2, subdivisions: int = 3):
     """``(x, y, gt)``: the bumpy blob ``x`` (642 vertices; ``10 * 4**subdivisions + 2``), ``y``
     the same surface bent and its vertices shuffled, and the ground truth ``Correspondence``
     (vertex ``v`` of ``y`` is ``gt.idx_x[v]`` of ``x``)."""
-    from torchfmap.eval import Correspondence
+    from torchfmap.evaluate.scores import Correspondence
 
     x = bumpy_blob(subdivisions)
     perm = np.random.default_rng(seed).permutation(x.n_vertices)
@@ -174,7 +174,7 @@ def _agree(a: np.ndarray, b: np.ndarray) -> float:
 def small_bent_pair():
     """``(x, y, landmarks)``: :func:`make_bent_pair` at 162 vertices (seed 5) and 6 landmarks
     from its ground truth (the scale-invariance tests)."""
-    from torchfmap.eval import landmarks_from_gt
+    from torchfmap.evaluate.scores import landmarks_from_gt
 
     x, y, gt = make_bent_pair(seed=5, subdivisions=2)
     return x, y, landmarks_from_gt(x, gt, 6)

@@ -22,7 +22,7 @@ MODULES = (
     "torchfmap.data",
     "torchfmap.nn",
     "torchfmap.nn.functional",
-    "torchfmap.eval",
+    "torchfmap.evaluate.scores",
     "torchfmap.descriptors",
     "torchfmap.seeds",
 )
@@ -66,5 +66,5 @@ def test_collection_finds_the_api():
     """Guard against a vacuous pass: the collection must see well-known names."""
     assert "solve_fmap" in public_callables("torchfmap.fmap")
     assert "hks" in public_callables("torchfmap.descriptors")
-    assert "bijectivity_error" in public_callables("torchfmap.eval")
+    assert "bijectivity_error" in public_callables("torchfmap.evaluate.scores")
     assert "SoftPointMap" in public_callables("torchfmap.nn")

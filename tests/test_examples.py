@@ -20,7 +20,7 @@ import pytest
 
 from torchfmap import load_mesh, save_mesh
 from torchfmap.data import demo_pair_paths
-from torchfmap.eval import evaluate_map, gt_from_map
+from torchfmap.evaluate.scores import evaluate_map, gt_from_map
 from torchfmap.io import read_map
 from torchfmap.nn import Budget, LearnedMatcher, ShapeDataset, TrainConfig, Trainer, check_network
 from torchfmap.nn.checkpoints import read_checkpoint

@@ -82,7 +82,7 @@ def test_solver_and_point_map_property(mesh, k, w_lap, n_desc):
 @BUDGET
 @given(mesh=meshes(), shift=st.integers(-2, 2), max_points=st.one_of(st.none(), st.integers(-1, 50)))
 def test_evaluation_property(mesh, shift, max_points):
-    from torchfmap.eval import evaluate_map, gt_identity
+    from torchfmap.evaluate.scores import evaluate_map, gt_identity
 
     p2p = np.arange(mesh.n_vertices) + shift
     try:

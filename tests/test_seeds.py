@@ -21,7 +21,7 @@ from torchfmap import (
 )
 from torchfmap.data import icosphere
 from torchfmap.fmap import build_problem
-from torchfmap.pipeline import match_bases, prepare_shape
+from torchfmap.matching.pipeline import match_bases, prepare_shape
 from torchfmap.seeds import consistent_seeds, corresponding_seeds, heat_support_radius, max_curvature_vertex
 
 from .conftest import bumpy_blob, random_rotation

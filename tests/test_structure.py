@@ -30,24 +30,24 @@ OPTIONAL_IMPORTS = {
 MAX_MODULE_LINES = 450
 #: Shared checks and file helpers: the only module allowed to define each name.
 HOMES = {
-    "check_vertex_indices": "torchfmap._checks",
-    "check_landmark_pairs": "torchfmap._checks",
-    "check_seeds_cover_components": "torchfmap._checks",
-    "symmetry_tolerance": "torchfmap._checks",
-    "symmetry_defect": "torchfmap._checks",
-    "is_symmetric": "torchfmap._checks",
-    "check_symmetric": "torchfmap._checks",
-    "lumped_diagonal": "torchfmap._checks",
-    "check_lumped_mass": "torchfmap._checks",
-    "checksum": "torchfmap._files",
-    "atomic_write": "torchfmap._files",
-    "save_arrays": "torchfmap._files",
-    "load_arrays": "torchfmap._files",
-    "resolve_check": "torchfmap._torch_checks",
-    "check_batched": "torchfmap._torch_checks",
-    "check_finite": "torchfmap._torch_checks",
-    "check_index_range": "torchfmap._torch_checks",
-    "check_lengths": "torchfmap._torch_checks",
+    "check_vertex_indices": "torchfmap._util.checks",
+    "check_landmark_pairs": "torchfmap._util.checks",
+    "check_seeds_cover_components": "torchfmap._util.checks",
+    "symmetry_tolerance": "torchfmap._util.checks",
+    "symmetry_defect": "torchfmap._util.checks",
+    "is_symmetric": "torchfmap._util.checks",
+    "check_symmetric": "torchfmap._util.checks",
+    "lumped_diagonal": "torchfmap._util.checks",
+    "check_lumped_mass": "torchfmap._util.checks",
+    "checksum": "torchfmap._util.files",
+    "atomic_write": "torchfmap._util.files",
+    "save_arrays": "torchfmap._util.files",
+    "load_arrays": "torchfmap._util.files",
+    "resolve_check": "torchfmap._util.torch_checks",
+    "check_batched": "torchfmap._util.torch_checks",
+    "check_finite": "torchfmap._util.torch_checks",
+    "check_index_range": "torchfmap._util.torch_checks",
+    "check_lengths": "torchfmap._util.torch_checks",
     "get_kind": "torchfmap.kinds.registry",
     "kind_of": "torchfmap.kinds.registry",
     "register_kind": "torchfmap.kinds.registry",
@@ -55,8 +55,8 @@ HOMES = {
     "prepare_shape": "torchfmap.bases.prepared",
     "seed_time": "torchfmap.kinds.base",
     "replace_seeds": "torchfmap.seeds",
-    "refine_result": "torchfmap.results",
-    "solve_pair": "torchfmap.solve",
+    "refine_result": "torchfmap.matching.results",
+    "solve_pair": "torchfmap.matching.solve",
     "hybrid_zoomout": "torchfmap.kinds.hybrid",
     "fixed_size_iterations": "torchfmap.kinds.refiners",
     "zoomout": "torchfmap.fmap.refine",
@@ -188,7 +188,7 @@ def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_walker_sees_every_module_and_resolves_relative_imports():
     graph, _ = import_graph()
-    assert {"torchfmap", "torchfmap._checks", "torchfmap.nn.data", "torchfmap.bases.basis"} <= set(graph)
+    assert {"torchfmap", "torchfmap._util.checks", "torchfmap.nn.data", "torchfmap.bases.basis"} <= set(graph)
     assert "torchfmap.errors" in graph["torchfmap.bases.basis"]  # from ..errors import ...
     assert "torchfmap.nn.functional" in graph["torchfmap.nn"]  # from . import functional
     assert "torchfmap.operators" in graph["torchfmap.seeds"]  # parent package of operators.heat runs too
@@ -300,11 +300,11 @@ def test_no_cycle_hidden_in_function_level_imports():
 
 
 #: The one lazy boundary: the command line imports the torch-based learning path only in the
-#: commands that use it (torchfmap.commands, run by torchfmap.cli), so that classical commands
+#: commands that use it (torchfmap.cli.commands, run by torchfmap.cli), so that classical commands
 #: start without torch.
 LAZY_TORCH = {
-    "torchfmap.commands": ("torch", "torchfmap.nn"),
-    "torchfmap.commands_train": ("torch", "torchfmap.nn"),
+    "torchfmap.cli.commands": ("torch", "torchfmap.nn"),
+    "torchfmap.cli.train": ("torch", "torchfmap.nn"),
 }
 
 
@@ -355,7 +355,7 @@ def test_classical_commands_and_import_do_not_import_torch():
     code = (
         "import sys, torchfmap, torchfmap.cli\n"
         "from torchfmap.data import demo_pair\n"
-        "from torchfmap.eval import gt_from_map, landmarks_from_gt\n"
+        "from torchfmap.evaluate.scores import gt_from_map, landmarks_from_gt\n"
         "x, y, g = demo_pair()\n"
         "torchfmap.match(x, y, landmarks=landmarks_from_gt(x, gt_from_map(g), 6), basis='diffusion', k=20)\n"
         "assert 'torch' not in sys.modules, 'torch was imported'\n"
@@ -376,11 +376,11 @@ def test_symmetry_is_checked_only_in_checks():
     bad = [
         f"{path.relative_to(ROOT)}:{i}: {line.strip()}"
         for module, (path, _) in SOURCES.items()
-        if module != "torchfmap._checks"
+        if module != "torchfmap._util.checks"
         for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
         if pattern.search(line)
     ]
-    assert not bad, "symmetry checks outside torchfmap._checks (use is_symmetric/check_symmetric):\n" + (
+    assert not bad, "symmetry checks outside torchfmap._util.checks (use is_symmetric/check_symmetric):\n" + (
         "\n".join(bad)
     )
 
@@ -430,7 +430,8 @@ def test_public_error_names_still_importable():
     from torchfmap.operators.solvers import NotPositiveDefiniteError as FromSolvers
 
     assert CorruptFileError is Home and FromSolvers is NotPositiveDefiniteError
-    assert lumped_diagonal is lumped_from_laplacian and check_vertex_indices.__module__ == "torchfmap._checks"
+    assert lumped_diagonal is lumped_from_laplacian
+    assert check_vertex_indices.__module__ == "torchfmap._util.checks"
 
 
 def test_operator_numerics_live_in_operators_and_stay_importable_from_bases():
@@ -530,13 +531,13 @@ BASIS_KIND_PARAMETERS = {
     "torchfmap.kinds.hybrid.hybrid_zoomout",
     "torchfmap.kinds.hybrid.HybridZoomOut",
     "torchfmap.kinds.hybrid.HybridZoomOut.__init__",
-    "torchfmap.match_checks.check_unused",
-    "torchfmap.match_checks.check_zoomout_sizes",
-    "torchfmap.solve.match_bases",
-    "torchfmap.solve.solve_pair",
-    "torchfmap.solve.solve_functional_map",
-    "torchfmap.results.MatchResult",
-    "torchfmap.results.MatchResult.__init__",
+    "torchfmap.matching.checks.check_unused",
+    "torchfmap.matching.checks.check_zoomout_sizes",
+    "torchfmap.matching.solve.match_bases",
+    "torchfmap.matching.solve.solve_pair",
+    "torchfmap.matching.solve.solve_functional_map",
+    "torchfmap.matching.results.MatchResult",
+    "torchfmap.matching.results.MatchResult.__init__",
 }
 
 

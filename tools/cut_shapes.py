@@ -8,7 +8,7 @@ Run by hand from the repository root::
 Each pair ``(whole, other)`` of the fixed validation list ``PAIRS`` (FAUST_r training humans
 070-079, the validation humans of the rest of bench) gives parts of ``other`` cut by
 ``torchfmap.data.cuts`` (a plane, or four holes) at each area ratio, written as the partial
-collection ``torchfmap eval --partial`` reads (``torchfmap.eval_partial``): ``full/<whole>.off``,
+collection ``torchfmap eval --partial`` reads (``torchfmap.evaluate.partial``): ``full/<whole>.off``,
 ``partial/<whole>_<other>_<cut><ratio>.off``, ``corres/<part>.map`` (0-based; line ``v``: the
 whole's vertex of part vertex ``v``, ``-1`` where the template correspondence of the data set
 does not reach it). Ground truth goes through the data set's template rows (``corres/*.vts``:

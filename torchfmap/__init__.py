@@ -34,10 +34,12 @@ from .errors import (
     TorchFmapError,
     WorkerLost,
 )
-from .eval import evaluate_map
+from .evaluate.scores import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .io import load_mesh, load_points, save_mesh
 from .kinds import KINDS
+from .matching.pipeline import MatchResult, match
+from .matching.quality import geodesic_distortion, orientation_agreement
 from .mesh import Mesh, MeshReport, validate_mesh, weld_vertices
 from .operators import (
     Factorization,
@@ -52,8 +54,6 @@ from .operators import (
     point_cloud_laplacian,
     total_area,
 )
-from .pipeline import MatchResult, match
-from .quality import geodesic_distortion, orientation_agreement
 from .seeds import (
     coverage_seeds,
     curvature,

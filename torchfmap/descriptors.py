@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from ._checks import check_vertex_indices
+from ._util.checks import check_vertex_indices
 from .errors import ParameterError
 from .operators.heat import heat_kernels
 

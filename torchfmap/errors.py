@@ -84,8 +84,8 @@ def file_write_error(err: OSError, message: str) -> FileWriteError:
 
 
 class EvaluationInterrupted(KeyboardInterrupt):
-    """Ctrl-C during :func:`torchfmap.collection.evaluate_pairs`: ``finished`` holds the
-    :class:`~torchfmap.collection.PairResult` of every pair scored before it, in pair order."""
+    """Ctrl-C during :func:`torchfmap.evaluate.collection.evaluate_pairs`: ``finished`` holds the
+    :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored before it, in pair order."""
 
     def __init__(self, finished: list, total: int) -> None:
         super().__init__(f"interrupted after {len(finished)} of {total} pairs")
@@ -93,8 +93,8 @@ class EvaluationInterrupted(KeyboardInterrupt):
 
 
 class WorkerLost(TorchFmapError, RuntimeError):
-    """A worker of :func:`torchfmap.collection.evaluate_pairs` died mid-run (killed, out of
-    memory): ``finished`` holds the :class:`~torchfmap.collection.PairResult` of every pair scored
+    """A worker of :func:`torchfmap.evaluate.collection.evaluate_pairs` died mid-run (killed, out of
+    memory): ``finished`` holds the :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored
     before, in pair order; the chunks in flight are lost."""
 
     def __init__(self, finished: list, total: int, cause: str) -> None:

@@ -4,7 +4,7 @@ landmark files, landmark-pair files and test-pairs files.
 One suffix rule for all of them (:func:`split_suffix`): the format is the last suffix before
 an optional ``.gz``, and a ``.gz`` file is read and written gzip-compressed. Folder listings
 (:func:`mesh_files`) use the same rule through :func:`is_mesh_file`. Writers go through
-:func:`torchfmap._files.atomic_write`.
+:func:`torchfmap._util.files.atomic_write`.
 
 Meshes never change vertex order. Ground-truth correspondences are vertex indices, so a loader
 that merges, sorts or drops vertices silently breaks them. :func:`load_mesh` goes through
@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._files import atomic_write
-from ._format_checks import check_obj, check_ply, is_float, off_without_comments, read_obj
-from ._format_checks import check_off as _check_off
-from ._format_checks import check_stl as _check_stl
-from ._format_checks import off_header_counts as off_header_counts
+from ._util.files import atomic_write
+from ._util.format_checks import check_obj, check_ply, is_float, off_without_comments, read_obj
+from ._util.format_checks import check_off as _check_off
+from ._util.format_checks import check_stl as _check_stl
+from ._util.format_checks import off_header_counts as off_header_counts
 from .errors import MeshError, ParameterError, TorchFmapError
 from .mesh import Mesh, weld_vertices
 
@@ -191,7 +191,7 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
 
 def _checked_bytes(data: bytes, fmt: str, name: str) -> bytes:
     """The bytes trimesh parses: text decoded (:func:`_decode`), checked against its format's
-    counts and row shapes (:mod:`torchfmap._format_checks`; :class:`MeshError` naming ``name``),
+    counts and row shapes (:mod:`torchfmap._util.format_checks`; :class:`MeshError` naming ``name``),
     OFF comments removed."""
     if fmt in TEXT_FORMATS:
         data = _decode(data)

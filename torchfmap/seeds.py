@@ -13,7 +13,12 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import check_count, check_landmark_pairs, check_seeds_cover_components, check_vertex_indices
+from ._util.checks import (
+    check_count,
+    check_landmark_pairs,
+    check_seeds_cover_components,
+    check_vertex_indices,
+)
 from .errors import ParameterError
 from .mesh import Mesh
 from .operators.geodesic import DistanceRows, GeodesicSolver

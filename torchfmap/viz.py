@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from ._files import atomic_write
+from ._util.files import atomic_write
 from .errors import ParameterError, TorchFmapError
 from .mesh import Mesh
 

@@ -16,7 +16,7 @@ from torchfmap import (
     harmonic_basis,
     laplacian_eigenbasis,
 )
-from torchfmap._files import checksum
+from torchfmap._util.files import checksum
 from torchfmap.bases import CorruptFileError, support_fraction
 from torchfmap.cli import main
 from torchfmap.errors import FileReadError
@@ -151,7 +151,7 @@ def test_missing_input_files_are_torchfmap_errors_with_exit_1(tmp_path, capsys):
 def test_a_file_with_a_valid_checksum_but_no_basis_in_it_is_refused(blob, tmp_path, edit, problem):
     """Found by the fuzz suite: arrays written with a valid checksum but missing, reshaped or out
     of range raised KeyError / ValueError from scipy, or loaded NaN values."""
-    from torchfmap._files import load_arrays, save_arrays
+    from torchfmap._util.files import load_arrays, save_arrays
 
     seeds = farthest_point_sampling(blob, 4, metric="euclidean")
     path = basis_stack(blob, seeds, times=[1e-2], n_eigen=3).save(tmp_path / "basis.npz")

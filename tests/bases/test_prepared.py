@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from torchfmap.bases.prepared import with_eigenpairs
+from torchfmap.matching.pipeline import prepare_shape
 from torchfmap.operators import gradient_operator
-from torchfmap.pipeline import prepare_shape
 
 from ..conftest import SCALES, bumpy_blob
 

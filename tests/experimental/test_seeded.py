@@ -9,10 +9,10 @@ import pytest
 
 from torchfmap import ParameterError, match
 from torchfmap.cli import build_parser
-from torchfmap.eval import evaluate_map, landmarks_from_gt
+from torchfmap.evaluate.scores import evaluate_map, landmarks_from_gt
 from torchfmap.experimental.seeded import SEEDED_SEEDS, seeded_match
-from torchfmap.pipeline import prepare_shape
-from torchfmap.quality import map_seeds
+from torchfmap.matching.pipeline import prepare_shape
+from torchfmap.matching.quality import map_seeds
 
 
 def test_seeded_match_solves_again_at_the_seeds_its_map_agrees_on(bent_pair):

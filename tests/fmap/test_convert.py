@@ -17,7 +17,13 @@ from torchfmap.fmap import (
     p2p_to_fmap,
     zoomout,
 )
-from torchfmap.fmap.nearest import Neighbors, local_nearest, nearest_neighbor_distance, surface_sampling
+from torchfmap.fmap.nearest import (
+    Neighbors,
+    SurfaceSampling,
+    local_nearest,
+    nearest_neighbor_distance,
+    surface_sampling,
+)
 
 
 @pytest.mark.parametrize(
@@ -120,6 +126,7 @@ def test_surface_sampling_partitions_the_vertices_into_cells_around_spread_sampl
 
     mass = laplacian(x)[1].diagonal()
     sm = surface_sampling(x.vertices, mass, 60)
+    assert isinstance(sm, SurfaceSampling)
     n = len(sm.index)  # 60, and more where crowded cells were split
     assert len(np.unique(sm.index)) == n >= 60
     np.testing.assert_array_equal(sm.cell[sm.index], np.arange(n))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, basis_stack, farthest_point_sampling
-from torchfmap.eval import geodesic_errors, gt_from_map
+from torchfmap.evaluate.scores import geodesic_errors, gt_from_map
 from torchfmap.fmap import fmap_to_p2p, icp_refine, p2p_to_fmap, zoomout, zoomout_sequence
 
 from ..conftest import bumpy_blob
@@ -235,7 +235,7 @@ def test_every_zoomout_variant_runs_the_one_loop(permuted_bases, monkeypatch):
     import torchfmap.fmap.refine as refine
     import torchfmap.kinds.hybrid as hybrid
     import torchfmap.kinds.refiners as refiners
-    import torchfmap.partial as partial
+    import torchfmap.matching.partial as partial
 
     calls = []
     real = refine.zoomout_iterations
@@ -251,3 +251,21 @@ def test_every_zoomout_variant_runs_the_one_loop(permuted_bases, monkeypatch):
     zoomout_sequence(perm, [bx, bx], [by, by])
     partial.partial_zoomout(perm, bx, by, 10, 20)
     assert calls == ["SpectralStep", "SequenceStep", "SpectralStep"]
+
+
+def test_zoomout_iterations_start_from_exactly_one_map(permuted_bases):
+    """The one loop refuses both starts or neither, and a point-map start with no size; from the
+    true map it stays at the true map (a fixed point of the projection and its conversion)."""
+    from torchfmap.fmap import zoomout_iterations
+    from torchfmap.fmap.refine import SpectralStep
+
+    x, y, perm, bx, by = permuted_bases
+    step = SpectralStep(bx, by)
+    C = p2p_to_fmap(perm, bx, by, 10, 10)
+    for bad in ({"C_xy": C, "p2p_yx": perm}, {}, {"p2p_yx": perm}):
+        sizes = [] if bad == {"p2p_yx": perm} else [12]
+        with pytest.raises(ParameterError, match="exactly one"):
+            zoomout_iterations(step, sizes, **bad)
+    C_out, p2p = zoomout_iterations(step, [15, 20], p2p_yx=perm)
+    assert C_out.shape == (20, 20)
+    np.testing.assert_array_equal(p2p, perm)

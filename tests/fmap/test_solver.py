@@ -19,10 +19,10 @@ from torchfmap import (
 from torchfmap.bases import basis_stack
 from torchfmap.data import icosphere
 from torchfmap.descriptors import hks, landmark_descriptors, normalize_descriptors, wks
-from torchfmap.eval import evaluate_map, gt_identity
+from torchfmap.evaluate.scores import evaluate_map, gt_identity
 from torchfmap.fmap import FmapProblem, build_problem, fmap_to_p2p, multiplication_operator, solve_fmap
+from torchfmap.matching.pipeline import match_bases, prepare_shape
 from torchfmap.operators import eigenpairs
-from torchfmap.pipeline import match_bases, prepare_shape
 
 from ..conftest import bend, bumpy_blob, data_path, np_mask
 
@@ -286,7 +286,7 @@ def test_classical_solve_runs_its_small_torch_work_single_threaded(pair, monkeyp
     """The eigen-decompositions and row-wise systems of the classical solve are small: they run
     with one torch thread (torch's threads otherwise wait for cores held by BLAS's spinning
     threads after numpy work), and the caller's torch thread count comes back afterwards."""
-    from torchfmap._threads import thread_limit, torch_threads
+    from torchfmap._util.threads import thread_limit, torch_threads
     from torchfmap.fmap import core
 
     x, y = pair
@@ -375,14 +375,14 @@ def test_a_solve_too_large_for_the_memory_is_refused_before_any_work(monkeypatch
     )
     basis = laplacian_eigenbasis(sphere2, 20)
     desc = normalize_descriptors(wks(basis.eigenvalues, basis.values, 8))
-    monkeypatch.setattr("torchfmap._checks.available_memory", lambda: solver.solve_bytes(20, 20) - 1)
+    monkeypatch.setattr("torchfmap._util.checks.available_memory", lambda: solver.solve_bytes(20, 20) - 1)
     monkeypatch.setattr(solver, "build_problem", lambda *a, **k: pytest.fail("the work started"))
     refused = r"k = 20 needs an estimated 0\.0 GiB .*GiB is available\. Fix: a smaller k"
     with pytest.raises(MemoryEstimateError, match=refused) as info:
         solve_fmap(basis, basis, desc, desc)
     assert isinstance(info.value, ParameterError) and isinstance(info.value, MemoryError)
     monkeypatch.undo()
-    monkeypatch.setattr("torchfmap._checks.available_memory", lambda: None)  # not Linux: nothing refused
+    monkeypatch.setattr("torchfmap._util.checks.available_memory", lambda: None)  # not Linux: nothing refused
     C = solve_fmap(basis, basis, desc, desc)
     assert C.shape == (20, 20) and np.isfinite(C).all()
 

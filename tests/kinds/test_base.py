@@ -11,7 +11,7 @@ import pytest
 
 from torchfmap import ParameterError, match
 from torchfmap.bases import Basis, Column, prepare_shape
-from torchfmap.eval import Correspondence, evaluate_map, geodesic_errors, landmarks_from_gt
+from torchfmap.evaluate.scores import Correspondence, evaluate_map, geodesic_errors, landmarks_from_gt
 from torchfmap.kinds import ICP, KINDS, SeededKind, kind_of
 
 from ..conftest import bumpy_blob

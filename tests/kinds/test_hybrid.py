@@ -8,7 +8,7 @@ import pytest
 
 from torchfmap import ParameterError, match
 from torchfmap.bases import prepare_shape
-from torchfmap.eval import Correspondence, evaluate_map
+from torchfmap.evaluate.scores import Correspondence, evaluate_map
 from torchfmap.kinds import KINDS
 
 from ..conftest import bumpy_blob

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from torchfmap.bases import prepare_shape
-from torchfmap.eval import geodesic_errors, gt_from_map
+from torchfmap.evaluate.scores import geodesic_errors, gt_from_map
 from torchfmap.fmap import p2p_to_fmap
 from torchfmap.kinds.refiners import ZoomOut, stacked_anchors
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from torchfmap import ParameterError
-from torchfmap._files import save_checked_bytes
+from torchfmap._util.files import save_checked_bytes
 from torchfmap.cli import main
 from torchfmap.errors import CorruptFileError
 from torchfmap.nn.checkpoints import (
@@ -72,7 +72,7 @@ def test_provenance_round_trips_through_save_and_read(tmp_path):
 
 
 def _checked(path, payload: bytes):
-    from torchfmap._files import save_checked_bytes
+    from torchfmap._util.files import save_checked_bytes
 
     return save_checked_bytes(path, payload)
 

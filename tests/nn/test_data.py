@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchfmap import ParameterError, save_mesh
-from torchfmap._files import load_arrays
+from torchfmap._util.files import load_arrays
 from torchfmap.kinds import KINDS
 from torchfmap.nn import PairDataset, ShapeDataset, collate_pairs
 from torchfmap.nn import functional as F

@@ -18,9 +18,9 @@ import torchfmap.nn.item_inference as item_inference
 from torchfmap import Mesh, prepare_shape
 from torchfmap.errors import ParameterError
 from torchfmap.fmap import values_to_p2p
+from torchfmap.matching.results import MatchResult
 from torchfmap.nn import LearnedMatcher, TrainConfig, build_model, save_checkpoint
 from torchfmap.nn.data import ShapeDataset
-from torchfmap.results import MatchResult
 
 from ..conftest import _agree, bumpy_blob
 
@@ -322,7 +322,7 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
     features as its descriptors (the same map as ``match_partial`` given them), an overlap on the
     whole and the model's name; adaptation (a whole-shape loss) is refused with it."""
     from torchfmap.data.cuts import cut_plane
-    from torchfmap.partial import match_partial
+    from torchfmap.matching.partial import match_partial
 
     mesh_x = permuted[0]
     part = cut_plane(mesh_x, 0.6, seed=0).mesh

@@ -13,7 +13,7 @@ import torch
 
 from torchfmap import save_mesh
 from torchfmap.errors import ParameterError
-from torchfmap.eval import gt_from_vts
+from torchfmap.evaluate.scores import gt_from_vts
 from torchfmap.io import read_vts
 from torchfmap.nn import Budget, Trainer
 from torchfmap.nn.checkpoints import load_checkpoint, read_checkpoint

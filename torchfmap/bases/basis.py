@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from .._checks import check_count
-from .._files import load_arrays, save_arrays
+from .._util.checks import check_count
+from .._util.files import load_arrays, save_arrays
 from ..errors import CorruptFileError, ParameterError
 
 _FORMAT_VERSION = 1

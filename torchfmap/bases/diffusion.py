@@ -11,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from .._checks import check_seeds_cover_components, check_vertex_indices
+from .._util.checks import check_seeds_cover_components, check_vertex_indices
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.heat import Method, heat_kernels

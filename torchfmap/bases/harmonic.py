@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .._checks import check_seeds_cover_components, check_vertex_indices, is_symmetric
+from .._util.checks import check_seeds_cover_components, check_vertex_indices, is_symmetric
 from ..errors import SeedError
 from ..mesh import Mesh
 from ..operators.laplacian import LaplacianScheme, Operators, laplacian

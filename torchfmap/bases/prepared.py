@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._checks import check_count, check_memory, check_seeds_cover_components, check_vertex_indices
+from .._util.checks import check_count, check_memory, check_seeds_cover_components, check_vertex_indices
 from ..errors import ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import DistanceRows
@@ -104,7 +104,7 @@ def prepare_shape(
 
     Raises:
         ParameterError: ``n_eigen`` negative or not below the vertex count, an unknown
-            Laplacian scheme, or more memory than is available (:func:`~torchfmap._checks.check_memory`).
+            Laplacian scheme, or more memory than is available (:func:`~torchfmap._util.checks.check_memory`).
     """
     n_eigen = check_count(n_eigen, 0, max(mesh.n_vertices - 1, 0), "n_eigen")
     check_memory(mesh.n_vertices, n_eigen, f"preparing {mesh.name or 'the mesh'}")

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._checks import check_count
+from .._util.checks import check_count
 from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import geodesic_distances

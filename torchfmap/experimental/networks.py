@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .._torch_checks import check_finite, resolve_check
+from .._util.torch_checks import check_finite, resolve_check
 from ..nn import functional as F
 from ..nn.functional import BasisBatch, GradientBatch
 from ..nn.modules import SpectralDiffusion

@@ -4,7 +4,7 @@ seeded_refine``).
 
 :func:`seeded_match`: the eigenbasis map refined by ZoomOut (stage 1); seed pairs where it
 agrees both ways (:data:`SEEDED_SEEDS` farthest points of ``x`` sent to ``y`` and back by the
-orthogonal rule of ``C_xy`` and ``C_xyᵀ``, :func:`~torchfmap.quality.map_seeds`); then the pair
+orthogonal rule of ``C_xy`` and ``C_xyᵀ``, :func:`~torchfmap.matching.quality.map_seeds`); then the pair
 solved again with those seeds as landmarks (descriptors and constraints) in the eigenbasis and
 refined by ZoomOut, guarded by the geodesic distortion (stage 2).
 """
@@ -16,10 +16,10 @@ from typing import NamedTuple
 
 from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
+from ..matching.pipeline import match
+from ..matching.quality import map_seeds
+from ..matching.results import MatchResult
 from ..mesh import Mesh
-from ..pipeline import match
-from ..quality import map_seeds
-from ..results import MatchResult
 
 #: Farthest points of ``x`` offered as seeds.
 SEEDED_SEEDS = 40

@@ -11,7 +11,7 @@ Laplacians) becomes a diagonal mask after rotating by the eigenvectors of ``W_x`
 row of ``C`` (:func:`solve_rowwise`), exact in any B-orthonormal basis.
 
 Data checks (finite Gram matrices, singular systems) read tensor values, a host sync on an
-accelerator: they run under ``check`` (:func:`torchfmap._torch_checks.resolve_check`: by default
+accelerator: they run under ``check`` (:func:`torchfmap._util.torch_checks.resolve_check`: by default
 on for CPU tensors, off elsewhere); shape and dtype checks always run.
 """
 
@@ -22,8 +22,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from .._lazy import torch
-from .._torch_checks import resolve_check
+from .._util.lazy import torch
+from .._util.torch_checks import resolve_check
 from ..errors import ParameterError
 
 #: The Laplacian-commutativity masks (:func:`laplacian_mask`'s ``mask``).

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse.linalg as ssla
 
-from .. import _checks
-from .._checks import check_landmark_pairs
-from .._threads import torch_threads
+from .._util import checks as _checks
+from .._util.checks import check_landmark_pairs
+from .._util.threads import torch_threads
 from ..bases.basis import Basis
 from ..descriptors import check_descriptors
 from ..errors import ConvergenceError, MemoryEstimateError, ParameterError
@@ -49,7 +49,7 @@ def basis_frame(basis: Basis) -> core.SpectralFrame:
     """:class:`~torchfmap.fmap.core.SpectralFrame` ``(lam (K,), U (K, K))`` of ``basis``'s
     projected Laplacian ``W = Φᵀ L Φ`` (:func:`~torchfmap.fmap.core.spectral_frame`: read off
     for an eigenbasis, decomposed otherwise), as numpy arrays."""
-    with torch_threads(1):  # a small eigenproblem: see torchfmap._threads
+    with torch_threads(1):  # a small eigenproblem: see torchfmap._util.threads
         lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
     return core.SpectralFrame(lam.numpy(), U.numpy())
 
@@ -73,7 +73,7 @@ def solve_bytes(k_x: int, k_y: int) -> int:
 
 def check_solve_memory(k_x: int, k_y: int) -> None:
     """Refuse a solve in bases of ``k_x`` and ``k_y`` columns whose :func:`solve_bytes` exceed
-    the memory available now (:func:`~torchfmap._checks.available_memory`), before any work.
+    the memory available now (:func:`~torchfmap._util.checks.available_memory`), before any work.
 
     Raises:
         MemoryEstimateError: the estimate and the memory available in GiB, and the fix.
@@ -218,7 +218,7 @@ class FmapProblem:
         if not self.commute and self.landmarks is None:
             t = core.as_tensor
             prior = None if self.prior is None else t(self.prior)
-            with torch_threads(1):  # K small K x K systems: see torchfmap._threads
+            with torch_threads(1):  # K small K x K systems: see torchfmap._util.threads
                 return core.solve_rowwise(
                     t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap, None, prior, self.w_prior
                 ).numpy()

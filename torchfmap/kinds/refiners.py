@@ -3,7 +3,7 @@
 A kind returns its refiner (:meth:`torchfmap.kinds.BasisKind.refiner`); every refiner is called
 the same way, ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)`` ->
 :class:`~torchfmap.fmap.Refined`, and is used by :func:`torchfmap.match` (through
-:func:`torchfmap.results.refine_result`) and by the learned path:
+:func:`torchfmap.matching.results.refine_result`) and by the learned path:
 
 - :class:`ICP`: orthogonal ``C`` and nearest neighbours, bases kept (any kind);
 - :class:`ZoomOut`: eigenbases grown to ``k_final`` (the eigenbasis kind), in the shapes' own

@@ -8,7 +8,7 @@ Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass, ``(B, V, D)`` featur
 **The check switch.** Data checks (finite values, index ranges, sortedness, singular systems)
 read tensor values, a host sync on an accelerator. Every function that has them takes
 ``check: bool | None = None`` and every layer the same setting: ``None`` runs them on CPU
-inputs and skips them elsewhere, ``True`` / ``False`` force it (:mod:`torchfmap._torch_checks`).
+inputs and skips them elsewhere, ``True`` / ``False`` force it (:mod:`torchfmap._util.torch_checks`).
 Shape checks always run.
 
 Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,

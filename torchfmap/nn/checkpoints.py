@@ -1,4 +1,4 @@
-"""Checkpoints: atomic, checksummed files (:func:`~torchfmap._files.save_checked_bytes`) of the
+"""Checkpoints: atomic, checksummed files (:func:`~torchfmap._util.files.save_checked_bytes`) of the
 weights, the recipe, the network's record and any extras, read back without running code.
 
 The **network record** ``ckpt['network'] = {'class': 'module:qualname', 'kwargs': {...}}`` names
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from .._files import CHECKED_MAGIC, load_checked_bytes, save_checked_bytes
+from .._util.files import CHECKED_MAGIC, load_checked_bytes, save_checked_bytes
 from ..errors import CorruptFileError, ParameterError
 from .config import TrainConfig, network_kwargs
 from .networks import DiffusionNet

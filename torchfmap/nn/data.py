@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .._files import load_arrays, save_arrays
+from .._util.files import load_arrays, save_arrays
 from ..errors import CorruptFileError, ParameterError
 from ..io import load_mesh, mesh_files
 from ..kinds import learned_kind

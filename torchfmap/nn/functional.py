@@ -9,7 +9,7 @@ padding: ``valid (B, K)``, ``lengths (B,)``). The solve itself is
 The tangent-frame gradient operations (:class:`GradientBatch`, :func:`spatial_gradient`,
 :func:`gradient_features`) live in :mod:`torchfmap.nn.gradients` and are re-exported here.
 
-**Checks** (:mod:`torchfmap._torch_checks`, the one home of the torch-side checks). Shape checks
+**Checks** (:mod:`torchfmap._util.torch_checks`, the one home of the torch-side checks). Shape checks
 always run. Data checks read tensor values, which on an accelerator waits for the device (a
 host sync): finite features, index ranges of gradient operators and ground-truth rows,
 sortedness of the operators' edges, vertex counts, singular systems. Every function with one
@@ -27,7 +27,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
+from .._util.torch_checks import check_batched, check_finite, check_index_range, check_lengths, resolve_check
 from ..errors import ParameterError
 from ..fmap import core
 from ..fmap.defaults import W_LAP_SMOOTH

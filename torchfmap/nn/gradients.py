@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._torch_checks import check_index_range, resolve_check
+from .._util.torch_checks import check_index_range, resolve_check
 from ..errors import ParameterError
 
 

@@ -1,5 +1,5 @@
 """Inference with a trained network: matching two meshes (:class:`LearnedMatcher`, called like
-:func:`torchfmap.match` and returning its :class:`~torchfmap.results.MatchResult`); point maps
+:func:`torchfmap.match` and returning its :class:`~torchfmap.matching.results.MatchResult`); point maps
 of dataset items, adaptation and evaluation are in :mod:`~torchfmap.nn.item_inference`."""
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
 from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, pair_samplings
-from ..match_checks import check_meshes, check_unused, warn_if_partial
+from ..matching.checks import check_meshes, check_unused, warn_if_partial
+from ..matching.partial import match_partial
+from ..matching.results import MatchResult
 from ..mesh import Mesh
-from ..partial import match_partial
-from ..results import MatchResult
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
 from .coarse import Simplification, check_coarse, coarse_size, simplify
@@ -101,7 +101,7 @@ def _carried(net, batch: ShapeBatch, simple: Simplification | None) -> torch.Ten
 class LearnedMatcher:
     """Matches meshes with a trained network, called like :func:`torchfmap.match`.
 
-    ``matcher(mesh_x, mesh_y)`` returns the :class:`~torchfmap.results.MatchResult` of the pair:
+    ``matcher(mesh_x, mesh_y)`` returns the :class:`~torchfmap.matching.results.MatchResult` of the pair:
     each mesh is prepared once (:func:`~torchfmap.prepare_shape`: one Laplacian and one
     eigendecomposition, float64 on the CPU, serving the network's inputs
     (:func:`~torchfmap.nn.inputs.shape_arrays`), its basis and ZoomOut); the network (adapted to
@@ -119,7 +119,7 @@ class LearnedMatcher:
 
     Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
     and its recipe. It keeps nothing between calls: shapes are reused only when the caller
-    passes them (``shapes=``, as :func:`torchfmap.collection.evaluate_pairs` does). It pickles
+    passes them (``shapes=``, as :func:`torchfmap.evaluate.collection.evaluate_pairs` does). It pickles
     (for a process pool or a cluster executor): one built from a checkpoint as the checkpoint's
     name and its settings, the network loaded again where it is unpickled.
 
@@ -256,7 +256,7 @@ class LearnedMatcher:
 
     def features(self, mesh: Mesh, *, shape: PreparedShape | None = None) -> np.ndarray:
         """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
-        adaptation, no facings), e.g. as :func:`~torchfmap.partial.match_partial`'s
+        adaptation, no facings), e.g. as :func:`~torchfmap.matching.partial.match_partial`'s
         ``descriptors`` or for retrieval.
 
         Args:
@@ -332,7 +332,7 @@ class LearnedMatcher:
             shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse across
                 pairs (their eigenbases are grown in place when the call needs more).
             partial: ``y`` is a part of ``x`` (same units): the partial functional map of
-                :func:`~torchfmap.partial.match_partial` of the model's ``k`` (ZoomOut to
+                :func:`~torchfmap.matching.partial.match_partial` of the model's ``k`` (ZoomOut to
                 ``k_final``, default ``2k``) with the network's features
                 (:meth:`features`, as each shape lies: no facings) as its descriptors. The
                 features of a part agree with the whole's only where the network's inputs do:

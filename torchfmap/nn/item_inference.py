@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..errors import ParameterError
-from ..eval import geodesic_errors
+from ..evaluate.scores import geodesic_errors
 from ..fmap.convert import values_to_p2p
 from ..fmap.nearest import nearest_neighbor
 from ..mesh import Mesh

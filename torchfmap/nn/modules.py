@@ -11,7 +11,7 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
-from .._checks import check_lumped_mass
+from .._util.checks import check_lumped_mass
 from ..bases import prepare_shape
 from ..bases.basis import Basis
 from ..errors import ParameterError

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Protocol
 import torch
 from torch import nn
 
-from .._torch_checks import check_finite, resolve_check
+from .._util.torch_checks import check_finite, resolve_check
 from ..errors import ParameterError
 from . import functional as F
 from .functional import BasisBatch, GradientBatch

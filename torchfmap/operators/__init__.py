@@ -1,7 +1,7 @@
 """Operators on meshes: Laplace-Beltrami stiffness and mass, geodesics, sparse solvers, the
 heat-kernel action and the generalised eigensolvers."""
 
-from .._checks import check_vertex_indices, lumped_diagonal
+from .._util.checks import check_vertex_indices, lumped_diagonal
 from .convert import scipy_to_torch, torch_to_scipy
 from .eigen import eigenpairs
 from .geodesic import DistanceRows, GeodesicSolver, geodesic_distances

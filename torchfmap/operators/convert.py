@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import scipy.sparse as sp
 
-from .._lazy import torch
+from .._util.lazy import torch
 
 
 def scipy_to_torch(

@@ -17,8 +17,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as ssla
 
-from .._checks import check_memory, check_symmetric, lumped_diagonal
-from .._threads import blas_threads
+from .._util.checks import check_memory, check_symmetric, lumped_diagonal
+from .._util.threads import blas_threads
 from ..errors import ConvergenceError, CostWarning, ParameterError
 from .solvers import factorize
 
@@ -96,7 +96,7 @@ def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> t
     Raises:
         ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, an area that is not a
             finite positive float64 (a mesh so large or small that it overflows), or more memory
-            than is available (:func:`~torchfmap._checks.check_memory`).
+            than is available (:func:`~torchfmap._util.checks.check_memory`).
         ConvergenceError: block Lanczos did not converge in :data:`BLOCK_MAX_CYCLES` restarts
             (``solver='arpack'`` is the alternative).
     """

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import potpourri3d as pp3d
 
-from .._checks import check_vertex_indices
+from .._util.checks import check_vertex_indices
 from ..errors import ParameterError
 from ..mesh import Mesh
 

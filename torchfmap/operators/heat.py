@@ -44,7 +44,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .._checks import check_symmetric, check_tolerance, check_vertex_indices, lumped_diagonal
+from .._util.checks import check_symmetric, check_tolerance, check_vertex_indices, lumped_diagonal
 from ..errors import ParameterError
 from .eigen import eigenpairs
 from .krylov import krylov_heat
@@ -177,7 +177,7 @@ def heat_apply(
     (:func:`~torchfmap.operators.krylov.krylov_heat`).
 
     Raises :class:`ParameterError` for times that are not finite and > 0, an unknown method, or
-    ``tol`` outside ``[1e-14, 1)`` (:func:`~torchfmap._checks.check_tolerance`).
+    ``tol`` outside ``[1e-14, 1)`` (:func:`~torchfmap._util.checks.check_tolerance`).
     """
     L, B = operators
     tol = check_tolerance(tol)

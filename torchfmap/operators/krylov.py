@@ -21,8 +21,8 @@ import contextlib
 import numpy as np
 from scipy.linalg import blas
 
-from .._checks import lumped_diagonal
-from .._threads import blas_limiter
+from .._util.checks import lumped_diagonal
+from .._util.threads import blas_limiter
 from .solvers import factorize
 
 #: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.

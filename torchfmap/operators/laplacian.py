@@ -31,7 +31,7 @@ import numpy as np
 import robust_laplacian
 import scipy.sparse as sp
 
-from .._checks import lumped_diagonal as lumped_diagonal  # public here too (re-export)
+from .._util.checks import lumped_diagonal as lumped_diagonal  # public here too (re-export)
 from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 

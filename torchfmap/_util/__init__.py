@@ -1,0 +1,1 @@
+"""Shared helpers of every layer: input checks, files, threads, lazy imports, progress."""

@@ -1,0 +1,447 @@
+"""Command line: ``torchfmap demo | info | basis | match | eval | train`` (see ``torchfmap --help``).
+
+This module parses the flags (:func:`build_parser`, the argparse types, :func:`check_outputs`)
+and runs the command through :func:`main`; the commands themselves are in
+:mod:`torchfmap.cli.commands` (and :mod:`torchfmap.cli.train`, the learned path's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import sys
+import warnings
+from collections.abc import Sequence
+
+from .. import __version__
+from ..errors import TorchFmapError
+from ..evaluate.scores import FULL_EVAL_VERTICES, SAMPLED_EVAL_POINTS
+from ..kinds import KINDS, REFINE_METHODS
+from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match
+from .messages import error_line as _error_line
+from .messages import in_cli_terms as in_cli_terms
+from .messages import warning_line as _warning_line
+from .train import cmd_models, cmd_train
+from .types import count, nonnegative_float, point_count, positive_float, positive_int, time_list
+
+DESCRIPTION = """torchfmap: functional maps with feature-aware bases.
+
+  torchfmap demo                      match the shipped demo pair, print errors
+  torchfmap info MESH                 validate a mesh, summarise its operators
+  torchfmap basis MESH --out B.npz    compute and save a basis
+  torchfmap match SRC TGT --out MAP   map target vertices to source vertices
+  torchfmap eval FOLDER               match every pair with ground truth: table, PCK plot
+  torchfmap train FOLDER --out CKPT   train a feature network, unsupervised
+  torchfmap models                    list the pretrained models shipped in the package
+
+Flags mean the same in every subcommand: --k is the basis size, --out the output file,
+--landmarks 0-based vertex indices (match: a FILE of pairs; basis: a FILE of one column for a
+mesh, two for a pair; eval: a FOLDER of <source>-<target>.txt pair files). Run
+'torchfmap COMMAND --help'."""
+
+#: Every basis kind of the registry (torchfmap.kinds.KINDS), for the commands that take one.
+BASES = list(KINDS)
+LEARNED_BASES = [name for name, kind in KINDS.items() if kind.learned]
+
+
+class _DefaultsFormatter(argparse.HelpFormatter):
+    """Appends ``(default: X)`` to an option's help only where it says something: not when the
+    help already states its default, the option is required or a flag, or the default is None
+    (each option's help then says what None means)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        silent = (
+            "default" in text
+            or action.required
+            or action.default is None
+            or action.default is False
+            or action.default == argparse.SUPPRESS
+            or not action.option_strings
+        )
+        return text if silent else f"{text} (default: %(default)s)"
+
+
+def _refine_flags(p: argparse.ArgumentParser) -> None:
+    """The refinement and solver flags ``match`` and ``eval`` share."""
+    p.add_argument(
+        "--refine",
+        choices=list(REFINE_METHODS),
+        default=None,
+        help="refinement (default: none)",
+    )
+    p.add_argument(
+        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default: 2k)"
+    )
+    p.add_argument(
+        "--w-lap",
+        type=nonnegative_float,
+        default=None,
+        help="Laplacian-commutativity weight (default: per basis)",
+    )
+
+
+def _checkpoint_flags(p: argparse.ArgumentParser, what: str) -> None:
+    """The trained-network flags ``match`` and ``eval`` share (checked alike by
+    :func:`torchfmap.cli.commands._learned_matcher`)."""
+    p.add_argument(
+        "--checkpoint",
+        help=f"a network trained by 'torchfmap train' (a path, or a shipped name, see 'torchfmap "
+        f"models'): {what}",
+    )
+    p.add_argument("--adapt", type=count, default=0, help="test-time adaptation steps (with --checkpoint)")
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default=None,
+        help="where the network, its solver and the point-map search run (with --checkpoint; default: "
+        "auto, CUDA when available); operators and eigenbases stay on the CPU",
+    )
+
+
+QUIET = "no progress bar and no status lines (the results and errors still come)"
+
+
+def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help_text, description=help_text, formatter_class=_DefaultsFormatter)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="torchfmap", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"torchfmap {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = _sub(sub, "demo", "run on the demo pair shipped in the package")
+    p.set_defaults(func=cmd_demo)
+    p = _sub(sub, "models", "list the pretrained models shipped in the package, with their provenance")
+    p.add_argument("--recipe", metavar="CKPT", help="print the recipe (JSON) of a checkpoint or shipped name")
+    p.set_defaults(func=cmd_models)
+    p = _sub(sub, "info", "validate a mesh and summarise its operators")
+    p.add_argument("mesh", help="mesh file (.off/.ply/.obj/.stl, optionally .gz)")
+    p.set_defaults(func=cmd_info)
+
+    p = _sub(
+        sub,
+        "basis",
+        "compute the basis of one mesh, or the corresponding bases of a pair (as match builds them), "
+        "and save them as .npz (Basis.load reads them; match --bases solves in a pair)",
+    )
+    p.add_argument(
+        "mesh",
+        nargs="+",
+        metavar="MESH",
+        help="one mesh file (.off/.ply/.obj/.stl, optionally .gz), or SOURCE TARGET for a pair",
+    )
+    p.add_argument(
+        "--basis",
+        dest="kind",
+        choices=BASES,
+        default=None,
+        help="basis kind (default: diffusion with --landmarks, else laplacian)",
+    )
+    p.add_argument("--k", type=positive_int, default=50, help="basis size (exactly k columns)")
+    p.add_argument(
+        "--allow-components", action="store_true", help="accept meshes with several connected components"
+    )
+    p.add_argument(
+        "--landmarks",
+        metavar="FILE",
+        help="with one mesh: 0-based vertex indices, one per line (seeds of feature-aware kinds, "
+        "placed first; farthest points fill the rest); with a pair: 0-based pairs 'source_vertex "
+        "target_vertex', as for match (corresponding seeds on both meshes)",
+    )
+    p.add_argument(
+        "--times",
+        type=time_list,
+        default=None,
+        help="relative diffusion times of feature-aware kinds (default: one, matched to the seed count)",
+    )
+    p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan", help="operator")
+    p.add_argument(
+        "--out", required=True, nargs="+", metavar="OUT.npz", help="output .npz file, one per mesh"
+    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
+    p.set_defaults(func=cmd_basis)
+
+    p = _sub(sub, "match", "map a target mesh to a source mesh; write the target->source vertex map")
+    p.add_argument("source", help="source mesh x (the map's values are its vertex indices)")
+    p.add_argument("target", help="target mesh y (one map line per vertex)")
+    p.add_argument(
+        "--landmarks", metavar="FILE", help="0-based pairs 'source_vertex target_vertex', one per line"
+    )
+    p.add_argument(
+        "--basis",
+        choices=["auto", *BASES],
+        default=None,
+        help="basis kind (default: with --landmarks 'auto', the kind whose map distorts geodesic "
+        "distances least, eigenbasis preferred; without, laplacian)",
+    )
+    p.add_argument(
+        "--bases", nargs=2, metavar=("SRC.npz", "TGT.npz"), help="solve in saved bases ('torchfmap basis')"
+    )
+    p.add_argument("--partial", action="store_true", help="the target is a part of the source, same units")
+    p.add_argument(
+        "--k",
+        type=positive_int,
+        default=None,
+        help="basis size, every basis has exactly k columns (default: 50; --checkpoint fixes its own)",
+    )
+    _refine_flags(p)
+    p.add_argument(
+        "--times",
+        type=time_list,
+        default=None,
+        help="relative diffusion times of feature bases, e.g. 0.01,0.03 (default: one time matched to "
+        "the seed count)",
+    )
+    p.add_argument(
+        "--p2p-mode",
+        choices=["pullback", "orthogonal"],
+        default=None,
+        help="point-map rule (default: orthogonal for laplacian and hybrid, else pullback)",
+    )
+    p.add_argument(
+        "--allow-components", action="store_true", help="accept meshes with several connected components"
+    )
+    p.add_argument("--out", required=True, help="map file: line i = source of target vertex i; -: stdout")
+    p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
+    p.add_argument(
+        "--html",
+        help="also save the colour transfer as a self-contained page to turn in a browser (needs plotly)",
+    )
+    p.add_argument(
+        "--up",
+        choices=["x", "y", "z"],
+        default="z",
+        help="the meshes' vertical axis in --png and --html (not detected: y for y-up meshes such as "
+        "FAUST; TOSCA is z-up)",
+    )
+    _checkpoint_flags(
+        p,
+        "match with it instead of the classical pipeline (its own basis and k; no --landmarks, --k, "
+        "--basis, --bases, --w-lap, --times, --p2p-mode)",
+    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
+    p.set_defaults(func=cmd_match)
+
+    p = _sub(sub, "eval", "match every pair of a folder with ground truth; table + PCK plot")
+    p.add_argument(
+        "--partial", action="store_true", help="FOLDER is a partial collection: full/, partial/, corres/"
+    )
+    p.add_argument(
+        "--map-base", type=int, choices=[0, 1], default=0, help="--partial: maps' first index (default 0)"
+    )
+    p.add_argument(
+        "folder", help="folder of meshes (+ corres/*.vts and test_pairs.txt, or meshes of one template)"
+    )
+    p.add_argument(
+        "--gt",
+        choices=["files", "identity"],
+        default=None,
+        help="ground truth: corres/*.vts files only, or identity (vertex i is vertex i) for meshes "
+        "of equal vertex counts (default: the files, else identity where the face lists agree)",
+    )
+    p.add_argument(
+        "--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)"
+    )
+    p.add_argument("--k", type=positive_int, default=None, help="basis size (default: 50)")
+    _refine_flags(p)
+    p.add_argument(
+        "--landmarks",
+        metavar="DIR",
+        help="landmark pairs per pair: DIR/<source>-<target>.txt, 'source_vertex target_vertex' per "
+        "line (instead of --gt-landmarks)",
+    )
+    p.add_argument(
+        "--maps",
+        metavar="DIR",
+        help="score saved maps instead of matching: DIR/<source>-<target>.txt as written by "
+        "'torchfmap match --out'",
+    )
+    p.add_argument(
+        "--gt-landmarks",
+        type=count,
+        default=0,
+        help="use N ground-truth pairs per pair as landmarks (0: none)",
+    )
+    pairs = "which pairs: test_pairs.txt else consecutive (auto); i -> i+1 by name; all ordered; a file"
+    p.add_argument("--pairs", default="auto", metavar="auto|consecutive|all|FILE", help=pairs)
+    p.add_argument("--max-pairs", type=count, default=0, help="at most this many pairs (0: all)")
+    points = f"ground-truth points scored per pair: auto (all on source meshes of up to {FULL_EVAL_VERTICES} "
+    points += f"vertices, a seeded random {SAMPLED_EVAL_POINTS} above: the table says so), all, or at most N"
+    p.add_argument("--max-points", type=point_count, default="auto", metavar="auto|all|N", help=points)
+    p.add_argument("--png", help="save the PCK curves here (needs matplotlib)")
+    p.add_argument(
+        "--out", metavar="FILE.npz", help="keep the scored pairs here as they finish; the same command "
+        "with the same FILE resumes from them (after Ctrl-C, a lost worker, a full disk)",
+    )  # fmt: skip
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        help="local processes (each mesh prepared once per process)",
+    )
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        default=None,
+        help="BLAS/torch threads per process (default: all CPUs / workers); equal --threads give "
+        "identical results with any --workers",
+    )
+    p.add_argument("--dask", metavar="ADDRESS", help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
+    _checkpoint_flags(
+        p,
+        "match with it instead of the classical pipeline (its own basis and k; no --landmarks, "
+        "--gt-landmarks, --k, --basis, --w-lap); each mesh prepared once per worker",
+    )
+    p.add_argument("--quiet", action="store_true", help=QUIET)
+    p.set_defaults(func=cmd_eval)
+
+    p = _sub(sub, "train", "train a feature network, unsupervised, on every mesh of a folder")
+    p.add_argument(
+        "folder", help="meshes (.off/.ply/.obj/.stl, .gz); pairs within classes sharing a name prefix"
+    )
+    p.add_argument("--out", required=True, help="checkpoint (written atomically during training)")
+    p.add_argument(
+        "--config",
+        metavar="RECIPE.json",
+        help="the recipe (TrainConfig fields as JSON; `torchfmap models --recipe CKPT` prints a "
+        "checkpoint's); flags given here override its values",
+    )
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default="auto",
+        help="where the network, solver and loss run (auto: cuda when available; the precompute "
+        "stays float64 on the CPU)",
+    )
+    p.add_argument(
+        "--minutes",
+        type=positive_float,
+        default=None,
+        help="time budget of the whole run; any of --minutes / --epochs / --max-steps given replaces "
+        "the whole budget (of the recipe file, --init or --resume)",
+    )
+    p.add_argument(
+        "--epochs",
+        type=positive_int,
+        default=None,
+        help="epochs of all ordered pairs (default: 5 when no budget is given)",
+    )
+    p.add_argument("--max-steps", type=count, default=None, help="optimiser steps (default, or 0: no limit)")
+    p.add_argument(
+        "--basis",
+        choices=LEARNED_BASES,
+        default=None,
+        help="basis kind of the learned map (default: laplacian)",
+    )
+    p.add_argument("--k", type=positive_int, default=None, help="functional-map basis size (default: 50)")
+    p.add_argument(
+        "--pairs",
+        choices=["classes", "all"],
+        default="classes",
+        help="training pairs: within classes of names (cat0, cat1; default) or all ordered pairs "
+        "(species, data sets)",
+    )
+    p.add_argument(
+        "--inputs",
+        choices=["wks", "xyz", "wks+xyz"],
+        default=None,
+        help="per-vertex network inputs: WKS, coordinates, or both (default: wks)",
+    )
+    p.add_argument(
+        "--augment",
+        choices=["rigid", "up", "scale", "none"],
+        default=None,
+        help="moves of XYZ inputs at each step: rotation and scaling, rotation about the y axis and "
+        "scaling (shapes standing alike, facing anywhere), scaling only (shapes aligned alike), or "
+        "none (default: rigid)",
+    )
+    p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default: 32)")
+    p.add_argument(
+        "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default: 96)"
+    )
+    p.add_argument(
+        "--clip-grad",
+        type=nonnegative_float,
+        default=None,
+        help="gradient-norm clipping per step (default: 0: none)",
+    )
+    p.add_argument("--width", type=positive_int, default=None, help="network width (default: 48)")
+    p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default: 64)")
+    p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default: 1e-3)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
+    p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
+    p.add_argument("--no-cache", action="store_true", help="compute without a cache")
+    p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
+    p.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from the (best) weights and recipe of a checkpoint or shipped model: fine-tuning "
+        "(recipe flags given here override its recipe; the network must stay the same)",
+    )
+    p.add_argument("--validate-every", type=count, default=100, help="steps between validations (0: none)")
+    p.add_argument("--validate-pairs", type=positive_int, default=6, help="pairs of the validation score")
+    p.add_argument("--quiet", action="store_true", help=QUIET)
+    p.set_defaults(func=cmd_train)
+    return parser
+
+
+def _as_list(value) -> list:
+    return [] if not value else list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any work, output paths that cannot be written: a missing or read-only
+    folder, an existing folder as the file; ``--png`` without matplotlib, ``--html`` without
+    plotly installed."""
+    values = [(flag, v) for flag in ("out", "png", "html") for v in _as_list(getattr(args, flag, None))]
+    values = [(flag, v) for flag, v in values if not (flag == "out" and v == "-" and args.command == "match")]
+    for flag, value in values:
+        path = os.path.abspath(value)
+        folder = os.path.dirname(path)
+        if os.path.isdir(path):
+            raise TorchFmapError(f"--{flag} {value!r} is a folder. Fix: give a file name inside it.")
+        if not os.path.isdir(folder):
+            raise TorchFmapError(f"--{flag} {value!r}: no folder {folder!r}. Fix: create it first.")
+        if not os.access(folder, os.W_OK):
+            raise TorchFmapError(
+                f"--{flag} {value!r}: the folder {folder!r} is not writable. Fix: write elsewhere."
+            )
+    if getattr(args, "png", None) and importlib.util.find_spec("matplotlib") is None:
+        raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
+    if getattr(args, "html", None) and importlib.util.find_spec("plotly") is None:
+        raise TorchFmapError("--html needs plotly. Fix: pip install plotly (or the 'html' extra).")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The ``torchfmap`` command. Exit status: 0 done, 1 a file could not be read or written
+    (the message says which and why), 2 bad input (named, with its fix), 130 interrupted
+    (Ctrl-C), 141 the output pipe was closed (e.g. ``| head``). No traceback for any of these."""
+    args = build_parser().parse_args(argv)
+    try:
+        with warnings.catch_warnings():  # one line per warning, in the command's terms
+            warnings.showwarning = _warning_line
+            check_outputs(args)
+            return args.func(args)
+    except TorchFmapError as err:
+        print(_error_line(err), file=sys.stderr)
+        return 1 if isinstance(err, OSError) else 2
+    except BrokenPipeError:
+        # the reader went away (``| head``): stop quietly; point stdout at /dev/null so the
+        # interpreter's final flush does not raise again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
+    except OSError as err:  # reading: a missing file, a folder given as a file, no permission...
+        print(f"torchfmap: error: {err}. Fix: check the path and its permissions.", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("torchfmap: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

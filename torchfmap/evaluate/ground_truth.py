@@ -1,0 +1,94 @@
+"""Ground truth of a pair: which source vertex corresponds to which target vertex.
+
+Ground truth comes in the field's formats: the identity (same mesh connectivity, vertex ``i``
+matches ``i``), a 0-based map file (line ``v``: the source vertex of target vertex ``v``), or
+pairs of 1-based ``.vts`` files whose rows correspond (the files are read by
+:func:`torchfmap.io.read_map` and :func:`torchfmap.io.read_vts`). Every form is turned into a
+:class:`Correspondence` ``(idx_x, idx_y)``: the same order as landmark pairs ``(x, y)``.
+:mod:`torchfmap.evaluate.scores` scores maps against it (and re-exports these names).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..mesh import Mesh
+
+
+class Correspondence(NamedTuple):
+    """Ground truth: ``idx_x[r]`` on the source corresponds to ``idx_y[r]`` on the target.
+
+    Both ``(P,)`` int arrays; the order ``(x, y)`` is the order of landmark pairs.
+    """
+
+    idx_x: np.ndarray
+    idx_y: np.ndarray
+
+
+def gt_identity(n: int) -> Correspondence:
+    """The identity correspondence on ``n`` vertices."""
+    idx = np.arange(n, dtype=np.int64)
+    return Correspondence(idx, idx.copy())
+
+
+def gt_from_map(gt_yx: np.ndarray) -> Correspondence:
+    """From a full 0-based map ``gt_yx`` (target vertex ``v`` -> its source vertex)."""
+    gt_yx = np.asarray(gt_yx, dtype=np.int64)
+    return Correspondence(gt_yx, np.arange(len(gt_yx), dtype=np.int64))
+
+
+def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
+    """From two 0-based ``.vts`` index arrays whose rows correspond.
+
+    Raises:
+        ParameterError: file paths instead of arrays (read them with
+            :func:`~torchfmap.io.read_vts`, which also makes them 0-based), or row counts that
+            differ.
+    """
+    if any(isinstance(v, (str, os.PathLike)) for v in (vts_x, vts_y)):
+        raise ParameterError(
+            "gt_from_vts takes the 0-based index arrays of two .vts files, not their paths. Fix: "
+            "gt_from_vts(read_vts(path_x), read_vts(path_y)) (torchfmap.io.read_vts)."
+        )
+    if len(vts_x) != len(vts_y):
+        raise ParameterError(f".vts files have {len(vts_x)} and {len(vts_y)} rows; rows must correspond.")
+    return Correspondence(np.asarray(vts_x, dtype=np.int64), np.asarray(vts_y, dtype=np.int64))
+
+
+def as_correspondence(gt) -> Correspondence:
+    """``gt`` checked and as int64 arrays.
+
+    Raises:
+        ParameterError: anything but a :class:`Correspondence` (a plain pair is refused: its order
+            cannot be checked, and a swapped pair scores silently wrong).
+    """
+    if not isinstance(gt, Correspondence):
+        raise ParameterError(
+            f"gt must be a Correspondence(idx_x, idx_y), got {type(gt).__name__}. Fix: build it with "
+            "Correspondence(idx_x=..., idx_y=...), gt_from_vts, gt_from_map or gt_identity."
+        )
+    return Correspondence(*(np.asarray(a, dtype=np.int64) for a in gt))
+
+
+def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
+    """``(n, 2)`` landmark pairs ``(x vertex, y vertex)``: ground-truth rows spread over ``x``
+    by Euclidean farthest-point sampling (deterministic; for experiments with known landmarks)."""
+    idx_x, idx_y = as_correspondence(gt)
+    if not 1 <= n <= len(idx_x):
+        raise ParameterError(
+            f"the number of landmarks must be in [1, {len(idx_x)}] (the ground-truth rows), got {n}. "
+            "Fix: ask for fewer landmarks (CLI: --gt-landmarks)."
+        )
+    pts = mesh_x.vertices[idx_x]
+    chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    while len(chosen) < n:
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
+    rows = np.asarray(chosen)
+    return np.stack([idx_x[rows], idx_y[rows]], axis=1)

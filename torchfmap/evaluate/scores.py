@@ -1,0 +1,449 @@
+"""Evaluation: geodesic error, PCK curves, coverage, bijectivity, smoothness, shape distances.
+
+Ground truth (:class:`Correspondence`, :func:`gt_identity`, :func:`gt_from_map`,
+:func:`gt_from_vts`, :func:`landmarks_from_gt`) lives in :mod:`torchfmap.evaluate.ground_truth` and is
+re-exported here.
+
+Errors are geodesic distances on the source ``x`` between the predicted and the true match,
+divided by ``sqrt(area_x)`` (the convention of the field). Distances come from the heat method
+on the rows needed only (one solve per distinct true vertex), never an all-pairs matrix.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import ParameterError
+from ..io import find_file, mesh_files, read_arrays, read_test_pairs, read_vts, shape_name
+from ..mesh import Mesh
+from ..operators.geodesic import DistanceRows, GeodesicSolver
+from .ground_truth import Correspondence, as_correspondence, gt_from_vts, gt_identity
+from .ground_truth import gt_from_map as gt_from_map
+from .ground_truth import landmarks_from_gt as landmarks_from_gt
+
+# -- pointwise errors --------------------------------------------------------------------------
+#: ``max_points='auto'`` scores every ground-truth point on source meshes of at most this many
+#: vertices (the field's benchmark meshes, scored in full as their figures are published) ...
+FULL_EVAL_VERTICES = 10_000
+#: ... and on larger ones (a distance solve per point costs at least ``O(V_x)``) this many, drawn
+#: uniformly without replacement (seeded): the mean error's standard error ``σ / sqrt(n) · sqrt(1 - n / P)``
+#: is then at most ``σ / sqrt(500)``, under 4.5 % of the errors' standard deviation ``σ``; it is
+#: reported (:attr:`MapReport.mean_error_se`).
+SAMPLED_EVAL_POINTS = 500
+#: Distance rows solved at once (bounds the memory to this many ``(V_x,)`` rows).
+ROWS_PER_BATCH = 256
+
+
+def evaluated_rows(n_rows: int, n_source: int, max_points="auto", seed: int = 0) -> np.ndarray | None:
+    """The ground-truth rows :func:`geodesic_errors` scores: sorted indices into the ``n_rows``
+    rows, or None for all of them.
+
+    ``max_points``: ``'auto'`` (every row when the source mesh has at most
+    :data:`FULL_EVAL_VERTICES` vertices ``n_source``, else :data:`SAMPLED_EVAL_POINTS` of
+    them), None (every row), or an int >= 1 (at most that many). A sample is uniform without
+    replacement, drawn by ``numpy.random.default_rng(seed)``: the same rows for the same
+    ground truth, so pairs with one source share their distance rows.
+
+    Raises:
+        ParameterError: ``max_points`` none of these (e.g. 0, a bool or another string).
+    """
+    if isinstance(max_points, str) and max_points == "auto":
+        max_points = None if n_source <= FULL_EVAL_VERTICES else SAMPLED_EVAL_POINTS
+    integer = isinstance(max_points, (int, np.integer)) and not isinstance(max_points, bool)
+    if max_points is not None and not (integer and max_points >= 1):
+        raise ParameterError(
+            f"max_points must be 'auto', None (every point) or an int >= 1, got {max_points!r}. Fix: "
+            "e.g. max_points=None to score every ground-truth point (CLI: --max-points all)."
+        )
+    if max_points is None or n_rows <= max_points:
+        return None
+    return np.sort(np.random.default_rng(seed).choice(n_rows, int(max_points), replace=False))
+
+
+def geodesic_errors(
+    mesh_x: Mesh,
+    p2p_yx: np.ndarray,
+    gt: Correspondence,
+    *,
+    solver: GeodesicSolver | DistanceRows | None = None,
+    normalize: bool = True,
+    max_points="auto",
+    seed: int = 0,
+    progress: bool = False,
+) -> np.ndarray:
+    """Geodesic error of ``p2p_yx`` at the ground-truth pairs scored: ``(P,)``, or ``(n,)`` for a
+    sample (the rows of :func:`evaluated_rows`, in order).
+
+    Args:
+        mesh_x: the source mesh (errors are measured on it).
+        p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
+        gt: :class:`Correspondence` ``(idx_x, idx_y)``; a plain tuple raises ParameterError.
+        solver: distances on ``mesh_x`` (a :class:`GeodesicSolver`, or a
+            :class:`~torchfmap.operators.DistanceRows` cache to share rows across pairs with
+            this source); built here when None.
+        normalize: divide by ``sqrt(area_x)``.
+        max_points: which pairs are scored (:func:`evaluated_rows`): ``'auto'`` (default:
+            every pair on source meshes of at most :data:`FULL_EVAL_VERTICES` vertices, a
+            sample of :data:`SAMPLED_EVAL_POINTS` above), None (every pair) or at most this many.
+        seed: of the sample.
+        progress: a progress bar (tqdm, on stderr) over the distance solves.
+
+    Raises:
+        ParameterError: a map or ground truth that does not fit the meshes, or a bad
+            ``max_points``.
+    """
+    idx_x, idx_y = as_correspondence(gt)
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.ndim != 1 or not np.issubdtype(p2p_yx.dtype, np.integer):
+        raise ParameterError(
+            f"p2p_yx must be a 1-D integer array (one source vertex per target vertex), got shape "
+            f"{p2p_yx.shape} and dtype {p2p_yx.dtype}."
+        )
+    if p2p_yx.size and (p2p_yx.min() < 0 or p2p_yx.max() >= mesh_x.n_vertices):
+        raise ParameterError(
+            f"p2p_yx holds vertex indices outside [0, {mesh_x.n_vertices}) of mesh_x (min "
+            f"{int(p2p_yx.min())}, max {int(p2p_yx.max())}). Fix: maps are 0-based, target -> source; "
+            "a map in the other direction (x -> y) must be inverted first."
+        )
+    if len(idx_y) != len(idx_x):
+        raise ParameterError("ground-truth index arrays differ in length.")
+    if idx_y.size and (idx_y.max() >= len(p2p_yx) or idx_y.min() < 0):
+        raise ParameterError("ground truth refers to target vertices outside the map. Fix: check the files.")
+    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
+        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    pick = evaluated_rows(len(idx_y), mesh_x.n_vertices, max_points, seed)
+    if pick is not None:
+        idx_y, idx_x = idx_y[pick], idx_x[pick]
+    pred = p2p_yx[idx_y]
+    solver = solver or GeodesicSolver(mesh_x)
+    errors = np.empty(len(idx_x))
+    uniq, inverse = np.unique(idx_x, return_inverse=True)
+    step = ROWS_PER_BATCH  # bounded memory: this many distance rows at a time
+    with tqdm(total=len(uniq), desc="scoring", unit="row", leave=False, disable=not progress) as bar:
+        for start in range(0, len(uniq), step):
+            rows = solver.distances(uniq[start : start + step])
+            sel = np.flatnonzero((inverse >= start) & (inverse < start + step))
+            errors[sel] = rows[inverse[sel] - start, pred[sel]]
+            bar.update(len(rows))
+    errors = np.maximum(errors, 0.0)
+    errors[pred == idx_x] = 0.0
+    return errors / np.sqrt(mesh_x.area) if normalize else errors
+
+
+def error_floor(
+    mesh_x: Mesh,
+    gt: Correspondence,
+    *,
+    solver: GeodesicSolver | DistanceRows | None = None,
+    normalize: bool = True,
+) -> np.ndarray:
+    """The error a vertex-to-vertex map cannot avoid against ``gt``: ``(P,)``, one per row.
+
+    Ground truth built by nearest vertices (a template's points on a remeshed surface, as in
+    FAUST_r, SMAL_r and any remesh) gives several rows the same target vertex ``idx_y`` with
+    different source vertices ``idx_x``; a point map sends that vertex to one vertex, so those rows
+    cannot all score zero. Each group of rows sharing a target vertex is given the one of its
+    source vertices of least mean distance to the group's sources; the rows' distances to it
+    are returned (zero where a target vertex has one source vertex). The optimum may lie between
+    the group's sources: an upper bound on the floor, tight for small groups. A coarser meshing
+    raises it; compare :func:`geodesic_errors` across meshings above it.
+
+    Args:
+        mesh_x: the source mesh.
+        gt: :class:`Correspondence` ``(idx_x, idx_y)``.
+        solver: distances on ``mesh_x`` (built here when None), :data:`ROWS_PER_BATCH` source rows
+            at a time.
+        normalize: divide by ``sqrt(area_x)``.
+    """
+    idx_x, idx_y = as_correspondence(gt)
+    if len(idx_y) != len(idx_x):
+        raise ParameterError("ground-truth index arrays differ in length.")
+    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
+        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    floor = np.zeros(len(idx_x))
+    order = np.argsort(idx_y, kind="stable")
+    groups = [
+        g for g in np.split(order, np.flatnonzero(np.diff(idx_y[order])) + 1) if len(np.unique(idx_x[g])) > 1
+    ]  # fmt: skip
+    cands = [np.unique(idx_x[g]) for g in groups]
+    table = [np.zeros((len(g), len(c))) for g, c in zip(groups, cands, strict=True)]  # row -> each candidate
+    wanted: dict[int, list[int]] = {}  # source vertex -> the groups whose rows it is
+    for n in range(len(groups)):
+        for c in cands[n].tolist():
+            wanted.setdefault(c, []).append(n)
+    solver = solver or GeodesicSolver(mesh_x)
+    sources = np.fromiter(wanted, dtype=np.int64, count=len(wanted))
+    for start in range(0, len(sources), ROWS_PER_BATCH):  # bounded memory
+        batch = sources[start : start + ROWS_PER_BATCH]
+        for row, x in zip(np.maximum(solver.distances(batch), 0.0), batch.tolist(), strict=True):
+            for n in wanted[x]:  # distances from the true source, as geodesic_errors measures them
+                at = idx_x[groups[n]] == x
+                table[n][at] = row[cands[n]]
+                table[n][at, cands[n] == x] = 0.0
+    for g, t in zip(groups, table, strict=True):
+        floor[g] = t[:, np.argmin(t.mean(axis=0))]
+    return floor / np.sqrt(mesh_x.area) if normalize else floor
+
+
+def pck_curve(errors: np.ndarray, thresholds=None) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative accuracy: fraction of errors ``<= thr`` for each threshold ``(T,)``."""
+    errors = np.asarray(errors, dtype=np.float64)
+    thresholds = np.linspace(0, 0.25, 101) if thresholds is None else np.asarray(thresholds, dtype=np.float64)
+    return thresholds, (errors[None, :] <= thresholds[:, None]).mean(axis=1)
+
+
+def auc(errors: np.ndarray, max_threshold: float = 0.25) -> float:
+    """Area under the PCK curve on ``[0, max_threshold]``, normalised to ``[0, 1]``."""
+    thr, acc = pck_curve(errors, np.linspace(0, max_threshold, 201))
+    return float(np.trapezoid(acc, thr) / max_threshold)
+
+
+def coverage(p2p_yx: np.ndarray, n_x: int) -> float:
+    """Fraction of source vertices hit by the map (1 for a surjective map)."""
+    return float(len(np.unique(p2p_yx)) / n_x)
+
+
+def bijectivity_error(
+    mesh_y: Mesh, p2p_yx: np.ndarray, p2p_xy: np.ndarray, *, max_points: int | None = 2000, seed: int = 0
+) -> float:
+    """Mean normalised geodesic distance on ``y`` between ``v`` and ``p2p_xy[p2p_yx[v]]``."""
+    back = np.asarray(p2p_xy)[np.asarray(p2p_yx)]
+    # v is the truth for the round trip: the "prediction" at target v is back[v]
+    gt = Correspondence(np.arange(mesh_y.n_vertices), back)
+    errs = geodesic_errors(mesh_y, np.arange(mesh_y.n_vertices), gt, max_points=max_points, seed=seed)
+    return float(errs.mean())
+
+
+def smoothness(mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray) -> float:
+    """Mean edge stretch ``|x(p(i)) - x(p(j))| / |y_i - y_j|`` over the edges of ``y``,
+    with lengths normalised by ``sqrt(area)`` (1 for an isometry; large for a noisy map)."""
+    e = mesh_y.edges
+    p = np.asarray(p2p_yx)
+    src = np.linalg.norm(mesh_x.vertices[p[e[:, 0]]] - mesh_x.vertices[p[e[:, 1]]], axis=1)
+    dst = mesh_y.edge_lengths
+    return float(np.mean((src / np.sqrt(mesh_x.area)) / (dst / np.sqrt(mesh_y.area))))
+
+
+@dataclass
+class MapReport:
+    """Summary numbers of one map. ``n_points`` of the ``n_total`` ground-truth points were
+    scored (fewer for a sample, :func:`evaluated_rows`); ``mean_error_se`` is the standard error
+    of ``mean_error`` as an estimate of the mean over all ``n_total`` (0 when all were scored);
+    0 for both counts: not recorded."""
+
+    mean_error: float
+    median_error: float
+    auc: float
+    coverage: float
+    smoothness: float
+    n_points: int = 0
+    n_total: int = 0
+    mean_error_se: float = 0.0
+
+    def sampling(self) -> str:
+        """The points scored, in words, e.g. ``'500 of 69474 points (mean ± 0.0009)'``."""
+        if not 0 < self.n_points < self.n_total:
+            return f"all {self.n_total} points" if self.n_total else "all points"
+        return f"{self.n_points} of {self.n_total} points (mean ± {self.mean_error_se:.4f})"
+
+    def row(self) -> str:
+        return (
+            f"{self.mean_error:.4f}  {self.median_error:.4f}  {self.auc:.3f}  {self.coverage:.3f}  "
+            f"{self.smoothness:.2f}"
+        )
+
+
+def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapReport, np.ndarray]:
+    """``(MapReport, errors)`` of ``p2p_yx`` against ground truth ``gt``; ``kwargs``: those of
+    :func:`geodesic_errors` (``max_points='auto'``: a sample on source meshes of more than
+    :data:`FULL_EVAL_VERTICES` vertices, recorded in the report's ``n_points`` / ``n_total`` /
+    ``mean_error_se``; ``max_points=None``: every point).
+
+    Raises :class:`ParameterError` unless ``p2p_yx`` has one integer entry per vertex of
+    ``mesh_y``, each a vertex of ``mesh_x`` (a map in the wrong direction is refused).
+    """
+    p2p_yx = np.asarray(p2p_yx)
+    if p2p_yx.shape != (mesh_y.n_vertices,):
+        raise ParameterError(
+            f"p2p_yx must have one entry per vertex of mesh_y ({mesh_y.n_vertices}), got shape "
+            f"{p2p_yx.shape}. Fix: p2p_yx[v] is the vertex of x matched to vertex v of y"
+            + (" (this looks like a map x -> y)." if p2p_yx.shape == (mesh_x.n_vertices,) else ".")
+        )
+    errors = geodesic_errors(mesh_x, p2p_yx, gt, **kwargs)
+    n, total = len(errors), len(gt[0])  # the standard error of n drawn without replacement:
+    se = float(np.std(errors, ddof=1) / np.sqrt(n) * np.sqrt(1 - n / total)) if 1 < n < total else 0.0
+    report = MapReport(
+        float(errors.mean()),
+        float(np.median(errors)),
+        auc(errors),
+        coverage(p2p_yx, mesh_x.n_vertices),
+        smoothness(mesh_x, mesh_y, p2p_yx),
+        n,
+        total,
+        se,
+    )
+    return report, errors
+
+
+# -- shape comparison --------------------------------------------------------------------------
+def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> np.ndarray:
+    """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``: how the
+    map changes an inner-product form.
+
+    ``form='area'`` (the L2 form): ``C_xyᵀ C_xy`` (identity for area-preserving maps between
+    B-orthonormal bases); ``'conformal'`` (the Dirichlet form): ``W_x⁺ C_xyᵀ W_y C_xy``
+    (identity for conformal maps).
+
+    Raises:
+        ParameterError: an unknown ``form``, or ``'conformal'`` without ``W_x`` and ``W_y``.
+    """
+    C = np.asarray(C_xy, dtype=np.float64)
+    if form == "area":
+        return C.T @ C
+    if form == "conformal":
+        if W_x is None or W_y is None:
+            raise ParameterError("the conformal shape difference needs W_x and W_y (projected Laplacians).")
+        return np.linalg.pinv(W_x, rcond=1e-10, hermitian=True) @ C.T @ W_y @ C
+    raise ParameterError(f"unknown shape difference form {form!r}. Fix: 'area' or 'conformal'.")
+
+
+def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> float:
+    """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D`` (:func:`shape_difference`, same
+    ``form``): 0 for isometric shapes."""
+    D = shape_difference(C_xy, W_x, W_y, form)
+    return float(np.linalg.norm(D - np.eye(len(D))) / np.sqrt(len(D)))
+
+
+def retrieval_accuracy(distances: np.ndarray, labels) -> float:
+    """Leave-one-out nearest-neighbour class accuracy of a ``(N, N)`` distance matrix."""
+    D = np.array(distances, dtype=np.float64)
+    labels = np.asarray(labels)
+    if D.shape != (len(labels), len(labels)):
+        raise ParameterError(f"distances must be (N, N) with N={len(labels)}, got {D.shape}.")
+    np.fill_diagonal(D, np.inf)
+    return float(np.mean(labels[np.argmin(D, axis=1)] == labels))
+
+
+#: The pair protocols of :func:`discover_pairs` (or a test-pairs file's path).
+PAIR_PROTOCOLS = ("auto", "consecutive", "all")
+#: Sub-folders of a data set that hold its meshes (DUO-FM / ULRSSM layouts: ``shapes_train/``,
+#: ``shapes_test/`` or ``off/`` beside ``corres/``).
+MESH_SUBFOLDERS = ("shapes_test", "shapes_train", "off", "shapes")
+
+
+def _data_set_places(folder: Path) -> tuple[Path, ...]:
+    """Where a folder's ``corres/`` and ``test_pairs.txt`` are looked for: in it, and beside it
+    when it is a data set's mesh sub-folder (:data:`MESH_SUBFOLDERS`)."""
+    return (folder, folder.parent) if folder.name in MESH_SUBFOLDERS else (folder,)
+
+
+def _corres_folder(folder: Path) -> Path | None:
+    """The ``corres/`` of a folder's meshes (:func:`_data_set_places`), or None."""
+    return next((p / "corres" for p in _data_set_places(folder) if (p / "corres").is_dir()), None)
+
+
+def select_pairs(folder: str | os.PathLike, pairs="auto") -> tuple[list[tuple[str, str]], str]:
+    """``(pairs, protocol)``: the ordered ``(name_x, name_y)`` pairs of a folder's meshes to score,
+    and a sentence saying which they are (for a report's footer).
+
+    ``pairs``: ``'auto'`` (the folder's ``test_pairs.txt``, or for a data set's mesh sub-folder
+    such as ``shapes_test/`` the one beside it; else consecutive meshes), ``'consecutive'``
+    (mesh ``i`` -> mesh ``i + 1`` in name order),
+    ``'all'`` (every ordered pair), or the path of a test-pairs file (``'source target'`` per
+    line).
+
+    Raises:
+        ParameterError: fewer than two meshes (with the sub-folder to name, for a data set laid
+            out as ``shapes_train/`` / ``shapes_test/`` beside ``corres/``), an unknown protocol,
+            or a pairs file naming absent meshes.
+    """
+    folder = Path(folder)
+    names = [shape_name(p) for p in mesh_files(folder)]
+    if len(names) < 2:
+        subs = [d.name for d in (folder / n for n in MESH_SUBFOLDERS) if d.is_dir() and mesh_files(d)]
+        fix = (
+            f"this is a data set whose meshes are in {', '.join(subs)}: point to one, e.g. "
+            f"{folder / subs[0]} (its corres/ beside it is read)"
+            if subs
+            else "point to a folder of meshes (.off/.ply/.obj/.stl, optionally .gz)"
+        )
+        raise ParameterError(f"{folder} holds {len(names)} meshes, at least two are needed. Fix: {fix}.")
+    if pairs == "auto":
+        found = (find_file(place, "test_pairs.txt") for place in _data_set_places(folder))
+        pairs = next((f for f in found if f is not None), "consecutive")
+    n = len(names)
+    if pairs == "consecutive":
+        chosen = list(zip(names[:-1], names[1:], strict=True))
+        return chosen, (
+            f"{len(chosen)} consecutive pairs of {n} meshes in name order (of {n * (n - 1)} ordered "
+            "pairs: --pairs all for every one, or a test_pairs.txt)"
+        )
+    if pairs == "all":
+        chosen = [(a, b) for a in names for b in names if a != b]
+        return chosen, f"all {len(chosen)} ordered pairs of {n} meshes"
+    if isinstance(pairs, str) and pairs in PAIR_PROTOCOLS or not isinstance(pairs, (str, os.PathLike)):
+        raise ParameterError(f"unknown pairs {pairs!r}. Fix: 'auto', 'consecutive', 'all' or a pairs file.")
+    path = Path(pairs)
+    if not path.exists():
+        raise ParameterError(
+            f"pairs={str(pairs)!r} is neither a protocol nor an existing file. Fix: 'auto', 'consecutive', "
+            "'all', or the path of a test-pairs file ('source target' per line)."
+        )
+    chosen = read_test_pairs(path)
+    missing = sorted({m for pair in chosen for m in pair} - set(names))
+    if missing:
+        raise ParameterError(
+            f"{path.name} names {missing[:5]}, which {folder} does not hold. Fix: add the meshes or remove "
+            "those lines."
+        )
+    return chosen, f"the {len(chosen)} pairs listed in {path.name}"
+
+
+def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pairs="auto"):
+    """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
+
+    Meshes are the folder's :func:`~torchfmap.io.mesh_files` (``.gz`` included), named by
+    :func:`~torchfmap.io.shape_name`; which pairs: :func:`select_pairs` (``pairs``).
+    ``corres/<name>.vts`` files, in the folder or, for a data set's mesh sub-folder
+    (:data:`MESH_SUBFOLDERS`, e.g. ``shapes_test/``), beside it, give ``.vts`` ground truth.
+    Without them, ``identity`` says whether vertex
+    ``i`` of one mesh is vertex ``i`` of the other: ``True`` for every pair of equal vertex counts;
+    ``None`` (default) only where the two meshes have the same face list (one template, e.g.
+    registrations); ``False`` never. Every file may be gzip-compressed (``<name>.gz``).
+
+    Raises:
+        ParameterError: as :func:`select_pairs`, or a pair without ground truth (the message
+            names the fix).
+    """
+    folder = Path(folder)
+    meshes = {shape_name(p): p for p in mesh_files(folder)}
+    chosen, _ = select_pairs(folder, pairs)
+    corres = _corres_folder(folder)
+    for a, b in chosen:
+        if corres is not None:
+            vts = {n: find_file(corres, f"{n}.vts") for n in (a, b)}
+            absent = [str(corres / f"{n}.vts") for n, p in vts.items() if p is None]
+            if absent:
+                raise ParameterError(f"no ground truth {absent}. Fix: add the .vts (or .vts.gz) files.")
+            gt = gt_from_vts(read_vts(vts[a]), read_vts(vts[b]))
+        else:
+            (va, fa), (vb, fb) = read_arrays(meshes[a]), read_arrays(meshes[b])
+            same = len(va) == len(vb) and (identity or (identity is None and np.array_equal(fa, fb)))
+            if not same:
+                if len(va) != len(vb):
+                    why, fix = "their vertex counts differ", "."
+                else:
+                    why = "their face lists differ"
+                    fix = ", or, if the meshes do share vertex order, pass identity=True"
+                    fix += " (CLI: --gt identity)."
+                raise ParameterError(
+                    f"no ground truth for {a}/{b}: no corres/ folder, and {why}, so vertex i of one need "
+                    f"not be vertex i of the other. Fix: add corres/<name>.vts files{fix}"
+                )
+            gt = gt_identity(len(va))
+        yield a, b, meshes[a], meshes[b], gt

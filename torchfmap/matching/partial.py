@@ -1,0 +1,334 @@
+"""Partial-to-full matching: a part ``y`` (a scan of one side, a cut limb, a shape with holes)
+matched to a whole shape ``x``, after Partial Functional Maps (Rodolà et al. 2017), in our terms.
+
+Why a full-shape map fails on a part, and what this module changes:
+
+- **One frame for both shapes.** :func:`~torchfmap.prepare_shape` puts every mesh in its own
+  unit-area frame, which stretches a part to the size of the whole. Here the part's eigenbasis
+  is expressed in the whole's frame (:func:`common_frame`: the part has area ``a``, the area
+  ratio, and its eigenvalues are divided by ``a``), so the Laplacian commutativity penalty
+  ``(λ_x,i - λ_y,j)² C_ji²`` compares frequencies of the same physical size. On a part of area
+  ``a``, the ``j``-th eigenvalue sits near the ``j / a``-th of the whole (Weyl's law): the
+  penalty is small along a *slanted* diagonal, the structure of partial functional maps.
+- **A rank-limited map.** Restriction to the part maps the whole's first ``k`` eigenfunctions
+  onto the part's eigenfunctions below the whole's ``λ_k``: ``r`` of them
+  (:func:`partial_rank`, about ``k·a``). ``C_xy`` is ``(r, k)``, its rows nearly orthonormal
+  (``C Cᵀ ≈ I_r``): restriction keeps norms of functions that live on the part.
+- **Descriptors that agree.** A descriptor restricted to the part must equal the part's own.
+  Spectral ones (WKS, HKS) do not: a cut changes every eigenfunction, so they change over the
+  whole part. SHOT (:func:`~torchfmap.descriptors.shot`, at one physical radius) is local: it
+  changes only within its radius of the cut. Landmarks add heat kernels at the same physical
+  times. Both shapes' descriptors are scaled by the whole's column norms.
+- **Refinement restricted to the first ``r`` columns** (:func:`partial_zoomout`): ZoomOut grows
+  ``k`` and the rank with it.
+- **A second pass re-seeded from the first map** (:func:`reseeded_map`): farthest points on the
+  part and their images on the whole become seeds, and every vertex is placed by diffusion
+  functions at the seeds, ``exp(-d²/4t)`` of the geodesic distance ``d`` at a small time ``t``
+  (Varadhan's form of the heat kernel). A seed's function is local: it is the same on the part
+  and on the whole wherever the path to the seed does not cross the cut, where every
+  eigenfunction of the part differs from the whole's. ZoomOut then runs once more from that map,
+  kept unless it raises the geodesic distortion (the guard of every refinement,
+  :func:`~torchfmap.matching.results.keeps_refinement`, the part's distances in the whole's units), and
+  the pass once more after it: ZoomOut corrects what is far off, and blurs what the seeds hold.
+- **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
+  constant function carried back, ``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, is the band-limited indicator of
+  where the part lies on the whole (``MatchResult.overlap``, in ``[0, 1]``).
+
+Both meshes must be in the same units (the area ratio is read off them).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import numpy as np
+
+from .._util.checks import check_landmark_pairs
+from ..bases import Basis
+from ..bases.prepared import PreparedShape
+from ..descriptors import landmark_descriptors, shot
+from ..errors import ParameterError
+from ..fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
+from ..fmap.convert import check_p2p
+from ..fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
+from ..fmap.nearest import SurfaceSampling, search_p2p
+from ..fmap.refine import Samples, SpectralStep, check_anchors, check_k_final, zoomout_iterations
+from ..kinds.refiners import landmark_coordinates, pair_samplings
+from ..mesh import Mesh
+from ..seeds import farthest_point_sampling
+from .quality import geodesic_distortion
+from .results import MatchResult, keeps_refinement
+
+#: A part may be up to this much larger than the whole (meshing and measurement noise on a
+#: "part" that is in fact the whole shape); beyond it the shapes are taken to be swapped.
+AREA_SLACK = 1.05
+#: The smallest part, as a share of the whole's area, that a partial map is attempted for: the
+#: part's rank is about ``k * a`` (Weyl's law), under 1 at ``k = 100`` below this share, so a
+#: smaller ratio means meshes in different units (millimetres against metres: 1e-6) or a part
+#: too small to be matched by its spectrum.
+MIN_AREA_RATIO = 0.01
+
+#: Seeds of the re-seeded pass (:func:`reseeded_map`), landmarks included; fewer on a part of
+#: fewer vertices.
+RESEED_SEEDS = 100
+#: Width ``σ = 2 sqrt(t)`` of the re-seeded pass's diffusion functions ``exp(-d²/σ²)``, in units
+#: of the whole's ``sqrt(area)``: a few seeds' spacing (100 seeds on a unit area are about
+#: 0.1 apart), so that each vertex is placed by its nearest seeds.
+RESEED_WIDTH = 0.15
+
+__all__ = [
+    "common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout", "reseeded_map",
+]  # fmt: skip
+
+
+def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
+    """``area(y) / area(x)`` in the meshes' own units, capped at 1.
+
+    Raises:
+        ParameterError: the part is larger than the whole by more than :data:`AREA_SLACK`
+            (swapped shapes or different units), or smaller than :data:`MIN_AREA_RATIO` of it
+            (different units, or a part too small for a spectral map).
+    """
+    a = mesh_y.area / mesh_x.area
+    units = (
+        "If the meshes are in different units (millimetres and metres make areas 1e6 apart), "
+        "scale one (Mesh.scaled, or rewrite the file) so both share them"
+    )
+    if a > AREA_SLACK:
+        swapped = "pass the whole shape first (match(whole, part, partial=True)). "
+        if a > 1 / MIN_AREA_RATIO:  # no part of a whole in the same units is that much larger
+            swapped = ""
+        raise ParameterError(
+            f"the part (mesh_y) has {a:.3g} times the area of the whole (mesh_x): a part is never "
+            f"larger than its whole. Fix: {swapped}{units}."
+        )
+    if a < MIN_AREA_RATIO:
+        raise ParameterError(
+            f"the part (mesh_y) has {a:.3g} of the area of the whole (mesh_x), below "
+            f"{MIN_AREA_RATIO:g}: fewer than one of its eigenfunctions would be matched. Fix: {units}; "
+            "a part this small is matched by landmarks or descriptors, not by a partial functional map."
+        )
+    return min(a, 1.0)
+
+
+def common_frame(basis: Basis, a: float) -> Basis:
+    """The part's eigenbasis (B-orthonormal in its own unit-area frame) in the whole's
+    unit-area frame, where the part has area ``a``: values ``/ sqrt(a)``, mass ``· a``,
+    eigenvalues ``/ a`` (the stiffness, scale-free in 2-D, is kept; ``Φᵀ L Φ = Λ / a``)."""
+    return Basis(
+        basis.values / np.sqrt(a), basis.mass * a, basis.provenance, orthonormal=basis.orthonormal,
+        stiffness=basis.stiffness / a, eigenvalues=basis.eigenvalues / a,
+    )  # fmt: skip
+
+
+def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -> int:
+    """``r = #{j : λ_y,j <= λ_x,k}``, both spectra in one frame (:func:`common_frame`): how many of
+    the part's eigenfunctions the whole's first ``k`` can express, at least 1 and at most the
+    part's eigenpairs given."""
+    lam_max = float(eigenvalues_x[k - 1])
+    return int(np.clip(np.sum(np.asarray(eigenvalues_y) <= lam_max * (1 + 1e-9)), 1, len(eigenvalues_y)))
+
+
+#: SHOT's support radius in units of the whole's ``sqrt(area)`` (the same physical radius on the
+#: part: both meshes are in the same units).
+SHOT_RADIUS = 0.08
+
+
+def _descriptors(shape_x: PreparedShape, shape_y: PreparedShape) -> tuple[np.ndarray, np.ndarray]:
+    """SHOT on both meshes at one physical radius (:data:`SHOT_RADIUS` of the whole), computed
+    once per shape and radius (:meth:`~torchfmap.bases.prepared.PreparedShape.derive`)."""
+    radius = SHOT_RADIUS * np.sqrt(shape_x.mesh.area)
+
+    def signature(shape: PreparedShape) -> np.ndarray:
+        return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
+
+    return signature(shape_x), signature(shape_y)
+
+
+def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs: np.ndarray, a: float):
+    """Heat kernels at the landmarks at the same physical times on both shapes (the whole's
+    relative times ``t``; the part's own frame is ``1 / a`` times larger), in the common frame."""
+    hx = landmark_descriptors(pairs[:, 0], operators=shape_x.operators)
+    hy = landmark_descriptors(pairs[:, 1], operators=shape_y.operators, area=1.0 / a)
+    return hx, hy / a
+
+
+def overlap_indicator(C_xy: np.ndarray, full: Basis, part: Basis) -> np.ndarray:
+    """``(V_x,)`` the part's constant function extended by zero onto the whole through
+    ``C_xy`` ``(r, k)`` (``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, bases in the common frame), clipped to
+    ``[0, 1]``: where the part lies on the whole, band-limited."""
+    r, k = C_xy.shape
+    ones = part.project(np.ones(part.n_vertices))[:r]
+    return np.clip(full.values[:, :k] @ (C_xy.T @ ones), 0.0, 1.0)
+
+
+def partial_zoomout(
+    p2p_yx: np.ndarray,
+    full: Basis,
+    part: Basis,
+    k: int,
+    k_final: int,
+    step: int | None = None,
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
+    samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """ZoomOut for a part: from ``k`` to ``k_final`` columns of the whole, each step fitting
+    ``C = Φ_y⁺ Π Φ_x`` on the part's first ``r(k)`` eigenfunctions (:func:`partial_rank`) and
+    converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
+    ``Φ_x Cᵀ``, with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended as in
+    :func:`~torchfmap.fmap.zoomout`); with ``samplings`` (the whole's and the part's
+    :class:`~torchfmap.fmap.nearest.SurfaceSampling`) on their samples, the final map searched
+    locally. Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    anchors = check_anchors(anchors, full, part)
+    step = zoomout_step(k) if step is None else step
+    sizes = list(range(k + step, k_final, step)) + [k_final]
+    rank = functools.partial(partial_rank, full.eigenvalues, part.eigenvalues)
+    spectral = SpectralStep(full, part, "orthogonal", anchors, rank=rank)
+    samples = Samples.of_pair(samplings)
+    p2p_yx = check_p2p(p2p_yx, part.n_vertices, full.n_vertices)
+    return zoomout_iterations(spectral, sizes, p2p_yx=p2p_yx, samples=samples)
+
+
+def reseeded_map(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    p2p_yx: np.ndarray,
+    landmarks: np.ndarray | None = None,
+    *,
+    n_seeds: int = RESEED_SEEDS,
+    width: float = RESEED_WIDTH,
+) -> np.ndarray:
+    """``(V_y,)`` a map of the part ``y`` into the whole ``x`` re-seeded from ``p2p_yx`` ``(V_y,)``.
+
+    Seeds on the part: the landmarks' part vertices ``(L, 2)`` (whole, part) first, then
+    farthest points up to ``n_seeds`` in all; their images on the whole: the landmarks' whole
+    vertices, then ``p2p_yx`` of the others. On each shape, each seed gives the function
+    ``exp(-(d / width)²)`` of the geodesic distance ``d`` to it, in units of the whole's
+    ``sqrt(area)`` on both (the part's distances scaled by ``sqrt(a)``); every part vertex goes
+    to the whole vertex whose values at all seeds are nearest to its own. Both meshes in the same
+    units, as :func:`match_partial` requires.
+
+    Raises:
+        ParameterError: ``n_seeds`` < 1 or ``width`` not > 0; ``p2p_yx`` not ``(V_y,)`` indices
+            into ``x``; landmarks not ``(L, 2)``.
+        SeedError: landmarks outside either mesh or repeated (:func:`check_landmark_pairs`).
+    """
+    if n_seeds < 1 or not width > 0:
+        raise ParameterError(f"reseeded_map needs n_seeds >= 1 and width > 0, got {n_seeds}, {width}.")
+    n_x, n_y = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
+    p2p_yx = check_p2p(p2p_yx, n_y, n_x, "p2p_yx")
+    pairs = np.zeros((0, 2), np.int64) if landmarks is None else check_landmark_pairs(landmarks, n_x, n_y)
+    n = int(min(max(n_seeds, len(pairs)), n_y))
+    on_part = farthest_point_sampling(  # rows kept in the shape: solved once for seeds and functions
+        shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
+        distances=shape_y.distances,
+    )  # fmt: skip
+    on_whole = np.concatenate([pairs[:, 0], p2p_yx[on_part[len(pairs) :]]])
+    unique, column = np.unique(on_whole, return_inverse=True)  # two seeds may share an image
+    d_x = shape_x.distances.distances(unique).T[:, column]
+    d_y = shape_y.distances.distances(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
+    query, reference = np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2))
+    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: near where the first map went
+    coarse = None if samplings is None else samplings[0].cell[p2p_yx[samplings[1].index]]
+    return search_p2p(query, reference, samplings, coarse=coarse, precision="double")
+
+
+def match_partial(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    *,
+    landmarks: np.ndarray | None = None,
+    k: int = 50,
+    refine: str | None = None,
+    k_final: int | None = None,
+    w_lap: float = W_LAP_SMOOTH,
+    w_orient: float = W_ORIENT,
+    w_dcomm: float = W_DCOMM,
+    w_lmk: float = W_LMK,
+    descriptors: tuple[np.ndarray, np.ndarray] | None = None,
+) -> MatchResult:
+    """Match the part ``y`` to the whole ``x`` on prepared shapes (:func:`torchfmap.match` with
+    ``partial=True`` prepares them and checks the arguments): see the module's text.
+
+    Returns a :class:`~torchfmap.MatchResult` whose ``p2p_yx`` gives every vertex of the part a
+    vertex of the whole, ``C_xy`` is ``(r, k)`` (``(r(k_final), k_final)`` refined) in the
+    whole's eigenbasis and the part's eigenbasis in the whole's frame, ``overlap`` ``(V_x,)``
+    the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
+    ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout` to
+    ``k_final``, default ``2k``, then :func:`reseeded_map`, :func:`partial_zoomout` kept under the
+    distortion guard, and :func:`reseeded_map` again: see the module's text). ``landmarks``:
+    ``(L, 2)`` checked pairs (whole, part), pointwise constraints and heat-kernel descriptors.
+    ``descriptors``: ``(V_x, D)``, ``(V_y, D)`` pointwise features to solve with instead of SHOT
+    (e.g. features of a network trained for parts; they must agree on the part and on the whole
+    where the part lies).
+
+    Raises:
+        ParameterError: the part is larger than the whole, ``refine`` other than None or
+            ``'zoomout'``, ``k_final < k`` (:func:`~torchfmap.fmap.refine.check_k_final`), or
+            either shape prepared with fewer eigenpairs than needed.
+    """
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if refine not in (None, "zoomout"):
+        raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
+    a = area_ratio(shape_x.mesh, shape_y.mesh)
+    if refine:
+        check_k_final(k, k_final)
+    k_final = (2 * k if k_final is None else k_final) if refine else k
+    n_x = k_final
+    for name, shape in (("shape_x", shape_x), ("shape_y", shape_y)):
+        if shape.eigenbasis is None or shape.eigenbasis.k < n_x:
+            raise ParameterError(f"{name} needs {n_x} eigenpairs. Fix: prepare_shape(mesh, {n_x}).")
+    full = shape_x.eigenbasis
+    part = common_frame(shape_y.eigenbasis, a)
+    r = partial_rank(full.eigenvalues, part.eigenvalues, k)
+    timings["operators+eigen"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if descriptors is None:
+        desc_x, desc_y = _descriptors(shape_x, shape_y)
+    else:
+        desc_x, desc_y = (np.asarray(d, dtype=np.float64) for d in descriptors)
+    if landmarks is not None:
+        hx, hy = _landmark_descriptors(shape_x, shape_y, landmarks, a)
+        desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])
+    norms = np.sqrt(np.einsum("vd,vd->d", desc_x, full.mass @ desc_x))
+    norms = np.where(norms > 0, norms, 1.0)
+    desc_x, desc_y = desc_x / norms, desc_y / norms
+    timings["descriptors"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    bx, by = full.truncated(k), part.truncated(r)
+    C = solve_fmap(
+        bx, by, desc_x, desc_y, w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm,
+        meshes=(shape_x.mesh, shape_y.mesh), landmarks=landmarks,
+        w_lmk=w_lmk if landmarks is not None else 0.0,
+    )  # fmt: skip
+    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: searched locally
+    p2p = fmap_to_p2p(C, bx, by, mode="orthogonal", samplings=samplings)
+    timings["fmap+p2p"] = time.perf_counter() - t0
+    initial = p2p
+    if refine:
+        t0 = time.perf_counter()
+        anchors = None
+        if landmarks is not None:  # distances in the whole's units: the part's times sqrt(a)
+            ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
+            anchors = (ax, ay * np.sqrt(a))
+        p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors, samplings=samplings)[1]
+        p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)
+        again = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors, samplings=samplings)[1]
+        before, after = (geodesic_distortion(shape_x, shape_y, q, area_ratio=a) for q in (p2p, again))
+        if keeps_refinement(before, after):
+            p2p = again
+        p2p = reseeded_map(shape_x, shape_y, p2p, landmarks)  # last: ZoomOut blurs what seeds hold
+        C = p2p_to_fmap(p2p, full, part, k_final, partial_rank(full.eigenvalues, part.eigenvalues, k_final))
+        timings["refine"] = time.perf_counter() - t0
+    r_final = C.shape[0]
+    result = MatchResult(
+        p2p, C, full.truncated(C.shape[1]), part.truncated(r_final), initial, timings, kind="partial",
+        refined=refine is not None,
+    )  # fmt: skip
+    result.overlap = overlap_indicator(C, full, part)
+    result.partial_rank = r_final
+    return result
