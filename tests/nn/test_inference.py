@@ -15,14 +15,14 @@ import torch
 
 import torchfmap.nn.inference as inference
 import torchfmap.nn.item_inference as item_inference
-from torchfmap import Mesh, prepare_shape
+from torchfmap import Mesh, prepare_shape, save_mesh
 from torchfmap.errors import ParameterError
 from torchfmap.fmap import values_to_p2p
 from torchfmap.matching.results import MatchResult
 from torchfmap.nn import LearnedMatcher, TrainConfig, build_model, save_checkpoint
 from torchfmap.nn.data import ShapeDataset
 
-from ..conftest import _agree, bumpy_blob
+from ..conftest import _agree, bend, bumpy_blob
 
 #: A small recipe: k = 8 solver functions, 12 network eigenfunctions (meshes of 162 vertices).
 TINY = TrainConfig(k=8, k_net=12, n_wks=8, width=8, c_out=8, n_blocks=1)
@@ -337,3 +337,29 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
     tuned = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu", adapt_steps=1)
     with pytest.raises(ParameterError, match="adapt"):
         tuned(mesh_x, part, partial=True)
+
+
+def test_dataset_item_maps_follow_the_learned_matchers_rule_and_need_the_models_solver(tmp_path):
+    """``predict_p2p`` converts in float64 by the orthogonal rule, as ``LearnedMatcher`` does (one
+    rule); ``evaluate`` takes the model's own solver and refuses to guess one."""
+    from torchfmap.nn import build_solver
+    from torchfmap.nn.item_inference import evaluate, pair_batches, predict_p2p, solve_xy
+    from torchfmap.nn.networks import features
+
+    mesh = bumpy_blob(2)
+    files = [
+        save_mesh(mesh, tmp_path / "a.off"),
+        save_mesh(mesh.copy(bend(mesh.vertices, 0.3)), tmp_path / "b.off"),
+    ]
+    shapes = ShapeDataset(files, False, **TINY.dataset_kwargs(), progress=False)
+    net, solver, _ = build_model(TINY)
+    x, y = shapes[0], shapes[1]
+    p2p = predict_p2p(net, solver, x, y)
+    with torch.no_grad():
+        sx, sy = pair_batches(x, y, "cpu")
+        C = solve_xy(solver, features(net, sx), features(net, sy), sx.basis, sy.basis)[0].double().numpy()
+    phi_x, phi_y = (item["values"].double().numpy() for item in (x, y))
+    np.testing.assert_array_equal(p2p, values_to_p2p(C, phi_x, phi_y, mode="orthogonal", precision="double"))
+    with pytest.raises(ParameterError, match="model's solver"):
+        evaluate(net, shapes, [(0, 1)], [None], None)
+    assert build_solver(TINY)[0] is not None

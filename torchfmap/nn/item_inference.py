@@ -16,7 +16,6 @@ from ..evaluate.scores import geodesic_errors
 from ..fmap.convert import values_to_p2p
 from ..fmap.nearest import nearest_neighbor
 from ..mesh import Mesh
-from .config import TrainConfig, build_solver
 from .data import ShapeBatch, ShapeDataset, collate_pairs
 from .modules import RegularizedFMSolver
 from .networks import check_network, features
@@ -47,8 +46,9 @@ def predict_p2p(
     ``'orthogonal'`` (default: nearest neighbour of each row of ``Φ_y`` among the rows of
     ``Φ_x C_xyᵀ``; the recipe's orthogonality loss makes ``C_xy`` near-orthogonal, and this is
     the rule :func:`torchfmap.fmap.fmap_to_p2p` uses for such maps) or ``'pullback'``
-    (rows of ``Φ_y C_xy`` among those of ``Φ_x``). ``mode='features'``: nearest neighbours in
-    the (normalised) feature space.
+    (rows of ``Φ_y C_xy`` among those of ``Φ_x``), searched in float64 as
+    :class:`~torchfmap.nn.LearnedMatcher` does (one point-map rule for both). ``mode='features'``:
+    nearest neighbours in the (normalised) feature space.
     """
     check_network(net)
     net.eval()
@@ -63,7 +63,8 @@ def predict_p2p(
     if p2p_mode not in ("orthogonal", "pullback"):
         raise ParameterError(f"unknown p2p_mode {p2p_mode!r}. Fix: 'orthogonal' or 'pullback'.")
     C = solve_xy(solver, fx, fy, sx.basis, sy.basis)[0].double().cpu().numpy()
-    return values_to_p2p(C, x["values"].double().numpy(), y["values"].double().numpy(), mode=p2p_mode)
+    phi_x, phi_y = (item["values"].double().numpy() for item in (x, y))
+    return values_to_p2p(C, phi_x, phi_y, mode=p2p_mode, precision="double")
 
 
 def adapt(
@@ -99,12 +100,21 @@ def adapt(
 
 
 def evaluate(
-    net, shapes: ShapeDataset, pairs, gts, solver=None, *, mode: str = "fmap", max_points=500, device="cpu"
+    net, shapes: ShapeDataset, pairs, gts, solver, *, mode: str = "fmap", max_points=500, device="cpu"
 ) -> float:
-    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``
-    (``solver=None``: the recipe's, :func:`~torchfmap.nn.build_solver` of a default
-    :class:`~torchfmap.nn.TrainConfig`, as :func:`~torchfmap.nn.train` trains with)."""
-    solver = solver if solver is not None else build_solver(TrainConfig())[0]
+    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``,
+    the maps of :func:`predict_p2p` with ``solver``: the model's own
+    (:func:`~torchfmap.nn.build_solver` of its recipe, e.g. the checkpoint's
+    :class:`~torchfmap.nn.TrainConfig`), since the regularisation weights change the maps.
+
+    Raises:
+        ParameterError: no solver.
+    """
+    if solver is None:
+        raise ParameterError(
+            "evaluate needs the model's solver. Fix: build_solver(config)[0] with the model's recipe "
+            "(load_checkpoint returns it)."
+        )
     errors = []
     for (a, b), gt in zip(pairs, gts, strict=True):
         x, y = shapes[a], shapes[b]
