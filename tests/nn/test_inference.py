@@ -363,3 +363,22 @@ def test_dataset_item_maps_follow_the_learned_matchers_rule_and_need_the_models_
     with pytest.raises(ParameterError, match="model's solver"):
         evaluate(net, shapes, [(0, 1)], [None], None)
     assert build_solver(TINY)[0] is not None
+
+
+def test_a_part_too_small_for_the_model_is_refused_in_the_models_terms(permuted):
+    """A model of ``k = 40`` on a part of fewer vertices, raw or refined: one error naming the
+    model's sizes and the fix, never advice to prepare shapes (which a matcher's user does not
+    call); a part the model fits is solved at the model's ``k`` capped at its ``V - 1``."""
+    from torchfmap.data.cuts import cut_plane
+
+    mesh_x = permuted[0]
+    part = cut_plane(mesh_x, 0.15, seed=0).mesh
+    config = TrainConfig(**{**TINY.__dict__, "k": 40})
+    assert part.n_vertices <= config.k
+    matcher = LearnedMatcher(build_model(config)[0], config, device="cpu")
+    for refine in (None, "zoomout"):
+        with pytest.raises(ParameterError, match="k=40") as err:
+            matcher(mesh_x, part, partial=True, refine=refine)
+        assert "prepare_shape" not in str(err.value)
+    result = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")(mesh_x, part, partial=True)
+    assert result.C_xy.shape[1] == min(TINY.k, part.n_vertices - 1)

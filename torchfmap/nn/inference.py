@@ -299,7 +299,11 @@ class LearnedMatcher:
             )
         t0 = time.perf_counter()
         sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
-        k0, k_final = _zoomout_sizes(self.config.k, k_final, sizes) if refine else (self.config.k, None)
+        k0, k_final = (
+            _zoomout_sizes(self.config.k, k_final, sizes)
+            if refine
+            else (min(self.config.k, min(sizes) - 1), None)
+        )
         shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
         feats = (self.features(mesh_x, shape=shapes[0]), self.features(mesh_y, shape=shapes[1]))
         seconds = time.perf_counter() - t0
