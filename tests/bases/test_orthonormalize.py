@@ -126,3 +126,24 @@ def test_mgs_by_panels_drops_what_column_by_column_gram_schmidt_drops():
     assert np.abs(Q.T @ (B @ Q) - np.eye(len(kept))).max() < 100 * K * np.finfo(float).eps
     # the same columns up to round-off amplified by the smallest kept remainder (1e-5)
     assert np.abs(Q - ref_q).max() < K * np.finfo(float).eps / 1e-5 * np.abs(ref_q).max()
+
+
+def test_a_lumped_mass_is_applied_elementwise_whatever_its_form():
+    """A diagonal mass given as ``(V,)``, as a sparse diagonal matrix or as a dense one gives the
+    same columns (the product is elementwise, no sparse product); a mass with off-diagonal
+    entries keeps the sparse product and still gives B-orthonormal columns."""
+    import scipy.sparse as sp
+
+    from torchfmap.bases.orthonormalize import mgs
+
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(60, 8))
+    d = rng.uniform(0.5, 2.0, size=60)
+    ref = mgs(F, d)
+    for form in (sp.diags(d), sp.diags(d).tocsr(), np.diag(d)):
+        Q, kept = mgs(F, form)
+        np.testing.assert_array_equal(kept, ref[1])
+        np.testing.assert_allclose(Q, ref[0], rtol=0, atol=1e-12)
+    offdiag = sp.diags(d) + 0.1 * sp.diags(np.ones(59), 1) + 0.1 * sp.diags(np.ones(59), -1)
+    Q, _ = mgs(F, offdiag)
+    np.testing.assert_allclose(Q.T @ (offdiag @ Q), np.eye(Q.shape[1]), atol=1e-12)

@@ -34,11 +34,30 @@ SCHEMES = ("mgs", "cholqr")
 MGS_PANEL = 32
 
 
-def _mass_op(mass):
-    if np.ndim(mass) == 1:
-        d = np.asarray(mass, dtype=np.float64)
-        return sp.diags(d).tocsr()
-    return sp.csr_matrix(mass, dtype=np.float64)
+class _Mass:
+    """The product with a mass matrix, ``B @ x`` for ``(V,)`` or ``(V, n)`` arrays: elementwise for
+    a diagonal (lumped) mass, given as ``(V,)`` or as a diagonal matrix (no sparse product then)."""
+
+    def __init__(self, mass) -> None:
+        self.diagonal = None
+        if np.ndim(mass) == 1:
+            self.diagonal = np.asarray(mass, dtype=np.float64)
+        else:
+            matrix = sp.csr_matrix(mass, dtype=np.float64)
+            diag = matrix.diagonal()
+            if matrix.nnz == np.count_nonzero(diag) and (matrix - sp.diags(diag)).count_nonzero() == 0:
+                self.diagonal = diag
+            else:
+                self.matrix = matrix
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        if self.diagonal is None:
+            return self.matrix @ x
+        return self.diagonal * x if x.ndim == 1 else self.diagonal[:, None] * x
+
+
+def _mass_op(mass) -> _Mass:
+    return _Mass(mass)
 
 
 def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
