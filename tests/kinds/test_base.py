@@ -113,7 +113,8 @@ def test_each_kind_returns_its_own_refiner(bent_pair, name):
         default = kind.refiner("zoomout")(*args)  # k_final: twice the start
         assert default.C_xy.shape == (32, 32)
     for bad in ("nearest", "seeded", None):
-        with pytest.raises(ParameterError, match=r"unknown refinement .*Fix: 'icp', 'zoomout'\.$"):
+        fix = r"match refines by 'icp', 'zoomout'; got refine=.*Fix: 'icp', 'zoomout'\.$"
+        with pytest.raises(ParameterError, match=fix):
             kind.refiner(bad)
 
 

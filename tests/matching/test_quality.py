@@ -91,8 +91,8 @@ def test_the_landmark_reading_check_judges_a_bounded_number_of_pairs(monkeypatch
     """However many pairs a file holds, each reading is judged on at most MISREAD_MAX_LANDMARKS
     of them (two distance solves per pair judged), spread over the file, and a file read 1-based
     is still flagged; a 0 in any pair (judged or not) rules the shifted reading out."""
-    from torchfmap.matching import quality
     from torchfmap.evaluate.scores import gt_from_map, landmarks_from_gt
+    from torchfmap.matching import quality
 
     a, b, gt_ba = demo_pair()
     sa, sb = prepare_shape(a, 0), prepare_shape(b, 0)

@@ -137,7 +137,7 @@ def test_the_learned_matcher_names_its_refinement_as_match_does(permuted):
     mesh_x, mesh_y, _ = permuted
     matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
     for refine in ("icp", "seeded", True, False):
-        with pytest.raises(ParameterError, match="refines by ZoomOut only"):
+        with pytest.raises(ParameterError, match="the learned path refines by 'zoomout' or None"):
             matcher(mesh_x, mesh_y, refine=refine)
     with pytest.raises(ParameterError, match="without refine='zoomout' it changes nothing"):
         matcher(mesh_x, mesh_y, k_final=20)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -40,8 +41,10 @@ from ..fmap.refine import (
 )
 from ..seeds import farthest_point_sampling, replace_seeds
 
-#: The refinements of :func:`torchfmap.match` (``refine=``; None: no refinement).
-REFINE_METHODS = ("icp", "zoomout")
+#: The refinements of :func:`torchfmap.match` (``refine=``; None: no refinement): the type of
+#: the argument, and the tuple of names the command line offers and :func:`check_refine` reads.
+RefineMethod = Literal["icp", "zoomout"]
+REFINE_METHODS: tuple[str, ...] = get_args(RefineMethod)
 #: Fixed-size refinement steps (point map <-> functional map) in feature-aware bases.
 FEATURE_REFINE_STEPS = 5
 #: Rounds of seed re-placement after the fixed-size refinement (:func:`~torchfmap.seeds.replace_seeds`).
@@ -85,17 +88,20 @@ def pair_samplings(shape_x: PreparedShape, shape_y: PreparedShape, n_samples: in
     return shape_sampling(shape_x, count(shape_x)), shape_sampling(shape_y, count(shape_y))
 
 
-def check_refine(refine, *, optional: bool = True) -> str | None:
-    """``refine`` if it is a refinement of :data:`REFINE_METHODS` (or None, when ``optional``:
-    no refinement); the one check of the names.
+def check_refine(
+    refine, *, optional: bool = True, allowed: tuple[str, ...] = REFINE_METHODS, what: str = "match"
+) -> str | None:
+    """``refine`` if it is one of ``allowed`` (:data:`REFINE_METHODS` by default; a path that
+    refines one way only, as partial matching and the learned path, narrows it), or None when
+    ``optional`` (no refinement): the one check of the names.
 
     Raises:
-        ParameterError: any other value.
+        ParameterError: any other value, naming ``what`` refines how.
     """
-    if (refine is None and optional) or refine in REFINE_METHODS:
+    if (refine is None and optional) or refine in allowed:
         return refine
-    fix = "'icp', 'zoomout'" + (" or None" if optional else "")
-    raise ParameterError(f"unknown refinement {refine!r}. Fix: {fix}.")
+    names = ", ".join(repr(a) for a in allowed) + (" or None" if optional else "")
+    raise ParameterError(f"{what} refines by {names}; got refine={refine!r}. Fix: {names}.")
 
 
 @dataclass(frozen=True)

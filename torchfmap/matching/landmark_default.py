@@ -23,11 +23,11 @@ from ..errors import ParameterError
 from ..fmap import check_landmark_pairs
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
-from ..kinds.refiners import check_refine
+from ..kinds.refiners import RefineMethod, check_refine
 from ..mesh import Mesh
 from .checks import check_unused, check_zoomout_sizes
 from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
-from .results import MatchResult, RefineMethod, refine_result
+from .results import MatchResult, refine_result
 from .solve import P2PMode, prepare_shapes, solve_functional_map, solve_pair
 
 #: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in

@@ -54,7 +54,7 @@ from ..fmap.convert import check_p2p
 from ..fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
 from ..fmap.nearest import SurfaceSampling, search_p2p
 from ..fmap.refine import Samples, SpectralStep, check_anchors, check_k_final, zoomout_iterations
-from ..kinds.refiners import landmark_coordinates, pair_samplings
+from ..kinds.refiners import check_refine, landmark_coordinates, pair_samplings
 from ..mesh import Mesh
 from ..seeds import farthest_point_sampling
 from .quality import geodesic_distortion
@@ -270,8 +270,7 @@ def match_partial(
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    if refine not in (None, "zoomout"):
-        raise ParameterError(f"partial matching refines by 'zoomout' or not at all, got {refine!r}.")
+    check_refine(refine, allowed=("zoomout",), what="partial matching")
     a = area_ratio(shape_x.mesh, shape_y.mesh)
     if refine:
         check_k_final(k, k_final)

@@ -27,14 +27,14 @@ from ..fmap.defaults import W_DCOMM, W_LMK
 from ..fmap.refine import check_k_final
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
-from ..kinds.refiners import check_eigenbases, check_refine
+from ..kinds.refiners import RefineMethod, check_eigenbases, check_refine
 from ..mesh import Mesh
 from .checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
 from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
 from .partial import match_partial
 from .quality import OFF_BY_ONE_RATIO, landmark_distortion, warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
-from .results import MatchResult, RefineMethod, refine_result
+from .results import MatchResult, refine_result
 from .solve import P2PMode, match_bases, match_descriptors, prepare_shapes, solve_pair
 
 __all__ = [

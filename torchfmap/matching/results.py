@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
@@ -21,11 +20,7 @@ from ..errors import ParameterError
 from ..fmap.refine import Refined
 from .quality import DISTORTION_RESOLUTION, geodesic_distortion
 
-#: The refinements of :func:`torchfmap.match` (``refine=``; checked by
-#: :func:`torchfmap.kinds.refiners.check_refine`).
-RefineMethod = Literal["icp", "zoomout"]
-
-__all__ = ["MatchResult", "RefineMethod", "keeps_refinement", "refine_result"]
+__all__ = ["MatchResult", "keeps_refinement", "refine_result"]
 
 
 def keeps_refinement(start: float | None, refined: float | None) -> bool:

@@ -17,7 +17,7 @@ from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
 from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
-from ..kinds.refiners import ZoomOut, pair_samplings
+from ..kinds.refiners import ZoomOut, check_refine, pair_samplings
 from ..matching.checks import check_meshes, check_unused, warn_if_partial
 from ..matching.partial import match_partial
 from ..matching.results import MatchResult
@@ -352,10 +352,7 @@ class LearnedMatcher:
         check_meshes(mesh_x, mesh_y)
         if not partial:
             warn_if_partial(mesh_x, mesh_y)
-        if refine not in (None, "zoomout"):
-            raise ParameterError(
-                f"the learned path refines by ZoomOut only, got refine={refine!r}. Fix: 'zoomout' or None."
-            )
+        check_refine(refine, allowed=("zoomout",), what="the learned path")
         check_unused(get_kind("laplacian"), refine, k_final, None)
         if partial:
             return self._partial(mesh_x, mesh_y, refine, k_final, shapes)
