@@ -26,7 +26,7 @@ import torch
 from torchfmap.experimental.networks import FeatureNet
 from torchfmap.nn import DiffusionNet, TrainConfig, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn import functional as F
-from torchfmap.nn.functional import BasisBatch, solve_fmap
+from torchfmap.nn.functional import BasisBatch
 from torchfmap.nn.inputs import shape_arrays, shape_item
 
 from .common import REPO_ROOT, MiB, Report, Settings, load1, log, reset_peak_rss, status_mib
@@ -90,7 +90,7 @@ def loop_solve(fx, fy, bx: BasisBatch, by: BasisBatch):
 
 
 METHODS = {
-    "batched": lambda fx, fy, bx, by: solve_fmap(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True),
+    "batched": lambda fx, fy, bx, by: solve_fmap_batch(fx, fy, bx, by, w_desc=W_DESC, w_lap=W_LAP, both=True),
     "loop": loop_solve,
 }
 
@@ -253,7 +253,7 @@ def train_step(cfg: Settings, report: Report) -> None:
                     hooks, t0 = _Hooks(), time.perf_counter()
                     fx, fy = net(xin, bx), net(yin, by)
                     t1 = time.perf_counter()
-                    C_xy, C_yx = solve_fmap(fx, fy, bx, by)
+                    C_xy, C_yx = solve_fmap_batch(fx, fy, bx, by)
                     t2 = time.perf_counter()
                     total = loss_fn(C_xy, C_yx, fx, fy, bx, by)["total"]
                     t3 = time.perf_counter()
@@ -344,7 +344,7 @@ def train_recipe(cfg: Settings, report: Report) -> None:
             patch = mock.patch.object(F, "spatial_gradient", _coo_spatial_gradient)
             with patch if key == "previous" else contextlib.nullcontext():
                 fx, fy = net(*ax), net(*ay)
-                C_xy, C_yx = solve_fmap(fx, fy, sx.basis, sy.basis)
+                C_xy, C_yx = solve_fmap_batch(fx, fy, sx.basis, sy.basis)
                 total = losses[key](C_xy, C_yx, fx, fy, sx.basis, sy.basis, generator=draws)["total"]
                 opts[key].zero_grad(set_to_none=True)
                 total.backward()

@@ -63,7 +63,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
             assert basis.valid[b].tolist() == [1.0] * k + [0.0] * (8 - k)
             torch.testing.assert_close(basis.U[b, k:, k:], torch.eye(8 - k, dtype=torch.float64))
             assert not basis.lam[b, k:].any()
-    C_xy, C_yx = F.solve_fmap(batch["x"].inputs, batch["y"].inputs, batch["x"].basis, batch["y"].basis)
+    C_xy, C_yx = F.solve_fmap_batch(batch["x"].inputs, batch["y"].inputs, batch["x"].basis, batch["y"].basis)
     for b, (ix, iy) in enumerate(items):
         bx = F.BasisBatch(
             *(ix[n][None] for n in ("values", "mass", "lam", "U")),
@@ -73,7 +73,7 @@ def test_collate_pairs_pads_and_gives_unpadded_maps(two_size_datasets):
             *(iy[n][None] for n in ("values", "mass", "lam", "U")),
             torch.ones(1, iy["lam"].shape[0], dtype=torch.float64),
         )
-        ref_xy, ref_yx = F.solve_fmap(ix["inputs"][None], iy["inputs"][None], bx, by)
+        ref_xy, ref_yx = F.solve_fmap_batch(ix["inputs"][None], iy["inputs"][None], bx, by)
         kx, ky = ix["lam"].shape[0], iy["lam"].shape[0]
         scale = ref_xy.abs().max()
         torch.testing.assert_close(C_xy[b, :ky, :kx], ref_xy[0], rtol=0, atol=1e-10 * float(scale))

@@ -24,7 +24,7 @@ def test_gradcheck_solver(nn_setting, which):
     fy = torch.tensor(dy[:, :3], requires_grad=True)
 
     def fn(a, b):
-        C_xy, C_yx = F.solve_fmap(a[None], b[None], tx, ty, w_lap=1e-2)
+        C_xy, C_yx = F.solve_fmap_batch(a[None], b[None], tx, ty, w_lap=1e-2)
         return C_xy, C_yx
 
     assert torch.autograd.gradcheck(fn, (fx, fy), eps=1e-6, atol=1e-6)
@@ -70,9 +70,9 @@ def test_batched_equals_per_pair(nn_setting):
     bx = BasisBatch(*(torch.cat(t) for t in zip(items[0][0][:5], items[1][0][:5], strict=True)))
     by = BasisBatch(*(torch.cat(t) for t in zip(items[0][1][:5], items[1][1][:5], strict=True)))
     assert bx.lengths is None and bx.vertex_mask is None
-    C_batch, _ = F.solve_fmap(feats_x, feats_y, bx, by)
+    C_batch, _ = F.solve_fmap_batch(feats_x, feats_y, bx, by)
     for b in range(2):
-        C_one, _ = F.solve_fmap(feats_x[b : b + 1], feats_y[b : b + 1], items[b][0], items[b][1])
+        C_one, _ = F.solve_fmap_batch(feats_x[b : b + 1], feats_y[b : b + 1], items[b][0], items[b][1])
         assert torch.allclose(C_batch[b], C_one[0], atol=1e-12)
 
 
@@ -93,11 +93,11 @@ def test_padded_variable_size_batch_equals_unpadded(nn_setting):
     (bx, fx), (by, fy) = (sx.basis, sx.inputs), (sy.basis, sy.inputs)
     assert sx.lengths.tolist() == bx.lengths.tolist() == [162, 42] and bx.values.shape == (2, 162, 7)
     assert bx.vertex_mask.sum(dim=1).tolist() == [162, 42] and not bx.vertex_mask[1, 42:].any()
-    C_pad, C_pad_yx = F.solve_fmap(fx, fy, bx, by)
-    ref, _ = F.solve_fmap(torch.tensor(ds)[None], torch.tensor(ds)[None], *as_batch(bs, bs))
+    C_pad, C_pad_yx = F.solve_fmap_batch(fx, fy, bx, by)
+    ref, _ = F.solve_fmap_batch(torch.tensor(ds)[None], torch.tensor(ds)[None], *as_batch(bs, bs))
     assert torch.allclose(C_pad[1, :5, :5], ref[0], atol=1e-10)
     assert C_pad[1, 5:].abs().max() == 0 and C_pad[1, :, 5:].abs().max() == 0
-    ref0, _ = F.solve_fmap(torch.tensor(dx)[None], torch.tensor(dy)[None], *as_batch(*eig))
+    ref0, _ = F.solve_fmap_batch(torch.tensor(dx)[None], torch.tensor(dy)[None], *as_batch(*eig))
     assert torch.allclose(C_pad[0, :6, :7], ref0[0], atol=1e-10)
 
 
@@ -105,7 +105,7 @@ def test_no_nan_gradients_for_rank_deficient_descriptors(nn_setting):
     x, y, dx, dy, eig, stack = nn_setting
     tx, ty = as_batch(*eig)
     const = torch.ones(1, x.n_vertices, 4, dtype=torch.float64, requires_grad=True)  # rank 1
-    C_xy, C_yx = F.solve_fmap(const, const.detach().clone().requires_grad_(True), tx, ty)
+    C_xy, C_yx = F.solve_fmap_batch(const, const.detach().clone().requires_grad_(True), tx, ty)
     loss = F.bijectivity_loss(C_xy, C_yx) + F.orthogonality_loss(C_xy)
     loss.backward()
     assert torch.isfinite(C_xy).all() and torch.isfinite(const.grad).all()
@@ -116,15 +116,15 @@ def test_bad_inputs(nn_setting):
     tx, ty = as_batch(*eig)
     fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
     with pytest.raises(ParameterError, match="batch sizes differ"):
-        F.solve_fmap(fx, fy, tx, BasisBatch(*(torch.cat([t, t]) for t in ty[:5])))
+        F.solve_fmap_batch(fx, fy, tx, BasisBatch(*(torch.cat([t, t]) for t in ty[:5])))
     with pytest.raises(ParameterError, match=r"features must be \(B, V, D\)"):
-        F.solve_fmap(fx[:, :10], fy, tx, ty)
+        F.solve_fmap_batch(fx[:, :10], fy, tx, ty)
     bad = fx.clone()
     bad[0, 3, 1] = float("nan")
     with pytest.raises(ParameterError, match="NaN"):
-        F.solve_fmap(bad, fy, tx, ty)
+        F.solve_fmap_batch(bad, fy, tx, ty)
     with pytest.raises(ParameterError, match="feature dimensions differ"):
-        F.solve_fmap(fx, fy[..., :3], tx, ty)
+        F.solve_fmap_batch(fx, fy[..., :3], tx, ty)
     with pytest.raises(ParameterError, match=r"k=9 is outside \[1, 7\]"):
         BasisModule(eig[0]).truncated(9)
     from torchfmap import harmonic_basis
@@ -138,8 +138,8 @@ def test_cuda_matches_cpu(nn_setting):
     x, y, dx, dy, eig, stack = nn_setting
     tx, ty = as_batch(*eig)
     fx, fy = torch.tensor(dx)[None], torch.tensor(dy)[None]
-    cpu, _ = F.solve_fmap(fx, fy, tx, ty)
-    gpu, _ = F.solve_fmap(fx.cuda(), fy.cuda(), tx.to("cuda"), ty.to("cuda"))
+    cpu, _ = F.solve_fmap_batch(fx, fy, tx, ty)
+    gpu, _ = F.solve_fmap_batch(fx.cuda(), fy.cuda(), tx.to("cuda"), ty.to("cuda"))
     assert torch.allclose(cpu, gpu.cpu(), atol=1e-10)
 
 

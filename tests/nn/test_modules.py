@@ -290,7 +290,7 @@ def test_layers_refuse_what_the_functions_refuse():
         torch.ones(1, 2, **d),
     )
     with pytest.raises(ParameterError, match="solver weights must be finite"):
-        F.solve_fmap(feats, feats, basis, basis, w_lap=float("nan"))
+        F.solve_fmap_batch(feats, feats, basis, basis, w_lap=float("nan"))
     from ..conftest import _batch
 
     shape = _batch(bumpy_blob(1))

@@ -42,7 +42,7 @@ __all__ = [
     "basis_like",
     "bijectivity_loss",
     "coupling_loss",
-    "solve_fmap",
+    "solve_fmap_batch",
     "geodesic_loss",
     "gradient_features",
     "laplacian_commutativity_loss",
@@ -105,7 +105,7 @@ class BasisBatch(NamedTuple):
 
 
 class FmapPair(NamedTuple):
-    """Result of :func:`solve_fmap`: ``C_xy (B, K_y, K_x)`` and ``C_yx (B, K_x, K_y)`` (or None)."""
+    """Result of :func:`solve_fmap_batch`: ``C_xy (B, K_y, K_x)`` and ``C_yx (B, K_x, K_y)`` (or None)."""
 
     C_xy: torch.Tensor
     C_yx: torch.Tensor | None
@@ -171,7 +171,7 @@ def check_solver_weights(w_desc: float, w_lap: float) -> None:
         )
 
 
-def solve_fmap(
+def solve_fmap_batch(
     feat_x: torch.Tensor,
     feat_y: torch.Tensor,
     basis_x: BasisBatch,

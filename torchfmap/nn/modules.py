@@ -156,7 +156,7 @@ class RegularizedFMSolver(nn.Module):
     ``w_lap=torchfmap.fmap.defaults.W_LAP_KERNELS``. The training recipe solves with its own
     ``TrainConfig.w_lap`` (:func:`~torchfmap.nn.build_solver`), which :func:`~torchfmap.nn.train`
     and :func:`~torchfmap.nn.evaluate` use when given no solver. ``check``: the data checks of
-    :func:`~torchfmap.nn.functional.solve_fmap` (None: on CPU inputs only).
+    :func:`~torchfmap.nn.functional.solve_fmap_batch` (None: on CPU inputs only).
     """
 
     def __init__(
@@ -174,7 +174,7 @@ class RegularizedFMSolver(nn.Module):
     def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch) -> F.FmapPair:
         """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> FmapPair(C_xy (B, K_y, K_x), C_yx)``;
         bases may be :class:`BasisModule` s (cast to the features' dtype)."""
-        return F.solve_fmap(
+        return F.solve_fmap_batch(
             feat_x,
             feat_y,
             basis_x,
