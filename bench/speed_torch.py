@@ -26,7 +26,7 @@ import torch
 from torchfmap.experimental.networks import FeatureNet
 from torchfmap.nn import DiffusionNet, TrainConfig, UnsupervisedFMLoss, collate_shapes
 from torchfmap.nn import functional as F
-from torchfmap.nn.functional import BasisBatch
+from torchfmap.nn.functional import BasisBatch, solve_fmap_batch
 from torchfmap.nn.inputs import shape_arrays, shape_item
 
 from .common import REPO_ROOT, MiB, Report, Settings, load1, log, reset_peak_rss, status_mib
