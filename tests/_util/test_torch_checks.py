@@ -23,7 +23,7 @@ def test_data_checks_follow_the_switch_in_function_and_layer(nn_setting):
     bad = fx.clone()
     bad[0, 3, 1] = float("inf")
     for solve in (
-        lambda **kw: F.solve_fmap(bad, fy, tx, ty, **kw),
+        lambda **kw: F.solve_fmap_batch(bad, fy, tx, ty, **kw),
         lambda **kw: RegularizedFMSolver(**kw)(bad, fy, tx, ty),
     ):
         with pytest.raises(ParameterError, match="NaN or inf"):
@@ -32,9 +32,9 @@ def test_data_checks_follow_the_switch_in_function_and_layer(nn_setting):
             solve(check=True)
         assert not torch.isfinite(solve(check=False).C_xy).all()  # unchecked: non-finite, no error
         with pytest.raises(ParameterError, match=r"features must be \(B, V, D\)"):
-            F.solve_fmap(fx[:, :10], fy, tx, ty, check=False)
+            F.solve_fmap_batch(fx[:, :10], fy, tx, ty, check=False)
     with pytest.raises(ParameterError, match="check must be"):
-        F.solve_fmap(fx, fy, tx, ty, check="yes")
+        F.solve_fmap_batch(fx, fy, tx, ty, check="yes")
     # singular systems (no descriptor information, w_lap = 0): the LU's info is read under check
     zeros, mask = torch.zeros(1, 4, 3, dtype=torch.float64), torch.ones(1, 4, 4, dtype=torch.float64)
     with pytest.raises(ParameterError, match="singular: the descriptor term is zero"):
