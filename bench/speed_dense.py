@@ -29,18 +29,19 @@ def wolf_pair(levels: int) -> tuple[torchfmap.Mesh, torchfmap.Mesh]:
     return tuple(torchfmap.Mesh(np.asarray(v), np.asarray(f, dtype=np.int64)) for v, f in out)
 
 
-def identity_errors(
-    mesh_x: torchfmap.Mesh, p2p_yx: np.ndarray, points: np.ndarray, chunk: int = 25
-) -> np.ndarray:
-    """Normalised geodesic errors of ``p2p_yx`` at the vertices ``points`` under the identity
-    ground truth, distance rows solved ``chunk`` at a time (memory ``chunk x V``)."""
+def identity_errors(mesh_x: torchfmap.Mesh, maps: list, points: np.ndarray, chunk: int = 25) -> np.ndarray:
+    """Normalised geodesic errors ``(len(maps), len(points))`` of each ``p2p_yx`` in ``maps`` at
+    the vertices ``points`` under the identity ground truth, each distance row solved once,
+    ``chunk`` at a time (memory ``chunk x V``)."""
     solver = torchfmap.GeodesicSolver(mesh_x)
-    err = np.empty(len(points))
+    err = np.empty((len(maps), len(points)))
     for lo in range(0, len(points), chunk):
         rows = points[lo : lo + chunk]
         d = solver.distances(rows)
-        err[lo : lo + chunk] = np.maximum(d[np.arange(len(rows)), p2p_yx[rows]], 0.0)
-    err[p2p_yx[points] == points] = 0.0
+        for i, p2p in enumerate(maps):
+            err[i, lo : lo + chunk] = np.maximum(d[np.arange(len(rows)), p2p[rows]], 0.0)
+    for i, p2p in enumerate(maps):
+        err[i, p2p[points] == points] = 0.0
     return err / np.sqrt(mesh_x.area)
 
 
@@ -70,7 +71,7 @@ def dense(cfg: Settings, report: Report) -> None:
                 peak = status_mib("VmHWM") - start
             finally:
                 refiners.LOCAL_SEARCH_PAIRS = limit
-            raw, refined = (identity_errors(x, p, points) for p in (res.p2p_yx_initial, res.p2p_yx))
+            raw, refined = identity_errors(x, [res.p2p_yx_initial, res.p2p_yx], points)
             rows.append(
                 {
                     "V": x.n_vertices,
