@@ -24,7 +24,7 @@ import numpy as np
 
 from torchfmap import prepare_shape
 from torchfmap.experimental.seeded import seeded_match
-from torchfmap.matching.pipeline import AUTO_KINDS, AUTO_MARGIN
+from torchfmap.matching.landmark_default import AUTO_KINDS, AUTO_MARGIN
 
 from .common import Report, Settings, fmt, log, require_data
 from .pairs import Pair, crash, expand, mean_of, pyfm_missing, pyfm_rows, record, run_match

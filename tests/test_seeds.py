@@ -19,9 +19,10 @@ from torchfmap import (
     mass_matrix,
     mean_curvature,
 )
+from torchfmap.bases.prepared import prepare_shape
 from torchfmap.data import icosphere
 from torchfmap.fmap import build_problem
-from torchfmap.matching.pipeline import match_bases, prepare_shape
+from torchfmap.matching.solve import match_bases
 from torchfmap.seeds import consistent_seeds, corresponding_seeds, heat_support_radius, max_curvature_vertex
 
 from .conftest import bumpy_blob, random_rotation

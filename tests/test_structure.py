@@ -422,26 +422,26 @@ def test_every_error_and_warning_class_lives_in_errors():
 
 
 def test_public_error_names_still_importable():
-    from torchfmap.bases import CorruptFileError
-    from torchfmap.errors import CorruptFileError as Home
-    from torchfmap.errors import NotPositiveDefiniteError
+    from torchfmap.errors import CorruptFileError, NotPositiveDefiniteError
     from torchfmap.operators import check_vertex_indices, lumped_diagonal
     from torchfmap.operators.laplacian import lumped_diagonal as lumped_from_laplacian
     from torchfmap.operators.solvers import NotPositiveDefiniteError as FromSolvers
 
-    assert CorruptFileError is Home and FromSolvers is NotPositiveDefiniteError
+    assert CorruptFileError.__module__ == "torchfmap.errors" and FromSolvers is NotPositiveDefiniteError
     assert lumped_diagonal is lumped_from_laplacian
     assert check_vertex_indices.__module__ == "torchfmap._util.checks"
 
 
-def test_operator_numerics_live_in_operators_and_stay_importable_from_bases():
+def test_operator_numerics_live_in_operators_only():
+    """One home per name: the bases package does not re-export the operators' numerics or the
+    errors, and the pipeline module exports ``match`` alone (its steps live in their modules)."""
     import torchfmap.bases as bases
-    import torchfmap.operators as operators
+    import torchfmap.matching.pipeline as pipeline
     from torchfmap.operators import eigen, heat
 
-    for name in ("heat_kernels", "heat_apply", "eigenpairs"):
-        assert getattr(bases, name) is getattr(operators, name)
-    assert bases.cf_poles is heat.cf_poles and bases.fix_signs is eigen.fix_signs
+    for name in ("heat_kernels", "heat_apply", "eigenpairs", "cf_poles", "fix_signs", "CorruptFileError"):
+        assert name not in bases.__all__ and not hasattr(bases, name)
+    assert pipeline.__all__ == ["match"]
     assert heat.heat_kernels.__module__ == "torchfmap.operators.heat"
     assert eigen.eigenpairs.__module__ == "torchfmap.operators.eigen"
 

@@ -11,7 +11,6 @@ from .bases import (
     basis_stack,
     diffusion_basis,
     harmonic_basis,
-    heat_kernels,
     laplacian_eigenbasis,
     orthonormalize,
     orthonormalize_pair,
@@ -38,8 +37,9 @@ from .evaluate.scores import evaluate_map
 from .fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from .io import load_mesh, load_points, save_mesh
 from .kinds import KINDS
-from .matching.pipeline import MatchResult, match
+from .matching.pipeline import match
 from .matching.quality import geodesic_distortion, orientation_agreement
+from .matching.results import MatchResult
 from .mesh import Mesh, MeshReport, validate_mesh, weld_vertices
 from .operators import (
     Factorization,
@@ -49,6 +49,7 @@ from .operators import (
     eigenpairs,
     factorize,
     geodesic_distances,
+    heat_kernels,
     laplacian,
     mass_matrix,
     point_cloud_laplacian,

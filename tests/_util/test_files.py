@@ -10,9 +10,8 @@ import pytest
 
 from torchfmap import Basis, TorchFmapError
 from torchfmap._util.files import atomic_write, load_arrays, save_arrays
-from torchfmap.bases import CorruptFileError
 from torchfmap.cli import main
-from torchfmap.errors import FileWriteError
+from torchfmap.errors import CorruptFileError, FileWriteError
 
 from ..conftest import DEMO, _basis, _err
 

@@ -17,9 +17,9 @@ from torchfmap import (
     laplacian_eigenbasis,
 )
 from torchfmap._util.files import checksum
-from torchfmap.bases import CorruptFileError, support_fraction
+from torchfmap.bases import support_fraction
 from torchfmap.cli import main
-from torchfmap.errors import FileReadError
+from torchfmap.errors import CorruptFileError, FileReadError
 
 from ..conftest import DEMO, _basis, _err
 

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchfmap.bases.prepared import with_eigenpairs
-from torchfmap.matching.pipeline import prepare_shape
+from torchfmap.bases.prepared import prepare_shape, with_eigenpairs
 from torchfmap.operators import gradient_operator
 
 from ..conftest import SCALES, bumpy_blob

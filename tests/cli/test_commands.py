@@ -123,7 +123,7 @@ def test_basis_pair_corresponds_and_unrelated_bases_warn(tmp_path, capsys):
     assert main(["match", str(px), str(py), "--bases", str(a), str(b), "--out", str(out), "--quiet"]) == 0
     assert "warning" not in capsys.readouterr().err  # the CLI prints warnings as 'torchfmap: warning:'
     from torchfmap.bases import Basis, prepare_shape
-    from torchfmap.matching.pipeline import match_bases
+    from torchfmap.matching.solve import match_bases
 
     built = match_bases(
         prepare_shape(x, 0), prepare_shape(y, 0), "diffusion", 20, np.loadtxt(pairs, dtype=int)

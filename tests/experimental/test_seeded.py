@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from torchfmap import ParameterError, match
+from torchfmap.bases.prepared import prepare_shape
 from torchfmap.cli import build_parser
 from torchfmap.evaluate.scores import evaluate_map, landmarks_from_gt
 from torchfmap.experimental.seeded import SEEDED_SEEDS, seeded_match
-from torchfmap.matching.pipeline import prepare_shape
 from torchfmap.matching.quality import map_seeds
 
 

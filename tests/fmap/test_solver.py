@@ -17,11 +17,12 @@ from torchfmap import (
     load_mesh,
 )
 from torchfmap.bases import basis_stack
+from torchfmap.bases.prepared import prepare_shape
 from torchfmap.data import icosphere
 from torchfmap.descriptors import hks, landmark_descriptors, normalize_descriptors, wks
 from torchfmap.evaluate.scores import evaluate_map, gt_identity
 from torchfmap.fmap import FmapProblem, build_problem, fmap_to_p2p, multiplication_operator, solve_fmap
-from torchfmap.matching.pipeline import match_bases, prepare_shape
+from torchfmap.matching.solve import match_bases
 from torchfmap.operators import eigenpairs
 
 from ..conftest import bend, bumpy_blob, data_path, np_mask

@@ -8,7 +8,7 @@ import pytest
 
 from torchfmap import Mesh, ParameterError, match, prepare_shape
 from torchfmap.matching.checks import check_meshes
-from torchfmap.matching.pipeline import match_bases
+from torchfmap.matching.solve import match_bases
 from torchfmap.seeds import farthest_point_sampling
 
 from ..conftest import bumpy_blob

@@ -16,8 +16,10 @@ from torchfmap.cli import build_parser, main
 from torchfmap.data import icosphere
 from torchfmap.evaluate.scores import evaluate_map, gt_identity, landmarks_from_gt
 from torchfmap.kinds import KINDS
-from torchfmap.matching.pipeline import AUTO_KINDS, AUTO_MARGIN, match, match_bases
+from torchfmap.matching.landmark_default import AUTO_KINDS, AUTO_MARGIN
+from torchfmap.matching.pipeline import match
 from torchfmap.matching.quality import geodesic_distortion
+from torchfmap.matching.solve import match_bases
 
 from ..conftest import SCALES, _agree, bend, bumpy_blob
 
@@ -85,10 +87,11 @@ def test_identity_gt_on_self_match():
 def test_match_steps_one_by_one_equal_match(bent_pair):
     """match() is the composition of its public steps: running them by hand gives the same map."""
     from torchfmap import MatchResult
+    from torchfmap.bases.prepared import prepare_shape
     from torchfmap.fmap import Refined, fmap_to_p2p, solve_fmap
     from torchfmap.fmap.defaults import W_DCOMM, W_ORIENT
     from torchfmap.kinds import get_kind
-    from torchfmap.matching.pipeline import match_bases, match_descriptors, prepare_shape
+    from torchfmap.matching.solve import match_bases, match_descriptors
 
     x, y, gt = bent_pair
     lm = landmarks_from_gt(x, gt, 6)

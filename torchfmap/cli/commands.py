@@ -20,7 +20,7 @@ from tqdm import tqdm
 from .._util.checks import is_symmetric
 from .._util.files import output_lock
 from .._util.progress import Steps
-from ..bases import Basis, eigenpairs, prepare_shape
+from ..bases import Basis, prepare_shape
 from ..data import demo_pair
 from ..errors import EvaluationInterrupted, TorchFmapError, WorkerLost
 from ..evaluate.collection import LandmarkFiles, MapFiles, evaluate_pairs
@@ -36,8 +36,10 @@ from ..evaluate.scores import (
 )
 from ..io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from ..kinds import get_kind
-from ..matching.pipeline import match, match_bases
+from ..matching.pipeline import match
+from ..matching.solve import match_bases
 from ..operators import GeodesicSolver, available_backends, laplacian
+from ..operators.eigen import eigenpairs
 from ..viz import plot_color_transfer, plot_pck, save_transfer_html
 
 

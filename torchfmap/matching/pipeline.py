@@ -20,7 +20,7 @@ import numpy as np
 from .._util.checks import check_count
 from .._util.progress import Steps
 from ..bases import Basis
-from ..bases.prepared import PreparedShape, prepare_shape
+from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
 from ..fmap import check_landmark_pairs
 from ..fmap.defaults import W_DCOMM, W_LMK
@@ -30,29 +30,14 @@ from ..kinds import BasisKind, get_kind
 from ..kinds.refiners import RefineMethod, check_eigenbases, check_refine
 from ..mesh import Mesh
 from .checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
-from .landmark_default import AUTO_KINDS, AUTO_MARGIN, match_landmark_default
+from .landmark_default import match_landmark_default
 from .partial import match_partial
-from .quality import OFF_BY_ONE_RATIO, landmark_distortion, warn_collapsed
+from .quality import warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
 from .results import MatchResult, refine_result
-from .solve import P2PMode, match_bases, match_descriptors, prepare_shapes, solve_pair
+from .solve import P2PMode, prepare_shapes, solve_pair
 
-__all__ = [
-    "AUTO_KINDS",
-    "AUTO_MARGIN",
-    "OFF_BY_ONE_RATIO",
-    "MatchResult",
-    "PreparedShape",
-    "landmark_distortion",
-    "match",
-    "match_bases",
-    "match_descriptors",
-    "match_landmark_default",
-    "prepare_shape",
-    "refine_result",
-    "solve_pair",
-    "warn_if_off_by_one",
-]
+__all__ = ["match"]
 
 
 def match(
