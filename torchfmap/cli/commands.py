@@ -34,6 +34,7 @@ from ..evaluate.scores import (
     pck_curve,
     select_pairs,
 )
+from ..fmap.defaults import DEFAULT_K
 from ..io import load_mesh, read_landmark_pairs, read_landmarks, write_map
 from ..kinds import get_kind
 from ..matching.pipeline import match
@@ -245,7 +246,7 @@ def cmd_match(args: argparse.Namespace) -> int:
         tgt,
         landmarks=landmarks,
         basis=args.basis,
-        k=50 if args.k is None else args.k,
+        k=DEFAULT_K if args.k is None else args.k,
         refine=args.refine,
         k_final=args.k_final,
         w_lap=args.w_lap,
@@ -328,7 +329,7 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
         if args.partial:
             settings["partial"] = True
         return settings, _learned_how(matcher, args) + (", partial" if args.partial else "")
-    k = 50 if args.k is None else args.k
+    k = DEFAULT_K if args.k is None else args.k
     settings = dict(
         gt_landmarks=LandmarkFiles(args.landmarks) if args.landmarks else args.gt_landmarks,
         basis=args.basis,

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from .. import __version__
 from ..errors import TorchFmapError
 from ..evaluate.scores import FULL_EVAL_VERTICES, SAMPLED_EVAL_POINTS
+from ..fmap.defaults import DEFAULT_K
 from ..kinds import KINDS, REFINE_METHODS
 from .commands import cmd_basis, cmd_demo, cmd_eval, cmd_info, cmd_match
 from .messages import error_line as _error_line
@@ -141,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="basis kind (default: diffusion with --landmarks, else laplacian)",
     )
-    p.add_argument("--k", type=positive_int, default=50, help="basis size (exactly k columns)")
+    p.add_argument("--k", type=positive_int, default=DEFAULT_K, help="basis size (exactly k columns)")
     p.add_argument(
         "--allow-components", action="store_true", help="accept meshes with several connected components"
     )
@@ -186,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--k",
         type=positive_int,
         default=None,
-        help="basis size, every basis has exactly k columns (default: 50; --checkpoint fixes its own)",
+        help=f"basis size, every basis has exactly k columns (default: {DEFAULT_K}; --checkpoint fixes "
+        "its own)",
     )
     _refine_flags(p)
     p.add_argument(
@@ -246,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)"
     )
-    p.add_argument("--k", type=positive_int, default=None, help="basis size (default: 50)")
+    p.add_argument("--k", type=positive_int, default=None, help=f"basis size (default: {DEFAULT_K})")
     _refine_flags(p)
     p.add_argument(
         "--landmarks",
@@ -337,7 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="basis kind of the learned map (default: laplacian)",
     )
-    p.add_argument("--k", type=positive_int, default=None, help="functional-map basis size (default: 50)")
+    p.add_argument(
+        "--k", type=positive_int, default=None, help=f"functional-map basis size (default: {DEFAULT_K})"
+    )
     p.add_argument(
         "--pairs",
         choices=["classes", "all"],

@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 from ..bases.prepared import PreparedShape, prepare_shape
 from ..errors import ParameterError
+from ..fmap.defaults import DEFAULT_K
 from ..matching.pipeline import match
 from ..matching.quality import map_seeds
 from ..matching.results import MatchResult
@@ -38,7 +39,7 @@ def seeded_match(
     mesh_x: Mesh,
     mesh_y: Mesh,
     *,
-    k: int = 50,
+    k: int = DEFAULT_K,
     k_final: int | None = None,
     k_descriptors: int = 100,
     shapes: tuple[PreparedShape, PreparedShape] | None = None,

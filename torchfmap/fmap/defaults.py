@@ -8,6 +8,9 @@ Nothing here knows a basis kind.
 
 from __future__ import annotations
 
+#: The basis size ``k`` of every match, classical or learned, and of the command line, when none is
+#: given (ZoomOut grows it to ``2k`` by default).
+DEFAULT_K = 50
 #: Laplacian-commutativity weight of eigenfunctions and of bases with no heat kernels (the mask
 #: is normalised to mean 1), chosen by ``python -m bench accuracy --case weight_sweep``; the default of
 #: :func:`~torchfmap.fmap.solve_fmap`.

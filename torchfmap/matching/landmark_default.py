@@ -21,6 +21,7 @@ from .._util.progress import SILENT, Steps
 from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
 from ..fmap import check_landmark_pairs
+from ..fmap.defaults import DEFAULT_K
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
 from ..kinds.refiners import RefineMethod, check_refine
@@ -114,7 +115,7 @@ def match_landmark_default(
     mesh_y: Mesh,
     landmarks: np.ndarray,
     *,
-    k: int = 50,
+    k: int = DEFAULT_K,
     refine: RefineMethod | None = None,
     k_final: int | None = None,
     times=None,

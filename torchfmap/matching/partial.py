@@ -51,7 +51,7 @@ from ..descriptors import landmark_descriptors, shot
 from ..errors import ParameterError
 from ..fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from ..fmap.convert import check_p2p
-from ..fmap.defaults import W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
+from ..fmap.defaults import DEFAULT_K, W_DCOMM, W_LAP_SMOOTH, W_LMK, W_ORIENT, zoomout_step
 from ..fmap.nearest import SurfaceSampling, search_p2p
 from ..fmap.refine import Samples, SpectralStep, check_anchors, check_k_final, zoomout_iterations
 from ..kinds.refiners import check_refine, landmark_coordinates, pair_samplings
@@ -239,7 +239,7 @@ def match_partial(
     shape_y: PreparedShape,
     *,
     landmarks: np.ndarray | None = None,
-    k: int = 50,
+    k: int = DEFAULT_K,
     refine: str | None = None,
     k_final: int | None = None,
     w_lap: float = W_LAP_SMOOTH,

@@ -23,7 +23,7 @@ from ..bases import Basis
 from ..bases.prepared import PreparedShape
 from ..errors import ParameterError
 from ..fmap import check_landmark_pairs
-from ..fmap.defaults import W_DCOMM, W_LMK
+from ..fmap.defaults import DEFAULT_K, W_DCOMM, W_LMK
 from ..fmap.refine import check_k_final
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
@@ -46,7 +46,7 @@ def match(
     *,
     landmarks=None,
     basis: BasisKind | None = None,
-    k: int = 50,
+    k: int = DEFAULT_K,
     refine: RefineMethod | None = None,
     k_final: int | None = None,
     n_descriptors: int = 20,

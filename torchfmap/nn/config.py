@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from ..errors import ParameterError
+from ..fmap.defaults import DEFAULT_K
 from .inputs import input_channels
 from .modules import RegularizedFMSolver, UnsupervisedFMLoss
 from .networks import DiffusionNet
@@ -96,7 +97,7 @@ class TrainConfig:
     aligned alike), ``"none"``.
     """
 
-    k: int = 50
+    k: int = DEFAULT_K
     k_net: int = 96
     n_wks: int = 32
     basis: str = "laplacian"

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from .._util.files import load_arrays, save_arrays
 from ..errors import CorruptFileError, ParameterError
+from ..fmap.defaults import DEFAULT_K
 from ..io import load_mesh, mesh_files
 from ..kinds import learned_kind
 from ..mesh import Mesh
@@ -109,7 +110,7 @@ class ShapeDataset(torch.utils.data.Dataset):
         files,
         cache_dir: str | os.PathLike | None | bool = None,
         *,
-        k: int = 50,
+        k: int = DEFAULT_K,
         n_wks: int = 32,
         k_net: int = 0,
         basis: str = "laplacian",

@@ -25,6 +25,7 @@ from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
 from ..descriptors import wks
 from ..errors import ParameterError
+from ..fmap.defaults import DEFAULT_K
 from ..kinds import get_kind, learned_kind
 from ..mesh import Mesh
 from .modules import basis_arrays
@@ -87,7 +88,7 @@ def _solver_basis(shape: PreparedShape, kind: str, k: int) -> Basis:
 
 def shape_arrays(
     shape: PreparedShape | Mesh,
-    k: int = 50,
+    k: int = DEFAULT_K,
     n_wks: int = 32,
     k_wks: int = K_WKS,
     *,

@@ -16,7 +16,7 @@ from ..bases import prepare_shape
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from ..fmap import core
-from ..fmap.defaults import W_LAP_SMOOTH
+from ..fmap.defaults import DEFAULT_K, W_LAP_SMOOTH
 from ..kinds import learned_kind
 from ..mesh import Mesh
 from . import functional as F
@@ -100,7 +100,13 @@ class BasisModule(nn.Module):
 
     @classmethod
     def from_mesh(
-        cls, mesh: Mesh, k: int = 50, basis: str = "laplacian", seeds=None, times=None, dtype=torch.float64
+        cls,
+        mesh: Mesh,
+        k: int = DEFAULT_K,
+        basis: str = "laplacian",
+        seeds=None,
+        times=None,
+        dtype=torch.float64,
     ) -> BasisModule:
         """A registered kind's basis of exactly ``k`` columns on ``mesh`` (``basis``: the kind's
         name, as ``match(basis=...)``; ``KINDS[basis].shape_basis``,
