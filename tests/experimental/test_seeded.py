@@ -11,8 +11,7 @@ from torchfmap import ParameterError, match
 from torchfmap.bases.prepared import prepare_shape
 from torchfmap.cli import build_parser
 from torchfmap.evaluate.scores import evaluate_map, landmarks_from_gt
-from torchfmap.experimental.seeded import SEEDED_SEEDS, seeded_match
-from torchfmap.matching.quality import map_seeds
+from torchfmap.experimental.seeded import SEEDED_SEEDS, map_seeds, seeded_match
 
 
 def test_seeded_match_solves_again_at_the_seeds_its_map_agrees_on(bent_pair):

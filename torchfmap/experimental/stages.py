@@ -43,11 +43,11 @@ from ..bases.stack import concatenate
 from ..errors import ParameterError
 from ..fmap.convert import values_to_p2p
 from ..kinds import seed_time
-from ..matching.quality import map_seeds
 from ..mesh import Mesh
 from ..nn.data import collate_pairs
 from ..nn.modules import BasisModule
 from ..nn.networks import check_network, features
+from .seeded import map_seeds
 
 #: Farthest-point seeds of ``x`` offered to the second stage (columns of its bases at most).
 STAGE2_SEEDS = 40
@@ -90,7 +90,7 @@ class StageTwo:
         """Seed pairs ``(S, 2)`` of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in
         the eigenbases ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``: ``landmarks`` first,
         then the consistent ones of :attr:`n_seeds` farthest points
-        (:func:`~torchfmap.matching.quality.map_seeds`, as the classical ``refine='seeded'``)."""
+        (:func:`~torchfmap.experimental.seeded.map_seeds`, as the classical ``refine='seeded'``)."""
         return map_seeds(shape_x, C_xy, C_yx, values_x, values_y, self.n_seeds, landmarks)
 
     def run(self, solver, shape_x, shape_y, feat_x, feat_y, C_xy, C_yx, values_x, values_y, landmarks=None):

@@ -24,9 +24,9 @@ import numpy as np
 
 from ..bases.prepared import PreparedShape
 from ..errors import MapWarning, ParameterError
-from ..fmap.convert import check_p2p, values_to_p2p
+from ..fmap.convert import check_p2p
 from ..mesh import Mesh
-from ..seeds import consistent_seeds, farthest_point_sampling
+from ..seeds import farthest_point_sampling
 
 #: Anchors of :func:`geodesic_distortion` (farthest points on ``y``).
 N_ANCHORS = 64
@@ -180,33 +180,3 @@ def warn_collapsed(p2p_yx: np.ndarray, n_x: int, stacklevel: int = 3) -> None:
             MapWarning,
             stacklevel=stacklevel,
         )
-
-
-def map_seeds(
-    shape_x: PreparedShape,
-    C_xy: np.ndarray,
-    C_yx: np.ndarray,
-    values_x: np.ndarray,
-    values_y: np.ndarray,
-    n_seeds: int,
-    landmarks: np.ndarray | None = None,
-) -> np.ndarray:
-    """Seed pairs ``(S, 2)`` a map is sure of: ``landmarks`` ``(L, 2)`` first (if given), then
-    ``n_seeds`` farthest points of ``x`` (continuing from the landmarks) sent to ``y`` by
-    ``C_yx (K_x, K_y)`` and back by ``C_xy (K_y, K_x)`` (orthogonal rule in the bases
-    ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``; only the seeds' rows are converted),
-    kept where they agree (:func:`~torchfmap.seeds.consistent_seeds`); no vertex of ``y``
-    twice. The seeds of both self-seeded second stages (``experimental.seeded.seeded_match``,
-    :mod:`torchfmap.experimental.stages`); without landmarks, the farthest points are computed once per
-    shape (cached on ``shape_x``)."""
-    given = np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
-    n = min(n_seeds + len(given), shape_x.mesh.n_vertices)
-    if len(given):
-        s = farthest_point_sampling(shape_x.mesh, n, landmarks=given[:, 0], metric="euclidean")[len(given) :]
-    else:
-        s = shape_x.derive(("seeds", n), lambda: farthest_point_sampling(shape_x.mesh, n, metric="euclidean"))
-    t = values_to_p2p(C_yx, values_y, values_x[s], mode="orthogonal")  # x -> y at the seeds
-    back = values_to_p2p(C_xy, values_x, values_y[t], mode="orthogonal")  # and back
-    found = consistent_seeds(shape_x.distances, s, t, back)
-    found = found[~np.isin(found[:, 1], given[:, 1])]
-    return np.concatenate([given, found]).astype(np.int64)
