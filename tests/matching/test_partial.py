@@ -24,8 +24,6 @@ from torchfmap.matching.partial import (
     partial_zoomout,
     reseeded_map,
 )  # fmt: skip
-from torchfmap.matching.quality import geodesic_distortion
-from torchfmap.matching.results import keeps_refinement
 from torchfmap.mesh import Mesh
 
 
@@ -300,15 +298,18 @@ def test_partial_zoomout_keeps_the_landmark_distances_in_the_wholes_units():
     far = on_whole > 0.1  # relative differences away from the landmarks themselves
     rel = np.abs(ay * np.sqrt(a) - on_whole)[far] / on_whole[far]
     assert np.median(rel) < 0.05
+    # against the ground truth of a part cut from the whole (not a replay of the steps): the
+    # refined map is no worse than the raw one and within half an edge of the truth on average
+    # (a map off by one vertex everywhere is about one edge off), and the true map is nearly a
+    # fixed point of anchored partial ZoomOut (its mean error well under half an edge)
+    gt, edge = gt_from_map(cut.vertices), whole.mean_edge_length / np.sqrt(whole.area)
     r = match(whole, cut.mesh, landmarks=lm, k=30, refine="zoomout", partial=True, shapes=shapes)
     start = match(whole, cut.mesh, landmarks=lm, k=30, partial=True, shapes=shapes)
+    raw, refined = (geodesic_errors(whole, m.p2p_yx, gt).mean() for m in (start, r))
+    assert refined <= raw and refined < 0.5 * edge
     full, part = shapes[0].eigenbasis, common_frame(shapes[1].eigenbasis, a)
-    _, anchored = partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
-    reseeded = reseeded_map(*shapes, anchored, lm)
-    _, again = partial_zoomout(reseeded, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
-    distortion = [geodesic_distortion(*shapes, q, area_ratio=a) for q in (reseeded, again)]
-    kept = again if keeps_refinement(*distortion) else reseeded
-    np.testing.assert_array_equal(r.p2p_yx, reseeded_map(*shapes, kept, lm))
+    _, kept = partial_zoomout(cut.vertices, full, part, 30, 60, anchors=(ax, ay * np.sqrt(a)))
+    assert geodesic_errors(whole, kept, gt).mean() < 0.5 * edge
     with pytest.raises(ParameterError, match="anchors"):  # the check of fmap.zoomout's anchors
         partial_zoomout(start.p2p_yx, full, part, 30, 60, anchors=(ax, ay[:10]))
 
