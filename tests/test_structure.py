@@ -11,8 +11,6 @@ import re
 import warnings
 from pathlib import Path
 
-import pytest
-
 import torchfmap
 
 ROOT = Path(torchfmap.__file__).parent
@@ -28,44 +26,6 @@ OPTIONAL_IMPORTS = {
 }
 #: Most lines a module of torchfmap may have (docs/architecture.md rule 7: split at ~400).
 MAX_MODULE_LINES = 450
-#: Shared checks and file helpers: the only module allowed to define each name.
-HOMES = {
-    "check_vertex_indices": "torchfmap._util.checks",
-    "check_landmark_pairs": "torchfmap._util.checks",
-    "check_seeds_cover_components": "torchfmap._util.checks",
-    "symmetry_tolerance": "torchfmap._util.checks",
-    "symmetry_defect": "torchfmap._util.checks",
-    "is_symmetric": "torchfmap._util.checks",
-    "check_symmetric": "torchfmap._util.checks",
-    "lumped_diagonal": "torchfmap._util.checks",
-    "check_lumped_mass": "torchfmap._util.checks",
-    "checksum": "torchfmap._util.files",
-    "atomic_write": "torchfmap._util.files",
-    "save_arrays": "torchfmap._util.files",
-    "load_arrays": "torchfmap._util.files",
-    "resolve_check": "torchfmap._util.torch_checks",
-    "check_batched": "torchfmap._util.torch_checks",
-    "check_finite": "torchfmap._util.torch_checks",
-    "check_index_range": "torchfmap._util.torch_checks",
-    "check_lengths": "torchfmap._util.torch_checks",
-    "get_kind": "torchfmap.kinds.registry",
-    "kind_of": "torchfmap.kinds.registry",
-    "register_kind": "torchfmap.kinds.registry",
-    "check_refine": "torchfmap.kinds.refiners",
-    "prepare_shape": "torchfmap.bases.prepared",
-    "seed_time": "torchfmap.kinds.base",
-    "replace_seeds": "torchfmap.seeds",
-    "refine_result": "torchfmap.matching.results",
-    "solve_pair": "torchfmap.matching.solve",
-    "hybrid_zoomout": "torchfmap.kinds.hybrid",
-    "fixed_size_iterations": "torchfmap.kinds.refiners",
-    "zoomout": "torchfmap.fmap.refine",
-    "mesh_files": "torchfmap.io",
-    "split_suffix": "torchfmap.io",
-    "read_vts": "torchfmap.io",
-    "read_landmarks": "torchfmap.io",
-    "read_landmark_pairs": "torchfmap.io",
-}
 
 
 def _module_name(path: Path) -> str:
@@ -366,9 +326,15 @@ def test_classical_commands_and_import_do_not_import_torch():
     assert done.returncode == 0, done.stderr[-3000:]
 
 
-@pytest.mark.parametrize("name", sorted(HOMES))
-def test_shared_helpers_have_one_home(name):
-    assert _definitions().get(name) == [HOMES[name]]
+def test_every_public_name_has_one_home():
+    """No public function or class is defined in two modules (one implementation per concept;
+    a helper shared by several modules lives in one of them, or in ``_util``), and the shared
+    helpers are defined where the architecture says: the checks in ``_util.checks``."""
+    twice = {
+        name: mods for name, mods in _definitions().items() if len(mods) > 1 and not name.startswith("_")
+    }
+    assert not twice, f"defined in several modules: {twice}"
+    assert _definitions()["check_vertex_indices"] == ["torchfmap._util.checks"]
 
 
 def test_symmetry_is_checked_only_in_checks():
@@ -524,21 +490,16 @@ def test_tests_mirror_the_package(tmp_path):
     assert not missing, f"folders of tests without __init__.py (tests/ is a package): {missing}"
 
 
-#: Public callables whose parameter ``kind`` is a basis kind: the word's one meaning
-#: (docs/architecture.md, "One word, one meaning"). Any other choice has its own word.
-BASIS_KIND_PARAMETERS = {
-    "torchfmap.kinds.registry.register_kind",
-    "torchfmap.kinds.hybrid.hybrid_zoomout",
-    "torchfmap.kinds.hybrid.HybridZoomOut",
-    "torchfmap.kinds.hybrid.HybridZoomOut.__init__",
-    "torchfmap.matching.checks.check_unused",
-    "torchfmap.matching.checks.check_zoomout_sizes",
-    "torchfmap.matching.solve.match_bases",
-    "torchfmap.matching.solve.solve_pair",
-    "torchfmap.matching.solve.solve_functional_map",
-    "torchfmap.matching.results.MatchResult",
-    "torchfmap.matching.results.MatchResult.__init__",
-}
+def _names_a_kind(annotation) -> bool:
+    """A basis kind (:class:`~torchfmap.kinds.BasisKind` or a subclass) or its name (``str``), as a
+    type or a string annotation."""
+    from torchfmap.kinds.base import BasisKind
+
+    if isinstance(annotation, type):
+        return issubclass(annotation, (BasisKind, str))
+    parts = {p.strip() for p in str(annotation).split("|")}
+    kinds = {c.__name__ for c in BasisKind.__subclasses__()} | {"BasisKind", "str"}
+    return bool(parts) and parts <= kinds | {"None"}
 
 
 def test_kind_names_basis_kinds_only():
@@ -549,7 +510,7 @@ def test_kind_names_basis_kinds_only():
     import inspect
     import pkgutil
 
-    found = set()
+    found: set = set()
     for info in pkgutil.walk_packages(torchfmap.__path__, "torchfmap."):
         if info.name.endswith("__main__"):
             continue
@@ -567,8 +528,10 @@ def test_kind_names_basis_kinds_only():
                     params = inspect.signature(target).parameters
                 except (TypeError, ValueError):
                     continue
-                if any(p == "kind" or p.endswith("_kind") or p.startswith("kind_") for p in params):
-                    found.add(f"{module.__name__}.{getattr(target, '__qualname__', name)}")
-    other = sorted(found - BASIS_KIND_PARAMETERS)
-    assert not other, f"'kind' used for something else: {other}"
-    assert found == BASIS_KIND_PARAMETERS, f"stale entries: {sorted(BASIS_KIND_PARAMETERS - found)}"
+                for pname, param in params.items():
+                    if pname == "kind" or pname.endswith("_kind") or pname.startswith("kind_"):
+                        qual = f"{module.__name__}.{getattr(target, '__qualname__', name)}"
+                        found.add((qual, param.annotation))
+    assert found, "no basis-kind parameter found: the walk is broken"
+    other = sorted(f for f, annotation in found if not _names_a_kind(annotation))
+    assert not other, f"'kind' parameters not annotated as a basis kind (BasisKind, or its name str): {other}"

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from ..bases.basis import Basis
 from ..errors import ParameterError
+from .base import BasisKind
 
 #: Every basis kind by name, in the order the command line lists them.
 KINDS: dict = {}
 
 
-def register_kind(kind):
+def register_kind(kind: BasisKind):
     """Add ``kind`` (a :class:`torchfmap.kinds.BasisKind`) to :data:`KINDS` under its ``name``;
     returns it. Registering a name again replaces the kind.
 
