@@ -40,6 +40,7 @@ def _methods(markdown: str) -> list[str]:
     return methods
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suite", sorted(SUITES))
 def test_smallest_case_writes_a_table_of_the_methods(suite, tmp_path, monkeypatch):
     case, settings, expected = SMALLEST[suite]
@@ -94,6 +95,7 @@ def test_a_case_without_its_data_is_skipped(tmp_path, monkeypatch):
         pairs.expand(["@tosca_test"])
 
 
+@pytest.mark.slow
 def test_the_species_split_holds_whole_shape_families_out():
     """``smal_families`` partitions the 32 SMAL_r animals; the split validates on whole families
     (the two smallest), so no validation animal shares a family with a training one; the four

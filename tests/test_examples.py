@@ -27,6 +27,9 @@ from torchfmap.nn.checkpoints import read_checkpoint
 
 from .conftest import bend, bumpy_blob
 
+#: Every example runs end to end (a docs command): behind the slow marker, which CI also runs.
+pytestmark = pytest.mark.slow
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 TINY = TrainConfig(k=8, n_wks=6, k_net=16, width=8, c_out=8, n_blocks=1)
 

@@ -474,6 +474,7 @@ def test_eval_scores_saved_maps_and_passes_its_match_settings(tmp_path, monkeypa
     assert all(p.is_absolute() for p in seen["paths"])  # sent resolved, for workers elsewhere
 
 
+@pytest.mark.slow
 def test_eval_command_with_checkpoint_prepares_each_mesh_once_and_pools_agree(
     tiny_folder, tmp_path, capsys, monkeypatch
 ):

@@ -14,6 +14,7 @@ from torchfmap.evaluate.scores import gt_identity, retrieval_accuracy
 from ..conftest import _err, _identity_folder, bend, bumpy_blob
 
 
+@pytest.mark.slow
 def test_evaluate_pairs_prepares_each_mesh_once_and_workers_give_the_same_results(tmp_path, monkeypatch):
     """``evaluate_pairs`` (behind ``torchfmap eval``) prepares every mesh once per process, and a
     pool of 2 processes returns exactly the single-process maps' errors, in the pairs' order."""
@@ -379,6 +380,7 @@ def test_a_pool_worker_sends_back_a_message_the_pipe_writes_whole(tmp_path):
     assert not list(tmp_path.glob("chunk*"))  # read once, removed
 
 
+@pytest.mark.slow
 def test_a_callers_process_pool_gets_results_through_files_and_leaves_none(tmp_path, monkeypatch):
     """A ProcessPoolExecutor passed as ``executor`` is on this machine: its chunks come back
     through files as a local pool's do (the same rows as one process), and the run removes them."""

@@ -159,6 +159,7 @@ def test_partial_in_other_units_is_refused_naming_the_units(blob_cut, scale):
     assert "whole shape first" not in str(err.value)  # the order was right
 
 
+@pytest.mark.slow
 def test_cli_partial(blob_cut, tmp_path, capsys):
     from torchfmap.cli import main
 
@@ -221,6 +222,7 @@ def test_overlap_iou_exact_cases():
     assert overlap_iou(np.array([0.2, 0.9, 0.7, 0.0]), [0, 1], mass) == pytest.approx(2 / 6)
 
 
+@pytest.mark.slow
 def test_cli_eval_partial(tmp_path, blob_cut, capsys):
     from torchfmap.cli import main
 
