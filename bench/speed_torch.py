@@ -68,7 +68,7 @@ def loop_systems(A_x, A_y, lam_x, U_x, lam_y, U_y):
 
 
 def loop_solve(fx, fy, bx: BasisBatch, by: BasisBatch):
-    """``solve_fmap``'s math (project, rotate by ``U``, masked rows), one ``(K, K)`` solve per row
+    """``solve_fmap_batch``'s math (project, rotate by ``U``, masked rows), one ``(K, K)`` solve per row
     of every batch item in a Python loop, both directions."""
     A_x = bx.values.transpose(-1, -2) @ (bx.mass[..., None] * fx)
     A_y = by.values.transpose(-1, -2) @ (by.mass[..., None] * fy)
@@ -134,7 +134,7 @@ def _threads(cfg: Settings):
 
 
 def solver(cfg: Settings, report: Report) -> None:
-    """The differentiable batched functional-map solve (solve_fmap) against a per-row loop:
+    """The differentiable batched functional-map solve (solve_fmap_batch) against a per-row loop:
     forward + backward, both directions, agreement, conditioning, memory."""
     rows = []
     for dtype_name in cfg.dtypes:
@@ -204,7 +204,7 @@ def solver(cfg: Settings, report: Report) -> None:
                     f"{rows[-1]['t / batched']:.2f}"
                 )
     report.table(
-        f"solve_fmap (batched) against a per-row loop, median of {cfg.repeats} alternating rounds "
+        f"solve_fmap_batch against a per-row loop, median of {cfg.repeats} alternating rounds "
         f"({_threads(cfg)})",
         rows,
         note="rel |Δ|: max over C_xy, C_yx, ∇feat_x, ∇feat_y of max|Δ| / max|loop|. cond: row "
@@ -233,7 +233,7 @@ class _Hooks:
 
 
 def train_step(cfg: Settings, report: Report) -> None:
-    """One CPU training step (FeatureNet + solve_fmap + UnsupervisedFMLoss + Adam), split by phase."""
+    """One CPU training step (FeatureNet + solve_fmap_batch + UnsupervisedFMLoss + Adam), split by phase."""
     threads, rows = _threads(cfg), []
     for dtype_name in cfg.dtypes:
         for b in cfg.batches:
@@ -290,7 +290,7 @@ def train_step(cfg: Settings, report: Report) -> None:
                 row |= {"loss first→last": f"{steps[0]['loss']:.4g}→{steps[-1]['loss']:.4g}", "load": load1()}
                 rows.append(row)
     report.table(
-        f"Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + solve_fmap + UnsupervisedFMLoss "
+        f"Training step: FeatureNet(32 -> 64, width 64, 3 blocks) + solve_fmap_batch + UnsupervisedFMLoss "
         f"+ Adam; median of "
         f"{cfg.repeats} steps after a warm-up ({threads})",
         rows,
