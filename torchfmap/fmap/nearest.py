@@ -320,11 +320,11 @@ def local_nearest(
         coarse = nearest_neighbor(query[sampling_q.index], reference[sampling_r.index], precision=precision)
     coarse = _check_coarse(coarse, len(sampling_q.index), len(sampling_r.index))
     dtype = np.float32 if precision == "single" else np.float64
-    q = np.ascontiguousarray(query, dtype=dtype)
     r = np.ascontiguousarray(reference, dtype=dtype)
     r_sq = np.einsum("ij,ij->i", r, r)
-    out = np.full(len(q), -1, dtype=np.int64)
+    out = np.full(len(query), -1, dtype=np.int64)
     if only_samples:  # each sample among its image's ring, in blocks of bounded memory
+        q = np.ascontiguousarray(query[sampling_q.index], dtype=dtype)  # the samples' rows only
         owners = np.arange(len(sampling_q.index))
         sizes = np.diff(sampling_r.ring_start)[coarse]
         per_row = max(1, int(NN_BLOCK_BYTES // (q.itemsize * max(1, q.shape[1]))))
@@ -334,13 +334,14 @@ def local_nearest(
             size = sizes[lo:hi]
             cand = _segments(sampling_r.ring, sampling_r.ring_start[coarse[lo:hi]], size)
             who = np.repeat(owners[lo:hi], size)
-            d = r_sq[cand] - 2.0 * np.einsum("ij,ij->i", q[sampling_q.index[who]], r[cand])
+            d = r_sq[cand] - 2.0 * np.einsum("ij,ij->i", q[who], r[cand])
             first = np.concatenate([[0], np.cumsum(size)[:-1]])
             nearest = np.flatnonzero(d == np.minimum.reduceat(d, first)[who - lo])
             _, at = np.unique(who[nearest], return_index=True)  # the first nearest of each sample
             out[sampling_q.index[lo:hi]] = cand[nearest[at]]
             lo = hi
         return out
+    q = np.ascontiguousarray(query, dtype=dtype)
     near_r = sampling_r.neighbors
     for s in range(len(sampling_q.index)):  # bounded: one block per query cell
         members = sampling_q.order[sampling_q.start[s] : sampling_q.start[s + 1]]

@@ -243,10 +243,11 @@ def zoomout_iterations(
                 guard.offer(p2p_yx)
             images = np.asarray(p2p_yx)[samples.y]
         else:
-            images, coarse = _sample_images(step, C, None, samples)
-        for size in sizes:
+            images, coarse = _sample_images(step, C, None, samples, fine=bool(sizes))
+        for i, size in enumerate(sizes):
             C = step.fit(images, size, samples)
-            images, coarse = _sample_images(step, C, size, samples)
+            # the last images would fit nothing: only the coarse match the final search starts from
+            images, coarse = _sample_images(step, C, size, samples, fine=i + 1 < len(sizes))
             bar.update()
         query, reference = step.embed(C, sizes[-1] if sizes else None, None)
         p2p = search_p2p(query, reference, samples.surfaces, coarse=coarse if samples.surfaces else None)
@@ -259,15 +260,15 @@ def zoomout_iterations(
     return C, p2p
 
 
-def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples):
+def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples, *, fine: bool = True):
     """``(images (S_y,), coarse (S_y,))``: the vertices of ``x`` that ``C`` sends ``y``'s samples
     to, and the samples of ``x`` they were found near. The samples are matched among ``x``'s
-    samples; with surface samplings, each is then matched among every vertex near its match
-    (:func:`~torchfmap.fmap.nearest.local_nearest`), so the fit sees no error of the samples'
-    spacing on ``x``."""
+    samples; with surface samplings and ``fine``, each is then matched among every vertex near
+    its match (:func:`~torchfmap.fmap.nearest.local_nearest`), so the fit sees no error of the
+    samples' spacing on ``x`` (without ``fine``: the coarse images)."""
     query, reference = step.embed(C, size, samples)
     coarse = nearest_neighbor(query, reference, precision="single")
-    if samples.surfaces is None:
+    if samples.surfaces is None or not fine:
         return samples.x[coarse], coarse
     query, reference = step.embed(C, size, None)
     sampling_x, sampling_y = samples.surfaces
