@@ -19,6 +19,7 @@ def test_factorize_backends_solve_spd(blob, backend):
     assert fac.backend == backend
     x = fac.solve(rhs)
     assert np.linalg.norm(A @ x - rhs) < 1e-10 * np.linalg.norm(rhs)
+    assert x.flags.c_contiguous  # callers update solutions in place with C-order BLAS calls
     x1 = fac.solve(rhs[:, 0])
     assert x1.shape == (blob.n_vertices,) and np.allclose(x1, x[:, 0])
 

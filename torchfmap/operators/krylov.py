@@ -43,7 +43,11 @@ KRYLOV_SHIFT_SPAN_EXP = 0.15
 
 def _sub_scaled(W: np.ndarray, Q: np.ndarray, c: np.ndarray) -> None:
     """``W -= Q · diag(c)`` in place for C-ordered ``(n, s)`` blocks: one BLAS pass, no
-    temporary (``W.T``, F-ordered, is updated by ``dgemm``)."""
+    temporary (``W.T``, F-ordered, is updated by ``dgemm``). Any other layout takes the
+    numpy expression (``dgemm`` would update a copy and leave ``W`` as it was)."""
+    if not W.flags.c_contiguous:
+        W -= Q * c
+        return
     blas.dgemm(-1.0, np.diag(c), Q.T, 1.0, W.T, overwrite_c=True)
 
 

@@ -63,13 +63,15 @@ class Factorization:
         self.dtype = dtype
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """``x = A^{-1} b`` for ``b`` of shape ``(n,)`` or ``(n, k)``."""
+        """``x = A^{-1} b`` for ``b`` of shape ``(n,)`` or ``(n, k)``: a C-ordered array of
+        ``b``'s shape, whichever backend (SuperLU returns Fortran order for ``(n, k)``; callers
+        update the result in place with BLAS calls that need C order)."""
         b = np.asarray(b)
         if b.shape[0] != self.n:
             raise ParameterError(f"right-hand side has {b.shape[0]} rows, the matrix has {self.n}.")
         if np.iscomplexobj(b) and not np.issubdtype(self.dtype, np.complexfloating):
             return self.solve(b.real) + 1j * self.solve(b.imag)
-        return self._solve(b)
+        return np.ascontiguousarray(self._solve(b))
 
     __call__ = solve
 
