@@ -25,10 +25,11 @@ import trimesh
 from torchfmap import Mesh, prepare_shape
 from torchfmap.bases.prepared import with_eigenpairs
 from torchfmap.data import demo_pair_paths
-from torchfmap.evaluate.scores import geodesic_errors, gt_from_vts
+from torchfmap.evaluate.ground_truth import vts_ground_truth
+from torchfmap.evaluate.scores import geodesic_errors
 from torchfmap.experimental.stages import StageTwo, StageTwoLoss, two_stage_p2p
 from torchfmap.fmap import p2p_to_fmap
-from torchfmap.io import load_mesh, read_vts
+from torchfmap.io import load_mesh
 from torchfmap.kinds import get_kind
 from torchfmap.nn import (
     LearnedMatcher,
@@ -387,7 +388,7 @@ def _dense_pair(names: list[str], level: int, at_5k: bool):
             else (m.vertices, m.faces)
         )
         meshes.append(Mesh(v[: m.n_vertices], m.faces, name=name) if at_5k else Mesh(v, f, name=name))
-    return meshes, gt_from_vts(*(read_vts(folder / "corres" / f"{n}.vts") for n in names))
+    return meshes, vts_ground_truth(folder / "corres", *names)
 
 
 def _dense_run(names, level, at_5k, coarse, checkpoint, threads, data_dir):

@@ -40,13 +40,13 @@ import numpy as np
 import torchfmap
 from torchfmap.data import demo_pair_paths, stretch_deform
 from torchfmap.errors import ParameterError
+from torchfmap.evaluate.ground_truth import vts_ground_truth
 from torchfmap.evaluate.scores import (
     Correspondence,
     auc,
     error_floor,
     evaluate_map,
     gt_from_map,
-    gt_from_vts,
     landmarks_from_gt,
 )  # fmt: skip
 from torchfmap.io import (
@@ -246,8 +246,7 @@ class Pair:
         self.gt = self.gt_all = gt
 
     def _load_vts(self, folder: Path, a: str, b: str, suffix: str) -> None:
-        corres = folder / "corres"
-        gt = gt_from_vts(read_vts(corres / f"{a}.vts"), read_vts(corres / f"{b}.vts"))
+        gt = vts_ground_truth(folder / "corres", a, b)
         self._load(folder / f"{a}{suffix}", folder / f"{b}{suffix}", gt)
 
     def subsample(self, every: int = 1, max_points: int | None = None) -> Pair:

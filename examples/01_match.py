@@ -65,8 +65,8 @@ def main(argv: list[str] | None = None) -> dict:
         landmarks = landmarks_from_gt(x, gt, args.n_landmarks)  # (L, 2) pairs (x vertex, y vertex)
     if landmarks is not None:
         guided = tf.match(x, y, landmarks=landmarks, k=args.k, refine="zoomout")
-        print(f"{len(landmarks)} landmarks: chose {guided.kind} (distortion: {guided.scores()}), "
-              f"refinement kept: {guided.refined}")  # fmt: skip
+        print(f"{len(landmarks)} landmarks: chose {guided.kind} (distortion: {guided.scores()})")
+        print(f"  {guided.refine_check}")  # the guard's evidence: kept or dropped, and why
         results[f"{len(landmarks)} landmarks"] = guided.p2p_yx_initial
         results[f"{len(landmarks)} landmarks + zoomout"] = guided.p2p_yx
         p2p_yx = guided.p2p_yx

@@ -79,6 +79,22 @@ def test_gt_formats(tmp_path):
         gt_from_vts(np.array([1]), np.array([1, 2]))
 
 
+def test_vts_ground_truth_reads_a_corres_folder(tmp_path):
+    """The one reader of a data set's ``corres/``: plain or gzip-compressed 1-based files, and
+    a missing one named with the fix."""
+    import gzip
+
+    from torchfmap.evaluate.ground_truth import vts_ground_truth
+
+    (tmp_path / "a.vts").write_text("3\n1\n2\n")
+    with gzip.open(tmp_path / "b.vts.gz", "wt") as f:
+        f.write("4\n5\n6\n")
+    gt = vts_ground_truth(tmp_path, "a", "b")
+    assert gt.idx_x.tolist() == [2, 0, 1] and gt.idx_y.tolist() == [3, 4, 5]
+    with pytest.raises(ParameterError, match=r"no ground truth .*c\.vts.*Fix"):
+        vts_ground_truth(tmp_path, "a", "c")
+
+
 def test_gt_vts_on_real_pair():
     folder = data_path("tosca5k_dev")
     x, y = load_mesh(folder / "cat0.off"), load_mesh(folder / "cat1.off")

@@ -509,7 +509,7 @@ def test_progress_names_each_step_on_stderr(capsys):
         "laplacian: eigenpairs",
         "laplacian: functional map",
         "laplacian: point map",
-        "refinement",
+        "laplacian: refinement",
     )
     for step in steps:
         assert f"match: {step}" in err, step
@@ -517,6 +517,9 @@ def test_progress_names_each_step_on_stderr(capsys):
     match(x, y, k=15, k_descriptors=30, landmarks=lm, progress=True)
     err = capsys.readouterr().err
     assert "match: hybrid: basis" in err and "match: cross-validation: laplacian, fold 1 of 4" in err
+    assert "match: refinement check: laplacian, fold 1 of 4" not in err  # refine=None: nothing to check
+    match(x, y, k=15, k_descriptors=30, landmarks=lm, progress=True, refine="icp")
+    assert "match: refinement check: laplacian, fold 4 of 4" in capsys.readouterr().err
     match(x, y, k=15, k_descriptors=30)
     assert capsys.readouterr().err == ""
 

@@ -1,6 +1,6 @@
 """Match results (``torchfmap.matching.results``): ``refine_result`` refines an unrefined result with a
-refiner, and with landmarks keeps a refinement only if it does not raise the geodesic distortion
-(``keeps_refinement``, the one guard)."""
+refiner under the one guard (``keeps_refinement``): cross-validated by held-out landmarks with
+three or more, else judged by the geodesic distortion with landmarks."""
 
 from __future__ import annotations
 
@@ -12,15 +12,28 @@ from torchfmap.bases import prepare_shape
 from torchfmap.evaluate.scores import landmarks_from_gt
 from torchfmap.fmap import Refined
 from torchfmap.kinds import KINDS
+from torchfmap.matching.landmark_default import (
+    CV_MIN_LANDMARKS,
+    landmark_scores,
+    refine_guarded,
+    refinement_scores,
+)
 from torchfmap.matching.quality import DISTORTION_RESOLUTION, geodesic_distortion
-from torchfmap.matching.results import keeps_refinement, refine_result
+from torchfmap.matching.results import RESOLUTION, RefineCheck, keeps_refinement, refine_result
 
 
-def test_the_distortion_guard():
-    assert keeps_refinement(None, None)  # no landmarks: no score, always kept
+def test_the_guard():
     assert keeps_refinement(0.2, 0.2) and keeps_refinement(0.2, 0.1)
     assert keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION))  # a rise within the resolution
     assert not keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION) + 1e-12)
+    # held-out landmark errors of one pair's maps: any rise counts
+    assert RESOLUTION["held-out landmarks"] == 0
+    assert keeps_refinement(0.2, 0.2, "held-out landmarks")
+    assert not keeps_refinement(0.2, 0.2 + 1e-12, "held-out landmarks")
+    with pytest.raises(KeyError):
+        keeps_refinement(0.2, 0.1, "error")
+    text = str(RefineCheck("held-out landmarks", 0.03, 0.04, False))
+    assert "dropped" in text and "held-out landmark error 0.0300 -> 0.0400" in text
 
 
 def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
@@ -28,7 +41,7 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     ``match(..., refine=...)``; a refiner that scatters the map is dropped (``refined=False``,
     the start kept); a refined result is not refined again."""
     x, y, gt = bent_pair
-    lm = landmarks_from_gt(x, gt, 8)
+    lm = landmarks_from_gt(x, gt, CV_MIN_LANDMARKS - 1)  # too few to hold out: the distortion judges
     shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
     start = match(x, y, landmarks=lm, basis="laplacian", k=20, shapes=shapes)
     refiner = KINDS["laplacian"].refiner("zoomout", k_final=40, landmarks=lm)
@@ -37,6 +50,7 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     np.testing.assert_array_equal(refined.p2p_yx, direct.p2p_yx)
     assert refined.refined and direct.refined and "refine" in refined.timings
     assert refined.distortion == pytest.approx(geodesic_distortion(*shapes, refined.p2p_yx))
+    assert direct.refine_check.score == "distortion" and direct.refine_check.kept
 
     def scattering(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None):
         bad = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
@@ -44,8 +58,50 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
 
     dropped = refine_result(start, scattering, *shapes)
     assert not dropped.refined and dropped.distortion == start.distortion
+    assert dropped.refine_check.score == "distortion" and not dropped.refine_check.kept
     np.testing.assert_array_equal(dropped.p2p_yx, start.p2p_yx)
     unguarded = refine_result(match(x, y, basis="laplacian", k=20, shapes=shapes), scattering, *shapes)
-    assert unguarded.refined  # without landmarks there is no score: the refinement is kept
+    assert unguarded.refined and unguarded.refine_check is None  # no landmarks, no score: kept
     with pytest.raises(ParameterError, match="unrefined result"):
         refine_result(refined, refiner, *shapes)
+
+
+def test_held_out_landmarks_judge_a_refinement_before_it_runs(bent_pair):
+    """With enough landmarks the refinement is cross-validated: each fold's map (solved as
+    ``landmark_scores`` solves it, the same raw held-out error) refined without its held-out
+    landmarks; a refiner that scatters the map moves them away and is dropped without running
+    on the whole map; one that changes nothing ties, and is kept."""
+    x, y, gt = bent_pair
+    lm = landmarks_from_gt(x, gt, 8)
+    shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
+    kind = KINDS["laplacian"]
+    calls = []
+
+    def make_scattering(fold_pairs, bar=False):
+        def scattering(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None):
+            calls.append(len(fold_pairs))
+            bad = np.random.default_rng(len(calls)).integers(0, x.n_vertices, y.n_vertices)
+            return Refined(C_xy, bad, basis_x, basis_y, seeds)
+
+        return scattering
+
+    def make_identity(fold_pairs, bar=False):
+        return lambda C, p2p, sx, sy, bx, by, seeds=None: Refined(C, p2p, bx, by, seeds)
+
+    raw, worse = refinement_scores(*shapes, lm, kind, 20, make_scattering)
+    assert len(calls) == 4 and set(calls) == {6}  # 4 folds of 8 landmarks, each refined with 6
+    assert raw == pytest.approx(landmark_scores(*shapes, lm, ["laplacian"], 20)["laplacian"], rel=1e-12)
+    assert worse > 2 * raw  # scattered maps land far from the held-out partners
+    start = match(x, y, landmarks=lm, basis="laplacian", k=20, shapes=shapes)
+    calls.clear()
+    dropped = refine_guarded(start, kind, *shapes, lm, 20, make_scattering)
+    assert len(calls) == 4  # the folds only: the whole map is not refined
+    assert not dropped.refined and dropped.refine_check == RefineCheck(
+        "held-out landmarks", raw, worse, False
+    )
+    np.testing.assert_array_equal(dropped.p2p_yx, start.p2p_yx)
+    kept = refine_guarded(start, kind, *shapes, lm, 20, make_identity)
+    assert kept.refined and kept.refine_check.kept and kept.refine_check.before == kept.refine_check.after
+    # given bases (no folds): the distortion judges
+    by_distortion = refine_guarded(start, kind, *shapes, lm, 20, make_scattering, cross_validate=False)
+    assert by_distortion.refine_check.score == "distortion" and not by_distortion.refined

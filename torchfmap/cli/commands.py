@@ -258,11 +258,9 @@ def cmd_match(args: argparse.Namespace) -> int:
     )
     refined = ""
     if args.refine:
-        refined = (
-            f", refined by {args.refine}"
-            if result.refined
-            else f", {args.refine} dropped (it raised the distortion)"
-        )
+        refined = f", refined by {args.refine}" if result.refined else f", {args.refine} dropped"
+        if result.refine_check is not None:  # the evidence, kept or dropped
+            refined += f" ({result.refine_check})"
     chose = ""
     if result.candidates:
         judge = "geodesic distortion and held-out landmarks" if result.fold_scores else "geodesic distortion"

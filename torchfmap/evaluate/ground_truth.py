@@ -11,11 +11,13 @@ pairs of 1-based ``.vts`` files whose rows correspond (the files are read by
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import ParameterError
+from ..io import find_file, read_vts
 from ..mesh import Mesh
 
 
@@ -57,6 +59,22 @@ def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
     if len(vts_x) != len(vts_y):
         raise ParameterError(f".vts files have {len(vts_x)} and {len(vts_y)} rows; rows must correspond.")
     return Correspondence(np.asarray(vts_x, dtype=np.int64), np.asarray(vts_y, dtype=np.int64))
+
+
+def vts_ground_truth(corres: str | os.PathLike, name_x: str, name_y: str) -> Correspondence:
+    """The ground truth of shapes ``name_x`` and ``name_y`` from a data set's ``corres/`` folder:
+    ``<name>.vts`` (or ``.vts.gz``) files whose rows correspond (the field's layout: FAUST_r,
+    SCAPE_r, SMAL_r, TOSCA).
+
+    Raises:
+        ParameterError: a missing file (named, with the fix), or as :func:`gt_from_vts`.
+    """
+    corres = Path(corres)
+    found = {n: find_file(corres, f"{n}.vts") for n in (name_x, name_y)}
+    absent = [str(corres / f"{n}.vts") for n, p in found.items() if p is None]
+    if absent:
+        raise ParameterError(f"no ground truth {absent}. Fix: add the .vts (or .vts.gz) files.")
+    return gt_from_vts(read_vts(found[name_x]), read_vts(found[name_y]))
 
 
 def as_correspondence(gt) -> Correspondence:

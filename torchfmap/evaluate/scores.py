@@ -19,11 +19,12 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import ParameterError
-from ..io import find_file, mesh_files, read_arrays, read_test_pairs, read_vts, shape_name
+from ..io import find_file, mesh_files, read_arrays, read_test_pairs, shape_name
 from ..mesh import Mesh
 from ..operators.geodesic import DistanceRows, GeodesicSolver
-from .ground_truth import Correspondence, as_correspondence, gt_from_vts, gt_identity
+from .ground_truth import Correspondence, as_correspondence, gt_identity, vts_ground_truth
 from .ground_truth import gt_from_map as gt_from_map
+from .ground_truth import gt_from_vts as gt_from_vts
 from .ground_truth import landmarks_from_gt as landmarks_from_gt
 
 # -- pointwise errors --------------------------------------------------------------------------
@@ -426,11 +427,7 @@ def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pair
     corres = _corres_folder(folder)
     for a, b in chosen:
         if corres is not None:
-            vts = {n: find_file(corres, f"{n}.vts") for n in (a, b)}
-            absent = [str(corres / f"{n}.vts") for n, p in vts.items() if p is None]
-            if absent:
-                raise ParameterError(f"no ground truth {absent}. Fix: add the .vts (or .vts.gz) files.")
-            gt = gt_from_vts(read_vts(vts[a]), read_vts(vts[b]))
+            gt = vts_ground_truth(corres, a, b)
         else:
             (va, fa), (vb, fb) = read_arrays(meshes[a]), read_arrays(meshes[b])
             same = len(va) == len(vb) and (identity or (identity is None and np.array_equal(fa, fb)))

@@ -157,9 +157,10 @@ def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, 
     areas = {"x": VertexAreas(mesh_x), "y": VertexAreas(mesh_y)}
     fit = {"x": mass_mismatch(bx, areas["x"]), "y": mass_mismatch(by, areas["y"])}
     if max(fit.values()) > MASS_FIT_TOL:
-        if mesh_x.n_vertices == mesh_y.n_vertices and max(
-            mass_mismatch(bx, areas["y"]), mass_mismatch(by, areas["x"])
-        ) <= MASS_FIT_TOL:
+        if (
+            mesh_x.n_vertices == mesh_y.n_vertices
+            and max(mass_mismatch(bx, areas["y"]), mass_mismatch(by, areas["x"])) <= MASS_FIT_TOL
+        ):
             raise ParameterError(
                 "the given bases fit the meshes in the other order (their vertex areas are those of "
                 "the other mesh). Fix: give the bases in the order source, target (CLI: --bases "

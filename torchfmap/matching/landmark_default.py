@@ -24,7 +24,7 @@ from ..fmap import check_landmark_pairs
 from ..fmap.defaults import DEFAULT_K
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
-from ..kinds.refiners import RefineMethod, check_refine
+from ..kinds.refiners import RefineMethod, check_refine, pair_samplings
 from ..mesh import Mesh
 from .checks import check_unused, check_zoomout_sizes
 from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
@@ -56,6 +56,19 @@ CV_MIN_LANDMARKS = 3
 CV_RATIO = 0.5
 
 
+def _folds(n_pairs: int, folds: int) -> list[np.ndarray]:
+    """Fold ``f`` of ``F = min(folds, n_pairs)`` holds out the pairs ``i`` with ``i % F == f``."""
+    n_folds = min(folds, n_pairs)
+    return [np.arange(n_pairs) % n_folds == fold for fold in range(n_folds)]
+
+
+def _check_cv(pairs: np.ndarray) -> None:
+    if len(pairs) < CV_MIN_LANDMARKS:
+        raise ParameterError(
+            f"cross-validation holds landmarks out: {CV_MIN_LANDMARKS} or more are needed, got {len(pairs)}."
+        )
+
+
 def landmark_scores(
     shape_x: PreparedShape,
     shape_y: PreparedShape,
@@ -84,20 +97,16 @@ def landmark_scores(
     Raises:
         ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs.
     """
-    if len(pairs) < CV_MIN_LANDMARKS:
-        raise ParameterError(
-            f"cross-validation holds landmarks out: {CV_MIN_LANDMARKS} or more are needed, got {len(pairs)}."
-        )
-    n_folds = min(folds, len(pairs))
+    _check_cv(pairs)
     rows = shape_x.distances.distances(pairs[:, 0])  # (L, V_x): distances from each true match
+    every_fold = _folds(len(pairs), folds)
     scores = {}
     for name in kinds:
         kind = get_kind(name)
         errors = []
         try:
-            for fold in range(n_folds):
-                steps(f"cross-validation: {name}, fold {fold + 1} of {n_folds}")
-                held = np.arange(len(pairs)) % n_folds == fold
+            for fold, held in enumerate(every_fold):
+                steps(f"cross-validation: {name}, fold {fold + 1} of {len(every_fold)}")
                 C, bx, by, _, _ = solve_functional_map(
                     shape_x, shape_y, kind, k, landmarks=pairs[~held],
                     times=times if kind.needs_landmarks else None, **solve,
@@ -108,6 +117,86 @@ def landmark_scores(
             continue
         scores[name] = float(np.mean(errors))
     return scores
+
+
+def refinement_scores(
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    pairs: np.ndarray,
+    kind: BasisKind,
+    k: int,
+    make_refiner,
+    *,
+    folds: int = CV_FOLDS,
+    times=None,
+    p2p_mode: P2PMode | None = None,
+    steps: Steps = SILENT,
+    **solve,
+) -> tuple[float, float]:
+    """The refinement cross-validated by the user's landmarks: the mean held-out landmark error
+    (as :func:`landmark_scores`, same folds) of each fold's map, unrefined and refined by
+    ``make_refiner(fold_pairs)`` (the refiner the match runs, built on the fold's landmarks
+    ``(L_f, 2)``; called as :func:`~torchfmap.matching.results.refine_result` calls it).
+    Returns ``(raw, refined)`` mean held-out errors (units of ``sqrt(area_x)``): whether the
+    refinement moves landmarks it was not given towards their partners or away from them, the
+    evidence :func:`~torchfmap.matching.results.refine_result` keeps or drops a refinement by.
+
+    Raises:
+        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs, or as the kind and refiner.
+    """
+    _check_cv(pairs)
+    rows = shape_x.distances.distances(pairs[:, 0])
+    mode = p2p_mode or kind.p2p_mode
+    samplings = pair_samplings(shape_x, shape_y)
+    raw, refined = [], []
+    every_fold = _folds(len(pairs), folds)
+    for fold, held in enumerate(every_fold):
+        steps(f"refinement check: {kind.name}, fold {fold + 1} of {len(every_fold)}")
+        C, bx, by, seeds, _ = solve_functional_map(
+            shape_x, shape_y, kind, k, landmarks=pairs[~held], times=times if kind.needs_landmarks else None,
+            **solve,
+        )  # fmt: skip
+        p2p = kind.to_p2p(C, bx, by, mode, samplings=samplings)
+        after = make_refiner(pairs[~held])(C, p2p, shape_x, shape_y, bx, by, seeds).p2p_yx
+        raw.extend(rows[held, p2p[pairs[held, 1]]])
+        refined.extend(rows[held, after[pairs[held, 1]]])
+    return float(np.mean(raw)), float(np.mean(refined))
+
+
+def refine_guarded(
+    result: MatchResult,
+    kind: BasisKind,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    pairs: np.ndarray | None,
+    k: int,
+    make_refiner,
+    *,
+    cross_validate: bool = True,
+    times=None,
+    p2p_mode: P2PMode | None = None,
+    steps: Steps = SILENT,
+    **solve,
+) -> MatchResult:
+    """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`): with
+    :data:`CV_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the refinement is first
+    cross-validated (:func:`refinement_scores`, the folds solved as ``result`` was: ``k``,
+    ``times``, ``p2p_mode``, ``solve``), else judged by the distortion where ``result`` has one.
+    ``make_refiner(pairs, bar=False)``: the refiner on these landmarks (``bar``: its progress bar,
+    shown for the whole map's refinement, not the folds'). ``cross_validate=False``: the
+    distortion judges even with enough landmarks (given bases, which folds cannot re-solve).
+
+    Raises:
+        ParameterError: as the refiner.
+    """
+    held_out = None
+    if cross_validate and pairs is not None and len(pairs) >= CV_MIN_LANDMARKS:
+        held_out = refinement_scores(
+            shape_x, shape_y, pairs, kind, k, make_refiner, times=times, p2p_mode=p2p_mode, steps=steps,
+            **solve,
+        )  # fmt: skip
+    steps(f"{kind.name}: refinement")
+    return refine_result(result, make_refiner(pairs, steps.enabled), shape_x, shape_y, held_out)
 
 
 def match_landmark_default(
@@ -170,13 +259,17 @@ def match_landmark_default(
     skipped: dict[str, str] = {}
 
     def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
-        steps(f"{kind.name}: refinement ({refine})")
-        refiner = kind.refiner(
-            refine, k_final=k_final, mode=p2p_mode, n_fixed=len(pairs),
-            times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples, landmarks=pairs,
-            progress=steps.enabled,
+        def make_refiner(fold_pairs: np.ndarray, bar: bool = False):
+            return kind.refiner(
+                refine, k_final=k_final, mode=p2p_mode, n_fixed=len(fold_pairs),
+                times=times if kind.needs_landmarks else None, zoomout_samples=zoomout_samples,
+                landmarks=fold_pairs, progress=bar,
+            )  # fmt: skip
+
+        return refine_guarded(
+            result, kind, shape_x, shape_y, pairs, k, make_refiner, times=times, p2p_mode=p2p_mode,
+            steps=steps, k_descriptors=k_descriptors, **solve,
         )  # fmt: skip
-        return refine_result(result, refiner, shape_x, shape_y)
 
     for name in AUTO_KINDS:
         kind = get_kind(name)

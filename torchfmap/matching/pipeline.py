@@ -30,11 +30,11 @@ from ..kinds import BasisKind, get_kind
 from ..kinds.refiners import RefineMethod, check_eigenbases, check_refine
 from ..mesh import Mesh
 from .checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
-from .landmark_default import match_landmark_default
+from .landmark_default import match_landmark_default, refine_guarded
 from .partial import match_partial
 from .quality import warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
-from .results import MatchResult, refine_result
+from .results import MatchResult
 from .solve import P2PMode, prepare_shapes, solve_pair
 
 __all__ = ["match"]
@@ -230,12 +230,19 @@ def match(
         )  # fmt: skip
         result.timings["operators+eigen"] += prep
         if refine is not None:
-            steps(f"refinement ({refine})")
-            refiner = kind.refiner(
-                refine, k_final=k_final, mode=p2p_mode, n_fixed=0 if pairs is None else len(pairs),
-                times=times, zoomout_samples=zoomout_samples, eigenbases=eigenbases, landmarks=pairs,
-                progress=progress,
+
+            def make_refiner(fold_pairs, bar=False):
+                n_fixed = 0 if fold_pairs is None else len(fold_pairs)
+                return kind.refiner(
+                    refine, k_final=k_final, mode=p2p_mode, n_fixed=n_fixed, times=times,
+                    zoomout_samples=zoomout_samples, eigenbases=eigenbases, landmarks=fold_pairs,
+                    progress=bar,
+                )  # fmt: skip
+
+            # given bases are not re-solved per fold: their refinement is judged by the distortion
+            result = refine_guarded(
+                result, kind, shape_x, shape_y, pairs, k, make_refiner, cross_validate=bases is None,
+                times=times, steps=steps, **solve,
             )  # fmt: skip
-            result = refine_result(result, refiner, shape_x, shape_y)
         warn_collapsed(result.p2p_yx, mesh_x.n_vertices)
         return result

@@ -1,9 +1,21 @@
-"""What :func:`torchfmap.match` returns, and its refinement step.
+"""What :func:`torchfmap.match` returns, and its refinement step under the one guard.
 
 :class:`MatchResult` holds the map, the bases it lives in and how it was chosen;
 :func:`refine_result` refines an unrefined result with a refiner
-(:mod:`torchfmap.kinds.refiners`, as its kind gives it: ``kind.refiner(...)``), guarded by the
-geodesic distortion when landmarks were given (:func:`keeps_refinement`).
+(:mod:`torchfmap.kinds.refiners`, as its kind gives it: ``kind.refiner(...)``) and keeps the
+refinement only if the best evidence at hand does not say it made the map worse
+(:func:`keeps_refinement`, reported as :class:`RefineCheck`):
+
+- **held-out landmarks** (:data:`~torchfmap.matching.landmark_default.CV_MIN_LANDMARKS` or more):
+  the refinement is cross-validated: each fold's map, solved without some landmarks, is
+  refined without them too, and the refinement is kept unless it moves those landmarks away
+  from their partners on average (:func:`~torchfmap.matching.landmark_default.refinement_scores`).
+  This sees what the distortion cannot: on non-isometric pairs a map can move away from the
+  truth while its geodesic distortion falls.
+- else the **geodesic distortion** (:func:`~torchfmap.matching.quality.geodesic_distortion`)
+  with landmarks, as partial matching's passes use it with or without.
+- without landmarks on whole shapes nothing judges a refinement: it is kept, and the result
+  says so (``refine_check`` None).
 """
 
 from __future__ import annotations
@@ -20,28 +32,55 @@ from ..errors import ParameterError
 from ..fmap.refine import Refined
 from .quality import DISTORTION_RESOLUTION, geodesic_distortion
 
-__all__ = ["MatchResult", "keeps_refinement", "refine_result"]
+__all__ = ["MatchResult", "RefineCheck", "keeps_refinement", "refine_result"]
+
+#: The scores a refinement is judged by, each with its resolution: a rise below it is noise.
+#: Held-out landmark errors compare the same landmarks on maps of one pair, so any rise counts.
+RESOLUTION = {"held-out landmarks": 0.0, "distortion": DISTORTION_RESOLUTION}
 
 
-def keeps_refinement(start: float | None, refined: float | None) -> bool:
-    """The guard of every refinement with landmarks: a refined map is kept unless it raises the
-    geodesic distortion (:func:`~torchfmap.matching.quality.geodesic_distortion`) of its start by more
-    than the score's resolution (:data:`~torchfmap.matching.quality.DISTORTION_RESOLUTION`; ``start``
-    None: no landmarks, no score, always kept). A smaller rise is noise, and ZoomOut that
-    raises it slightly mostly lowers the error (``python3 -m bench accuracy --case
-    refine_guard``)."""
-    return start is None or refined <= (1 + DISTORTION_RESOLUTION) * start
+def keeps_refinement(start: float, refined: float, score: str = "distortion") -> bool:
+    """The one refinement guard: a refined map is kept unless ``score`` (a key of
+    :data:`RESOLUTION`: ``'held-out landmarks'``, the cross-validated landmark error, or
+    ``'distortion'``, :func:`~torchfmap.matching.quality.geodesic_distortion`) of the refined map
+    exceeds its start's by more than the score's resolution. The distortion's 10 % is its noise
+    on near-isometric pairs, where ZoomOut that raises it slightly mostly lowers the error
+    (``python3 -m bench accuracy --case refine_guard``)."""
+    return refined <= (1 + RESOLUTION[score]) * start
+
+
+@dataclass(frozen=True)
+class RefineCheck:
+    """Why a refinement was kept or dropped: ``score`` (a key of :data:`RESOLUTION`), its
+    value ``before`` and ``after`` the refinement (units of ``sqrt(area_x)``) and the verdict."""
+
+    score: str
+    before: float
+    after: float
+    kept: bool
+
+    def __str__(self) -> str:
+        verdict = "kept" if self.kept else "dropped (the unrefined map is returned)"
+        what = "held-out landmark error" if self.score == "held-out landmarks" else "geodesic distortion"
+        return f"refinement {verdict}: {what} {self.before:.4f} -> {self.after:.4f}"
 
 
 def refine_result(
-    result: MatchResult, refiner, shape_x: PreparedShape, shape_y: PreparedShape
+    result: MatchResult,
+    refiner,
+    shape_x: PreparedShape,
+    shape_y: PreparedShape,
+    held_out: tuple[float, float] | None = None,
 ) -> MatchResult:
     """``result`` (of :func:`~torchfmap.match`, unrefined) refined by ``refiner`` (called as
     ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)``, e.g.
     ``get_kind(result.kind).refiner('zoomout', landmarks=pairs)``, as :func:`~torchfmap.match`
-    builds it) on the prepared shapes it was solved on. With
-    landmarks (``result.distortion`` set), a refinement that raises the geodesic distortion is
-    dropped (:func:`keeps_refinement`): the result then keeps its map, with ``refined=False``.
+    builds it) on the prepared shapes it was solved on, under the one guard (see the module):
+    ``held_out`` ``(raw, refined)``: the cross-validated held-out landmark errors
+    (:func:`~torchfmap.matching.landmark_default.refinement_scores`), which decide before the
+    refiner runs; else, with landmarks (``result.distortion`` set), the geodesic distortion
+    after the refinement. A dropped refinement returns the start's map with ``refined=False``;
+    ``refine_check`` holds the evidence either way.
 
     Raises:
         ParameterError: ``result`` was refined already; or as the refiner.
@@ -51,20 +90,31 @@ def refine_result(
             "refine_result takes an unrefined result of match(). Fix: match(..., refine=None)."
         )
     t0 = time.perf_counter()
-    refined: Refined = refiner(
-        result.C_xy, result.p2p_yx, shape_x, shape_y, result.basis_x, result.basis_y, result.seeds
-    )
     timings = dict(result.timings)
+    check = None
+    if held_out is not None:  # the folds decide before the whole map is refined
+        check = RefineCheck(
+            "held-out landmarks", *held_out, keeps_refinement(*held_out, "held-out landmarks")
+        )
+    refined: Refined | None = None
+    if check is None or check.kept:
+        refined = refiner(
+            result.C_xy, result.p2p_yx, shape_x, shape_y, result.basis_x, result.basis_y, result.seeds
+        )
     after = None
-    if result.distortion is not None:
+    if refined is not None and result.distortion is not None:
         after = geodesic_distortion(shape_x, shape_y, refined.p2p_yx)
+        if check is None:
+            check = RefineCheck(
+                "distortion", result.distortion, after, keeps_refinement(result.distortion, after)
+            )
     timings["refine"] = time.perf_counter() - t0
-    if not keeps_refinement(result.distortion, after):  # worse by the score: keep the start
-        return dataclasses.replace(result, timings=timings)
+    if refined is None or (check is not None and not check.kept):  # worse by the score: the start
+        return dataclasses.replace(result, timings=timings, refine_check=check)
     C, p2p, bx, by, seeds = refined
     return dataclasses.replace(
         result, p2p_yx=p2p, C_xy=C, basis_x=bx, basis_y=by, seeds=seeds, timings=timings,
-        distortion=after, refined=True,
+        distortion=after, refined=True, refine_check=check,
     )  # fmt: skip
 
 
@@ -77,8 +127,9 @@ class MatchResult:
 
     With landmarks, ``distortion`` is the map's :func:`~torchfmap.matching.quality.geodesic_distortion`
     (units of ``sqrt(area)``; None without landmarks) and ``refined`` whether the refinement was
-    kept (a refinement that raises the distortion is dropped: ``p2p_yx`` is then the initial
-    map). The landmark default also fills ``candidates``: each kind it solved in
+    kept (one the guard drops leaves ``p2p_yx`` the initial map; ``refine_check``, a
+    :class:`RefineCheck`, says by which score, or None where nothing judged it). The landmark
+    default also fills ``candidates``: each kind it solved in
     (:data:`~torchfmap.matching.pipeline.AUTO_KINDS`), by name, with its own result; ``skipped`` names the
     kinds that could not be built on these meshes, with the reason, and ``fold_scores`` each
     cross-validated kind's held-out landmark error
@@ -103,6 +154,7 @@ class MatchResult:
     fold_scores: dict[str, float] = field(default_factory=dict)
     overlap: np.ndarray | None = None
     partial_rank: int | None = None
+    refine_check: RefineCheck | None = None
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen
