@@ -61,6 +61,7 @@ def test_partial_and_mesh_fixes_become_flags():
     for text in texts:
         assert "=True" not in text.replace("allow_unreferenced=True", ""), text
     assert "--partial" in texts[0] and "--partial" in texts[2]
+    assert texts[2].startswith("the target mesh looks partial"), texts[2]  # no Python names
     collapse = "Fix: check the weights (w_lap, w_orient), the landmarks"  # quality.warn_collapsed's
     assert in_cli_terms(collapse) == "Fix: check the weight --w-lap, the landmarks"
 

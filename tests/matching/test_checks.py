@@ -65,3 +65,48 @@ def test_a_part_matched_to_a_whole_shape_is_warned_with_the_fix():
         warnings.simplefilter("error", MapWarning)
         warn_if_partial(whole, whole.scaled(3.0))  # whole shapes, any units: no word
         warn_if_partial(part, _cut(bumpy_blob(2), axis=1))  # two parts: no word either
+
+
+def _open_seam(mesh: Mesh) -> Mesh:
+    """``mesh`` slit open along a chain of edges: the chain's inner vertices duplicated for the
+    faces on one side (same positions), its two ends shared, so the mesh stays connected."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import shortest_path
+
+    v, f = mesh.vertices, mesh.faces
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    lengths = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    graph = sp.coo_matrix((lengths, (e[:, 0], e[:, 1])), shape=(len(v), len(v))).tocsr()
+    a, b = int(np.argmax(v[:, 2])), int(np.argmax(v[:, 0]))  # north pole to the equator
+    _, pred = shortest_path(graph, indices=a, return_predecessors=True)
+    chain = [b]
+    while chain[-1] != a:
+        chain.append(int(pred[chain[-1]]))
+    inner = np.array(chain[1:-1])
+    side = v[f].mean(axis=1)[:, 1] > 0  # the faces on one side of the chain's plane y = 0 (about)
+    copy = {int(i): len(v) + j for j, i in enumerate(inner)}
+    faces = f.copy()
+    for row in np.flatnonzero(side):
+        faces[row] = [copy.get(int(i), int(i)) for i in f[row]]
+    return Mesh(np.vstack([v, v[inner]]), faces, allow_unreferenced=True)
+
+
+def test_a_whole_shape_with_an_open_seam_gets_the_seam_advice_only():
+    """An open seam (duplicated vertices along a chain, the mesh still connected) is a boundary
+    that a weld closes, not the edge of a cut: the mesh's warning says weld, and no 'looks
+    partial' follows it (it told users to match with --partial)."""
+    import warnings
+
+    from torchfmap.errors import MapWarning, MeshWarning
+    from torchfmap.matching.checks import boundary_length, warn_if_partial
+
+    whole = bumpy_blob(2)
+    with pytest.warns(MeshWarning, match="weld"):
+        seamed = _open_seam(whole)
+    assert len(seamed.boundary_edges) > 0 and seamed.n_vertices > whole.n_vertices  # really open
+    assert boundary_length(seamed) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MapWarning)
+        warn_if_partial(whole, seamed)
+    part = _cut(bumpy_blob(2))  # a cut still counts, seam or not
+    assert boundary_length(part) > 1.0

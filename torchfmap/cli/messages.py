@@ -32,6 +32,8 @@ CLI_TERMS = (
     (re.compile(r"\(CLI: ([^)]*)\)"), r"(\1)"),
     (re.compile(r"keep one with `mesh\.largest_component\(\)`, or"), "keep the largest component, or"),
     (re.compile(r"\bk \(basis size\)"), "--k (basis size, default 50)"),
+    (re.compile(r"\bmesh_x\b"), "the source mesh"),
+    (re.compile(r"\bmesh_y\b"), "the target mesh"),
 )
 
 

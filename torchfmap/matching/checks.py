@@ -14,6 +14,7 @@ from ..errors import MapWarning, ParameterError
 from ..fmap.refine import check_k_final
 from ..kinds import BasisKind, get_kind, kind_of
 from ..mesh import Mesh
+from ..mesh_checks import coincident_groups
 from ..operators.laplacian import laplacian, mass_matrix
 
 
@@ -42,10 +43,17 @@ PARTIAL_BOUNDARY = 0.5
 
 
 def boundary_length(mesh: Mesh) -> float:
-    """Total length of ``mesh``'s boundary edges over ``sqrt(area)`` (scale-free; 0 if closed)."""
+    """Total length of ``mesh``'s boundary edges over ``sqrt(area)`` (scale-free; 0 if closed),
+    seams left out: a boundary edge between the positions of another boundary edge (an open seam,
+    duplicated vertices that a weld closes; :func:`~torchfmap.mesh_checks.coincident_groups`) is
+    not the edge of a cut."""
     edges = mesh.boundary_edges
     if not len(edges):
         return 0.0
+    first = coincident_groups(mesh.vertices)
+    keys = np.sort(first[edges], axis=1)  # each edge by the positions of its ends
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    edges = edges[counts[inverse.ravel()] == 1]
     lengths = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
     return float(lengths.sum() / np.sqrt(mesh.area))
 
