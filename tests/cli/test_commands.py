@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -550,3 +552,35 @@ def test_eval_pairs_protocol_is_chosen_and_said_in_the_footer(tmp_path, sphere2,
     assert "Pairs: all 6 ordered pairs of 3 meshes, the first 4 (--max-pairs)." in out
     assert main(["eval", str(tmp_path), "--pairs", "every", "--quiet"]) == 2
     assert "neither a protocol nor an existing file" in capsys.readouterr().err
+
+
+def test_cli_match_says_the_sizes_and_the_refinement_verdict(tmp_path, bent_pair, capsys):
+    """What k means on the line: the start and the size ZoomOut grew it to; with landmarks, the
+    guard's verdict and its figures (held-out landmark errors before and after)."""
+    from torchfmap import save_mesh
+
+    x, y, gt = bent_pair
+    px, py = str(save_mesh(x, tmp_path / "x.off")), str(save_mesh(y, tmp_path / "y.off"))
+    out = str(tmp_path / "m.txt")
+    assert main(["match", px, py, "--k", "12", "--refine", "zoomout", "--out", out]) == 0
+    line = capsys.readouterr().out
+    assert "k 12 -> 24 (ZoomOut grows k to --k-final, default 2k), refined by zoomout" in line, line
+    lm = tmp_path / "lm.txt"
+    np.savetxt(lm, landmarks_from_gt(x, gt, 6), fmt="%d")
+    args = [
+        "match",
+        px,
+        py,
+        "--k",
+        "12",
+        "--refine",
+        "zoomout",
+        "--landmarks",
+        str(lm),
+        "--out",
+        out,
+    ]
+    assert main(args) == 0
+    line = capsys.readouterr().out
+    assert re.search(r"(refined by zoomout|zoomout dropped) \(refinement (kept|dropped).*: held-out landmark "
+                     r"error \d\.\d{4} -> \d\.\d{4}\)", line), line  # fmt: skip

@@ -267,14 +267,26 @@ def cmd_match(args: argparse.Namespace) -> int:
         chose = f"chosen by {judge} ({result.scores()} sqrt(area)), "
     if result.overlap is not None:
         chose = f"{_partial_how(result)}, "
-    how = f"({result.kind} basis, {chose}K={result.basis_x.k}{refined}, {sum(result.timings.values()):.2f} s)"
+    how = f"({result.kind} basis, {chose}{_sizes(args, result)}{refined}, {sum(result.timings.values()):.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
+
+
+def _sizes(args: argparse.Namespace, result) -> str:
+    """The basis size, and where ZoomOut grew it from: ``k 40 -> 80 (ZoomOut grows k to
+    --k-final, default 2k)``."""
+    start, final = DEFAULT_K if args.k is None else args.k, result.C_xy.shape[1]
+    if result.refined and args.refine == "zoomout" and final != start:
+        return f"k {start} -> {final} (ZoomOut grows k to --k-final, default 2k)"
+    return f"k {final}"
 
 
 def _partial_how(result) -> str:
     """A partial map's rank and estimated overlap, in words."""
     share = float((result.overlap > 0.5).mean())
-    return f"rank {result.partial_rank}, overlap {share:.0%} of the source's vertices"
+    return (
+        f"rank {result.partial_rank} of the whole's {result.C_xy.shape[1]} eigenfunctions (the part's share "
+        f"of them, about k times the area ratio), overlap {share:.0%} of the source's vertices"
+    )
 
 
 def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
