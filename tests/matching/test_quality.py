@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchfmap import Mesh, ParameterError
+from torchfmap import Mesh, ParameterError, load_mesh
 from torchfmap.bases.prepared import prepare_shape
 from torchfmap.data import demo_pair
 from torchfmap.matching.quality import distortion_anchors, geodesic_distortion, orientation_agreement
 
-from ..conftest import bumpy_blob, random_rotation
+from ..conftest import bumpy_blob, data_path, random_rotation
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,29 @@ def test_the_landmark_reading_check_judges_a_bounded_number_of_pairs(monkeypatch
     assert judged and max(judged) == quality.MISREAD_MAX_LANDMARKS
     judged.clear()
     zero = lm + 1
-    zero[5, 0] = 0  # pair 5 is not among the 10 judged (rows 0, 4, 9, ...), and it says: 0-based
+    zero[5, 0] = 0  # pair 5 is not among those judged (rows 0, 2, 4, 6, ...), and it says: 0-based
     assert 0 not in (lm[:, 0] + 1) and 5 not in np.linspace(0, 39, quality.MISREAD_MAX_LANDMARKS).round()
     quality.warn_if_off_by_one(sa, sb, zero)
     assert len(judged) <= 2  # the given reading and the swapped one: not the shifted one
+
+
+def test_a_one_based_file_of_real_landmarks_is_caught():
+    """pyFM's cat-lion pairs (a non-isometric pair, 20 landmarks at salient points) written
+    1-based: shifted by one vertex they land near where they should, and as given they distort
+    distances 1.25x more; judged on all 20 pairs the check says so. The file as it is passes."""
+    import warnings
+
+    from torchfmap.io import read_landmark_pairs
+    from torchfmap.matching.quality import warn_if_off_by_one
+
+    folder = data_path("pyfm_cat_lion")
+    shapes = (
+        prepare_shape(load_mesh(folder / "cat-00.off"), 0),
+        prepare_shape(load_mesh(folder / "lion-00.off"), 0),
+    )
+    pairs = read_landmark_pairs(folder / "landmarks.txt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        warn_if_off_by_one(*shapes, pairs)
+    with pytest.warns(UserWarning, match="shifted by -1"):
+        warn_if_off_by_one(*shapes, pairs + 1)

@@ -267,7 +267,8 @@ def cmd_match(args: argparse.Namespace) -> int:
         chose = f"chosen by {judge} ({result.scores()} sqrt(area)), "
     if result.overlap is not None:
         chose = f"{_partial_how(result)}, "
-    how = f"({result.kind} basis, {chose}{_sizes(args, result)}{refined}, {sum(result.timings.values()):.2f} s)"
+    seconds = sum(result.timings.values())
+    how = f"({result.kind} basis, {chose}{_sizes(args, result)}{refined}, {seconds:.2f} s)"
     return _write_map(args, src, tgt, result.p2p_yx, how)
 
 
