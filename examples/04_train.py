@@ -5,7 +5,8 @@ the cosine schedule over the budget, augmentation): the same code path as ``torc
 and each DDP rank. Training is unsupervised (pairs within classes of names such as ``cat0``,
 ``cat1``, else every ordered pair); the weights with the best validation score (the mean
 unsupervised loss on a few pairs, lower is better, no ground truth) are kept. The budget is
-``--steps`` / ``--minutes`` / ``--epochs``, whichever ends first, and it is the whole run's:
+``--max-steps`` / ``--minutes`` / ``--epochs`` (as ``torchfmap train`` spells them), whichever
+ends first, and it is the whole run's:
 ``--resume`` continues the checkpoint's run up to it. The checkpoint stays whole (weights, best
 weights, optimiser, schedule, state, and the errors below), so it resumes and it loads in
 ``examples/03_learned_match.py --model PATH`` and ``torchfmap match --checkpoint PATH``.
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     parser.add_argument("folder", nargs="?", type=Path, help="folder of meshes (default: the demo pair's)")
     parser.add_argument("--out", type=Path, default=Path("model.ckpt"), help="the checkpoint")
-    parser.add_argument("--steps", type=int, help="optimiser steps (default 5 when no bound is given)")
+    parser.add_argument("--max-steps", type=int, help="optimiser steps (default 5 when no bound is given)")
     parser.add_argument("--minutes", type=float, default=0.0, help="minutes of training (0: no limit)")
     parser.add_argument("--epochs", type=int, help="passes over the pairs")
     parser.add_argument("--resume", action="store_true", help="continue the run saved in --out")
@@ -83,8 +84,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     folder = args.folder or demo_pair_paths()[0].parent
     recipe = TrainConfig.from_json(args.config) if args.config else TrainConfig()
-    unbounded = args.steps is None and not args.minutes and args.epochs is None
-    budget = Budget(epochs=args.epochs, minutes=args.minutes, steps=5 if unbounded else args.steps or 0)
+    unbounded = args.max_steps is None and not args.minutes and args.epochs is None
+    budget = Budget(epochs=args.epochs, minutes=args.minutes, steps=5 if unbounded else args.max_steps or 0)
     config = recipe.with_budget(budget)
     cache = args.cache if args.cache else False
     args.out.parent.mkdir(parents=True, exist_ok=True)

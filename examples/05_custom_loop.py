@@ -16,7 +16,7 @@ Meshes in their files' units are fine: the layers work in the unit-area frame, w
 every shape to; ``--scale 1000`` (the demo in other units) gives the same maps::
 
     python examples/05_custom_loop.py                   # the demo pair, 5 steps
-    python examples/05_custom_loop.py X.off Y.off --gt truth.txt --steps 200 --network own
+    python examples/05_custom_loop.py X.off Y.off --gt truth.txt --max-steps 200 --network own
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("x", nargs="?", type=Path, help="source mesh (default: the demo's blob_a)")
     parser.add_argument("y", nargs="?", type=Path, help="target mesh (default: the demo's blob_b)")
     parser.add_argument("--gt", type=Path, help="the true map y -> x (demo: its shipped map)")
-    parser.add_argument("--steps", type=int, default=5, help="optimiser steps")
+    parser.add_argument("--max-steps", type=int, default=5, help="optimiser steps")
     parser.add_argument("--k", type=int, default=30, help="the functional map's basis size")
     parser.add_argument("--network", choices=("diffusionnet", "own"), default="diffusionnet")
     parser.add_argument("--scale", type=float, default=1.0, help="multiply both meshes' coordinates")
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> dict:
     before = error()
     losses = []
     net.train()
-    for step in range(args.steps):  # 3. the loop
+    for step in range(args.max_steps):  # 3. the loop
         bx, by = batch["x"], batch["y"]
         feat_x = net(bx.inputs, bx.net_basis, bx.grad)  # (2, V_x, 32)
         feat_y = net(by.inputs, by.net_basis, by.grad)
@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"step {step + 1}: " + ", ".join(f"{name} {v:.3f}" for name, v in values.items()))
     after = error()  # 4. the map and its error
     if gt is not None:
-        print(f"mean geodesic error: untrained {before:.4f} -> after {args.steps} steps {after:.4f}")
+        print(f"mean geodesic error: untrained {before:.4f} -> after {args.max_steps} steps {after:.4f}")
     return {"losses": losses, "error_before": before, "error_after": after, "mass": mass}
 
 

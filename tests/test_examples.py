@@ -56,6 +56,27 @@ def random_error() -> float:
     return report.mean_error
 
 
+def test_the_training_examples_take_the_train_commands_flags():
+    """One name per setting: every flag of the training examples that ``torchfmap train`` also
+    has is spelled as there (``--max-steps``, not ``--steps``), checked on their source."""
+    from torchfmap.cli import build_parser
+
+    train = next(
+        a.choices["train"]
+        for a in build_parser()._actions
+        if getattr(a, "choices", None) and "train" in a.choices
+    )
+    flags = {s for action in train._actions for s in action.option_strings}
+    concepts = {"steps": "--max-steps", "minutes": "--minutes", "epochs": "--epochs", "resume": "--resume"}
+    for name in ("04_train", "05_custom_loop"):
+        own = set(re.findall(r'add_argument\(\s*"(--[\w-]+)"', (EXAMPLES / f"{name}.py").read_text()))
+        for word, flag in concepts.items():
+            spelled = {f for f in own if word in f}
+            assert spelled <= {flag}, (name, spelled)
+            assert flag in flags
+    assert "--max-steps" in set(re.findall(r'"(--[\w-]+)"', (EXAMPLES / "04_train.py").read_text()))
+
+
 def test_every_example_is_numbered_documented_and_tested():
     files = sorted(p.name for p in EXAMPLES.glob("*.py"))
     assert files and all(re.fullmatch(r"\d\d_[a-z_]+\.py", f) for f in files), files
@@ -107,7 +128,7 @@ def test_03_learned_match(tmp_path, random_error):
 
 def test_04_train_on_the_demo(tmp_path, random_error):
     ckpt = tmp_path / "model.ckpt"
-    out = run("04_train", "--steps", 3, "--device", "cpu", "--out", ckpt)  # the reference recipe
+    out = run("04_train", "--max-steps", 3, "--device", "cpu", "--out", ckpt)  # the reference recipe
     assert out["steps"] == 3 and out["error_after"] < random_error / 4
     assert np.isfinite(out["error_before"]) and out["best_score"] < out["score_untrained"]
     matcher = LearnedMatcher.from_checkpoint(ckpt, device="cpu")  # it loads as a shipped model does
@@ -153,11 +174,11 @@ def test_04_train_leaves_a_whole_resumable_checkpoint(tmp_path):
 
 
 def test_05_custom_loop_trains_and_ignores_the_units():
-    out = run("05_custom_loop", "--steps", 3)
+    out = run("05_custom_loop", "--max-steps", 3)
     assert out["mass"] == pytest.approx(1.0, rel=1e-5)  # the layers' unit-area frame (float32 sum)
     assert all(np.isfinite(out["losses"])) and out["error_after"] < out["error_before"]
     # the demo in other units: the same arrays to float64 round-off, so the same float32 run
-    scaled = run("05_custom_loop", "--steps", 3, "--scale", 1000)
+    scaled = run("05_custom_loop", "--max-steps", 3, "--scale", 1000)
     np.testing.assert_allclose(scaled["losses"], out["losses"], rtol=1e-3)
     assert scaled["error_after"] == pytest.approx(out["error_after"], rel=1e-2)
     check_network(example("05_custom_loop").OwnNet(16))  # a network of your own follows the protocol

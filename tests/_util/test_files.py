@@ -249,3 +249,29 @@ def test_a_failed_write_is_a_torchfmap_error_and_the_cli_says_so(tmp_path, monke
     assert main(["basis", f"{DEMO}/blob_a.off", "--k", "10", "--out", str(out), "--quiet"]) == 1
     err = _err(capsys)
     assert "could not write" in err and "free disk space" in err and not out.exists()
+
+
+def test_a_file_name_too_long_for_its_file_system_is_refused_with_its_limit(tmp_path, capsys):
+    """The operating system would say only 'File name too long', about the temporary file; the
+    name's length and the limit are said instead, before anything is written (the library's
+    writer and the command line's output check)."""
+    import os
+
+    from torchfmap import ParameterError
+    from torchfmap._util.files import TEMP_NAME_EXTRA, check_file_name
+
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    long = tmp_path / ("a" * (limit - TEMP_NAME_EXTRA + 1) + ".txt")
+    with pytest.raises(
+        ParameterError, match=rf"allows {limit}.*Fix: a name of at most {limit - TEMP_NAME_EXTRA}"
+    ):
+        atomic_write(long, lambda fh: fh.write(b"x"))
+    assert list(tmp_path.iterdir()) == []
+    fits = tmp_path / ("b" * (limit - TEMP_NAME_EXTRA - 4) + ".txt")
+    check_file_name(fits)
+    atomic_write(fits, lambda fh: fh.write(b"x"))  # the longest name allowed is written
+    assert fits.read_bytes() == b"x"
+    a, b = f"{DEMO}/blob_a.off", f"{DEMO}/blob_b.off"
+    assert main(["match", a, b, "--out", str(tmp_path / ("c" * 300 + ".txt")), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "file system allows" in err and "Errno" not in err

@@ -537,3 +537,17 @@ def test_match_is_quiet_unless_asked_and_zoomout_shows_its_sizes_when_asked(perm
     match(x, y, k=10, refine="zoomout", progress=True)
     err = capsys.readouterr().err
     assert "ZoomOut" in err and "refinement" in err
+
+
+def test_empty_or_bad_times_are_refused_before_any_work(monkeypatch):
+    """``times=[]`` with landmarks used to be accepted: the feature-aware candidate was skipped
+    and the eigenbasis returned without a word. Refused for every kind, before the operators."""
+    import torchfmap.matching.pipeline as pipeline
+
+    x = bumpy_blob(2)
+    lm = np.array([[0, 0], [50, 50], [100, 100]])
+    monkeypatch.setattr(pipeline, "prepare_shapes", lambda *a, **k: pytest.fail("work began"))
+    for times in ([], [0.0], [float("nan")]):
+        for basis in (None, "hybrid", "diffusion"):
+            with pytest.raises(ParameterError, match="times must be finite and > 0"):
+                match(x, x, landmarks=lm, times=times, basis=basis)

@@ -43,6 +43,33 @@ def checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+#: Bytes the temporary file of :func:`atomic_write` adds to a name (``.{name}.{pid}.{thread}.{12
+#: hex}.tmp``: a process id of up to 7 digits, a thread id of up to 20).
+TEMP_NAME_EXTRA = 48
+
+
+def check_file_name(path: str | os.PathLike) -> None:
+    """Refuse a file name longer than its folder's file system allows, less the
+    :data:`TEMP_NAME_EXTRA` bytes of the temporary file every output is written through (the
+    operating system would say only "File name too long", about the temporary file).
+
+    Raises:
+        ParameterError: the name is too long (the message gives its length and the limit).
+    """
+    path = Path(path)
+    try:
+        name_max = os.pathconf(path.parent if str(path.parent) else ".", "PC_NAME_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or a folder not there yet
+        name_max = 255
+    size = len(os.fsencode(path.name))
+    if size + TEMP_NAME_EXTRA > name_max:
+        raise ParameterError(
+            f"the file name {path.name[:40]}... is {size} bytes long; its folder's file system allows "
+            f"{name_max}, and it is written through a temporary file whose name is up to "
+            f"{TEMP_NAME_EXTRA} bytes longer. Fix: a name of at most {name_max - TEMP_NAME_EXTRA} bytes."
+        )
+
+
 def _temp_path(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.{uuid.uuid4().hex[:12]}.tmp")
 
@@ -129,8 +156,10 @@ def atomic_write(
             rename failed (full disk, no permission, read-only folder); the message names
             ``path`` and says that any previous file there is unchanged.
         CorruptFileError: ``verify`` refused the written file (nothing was replaced).
+        ParameterError: a file name too long for its file system (:func:`check_file_name`).
     """
     path = Path(path)
+    check_file_name(path)
     remove_stale_temps(path)
     tmp = _temp_path(path)
     try:

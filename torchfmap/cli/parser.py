@@ -15,6 +15,7 @@ import warnings
 from collections.abc import Sequence
 
 from .. import __version__
+from .._util.files import check_file_name
 from ..errors import TorchFmapError
 from ..evaluate.scores import FULL_EVAL_VERTICES, SAMPLED_EVAL_POINTS
 from ..fmap.defaults import DEFAULT_K
@@ -399,8 +400,8 @@ def _as_list(value) -> list:
 
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, output paths that cannot be written: a missing or read-only
-    folder, an existing folder as the file; ``--png`` without matplotlib, ``--html`` without
-    plotly installed."""
+    folder, an existing folder as the file, a name too long for its file system; ``--png``
+    without matplotlib, ``--html`` without plotly installed."""
     values = [(flag, v) for flag in ("out", "png", "html") for v in _as_list(getattr(args, flag, None))]
     values = [(flag, v) for flag, v in values if not (flag == "out" and v == "-" and args.command == "match")]
     for flag, value in values:
@@ -414,6 +415,7 @@ def check_outputs(args: argparse.Namespace) -> None:
             raise TorchFmapError(
                 f"--{flag} {value!r}: the folder {folder!r} is not writable. Fix: write elsewhere."
             )
+        check_file_name(path)
     if getattr(args, "png", None) and importlib.util.find_spec("matplotlib") is None:
         raise TorchFmapError("--png needs matplotlib. Fix: pip install matplotlib (or the 'plot' extra).")
     if getattr(args, "html", None) and importlib.util.find_spec("plotly") is None:

@@ -27,6 +27,7 @@ from ..fmap.defaults import DEFAULT_K, W_DCOMM, W_LMK
 from ..fmap.refine import check_k_final
 from ..fmap.solver import check_solve_memory
 from ..kinds import BasisKind, get_kind
+from ..kinds.base import relative_times
 from ..kinds.refiners import RefineMethod, check_eigenbases, check_refine
 from ..mesh import Mesh
 from .checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
@@ -145,6 +146,8 @@ def match(
         if not partial:
             warn_if_partial(mesh_x, mesh_y)
         refine = check_refine(refine)
+        if times is not None:  # every kind that reads them would refuse them; refused before any work
+            relative_times(times, 1)
         pairs = None
         if landmarks is not None and len(np.atleast_1d(landmarks)):
             pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
