@@ -205,9 +205,75 @@ def test_partial_collection_is_read(tmp_path, blob_cut):
     np.testing.assert_array_equal(gt1.idx_x, gt.idx_x)
 
 
+def _field_layouts(tmp_path, blob_cut) -> dict:
+    """The same part in the field's layouts: ``shapes/`` + ``maps/<part>_<whole>.map`` (0-based,
+    -1 for none), SHREC'16 as distributed (``null/``, ``cuts/`` with ``.baryc_gt``: a 1-based
+    triangle and barycentric weights, the part's vertex its corner of largest weight) and as the
+    field converts it (``null/off``, ``cuts/off``, ``cuts/corres/*.vts``, 1-based)."""
+    a, cut, gt_part = blob_cut
+    known = gt_part.copy()
+    known[:10] = -1
+    pfarm = tmp_path / "pfarm"
+    (pfarm / "shapes").mkdir(parents=True)
+    (pfarm / "maps").mkdir()
+    save_mesh(a, pfarm / "shapes" / "blob_a.off")  # underscores in names: the map's name still splits once
+    save_mesh(cut.mesh, pfarm / "shapes" / "blob_a_cut.off")
+    np.savetxt(pfarm / "maps" / "blob_a_cut_blob_a.map", known, fmt="%d")
+    shrec = tmp_path / "shrec"
+    for sub in ("null", "cuts"):
+        (shrec / sub).mkdir(parents=True)
+    save_mesh(a, shrec / "null" / "blob.off")
+    save_mesh(cut.mesh, shrec / "cuts" / "cuts_blob_shape_1.off")
+    face_of = np.zeros(a.n_vertices, dtype=np.int64)
+    face_of[a.faces[:, 0]] = np.arange(len(a.faces))  # a face with the vertex as its first corner...
+    corner = np.zeros(a.n_vertices, dtype=np.int64)
+    for c in (1, 2):  # ... or another corner, for vertices that are never first
+        missing = ~np.isin(np.arange(a.n_vertices), a.faces[:, :c].ravel())
+        face_of[a.faces[:, c][missing[a.faces[:, c]]]] = np.flatnonzero(missing[a.faces[:, c]])
+        corner[a.faces[:, c][missing[a.faces[:, c]]]] = c
+    weights = np.full((cut.n_vertices, 3), 0.15)
+    weights[np.arange(cut.n_vertices), corner[gt_part]] = 0.7
+    table = np.column_stack([face_of[gt_part] + 1, weights])
+    table[:10, 0] = len(a.faces) + 1  # rows naming no triangle of the whole: left out
+    np.savetxt(shrec / "cuts" / "cuts_blob_shape_1.baryc_gt", table, fmt=["%d", "%.6f", "%.6f", "%.6f"])
+    converted = tmp_path / "shrec_converted"
+    for sub in ("null/off", "cuts/off", "cuts/corres"):
+        (converted / sub).mkdir(parents=True)
+    save_mesh(a, converted / "null" / "off" / "blob.off")
+    save_mesh(cut.mesh, converted / "cuts" / "off" / "cuts_blob_shape_1.off")
+    np.savetxt(converted / "cuts" / "corres" / "cuts_blob_shape_1.vts", gt_part + 1, fmt="%d")
+    return {"pfarm": pfarm, "shrec": shrec, "converted": converted}
+
+
+def test_the_fields_partial_layouts_are_read_as_they_are(tmp_path, blob_cut):
+    a, cut, gt_part = blob_cut
+    layouts = _field_layouts(tmp_path, blob_cut)
+    [(whole, part, pw, pp, gt)] = list(discover_partial_pairs(layouts["pfarm"]))
+    assert (whole, part) == ("blob_a", "blob_a_cut") and pp.name == "blob_a_cut.off"
+    np.testing.assert_array_equal(gt.idx_y, np.arange(10, cut.n_vertices))
+    np.testing.assert_array_equal(gt.idx_x, gt_part[10:])
+    for name in ("shrec", "converted"):
+        [(whole, part, pw, pp, gt)] = list(discover_partial_pairs(layouts[name]))
+        assert (whole, part) == ("blob", "cuts_blob_shape_1")
+        rows = np.arange(10 if name == "shrec" else 0, cut.n_vertices)
+        np.testing.assert_array_equal(gt.idx_y, rows)
+        np.testing.assert_array_equal(gt.idx_x, gt_part[rows])
+
+
 def test_partial_collection_refuses_bad_layouts(tmp_path, blob_cut):
-    with pytest.raises(ParameterError, match="full, partial, corres"):
+    with pytest.raises(
+        ParameterError, match=r"not a partial collection.*torchfmap: .*shapes\+maps: .*SHREC'16: "
+    ):
         list(discover_partial_pairs(tmp_path))
+    layouts = _field_layouts(tmp_path / "field", blob_cut)
+    (layouts["pfarm"] / "maps" / "blob_a_cut_blob_a.map").rename(
+        layouts["pfarm"] / "maps" / "blob_cut_lion.map"
+    )
+    with pytest.raises(ParameterError, match="names no <part>_<whole> pair"):
+        list(discover_partial_pairs(layouts["pfarm"]))
+    (layouts["shrec"] / "cuts" / "cuts_blob_shape_1.baryc_gt").unlink()
+    with pytest.raises(ParameterError, match="no ground truth .*baryc_gt"):
+        list(discover_partial_pairs(layouts["shrec"]))
     folder = _collection(tmp_path, blob_cut)
     np.savetxt(folder / "corres" / "blob_cut60.map", np.arange(5), fmt="%d")  # too short
     with pytest.raises(ParameterError, match="one line per part vertex"):
@@ -231,6 +297,10 @@ def test_cli_eval_partial(tmp_path, blob_cut, capsys):
     assert main([*cmd, "--quiet"]) == 0, capsys.readouterr().err
     out = capsys.readouterr().out
     assert "IoU |" in out and "| blob | blob_cut60 |" in out and "maps 0-based" in out
+    layouts = _field_layouts(tmp_path / "field", blob_cut)  # the field's layouts, as they are
+    for name in ("pfarm", "shrec"):
+        assert main(["eval", str(layouts[name]), "--partial", "--k", "20", "--quiet"]) == 0
+        assert "IoU |" in capsys.readouterr().out
     assert main([*cmd, "--pairs", "all"]) != 0
     err = capsys.readouterr().err
     assert "--pairs" in err and "Traceback" not in err
