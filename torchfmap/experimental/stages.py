@@ -29,7 +29,7 @@ from ..errors import ParameterError
 from ..fmap.convert import values_to_p2p
 from ..kinds import seed_time
 from ..mesh import Mesh
-from ..nn.data import collate_pairs
+from ..nn.item_inference import pair_batches
 from ..nn.modules import BasisModule
 from ..nn.networks import check_network, features
 from .seeded import map_seeds
@@ -150,8 +150,7 @@ def two_stage_p2p(
     ``(L, 2)``: user seed pairs placed first."""
     check_network(net)
     net.eval()
-    batch = collate_pairs([(x, y)])
-    sx, sy = batch["x"].to(device), batch["y"].to(device)
+    sx, sy = pair_batches(x, y, device)
     fx, fy = features(net, sx), features(net, sy)
     C_xy, C_yx = solver(fx, fy, sx.basis, sy.basis)
     _check_both(C_yx)
