@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from ._util.checks import check_vertex_indices
+from ._util.checks import check_times, check_vertex_indices
 from .errors import ParameterError
 from .operators.heat import heat_kernels
 
@@ -56,11 +56,7 @@ def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndar
     if times is None:
         lam1 = evals[evals > 1e-10 * evals.max()].min()
         times = np.geomspace(4 * np.log(10) / evals.max(), 4 * np.log(10) / lam1, n_times)
-    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
-    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
-        raise ParameterError(
-            f"HKS times must be finite and > 0, got {times.tolist()}. Fix: e.g. abs_times=None."
-        )
+    times = check_times(times, "HKS times", "e.g. abs_times=None")
     return (evecs**2) @ np.exp(-np.outer(np.maximum(evals, 0), times))
 
 

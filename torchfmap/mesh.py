@@ -7,12 +7,9 @@ boundary, components) are computed lazily and cached.
 
 Validation (:func:`validate_mesh`, :class:`MeshReport`, :func:`orient_faces`; they live in
 :mod:`torchfmap.mesh_checks` and are importable from here) raises
-:class:`~torchfmap.errors.MeshError` for inputs that would give silently wrong operators, with a
-message naming the problem and the fix, and reports (without failing) properties such as
-holes. :class:`Mesh` also orients every component consistently (:func:`orient_faces`), warns
-when it had to, and records it in ``mesh.report.n_flipped_faces``: the orientation term of the
-functional-map solver reads the normals, and a shape with flipped faces would otherwise be
-matched as its mirror image.
+:class:`~torchfmap.errors.MeshError` for inputs that would give silently wrong operators and
+orients every component consistently (``mesh.report.n_flipped_faces``); what is refused,
+reported or repaired: docs/guide.md, "Meshes".
 """
 
 from __future__ import annotations

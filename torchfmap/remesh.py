@@ -14,11 +14,9 @@ Two meshings, both from pymeshlab (the maintained Python binding of MeshLab):
 - ``'decimate'``: quadric edge collapse to the target count (keeps the original vertices'
   positions, as SCAPE_r / FAUST_r were made).
 
-``density > 1`` (isotropic and anisotropic) also varies the edge length over the shape: the
-surface is inverted in a sphere centred outside it along a random direction ``u`` (a conformal
-map: angles kept, sizes changed), remeshed with one edge length there and inverted back, so
-edges are about ``density`` times longer at the far end of the shape along ``u`` than at the near
-end, with triangle shapes unchanged (as scans and artist meshes are finer where detail is).
+``density > 1`` (isotropic and anisotropic) also makes edges about ``density`` times longer at
+one end of the shape than at the other, triangle shapes unchanged (a conformal inversion before
+remeshing, :class:`_DensityWarp`), as scans and artist meshes are finer where detail is.
 """
 
 from __future__ import annotations

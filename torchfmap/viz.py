@@ -20,6 +20,7 @@ from typing import Literal
 
 import numpy as np
 
+from ._util.checks import check_p2p
 from ._util.files import atomic_write
 from .errors import ParameterError, TorchFmapError
 from .mesh import Mesh
@@ -169,11 +170,7 @@ def save_transfer_html(
         TorchFmapError: plotly is not installed (optional extra ``torchfmap[html]``).
         ParameterError: ``p2p_yx`` of the wrong shape or out of range, or an unknown ``up``.
     """
-    p2p_yx = np.asarray(p2p_yx)
-    if p2p_yx.shape != (mesh_y.n_vertices,) or not np.issubdtype(p2p_yx.dtype, np.integer):
-        raise ParameterError(f"p2p_yx must be ({mesh_y.n_vertices},) integers, got {p2p_yx.shape}.")
-    if len(p2p_yx) and (p2p_yx.min() < 0 or p2p_yx.max() >= mesh_x.n_vertices):
-        raise ParameterError(f"p2p_yx has vertices outside [0, {mesh_x.n_vertices}) of the source mesh.")
+    p2p_yx = check_p2p(p2p_yx, mesh_y.n_vertices, mesh_x.n_vertices, "p2p_yx")
     if up not in ("x", "y", "z"):
         raise ParameterError(f"up must be 'x', 'y' or 'z', got {up!r}.")
     try:

@@ -3,6 +3,7 @@
 - :func:`check_vertex_indices`: 1-D, integral, in range, distinct vertex indices (seeds,
   landmarks, geodesic sources, landmark pairs of a functional map).
 - :func:`check_landmark_pairs`: ``(L, 2)`` corresponding vertex pairs of two meshes.
+- :func:`check_p2p`: a point map ``p2p_yx`` (one source vertex per target vertex).
 - :func:`check_seeds_cover_components`: every connected component of a mesh holds a seed
   (harmonic and Dirichlet problems are undefined on a component without one).
 - :func:`is_symmetric` / :func:`check_symmetric`: whether a stiffness matrix is symmetric up to
@@ -10,6 +11,7 @@
 - :func:`lumped_diagonal` / :func:`check_lumped_mass`: whether a mass matrix is lumped
   (diagonal), and its diagonal.
 - :func:`check_tolerance`: a relative accuracy target in ``[TOL_MIN, TOL_MAX)``.
+- :func:`check_times`: diffusion (heat) times, finite and > 0.
 
 Every error names the problem and the fix (``... Fix: ...``).
 """
@@ -87,6 +89,26 @@ def check_landmark_pairs(landmarks, n_x: int, n_y: int) -> np.ndarray:
     check_vertex_indices(pairs[:, 0], n_x, "source landmarks")
     check_vertex_indices(pairs[:, 1], n_y, "target landmarks")
     return pairs.astype(np.int64)
+
+
+def check_p2p(p2p, n_target: int | None, n_source: int, name: str = "p2p") -> np.ndarray:
+    """A ``(n_target,)`` (any length when None) int64 point map into ``[0, n_source)``, or
+    :class:`ParameterError`."""
+    p2p = np.asarray(p2p)
+    if p2p.ndim != 1 or p2p.shape != (n_target or len(p2p),):
+        want = "" if n_target is None else f" ({n_target})"
+        raise ParameterError(
+            f"{name} must have one entry per vertex{want}, got shape {p2p.shape}. Fix: a 1-D array of "
+            "integers, the source vertex of each target vertex."
+        )
+    if not np.issubdtype(p2p.dtype, np.integer):
+        raise ParameterError(f"{name} must hold integer vertex indices, got {p2p.dtype}.")
+    if p2p.size and (p2p.min() < 0 or p2p.max() >= n_source):
+        raise ParameterError(
+            f"{name} has indices outside [0, {n_source}) (min {int(p2p.min())}, max {int(p2p.max())}). "
+            "Fix: maps are 0-based, target -> source; a map in the other direction must be inverted first."
+        )
+    return p2p.astype(np.int64)
 
 
 def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:
@@ -232,6 +254,14 @@ def check_tolerance(tol, what: str = "tol") -> float:
     return value
 
 
+def check_times(times, what: str = "diffusion times", fix: str = "t > 0") -> np.ndarray:
+    """``times`` as a non-empty float64 array, every one finite and > 0; else :class:`ParameterError`."""
+    out = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    if out.size == 0 or not np.all(np.isfinite(out)) or np.any(out <= 0):
+        raise ParameterError(f"{what} must be finite and > 0, got {out.tolist()}. Fix: {fix}.")
+    return out
+
+
 # -- counts ----------------------------------------------------------------------------------
 def check_count(value, low: int, high: int, what: str) -> int:
     """An integer in ``[low, high]`` (a basis size, a number of seeds...), as ``int``.
@@ -244,8 +274,8 @@ def check_count(value, low: int, high: int, what: str) -> int:
 
 
 #: Bytes per vertex of a prepared shape besides its eigenvectors (operators, a sparse Cholesky
-#: factor, geodesic solver): about 2 KB measured on 10K-40K-vertex meshes; eigenpairs add
-#: :data:`EIGEN_VECTORS` float64 vectors of ``V`` entries per eigenpair (the solver's blocks).
+#: factor, geodesic solver); eigenpairs add :data:`EIGEN_VECTORS` float64 vectors of ``V``
+#: entries per eigenpair (the solver's blocks).
 BYTES_PER_VERTEX = 2048
 EIGEN_VECTORS = 4
 

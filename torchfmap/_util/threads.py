@@ -5,9 +5,8 @@ while after each call) and torch's (OpenMP). A tiny torch operation right after 
 run with several torch threads, waits for cores that BLAS's spinning threads still hold, so it
 is slower than with one thread. The classical path therefore runs its small torch work
 single-threaded (:func:`torch_threads`), and :func:`thread_limit` sets both pools for a whole
-computation. ``python -m bench speed --case threads`` checks that no workload is slower with all threads
-than with
-one (``bench/results/threads.md``).
+computation. ``python -m bench speed --case threads`` checks that no workload is slower with all
+threads than with one.
 """
 
 from __future__ import annotations
@@ -49,10 +48,7 @@ def blas_limiter(n: int) -> Callable[[], contextlib.AbstractContextManager]:
 def blas_threads(n: int | None) -> Iterator[None]:
     """BLAS threads (threadpoolctl) set to ``n`` inside the block, restored after it (``None``:
     unchanged)."""
-    if n is None:
-        yield
-        return
-    with threadpool_limits(limits=n, user_api="blas"):
+    with contextlib.nullcontext() if n is None else threadpool_limits(limits=n, user_api="blas"):
         yield
 
 
@@ -60,8 +56,6 @@ def blas_threads(n: int | None) -> Iterator[None]:
 def thread_limit(threads: int | None) -> Iterator[None]:
     """BLAS / OpenMP threads (threadpoolctl) and torch's threads set to ``threads`` inside the
     block, restored after it (``None``: all unchanged)."""
-    if threads is None:
-        yield
-        return
-    with threadpool_limits(limits=threads), torch_threads(threads):
-        yield
+    with contextlib.nullcontext() if threads is None else threadpool_limits(limits=threads):
+        with torch_threads(threads):
+            yield

@@ -11,8 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from .._util.checks import check_seeds_cover_components, check_vertex_indices
-from ..errors import ParameterError
+from .._util.checks import check_seeds_cover_components, check_times, check_vertex_indices
 from ..mesh import Mesh
 from ..operators.heat import Method, heat_kernels
 from ..operators.laplacian import Operators, laplacian
@@ -49,9 +48,7 @@ def diffusion_basis(
         SeedError: seeds out of range or missing a connected component.
     """
     ops = operators if operators is not None else laplacian(mesh)
-    rel = np.atleast_1d(np.asarray(times, dtype=np.float64))
-    if rel.size == 0 or np.any(~np.isfinite(rel)) or np.any(rel <= 0):
-        raise ParameterError(f"diffusion times must be finite and > 0, got {rel.tolist()}. Fix: t > 0.")
+    rel = check_times(times)
     order = np.argsort(rel, kind="stable")
     rel = rel[order]
     seeds = check_vertex_indices(seeds, mesh.n_vertices, "seeds")

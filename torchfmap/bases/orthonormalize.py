@@ -25,6 +25,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from .._util.checks import lumped_diagonal
 from ..errors import ParameterError
 from .basis import Basis, Column
 
@@ -39,25 +40,15 @@ class _Mass:
     a diagonal (lumped) mass, given as ``(V,)`` or as a diagonal matrix (no sparse product then)."""
 
     def __init__(self, mass) -> None:
-        self.diagonal = None
-        if np.ndim(mass) == 1:
-            self.diagonal = np.asarray(mass, dtype=np.float64)
-        else:
-            matrix = sp.csr_matrix(mass, dtype=np.float64)
-            diag = matrix.diagonal()
-            if matrix.nnz == np.count_nonzero(diag) and (matrix - sp.diags(diag)).count_nonzero() == 0:
-                self.diagonal = diag
-            else:
-                self.matrix = matrix
+        diagonal = lumped_diagonal(mass)
+        self.diagonal = None if diagonal is None else np.asarray(diagonal, dtype=np.float64)
+        if diagonal is None:
+            self.matrix = sp.csr_matrix(mass, dtype=np.float64)
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         if self.diagonal is None:
             return self.matrix @ x
         return self.diagonal * x if x.ndim == 1 else self.diagonal[:, None] * x
-
-
-def _mass_op(mass) -> _Mass:
-    return _Mass(mass)
 
 
 def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +71,7 @@ def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]
     Returns:
         ``(Q (V, R), kept (R,))``: B-orthonormal columns and the indices of the kept inputs.
     """
-    B = _mass_op(mass)
+    B = _Mass(mass)
     F = np.asarray(F, dtype=np.float64)
     V, K = F.shape
     Q = np.empty((V, K), order="F")  # columns contiguous: the panel's column steps are BLAS-1
@@ -133,7 +124,7 @@ def cholqr(F: np.ndarray, mass, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarr
 
     Returns ``(Q (V, R), kept (R,))`` like :func:`mgs`.
     """
-    B = _mass_op(mass)
+    B = _Mass(mass)
     F = np.asarray(F, dtype=np.float64)
     norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", F, B @ F), 0.0))
     valid = np.flatnonzero((norms > 0) & np.isfinite(norms))

@@ -56,8 +56,7 @@ class PairResult(NamedTuple):
 
 #: Distance rows :func:`evaluate_pairs` keeps for the current source mesh (bytes).
 EVAL_ROWS_BYTES = 512 * 2**20
-#: Cost of a source's scoring rows in units of one pair's match, for balancing a pool's chunks
-#: (on 5K-vertex meshes, rows from every vertex cost several matches).
+#: Cost of a source's scoring rows in units of one pair's match, for balancing a pool's chunks.
 SOURCE_COST = 5.0
 
 # The prepared shapes of a local pool's worker process, kept across the chunks it runs (so a

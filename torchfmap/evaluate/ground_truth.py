@@ -77,19 +77,26 @@ def vts_ground_truth(corres: str | os.PathLike, name_x: str, name_y: str) -> Cor
     return gt_from_vts(read_vts(found[name_x]), read_vts(found[name_y]))
 
 
-def as_correspondence(gt) -> Correspondence:
-    """``gt`` checked and as int64 arrays.
+def as_correspondence(gt, n_x: int | None = None) -> Correspondence:
+    """``gt`` checked and as int64 arrays; with ``n_x``, its source vertices checked against a
+    mesh of ``n_x`` vertices.
 
     Raises:
         ParameterError: anything but a :class:`Correspondence` (a plain pair is refused: its order
-            cannot be checked, and a swapped pair scores silently wrong).
+            cannot be checked, and a swapped pair scores silently wrong); index arrays of
+            different lengths, or source vertices outside ``[0, n_x)``.
     """
     if not isinstance(gt, Correspondence):
         raise ParameterError(
             f"gt must be a Correspondence(idx_x, idx_y), got {type(gt).__name__}. Fix: build it with "
             "Correspondence(idx_x=..., idx_y=...), gt_from_vts, gt_from_map or gt_identity."
         )
-    return Correspondence(*(np.asarray(a, dtype=np.int64) for a in gt))
+    idx_x, idx_y = (np.asarray(a, dtype=np.int64) for a in gt)
+    if len(idx_y) != len(idx_x):
+        raise ParameterError("ground-truth index arrays differ in length.")
+    if n_x is not None and idx_x.size and (idx_x.max() >= n_x or idx_x.min() < 0):
+        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    return Correspondence(idx_x, idx_y)
 
 
 def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .._util.checks import check_p2p
 from ..errors import ParameterError
 from ..io import find_file, mesh_files, read_arrays, read_test_pairs, shape_name
 from ..mesh import Mesh
@@ -98,25 +99,10 @@ def geodesic_errors(
         ParameterError: a map or ground truth that does not fit the meshes, or a bad
             ``max_points``.
     """
-    idx_x, idx_y = as_correspondence(gt)
-    p2p_yx = np.asarray(p2p_yx)
-    if p2p_yx.ndim != 1 or not np.issubdtype(p2p_yx.dtype, np.integer):
-        raise ParameterError(
-            f"p2p_yx must be a 1-D integer array (one source vertex per target vertex), got shape "
-            f"{p2p_yx.shape} and dtype {p2p_yx.dtype}."
-        )
-    if p2p_yx.size and (p2p_yx.min() < 0 or p2p_yx.max() >= mesh_x.n_vertices):
-        raise ParameterError(
-            f"p2p_yx holds vertex indices outside [0, {mesh_x.n_vertices}) of mesh_x (min "
-            f"{int(p2p_yx.min())}, max {int(p2p_yx.max())}). Fix: maps are 0-based, target -> source; "
-            "a map in the other direction (x -> y) must be inverted first."
-        )
-    if len(idx_y) != len(idx_x):
-        raise ParameterError("ground-truth index arrays differ in length.")
+    idx_x, idx_y = as_correspondence(gt, mesh_x.n_vertices)
+    p2p_yx = check_p2p(p2p_yx, None, mesh_x.n_vertices, "p2p_yx")
     if idx_y.size and (idx_y.max() >= len(p2p_yx) or idx_y.min() < 0):
         raise ParameterError("ground truth refers to target vertices outside the map. Fix: check the files.")
-    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
-        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
     pick = evaluated_rows(len(idx_y), mesh_x.n_vertices, max_points, seed)
     if pick is not None:
         idx_y, idx_x = idx_y[pick], idx_x[pick]
@@ -161,11 +147,7 @@ def error_floor(
             at a time.
         normalize: divide by ``sqrt(area_x)``.
     """
-    idx_x, idx_y = as_correspondence(gt)
-    if len(idx_y) != len(idx_x):
-        raise ParameterError("ground-truth index arrays differ in length.")
-    if idx_x.size and (idx_x.max() >= mesh_x.n_vertices or idx_x.min() < 0):
-        raise ParameterError("ground truth refers to source vertices outside mesh_x.")
+    idx_x, idx_y = as_correspondence(gt, mesh_x.n_vertices)
     floor = np.zeros(len(idx_x))
     order = np.argsort(idx_y, kind="stable")
     groups = [

@@ -1,6 +1,5 @@
-"""A self-seeded second stage for the classical path without landmarks (an experiment: measured
-1.04x worse than ZoomOut alone on FAUST_r at 2.7x the time, ``python -m bench accuracy --case
-seeded_refine``).
+"""A self-seeded second stage for the classical path without landmarks (an experiment, measured
+against ZoomOut alone by ``python -m bench accuracy --case seeded_refine``).
 
 :func:`seeded_match`: the eigenbasis map refined by ZoomOut (stage 1); seed pairs where it
 agrees both ways (:data:`SEEDED_SEEDS` farthest points of ``x`` sent to ``y`` and back by the

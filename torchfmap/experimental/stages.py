@@ -4,28 +4,13 @@ solved again in them. Trained as a plug-in loss of the core loop
 (``Trainer(..., extra_losses=[StageTwoLoss(shapes.mesh)])``, :class:`StageTwoLoss`), run at
 inference by :func:`two_stage_p2p`.
 
-Stage 1 is the eigenbasis map of the network's features. Its seeds: farthest points ``s`` of
-``x``, their images ``t`` on ``y`` by the stage-1 map ``x -> y``, kept where the map ``y -> x``
-brings ``t`` back near ``s`` (:func:`~torchfmap.seeds.consistent_seeds`); user landmarks, when
-given, come first. At those seed pairs both shapes get the paper's diffusion functions (heat
-kernels at the relative time matched to the seed spacing, spectrum-free:
-:func:`~torchfmap.bases.prepared.seed_kernels`) appended to the stage-1 eigenbasis, and each
-shape's block pair is B-orthonormalised with the same columns kept on both
-(:func:`~torchfmap.bases.orthonormalize_pair`): the eigen block as it was, then the part of
-each kernel the eigenfunctions miss. Stage 2 solves the same features in these bases with the
-same differentiable solver and converts by the same orthogonal rule. Why it can help: the
-truncated eigenbasis blurs what lies between its frequencies; kernels at corresponding points
-add localised functions that are the same on both shapes where stage 1 was right, and the
-round-trip test keeps a seed out where it was not. The seeds come from the detached stage-1
-map, so training differentiates through stage 2's solve, not through the seeding.
-
-(Measured with ``python -m bench learned --case stage_two``: on FAUST_r validation pairs about 0.97x the
-error of
-stage 1 at about 3x its time per pair, nothing gained after ZoomOut; in the diffusion kernels
-alone, without the eigen block, worse than stage 1 at 40-160 seeds. Hence not in the core.)
-
-Seeds need only a few rows of each stage-1 point map, not all of them: the round trip is
-evaluated for the seeds alone.
+Seeds: farthest points of ``x`` whose stage-1 images come back near them
+(:func:`~torchfmap.seeds.consistent_seeds`; user landmarks first, only the seeds' rows of the
+stage-1 maps are evaluated). Bases: the stage-1 eigenbasis then heat kernels at the seed pairs
+(:func:`~torchfmap.bases.prepared.seed_kernels`), orthonormalised as a pair
+(:func:`~torchfmap.bases.orthonormalize_pair`). The seeds come from the detached stage-1 map, so
+training differentiates through stage 2's solve, not through the seeding. Why it can help, and
+what it measured (``python -m bench learned --case stage_two``): docs/learning.md.
 """
 
 from __future__ import annotations
@@ -44,7 +29,7 @@ from ..errors import ParameterError
 from ..fmap.convert import values_to_p2p
 from ..kinds import seed_time
 from ..mesh import Mesh
-from ..nn.data import collate_pairs
+from ..nn.item_inference import pair_batches
 from ..nn.modules import BasisModule
 from ..nn.networks import check_network, features
 from .seeded import map_seeds
@@ -165,8 +150,7 @@ def two_stage_p2p(
     ``(L, 2)``: user seed pairs placed first."""
     check_network(net)
     net.eval()
-    batch = collate_pairs([(x, y)])
-    sx, sy = batch["x"].to(device), batch["y"].to(device)
+    sx, sy = pair_batches(x, y, device)
     fx, fy = features(net, sx), features(net, sy)
     C_xy, C_yx = solver(fx, fy, sx.basis, sy.basis)
     _check_both(C_yx)

@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from .._util.checks import check_p2p
 from ..bases.basis import Basis
 from ..errors import ParameterError
 from .nearest import SurfaceSampling, nearest_neighbor, search_p2p
@@ -132,18 +133,6 @@ def fmap_to_p2p_bijective(
     emb_y = np.hstack([phi_y @ C_xy, phi_y])
     emb_x = np.hstack([phi_x, phi_x @ C_yx])
     return nearest_neighbor(emb_y, emb_x, search=search, precision=precision)
-
-
-def check_p2p(p2p: np.ndarray, n_target: int, n_source: int, name: str = "p2p") -> np.ndarray:
-    """A ``(n_target,)`` int map into ``[0, n_source)``, or a clear error."""
-    p2p = np.asarray(p2p)
-    if p2p.shape != (n_target,):
-        raise ParameterError(f"{name} must have one entry per vertex ({n_target}), got shape {p2p.shape}.")
-    if not np.issubdtype(p2p.dtype, np.integer):
-        raise ParameterError(f"{name} must hold integer vertex indices, got {p2p.dtype}.")
-    if p2p.size and (p2p.min() < 0 or p2p.max() >= n_source):
-        raise ParameterError(f"{name} has indices outside [0, {n_source}). Fix: maps are 0-based.")
-    return p2p.astype(np.int64)
 
 
 def p2p_to_fmap(

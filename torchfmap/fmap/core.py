@@ -10,9 +10,8 @@ Laplacians) becomes a diagonal mask after rotating by the eigenvectors of ``W_x`
 (:func:`spectral_frame`): in that frame the problem splits into one ``K_x x K_x`` system per
 row of ``C`` (:func:`solve_rowwise`), exact in any B-orthonormal basis.
 
-Data checks (finite Gram matrices, singular systems) read tensor values, a host sync on an
-accelerator: they run under ``check`` (:func:`torchfmap._util.torch_checks.resolve_check`: by default
-on for CPU tensors, off elsewhere); shape and dtype checks always run.
+Data checks (finite Gram matrices, singular systems) run under ``check``
+(:func:`torchfmap._util.torch_checks.resolve_check`); shape and dtype checks always run.
 """
 
 from __future__ import annotations

@@ -1,25 +1,11 @@
 """What every basis kind is: the settings the pipeline reads, how it builds its functions, and
 how it refines a map in its bases.
 
-A kind is a small frozen object in the registry :data:`torchfmap.kinds.KINDS`. The pipeline,
-the command line, the datasets and the learned path read it instead of comparing strings:
-
-- ``needs_landmarks``: a *pair* of bases of this kind is built at corresponding landmarks
-  (its columns then correspond one to one, and the map is pulled towards ``C = I``);
-- ``w_lap``: the Laplacian-commutativity weight of the solve (the mask is normalised to mean 1);
-- ``w_orient``: the orientation-preservation weight of the solve when it uses descriptors;
-- ``p2p_mode``: the functional map -> point map rule (``'orthogonal'`` or ``'pullback'``);
-- :meth:`BasisKind.refiner`: its refiner (:mod:`.refiners`): ICP, or the kind's ZoomOut
-  (:meth:`BasisKind.zoomout_refiner`): nested eigenbases grown to ``k_final`` (the eigenbasis,
-  and the eigen block of ``hybrid``; ``grows`` says so), fixed-size iterations then seeds moved
-  to where the map puts them (seeded kinds), or fixed-size iterations only (the default);
-- ``learned``: whether the torch layers (:mod:`torchfmap.nn`, one regularised solve per pair)
-  train and predict in it;
-- ``column_families``: the :class:`~torchfmap.bases.Column` families its bases are made of, so a
-  saved or given basis is recognised (:func:`torchfmap.kinds.kind_of`).
-
-Adding a kind: one module under ``kinds/`` with a subclass of :class:`SeededKind` (or of
-:class:`BasisKind`) and one line in ``kinds/__init__.py``.
+A kind is a small frozen object in the registry :data:`torchfmap.kinds.KINDS`; the pipeline,
+the command line, the datasets and the learned path read it instead of comparing strings. Each
+field and method and who reads it: docs/architecture.md, "Basis kinds: one registry"; adding a
+kind: "How to add ..." there (a subclass of :class:`SeededKind` or :class:`BasisKind`, one line
+in ``kinds/__init__.py``).
 """
 
 from __future__ import annotations
@@ -28,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._util.checks import check_times
 from ..bases.basis import Basis
 from ..bases.orthonormalize import orthonormalize, orthonormalize_pair
 from ..bases.prepared import PreparedShape
@@ -60,12 +47,7 @@ def relative_times(times, n_seeds: int) -> tuple[float, ...]:
     """
     if times is None:
         return (seed_time(n_seeds),)
-    out = tuple(sorted(float(t) for t in times))
-    if not out or not all(np.isfinite(t) and t > 0 for t in out):
-        raise ParameterError(
-            f"diffusion times must be finite and > 0, got {list(times)}. Fix: e.g. times=[0.01]."
-        )
-    return out
+    return tuple(sorted(check_times(times, fix="e.g. times=[0.01]").tolist()))
 
 
 def seeds_for(shape: PreparedShape, n_columns: int, per_seed: int, seeds=None, n_seeds: int | None = None):
@@ -81,7 +63,10 @@ def seeds_for(shape: PreparedShape, n_columns: int, per_seed: int, seeds=None, n
 
 @dataclass(frozen=True, kw_only=True)
 class BasisKind:
-    """A kind of basis (see the module docstring for the fields)."""
+    """A kind of basis: ``needs_landmarks`` (pair bases built at corresponding landmarks, the map
+    pulled towards ``C = I``), ``w_lap`` / ``w_orient`` (the solve's weights), ``p2p_mode``
+    (``'orthogonal'`` or ``'pullback'``), ``column_families`` (recognises a basis,
+    :func:`torchfmap.kinds.kind_of`), ``learned`` (the torch layers train and predict in it)."""
 
     name: str
     summary: str

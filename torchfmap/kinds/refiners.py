@@ -2,18 +2,11 @@
 
 A kind returns its refiner (:meth:`torchfmap.kinds.BasisKind.refiner`); every refiner is called
 the same way, ``refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds)`` ->
-:class:`~torchfmap.fmap.Refined`, and is used by :func:`torchfmap.match` (through
-:func:`torchfmap.matching.results.refine_result`) and by the learned path:
-
-- :class:`ICP`: orthogonal ``C`` and nearest neighbours, bases kept (any kind);
-- :class:`ZoomOut`: eigenbases grown to ``k_final`` (the eigenbasis kind), in the shapes' own
-  eigenpairs or in given eigenbases;
-- :class:`FixedSizeIterations`: point map <-> functional map at fixed size (kinds whose bases do
-  not nest);
-- :class:`SeedMoves`: fixed-size iterations, then the seeds of ``y`` moved to where the map
-  puts them and the bases rebuilt (kinds built at corresponding seeds).
-
-The refinement names of ``match(refine=...)`` are checked in one place, :func:`check_refine`.
+:class:`~torchfmap.fmap.Refined`, by :func:`torchfmap.match` (through
+:func:`torchfmap.matching.results.refine_result`) and by the learned path: :class:`ICP` (any
+kind), :class:`ZoomOut` (eigenbases), :class:`FixedSizeIterations` (bases that do not nest),
+:class:`SeedMoves` (bases built at corresponding seeds). The refinement names of
+``match(refine=...)`` are checked in one place, :func:`check_refine`.
 """
 
 from __future__ import annotations

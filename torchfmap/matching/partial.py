@@ -1,38 +1,12 @@
 """Partial-to-full matching: a part ``y`` (a scan of one side, a cut limb, a shape with holes)
-matched to a whole shape ``x``, after Partial Functional Maps (Rodolà et al. 2017), in our terms.
+matched to a whole shape ``x``, after Partial Functional Maps (Rodolà et al. 2017).
 
-Why a full-shape map fails on a part, and what this module changes:
-
-- **One frame for both shapes.** :func:`~torchfmap.prepare_shape` puts every mesh in its own
-  unit-area frame, which stretches a part to the size of the whole. Here the part's eigenbasis
-  is expressed in the whole's frame (:func:`common_frame`: the part has area ``a``, the area
-  ratio, and its eigenvalues are divided by ``a``), so the Laplacian commutativity penalty
-  ``(λ_x,i - λ_y,j)² C_ji²`` compares frequencies of the same physical size. On a part of area
-  ``a``, the ``j``-th eigenvalue sits near the ``j / a``-th of the whole (Weyl's law): the
-  penalty is small along a *slanted* diagonal, the structure of partial functional maps.
-- **A rank-limited map.** Restriction to the part maps the whole's first ``k`` eigenfunctions
-  onto the part's eigenfunctions below the whole's ``λ_k``: ``r`` of them
-  (:func:`partial_rank`, about ``k·a``). ``C_xy`` is ``(r, k)``, its rows nearly orthonormal
-  (``C Cᵀ ≈ I_r``): restriction keeps norms of functions that live on the part.
-- **Descriptors that agree.** A descriptor restricted to the part must equal the part's own.
-  Spectral ones (WKS, HKS) do not: a cut changes every eigenfunction, so they change over the
-  whole part. SHOT (:func:`~torchfmap.descriptors.shot`, at one physical radius) is local: it
-  changes only within its radius of the cut. Landmarks add heat kernels at the same physical
-  times. Both shapes' descriptors are scaled by the whole's column norms.
-- **Refinement restricted to the first ``r`` columns** (:func:`partial_zoomout`): ZoomOut grows
-  ``k`` and the rank with it.
-- **A second pass re-seeded from the first map** (:func:`reseeded_map`): farthest points on the
-  part and their images on the whole become seeds, and every vertex is placed by diffusion
-  functions at the seeds, ``exp(-d²/4t)`` of the geodesic distance ``d`` at a small time ``t``
-  (Varadhan's form of the heat kernel). A seed's function is local: it is the same on the part
-  and on the whole wherever the path to the seed does not cross the cut, where every
-  eigenfunction of the part differs from the whole's. ZoomOut then runs once more from that map,
-  kept unless it raises the geodesic distortion (the guard of every refinement,
-  :func:`~torchfmap.matching.results.keeps_refinement`, the part's distances in the whole's units), and
-  the pass once more after it: ZoomOut corrects what is far off, and blurs what the seeds hold.
-- **The overlap on the whole.** The adjoint of restriction is extension by zero: the part's
-  constant function carried back, ``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, is the band-limited indicator of
-  where the part lies on the whole (``MatchResult.overlap``, in ``[0, 1]``).
+The part's eigenbasis is put in the whole's unit-area frame (:func:`common_frame`), ``C_xy`` is
+rank-limited to ``(r, k)`` (:func:`partial_rank`), descriptors are SHOT at one physical radius
+(plus heat kernels at landmarks), ZoomOut is restricted to the first ``r`` columns
+(:func:`partial_zoomout`), a second pass is re-seeded from the first map (:func:`reseeded_map`),
+and ``MatchResult.overlap`` is the band-limited indicator of the part on the whole
+(:func:`overlap_indicator`). Why each step, and what it reaches: docs/guide.md, "Partial shapes".
 
 Both meshes must be in the same units (the area ratio is read off them).
 """

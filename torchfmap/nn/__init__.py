@@ -5,20 +5,11 @@ Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass, ``(B, V, D)`` featur
 ``(B, K_y, K_x)`` maps ``C_xy``. Padding of a batch is recorded once, in
 :class:`BasisBatch` (``lengths`` vertex counts, ``valid`` column mask).
 
-**The check switch.** Data checks (finite values, index ranges, sortedness, singular systems)
-read tensor values, a host sync on an accelerator. Every function that has them takes
-``check: bool | None = None`` and every layer the same setting: ``None`` runs them on CPU
-inputs and skips them elsewhere, ``True`` / ``False`` force it (:mod:`torchfmap._util.torch_checks`).
-Shape checks always run.
+**The check switch.** Every function with data checks takes ``check: bool | None = None`` and
+every layer the same setting: ``None`` runs them on CPU inputs only, ``True`` / ``False`` force
+it; shape checks always run (:mod:`torchfmap._util.torch_checks`).
 
-Modules: :mod:`~torchfmap.nn.functional`, :mod:`~torchfmap.nn.modules`,
-:mod:`~torchfmap.nn.networks` (the :class:`FeatureNetwork` protocol), :mod:`~torchfmap.nn.inputs`
-(a shape's arrays, read off its :class:`~torchfmap.PreparedShape`), :mod:`~torchfmap.nn.data`,
-:mod:`~torchfmap.nn.config` (the reference recipe and its budget), :mod:`~torchfmap.nn.train`
-(the losses of a pair batch), :mod:`~torchfmap.nn.trainer` (the loop, DDP),
-:mod:`~torchfmap.nn.devices`, :mod:`~torchfmap.nn.checkpoints`, :mod:`~torchfmap.nn.inference`
-(:class:`LearnedMatcher`: a trained network called like :func:`torchfmap.match`),
-:mod:`~torchfmap.nn.item_inference` (point maps, adaptation and evaluation of dataset items).
+What each module holds: docs/architecture.md, "Data flow" (the ``learning`` row).
 """
 
 from . import functional

@@ -37,13 +37,9 @@ from ..fmap.nearest import spread_samples
 from ..mesh import Mesh
 
 #: Vertices above which :class:`~torchfmap.nn.LearnedMatcher` (``coarse='auto'``) runs the
-#: network on a :func:`simplify` of the mesh instead of the mesh itself. On every vertex the
-#: network's features are the most faithful (its inputs are intrinsic and its layers diffuse in a
-#: truncated eigenbasis, so a finer mesh of the same surface gives the same features), but its
-#: inputs, ``max(k_net, 100)`` eigenfunctions, gradient operator and activations all grow with
-#: ``V`` (several KB per vertex, on top of what the map and ZoomOut need): below this size that
-#: stays within a few GB per shape, above it the simplification keeps the network's share fixed
-#: (``python -m bench learned --case dense`` measures both routes).
+#: network on a :func:`simplify` of the mesh instead of the mesh itself: the network's inputs,
+#: eigenfunctions, gradient operator and activations grow with ``V``, the simplification keeps
+#: their share fixed (``python -m bench learned --case dense`` measures both routes).
 DENSE_NETWORK_VERTICES = 400_000
 #: Vertices of the simplification the network runs on (:func:`simplify`): fine enough that thin
 #: parts (fingers, tails) keep their topology in the Voronoi dual, so the network sees a clean

@@ -9,15 +9,9 @@ padding: ``valid (B, K)``, ``lengths (B,)``). The solve itself is
 The tangent-frame gradient operations (:class:`GradientBatch`, :func:`spatial_gradient`,
 :func:`gradient_features`) live in :mod:`torchfmap.nn.gradients` and are re-exported here.
 
-**Checks** (:mod:`torchfmap._util.torch_checks`, the one home of the torch-side checks). Shape checks
-always run. Data checks read tensor values, which on an accelerator waits for the device (a
-host sync): finite features, index ranges of gradient operators and ground-truth rows,
-sortedness of the operators' edges, vertex counts, singular systems. Every function with one
-takes ``check: bool | None = None``: ``None`` runs them on CPU tensors and skips them on other
-devices, ``True`` / ``False`` force it. The layers (:mod:`~torchfmap.nn.modules`,
-:mod:`~torchfmap.nn.networks`) take the same ``check`` setting and pass it on, so a layer and
-its function refuse the same inputs. Unchecked, a bad input gives non-finite or wrong values
-instead of an error: pass ``check=True`` to debug on a GPU. Nothing global is read.
+**Checks**: the ``check`` switch of :mod:`torchfmap._util.torch_checks` (data checks on CPU
+tensors by default, shape checks always). Unchecked, a bad input gives non-finite or wrong
+values instead of an error: pass ``check=True`` to debug on a GPU.
 """
 
 from __future__ import annotations
@@ -317,25 +311,20 @@ def soft_map_to_fmap(pi_yx: torch.Tensor, basis_x: BasisBatch, basis_y: BasisBat
 
 
 # -- losses ------------------------------------------------------------------------------------
-def _valid_eye(valid: torch.Tensor) -> torch.Tensor:
-    return torch.diag_embed(valid)
+def _valid_eye(valid: torch.Tensor | None, k: int, like: torch.Tensor) -> torch.Tensor:
+    """``diag(valid)`` (the identity on a batch's valid columns), or ``I_k`` without padding."""
+    return torch.eye(k, dtype=like.dtype, device=like.device) if valid is None else torch.diag_embed(valid)
 
 
 def orthogonality_loss(C_xy: torch.Tensor, valid_x: torch.Tensor | None = None) -> torch.Tensor:
     """``mean_b ‖C_xyᵀ C_xy - I‖²_F`` (area preservation)."""
-    eye = (
-        _valid_eye(valid_x)
-        if valid_x is not None
-        else torch.eye(C_xy.shape[-1], dtype=C_xy.dtype, device=C_xy.device)
-    )
+    eye = _valid_eye(valid_x, C_xy.shape[-1], C_xy)
     return ((C_xy.transpose(-1, -2) @ C_xy - eye) ** 2).sum(dim=(-2, -1)).mean()
 
 
 def bijectivity_loss(C_xy: torch.Tensor, C_yx: torch.Tensor, valid_x=None, valid_y=None) -> torch.Tensor:
     """``mean_b ‖C_yx C_xy - I‖² + ‖C_xy C_yx - I‖²``."""
-    kx, ky = C_xy.shape[-1], C_xy.shape[-2]
-    ex = _valid_eye(valid_x) if valid_x is not None else torch.eye(kx, dtype=C_xy.dtype, device=C_xy.device)
-    ey = _valid_eye(valid_y) if valid_y is not None else torch.eye(ky, dtype=C_xy.dtype, device=C_xy.device)
+    ex, ey = _valid_eye(valid_x, C_xy.shape[-1], C_xy), _valid_eye(valid_y, C_xy.shape[-2], C_xy)
     a = ((C_yx @ C_xy - ex) ** 2).sum(dim=(-2, -1))
     b = ((C_xy @ C_yx - ey) ** 2).sum(dim=(-2, -1))
     return (a + b).mean()

@@ -7,7 +7,6 @@ inputs, off elsewhere; see :mod:`torchfmap.nn.functional`) and pass it on."""
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from torch import nn
 
@@ -40,17 +39,16 @@ def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
     """
     if not basis.orthonormal:
         raise ParameterError("the basis must be B-orthonormal. Fix: orthonormalize(basis) first.")
-    mass = sp.csr_matrix(basis.mass)
-    check_lumped_mass(mass, "torch layers")
+    mass = np.asarray(check_lumped_mass(basis.mass, "torch layers"), dtype=np.float64)
     if basis.stiffness is None:
         raise ParameterError("the basis needs its stiffness matrix (for W = Φᵀ L Φ).")
-    area = float(mass.diagonal().sum())
+    area = float(mass.sum())
     if not np.isfinite(area) or area <= 0:
         raise ParameterError(f"the basis' mass sums to {area}, not an area. Fix: check its mass matrix.")
     lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
     return {
         "values": basis.values * np.sqrt(area),
-        "mass": mass.diagonal() / area,
+        "mass": mass / area,
         "lam": lam.numpy() * area,
         "U": U.numpy(),
     }

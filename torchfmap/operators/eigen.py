@@ -54,16 +54,12 @@ def start_vector(n: int) -> np.ndarray:
     return np.random.default_rng(0).standard_normal(n)
 
 
-#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``). Below,
-#: ARPACK's single-vector solves are cheap and the block method's Gram-Schmidt products
-#: cost more than they save (the crossover is measured by ``python -m bench speed --case eigenpairs``,
-#: results in
-#: ``bench/results/eigenpairs.md``).
+#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``); below it
+#: ARPACK's single-vector solves cost less (``python -m bench speed --case eigenpairs``).
 BLOCK_MIN_WORK = 3_000_000
-#: Below this many vertices block Lanczos runs with one BLAS thread. Its solves are
-#: single-threaded, and a second BLAS thread, spinning after each thin Gram-Schmidt product,
-#: takes the core they run on; on large meshes the products are large enough to gain from
-#: threads (``python -m bench speed --case eigenpairs --set threads=1``, ``bench/results/eigenpairs.md``).
+#: Below this many vertices block Lanczos runs with one BLAS thread: a second one, spinning after
+#: each thin Gram-Schmidt product, takes the core its single-threaded solves run on
+#: (``python -m bench speed --case eigenpairs --set threads=1``).
 BLOCK_ONE_THREAD_BELOW = 100_000
 #: Shift of the block Lanczos factorisation ``L + s B`` on a unit-area surface. The null
 #: space (``λ = 0``) then maps to ``1/s``: a modest shift keeps the dynamic range ``1 + λ_k/s``

@@ -44,7 +44,13 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .._util.checks import check_symmetric, check_tolerance, check_vertex_indices, lumped_diagonal
+from .._util.checks import (
+    check_symmetric,
+    check_times,
+    check_tolerance,
+    check_vertex_indices,
+    lumped_diagonal,
+)
 from ..errors import ParameterError
 from .eigen import eigenpairs
 from .krylov import krylov_heat
@@ -181,9 +187,7 @@ def heat_apply(
     """
     L, B = operators
     tol = check_tolerance(tol)
-    times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
-    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(times <= 0):
-        raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}.")
+    times = check_times(abs_times)
     if method not in METHODS:
         raise ParameterError(f"unknown heat method {method!r}. Fix: use one of {METHODS}.")
     X = np.asarray(X, dtype=np.float64)
@@ -279,9 +283,7 @@ def heat_kernels(
     n = L.shape[0]
     tol = check_tolerance(tol)
     seeds = check_vertex_indices(seeds, n, "seeds")
-    times = np.atleast_1d(np.asarray(abs_times, dtype=np.float64))
-    if times.size == 0 or np.any(~np.isfinite(times)) or np.any(times <= 0):
-        raise ParameterError(f"diffusion times must be finite and > 0, got {times.tolist()}. Fix: t > 0.")
+    times = check_times(abs_times)
     check_symmetric(L, "heat kernels", "laplacian(mesh, scheme='cotan') or scheme='robust'")
     if not local or method == "spectral":
         X0 = _initial(B, seeds, n, kernel)

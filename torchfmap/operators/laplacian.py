@@ -1,26 +1,14 @@
 """Discrete Laplace-Beltrami operators: stiffness ``L`` and mass ``B``.
 
-Sign convention: ``L`` is the *weak* (integrated) operator ``-Δ``: symmetric (for ``cotan`` and
-``robust``), **positive semidefinite**, rows summing to zero, ``L_ij = -w_ij`` off the diagonal
-and ``L_ii = Σ_j w_ij``. The generalised eigenproblem ``L φ = λ B φ`` then has ``λ >= 0``,
-``λ ≈ l(l+1)`` on the unit sphere. ``-L`` is the negative semidefinite matrix that some texts
-call "the" cotangent Laplacian; pass ``-L`` where such code is expected.
-
-Schemes (``laplacian(mesh, scheme=...)``):
-
-- ``cotan``: ``w_ij = (cot α_ij + cot β_ij) / 2`` (Pinkall-Polthier / Meyer et al.). Negative
-  for obtuse opposite angles, so discrete harmonic functions can undulate.
-- ``robust``: intrinsic Delaunay cotan weights of the tufted cover (Sharp & Crane 2020, package
-  ``robust-laplacian``): non-negative, works on non-manifold meshes and point clouds. Its mass
-  is the lumped intrinsic mass, whatever ``mass`` asks for.
-- ``mean_value``: Floater's ``w_ij = (tan(α_ij/2) + tan(β_ij/2)) / |x_i - x_j|`` with
-  ``α, β`` the angles *at x_i* beside edge ``ij``: always positive, **not symmetric**. Use it
-  for harmonic bases (maximum principle holds); it is not a self-adjoint operator, so do not
-  use it for eigenbases or heat kernels.
-
-Mass (``B``, ``mass=...``): ``voronoi`` (mixed Voronoi areas of Meyer et al., lumped, default),
-``barycentric`` (a third of each incident triangle, lumped), ``fem`` (consistent P1 mass
-matrix, not diagonal). All sum to the surface area.
+``L`` is the weak (integrated) ``-Δ``: positive semidefinite, rows summing to zero, so
+``L φ = λ B φ`` has ``λ >= 0``; pass ``-L`` where a negative semidefinite Laplacian is expected.
+Schemes (``laplacian(mesh, scheme=...)``): ``cotan`` (symmetric, negative weights on obtuse
+angles), ``robust`` (intrinsic Delaunay, package ``robust-laplacian``: non-negative, any mesh or
+point cloud; its mass is always the lumped intrinsic mass) and ``mean_value`` (Floater's
+weights at ``x_i``: positive, **not symmetric**, for harmonic bases only, never eigenbases or
+heat kernels). Masses (``mass=...``): ``voronoi`` (default) and ``barycentric`` (lumped),
+``fem`` (consistent); all sum to the surface area. Table and sign convention: docs/guide.md,
+"Operators and conventions".
 """
 
 from __future__ import annotations

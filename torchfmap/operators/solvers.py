@@ -1,25 +1,12 @@
 """Sparse direct solvers: factorise once, solve many right-hand sides.
 
-Backends, in the order ``backend='auto'`` tries them for symmetric positive definite systems:
-
-``cholespy``
-    A self-contained pip wheel bundling CHOLMOD; installed by the ``fast`` and ``dev`` extras.
-    Preferred for its solves (no Python-side copies), which dominate Krylov heat kernels and
-    harmonic bases (many right-hand sides).
-``cholmod``
-    ``scikit-sparse`` (CHOLMOD, supernodal). Needs SuiteSparse headers to build (``apt-get
-    install libsuitesparse-dev; pip install scikit-sparse==0.4.16``), so it is optional.
-``splu``
-    ``scipy.sparse.linalg.splu`` (SuperLU), always available, also for non-symmetric and
-    complex systems. For SPD systems we call it in symmetric mode (minimum degree on A+A^T, no
-    pivoting), which makes it competitive with CHOLMOD on well-ordered meshes.
-
-Factorisation and solve times of every installed backend: ``python -m bench speed --case operators``
-(tables in
-``bench/results/operators.md``).
-
-Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the matrix not
-positive definite falls back to ``splu`` under ``auto`` and raises under an explicit backend.
+``backend='auto'`` tries, for symmetric positive definite systems, ``cholespy`` (a wheel
+bundling CHOLMOD, the ``fast`` and ``dev`` extras), ``cholmod`` (``scikit-sparse``, optional:
+needs SuiteSparse headers), then ``splu`` (SuperLU, always present; symmetric mode for SPD
+systems). Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the
+matrix not positive definite falls back to ``splu`` under ``auto`` and raises under an explicit
+backend. Install notes: docs/guide.md, "Sparse solvers"; times of every installed backend:
+``python -m bench speed --case operators``.
 """
 
 from __future__ import annotations
