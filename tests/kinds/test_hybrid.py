@@ -29,7 +29,10 @@ def test_hybrid_map_is_block_diagonal_and_zoomout_grows_only_the_eigen_block():
     np.testing.assert_array_equal(raw.C_xy[:k_e, k_e:], 0.0)
     np.testing.assert_array_equal(raw.C_xy[k_e:, :k_e], 0.0)
     np.testing.assert_array_equal(raw.C_xy[k_e:, k_e:], np.eye(k_f))  # same kernels at the same seeds
-    refined = match(x, y, landmarks=lm, basis="hybrid", k=20, refine="zoomout", k_final=30)
+    shapes = prepare_shape(x, 30), prepare_shape(y, 30)
+    start = match(x, y, landmarks=lm, basis="hybrid", k=20, shapes=shapes)
+    refiner = kind.refiner("zoomout", k_final=30, n_fixed=len(lm), landmarks=lm)  # unguarded: the mechanism
+    refined = refiner(start.C_xy, start.p2p_yx, *shapes, start.basis_x, start.basis_y, start.seeds)
     eigen, feature = split_blocks(refined.basis_x)
     assert (eigen.k, feature.k) == (30 - k_f, k_f)
     gt = Correspondence(np.arange(x.n_vertices), np.arange(y.n_vertices))
