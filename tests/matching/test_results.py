@@ -60,8 +60,18 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     assert not dropped.refined and dropped.distortion == start.distortion
     assert dropped.refine_check.score == "distortion" and not dropped.refine_check.kept
     np.testing.assert_array_equal(dropped.p2p_yx, start.p2p_yx)
-    unguarded = refine_result(match(x, y, basis="laplacian", k=20, shapes=shapes), scattering, *shapes)
-    assert unguarded.refined and unguarded.refine_check is None  # no landmarks, no score: kept
+    # without landmarks the distortion judges too (computed for the start and the refined map)
+    plain = match(x, y, basis="laplacian", k=20, shapes=shapes)
+    dropped = refine_result(plain, scattering, *shapes)
+    assert not dropped.refined and dropped.distortion is None  # None: the match had no landmarks
+    check = dropped.refine_check
+    assert check.score == "distortion" and not check.kept
+    assert (
+        check.before == pytest.approx(geodesic_distortion(*shapes, plain.p2p_yx))
+        and check.after > check.before
+    )
+    kept = refine_result(plain, KINDS["laplacian"].refiner("zoomout", k_final=40), *shapes)
+    assert kept.refined and kept.refine_check.kept and kept.distortion is None
     with pytest.raises(ParameterError, match="unrefined result"):
         refine_result(refined, refiner, *shapes)
 

@@ -12,10 +12,9 @@ refinement only if the best evidence at hand does not say it made the map worse
   from their partners on average (:func:`~torchfmap.matching.landmark_default.refinement_scores`).
   This sees what the distortion cannot: on non-isometric pairs a map can move away from the
   truth while its geodesic distortion falls.
-- else the **geodesic distortion** (:func:`~torchfmap.matching.quality.geodesic_distortion`)
-  with landmarks, as partial matching's passes use it with or without.
-- without landmarks on whole shapes nothing judges a refinement: it is kept, and the result
-  says so (``refine_check`` None).
+- else (fewer landmarks, none, or given bases) the **geodesic distortion**
+  (:func:`~torchfmap.matching.quality.geodesic_distortion`), as partial matching's passes use it:
+  a refinement that raises it by more than its resolution is dropped.
 """
 
 from __future__ import annotations
@@ -78,9 +77,9 @@ def refine_result(
     builds it) on the prepared shapes it was solved on, under the one guard (see the module):
     ``held_out`` ``(raw, refined)``: the cross-validated held-out landmark errors
     (:func:`~torchfmap.matching.landmark_default.refinement_scores`), which decide before the
-    refiner runs; else, with landmarks (``result.distortion`` set), the geodesic distortion
-    after the refinement. A dropped refinement returns the start's map with ``refined=False``;
-    ``refine_check`` holds the evidence either way.
+    refiner runs; else the geodesic distortion of the start (``result.distortion`` where the
+    match had landmarks, else computed) and of the refined map. A dropped refinement returns
+    the start's map with ``refined=False``; ``refine_check`` holds the evidence either way.
 
     Raises:
         ParameterError: ``result`` was refined already; or as the refiner.
@@ -102,19 +101,21 @@ def refine_result(
             result.C_xy, result.p2p_yx, shape_x, shape_y, result.basis_x, result.basis_y, result.seeds
         )
     after = None
-    if refined is not None and result.distortion is not None:
+    if refined is not None and (check is None or result.distortion is not None):
         after = geodesic_distortion(shape_x, shape_y, refined.p2p_yx)
-        if check is None:
-            check = RefineCheck(
-                "distortion", result.distortion, after, keeps_refinement(result.distortion, after)
-            )
+    if refined is not None and check is None:  # the distortion judges, with or without landmarks
+        before = result.distortion
+        if before is None:
+            before = geodesic_distortion(shape_x, shape_y, result.p2p_yx)
+        check = RefineCheck("distortion", before, after, keeps_refinement(before, after))
     timings["refine"] = time.perf_counter() - t0
     if refined is None or (check is not None and not check.kept):  # worse by the score: the start
         return dataclasses.replace(result, timings=timings, refine_check=check)
     C, p2p, bx, by, seeds = refined
+    distortion = after if result.distortion is not None else None  # set with landmarks, as solved
     return dataclasses.replace(
         result, p2p_yx=p2p, C_xy=C, basis_x=bx, basis_y=by, seeds=seeds, timings=timings,
-        distortion=after, refined=True, refine_check=check,
+        distortion=distortion, refined=True, refine_check=check,
     )  # fmt: skip
 
 
@@ -128,7 +129,7 @@ class MatchResult:
     With landmarks, ``distortion`` is the map's :func:`~torchfmap.matching.quality.geodesic_distortion`
     (units of ``sqrt(area)``; None without landmarks) and ``refined`` whether the refinement was
     kept (one the guard drops leaves ``p2p_yx`` the initial map; ``refine_check``, a
-    :class:`RefineCheck`, says by which score, or None where nothing judged it). The landmark
+    :class:`RefineCheck`, says by which score and its figures). The landmark
     default also fills ``candidates``: each kind it solved in
     (:data:`~torchfmap.matching.pipeline.AUTO_KINDS`), by name, with its own result; ``skipped`` names the
     kinds that could not be built on these meshes, with the reason, and ``fold_scores`` each

@@ -20,7 +20,7 @@ from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, check_refine, pair_samplings
 from ..matching.checks import check_meshes, check_unused, warn_if_partial
 from ..matching.partial import match_partial
-from ..matching.results import MatchResult
+from ..matching.results import MatchResult, refine_result
 from ..mesh import Mesh
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
@@ -401,11 +401,9 @@ class LearnedMatcher:
         result = MatchResult(p2p, C_xy, bx, by, p2p, timings, kind=cfg.basis, model=self.name)
         if refine is None:
             return result
-        t0 = time.perf_counter()
         feats = tuple(f[0].to(torch.float64).cpu().numpy() for f in (fx, fy))
-        refined = _zoomout(p2p, shapes, k0, k_final, feats)
-        timings["refine"] = time.perf_counter() - t0
-        return MatchResult(
-            refined.p2p_yx, refined.C_xy, refined.basis_x, refined.basis_y, p2p, timings, kind=cfg.basis,
-            refined=True, model=self.name,
-        )  # fmt: skip
+
+        def refiner(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None):
+            return _zoomout(p2p_yx, (shape_x, shape_y), k0, k_final, feats)
+
+        return refine_result(result, refiner, *shapes)  # the one guard
