@@ -44,7 +44,9 @@ def test_a_part_matched_with_itself_is_the_identity_on_all_of_it(blob_cuts):
     np.testing.assert_array_equal(r.p2p_yx, np.arange(part.n_vertices))
     mass = _mass(part)
     everything = np.arange(part.n_vertices)
-    assert overlap_iou(r.overlap, everything, mass) == 1.0 and overlap_iou(r.overlap_y, everything, mass) == 1.0
+    assert (
+        overlap_iou(r.overlap, everything, mass) == 1.0 and overlap_iou(r.overlap_y, everything, mass) == 1.0
+    )
     assert r.overlap.shape == r.overlap_y.shape == (part.n_vertices,)
     assert r.overlap.min() >= 0 and r.overlap.max() <= 1
 

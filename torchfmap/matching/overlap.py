@@ -39,9 +39,8 @@ __all__ = ["PairMatchResult", "consistent_core", "match_partial_pair", "trilater
 
 #: Anchors of :func:`consistent_core`, spread by farthest points over the part.
 CORE_ANCHORS = 100
-#: The share of anchors whose distance a correctly mapped vertex keeps (below the smallest
-#: overlap share the method is meant for, 30 %).
-CORE_QUANTILE = 0.25
+#: The share of the consistent anchors a vertex (or anchor) must agree with to join them.
+CORE_AGREEMENT = 0.5
 #: A kept distance: within this of its image's, in units of the larger part's ``sqrt(area)``.
 CORE_TOLERANCE = 0.02
 #: Seeds of :func:`trilaterate`, spread over the core.
@@ -50,6 +49,8 @@ TRILATERATION_SEEDS = 100
 TRILATERATION_WIDTH = 0.15
 #: Relative residual ``|f_y(v) - f_x(p(v))| / |f_y(v)|`` at which a vertex is half in the overlap.
 OVERLAP_TOLERANCE = 0.15
+#: How far (units of the larger part's ``sqrt(area)``) :func:`settle_seeds` moves a seed's image.
+SEED_RADIUS = 0.05
 #: Rounds of core -> trilateration.
 OVERLAP_ROUNDS = 2
 
@@ -88,18 +89,33 @@ def consistent_core(
     p2p_yx: np.ndarray,
     *,
     n_anchors: int = CORE_ANCHORS,
-    quantile: float = CORE_QUANTILE,
+    agreement: float = CORE_AGREEMENT,
     tolerance: float = CORE_TOLERANCE,
 ) -> np.ndarray:
-    """Bool ``(V_y,)``: the vertices of ``y`` whose geodesic distances to ``n_anchors`` anchors
-    (farthest points of ``y``) agree with their images' on ``x`` within ``tolerance`` (units of
-    ``sqrt(area_x)``) for at least a ``quantile`` share of the anchors (see the module's text)."""
+    """Bool ``(V_y,)``: the vertices of ``y`` mapped consistently with the largest group of
+    mutually consistent anchors (see the module's text).
+
+    Two vertices agree when their geodesic distance on ``y`` and their images' on ``x`` differ
+    by less than ``tolerance`` (units of ``sqrt(area_x)``). Of ``n_anchors`` anchors (farthest
+    points of ``y``), the group is grown greedily in the order of the leading eigenvector of
+    their agreement matrix (spectral matching, Leordeanu and Hebert 2005), each anchor joining
+    if it agrees with at least ``agreement`` of the group; a vertex is in the core if it agrees
+    with at least ``agreement`` of the group. An intrinsic symmetry (left for right) keeps
+    distances too: a region mapped onto its mirror image is consistent in itself, but not with
+    the rest, so one group holds one of them."""
     unit = np.sqrt(shape_x.mesh.area)
     anchors = _spread(shape_y, np.ones(shape_y.mesh.n_vertices, bool), n_anchors)
     d_y = _physical(shape_y, anchors, unit)
     images, inverse = np.unique(p2p_yx[anchors], return_inverse=True)
     d_x = _physical(shape_x, images, unit)[inverse][:, p2p_yx]
-    return np.quantile(np.abs(d_y - d_x), quantile, axis=0) < tolerance
+    agree = np.abs(d_y - d_x) < tolerance  # (A, V_y)
+    pairs = agree[:, anchors] & agree[:, anchors].T
+    lead = np.abs(np.linalg.eigh(pairs.astype(np.float64))[1][:, -1])
+    group: list[int] = []
+    for a in np.argsort(-lead, kind="stable"):
+        if not group or pairs[a, group].mean() >= agreement:
+            group.append(int(a))
+    return agree[group].mean(axis=0) >= agreement
 
 
 def _features(shape: PreparedShape, seeds: np.ndarray, unit: float, width: float) -> np.ndarray:
@@ -112,7 +128,7 @@ def trilaterate(
     shape_y: PreparedShape,
     seeds: np.ndarray,
     *,
-    width: float = TRILATERATION_WIDTH,
+    width: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(p2p_yx, residual_y, p2p_xy, residual_x)`` from ``seeds`` ``(S, 2)`` corresponding pairs
     (vertex of ``x``, vertex of ``y``): each vertex of one part sent to the vertex of the other
@@ -120,6 +136,7 @@ def trilaterate(
     ``sqrt(area_x)`` on both) are nearest its own, and the relative residual
     ``|f(v) - f(p(v))| / |f(v)|`` of each vertex (1 where ``f(v)`` vanishes)."""
     unit = np.sqrt(shape_x.mesh.area)
+    width = TRILATERATION_WIDTH if width is None else width
     f_x = _features(shape_x, seeds[:, 0], unit, width)
     f_y = _features(shape_y, seeds[:, 1], unit, width)
 
@@ -130,6 +147,27 @@ def trilaterate(
         return p2p, np.where(norm > 0, res / np.maximum(norm, 1e-300), 1.0)
 
     return (*one_way(f_y, f_x), *one_way(f_x, f_y))
+
+
+def settle_seeds(
+    shape_x: PreparedShape, shape_y: PreparedShape, seeds: np.ndarray, *, width: float | None = None
+) -> np.ndarray:
+    """``seeds`` ``(S, 2)`` (vertex of ``x``, vertex of ``y``) with each image on ``x`` moved,
+    within :data:`SEED_RADIUS`, to the vertex whose diffusion functions at the *other* seeds are
+    nearest the seed's own on ``y``: in :func:`trilaterate` a seed's function at itself pins
+    its image where it is, right or wrong; left out, the other seeds place it."""
+    unit = np.sqrt(shape_x.mesh.area)
+    width = TRILATERATION_WIDTH if width is None else width
+    f_x = _features(shape_x, seeds[:, 0], unit, width)
+    f_y = _features(shape_y, seeds[:, 1], unit, width)[seeds[:, 1]]
+    out = seeds.copy()
+    reach = np.exp(-((SEED_RADIUS / width) ** 2))  # f_x at the seed's own image, at SEED_RADIUS
+    for i in range(len(seeds)):
+        near = np.flatnonzero(f_x[:, i] >= reach)
+        others = np.arange(len(seeds)) != i
+        cost = np.linalg.norm(f_x[np.ix_(near, others)] - f_y[i, others], axis=1)
+        out[i, 0] = near[np.argmin(cost)]
+    return out
 
 
 def _indicator(residual: np.ndarray, tolerance: float) -> np.ndarray:
@@ -173,6 +211,7 @@ def match_partial_pair(
     rounds: int = OVERLAP_ROUNDS,
     tolerance: float = OVERLAP_TOLERANCE,
     polish: bool = False,
+    settle: bool = True,
 ) -> PairMatchResult:
     """Match two overlapping parts ``x`` and ``y`` of one whole on prepared shapes
     (:func:`torchfmap.match` with ``partial='both'`` prepares them and checks the arguments):
@@ -182,8 +221,11 @@ def match_partial_pair(
     Returns a :class:`PairMatchResult`: ``p2p_yx`` ``(V_y,)``, ``overlap`` ``(V_x,)``,
     ``overlap_y`` ``(V_y,)``; ``C_xy`` the map's functional map ``(r, k_x)`` with ``r`` the
     rank of the overlap (:func:`~.partial.partial_rank` of ``y``'s spectrum in ``x``'s frame,
-    scaled by the estimated overlap share); ``p2p_yx_initial`` the bootstrap map in ``x``
-    (``kind`` ``'partial_pair'``).
+    scaled by the estimated overlap share); ``p2p_yx_initial`` the bootstrap map when ``y`` is
+    the smaller part (else the final map: the bootstrap then maps ``x`` into ``y``); ``kind``
+    ``'partial_pair'``. ``settle``: :func:`settle_seeds` each round; ``polish``: the marked
+    overlap of ``y`` re-matched into ``x`` by :func:`~.partial.match_partial` (tried, not the
+    default: see docs/guide.md).
 
     Raises:
         ParameterError: ``rounds`` < 1 or ``tolerance`` not > 0; or as
@@ -210,15 +252,20 @@ def match_partial_pair(
     if pairs is not None:
         core[pairs[:, 1]] = True
     for _ in range(rounds):
-        if not core.any():  # nothing kept its distances: the bootstrap map is all there is
-            break
+        if not core.any():  # nothing kept its distances: seeds over all of the smaller part
+            core = np.ones_like(core)
         on_small = _spread(small, core, TRILATERATION_SEEDS)
         if pairs is not None:
             on_small = np.concatenate([pairs[:, 1], np.setdiff1d(on_small, pairs[:, 1])])
         on_big = p2p_sb[on_small] if pairs is None else np.concatenate(
             [pairs[:, 0], p2p_sb[on_small[len(pairs):]]]
         )  # fmt: skip
-        p2p_sb, res_small, p2p_bs, res_big = trilaterate(big, small, np.stack([on_big, on_small], axis=1))
+        seeds = np.stack([on_big, on_small], axis=1)
+        if settle:
+            seeds = settle_seeds(big, small, seeds)
+            if pairs is not None:
+                seeds[: len(pairs)] = pairs
+        p2p_sb, res_small, p2p_bs, res_big = trilaterate(big, small, seeds)
         core = res_small < tolerance
     timings["overlap"] = time.perf_counter() - t0
     ov_small, ov_big = _indicator(res_small, tolerance), _indicator(res_big, tolerance)
