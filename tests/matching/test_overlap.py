@@ -51,9 +51,10 @@ def test_a_part_matched_with_itself_is_the_identity_on_all_of_it(blob_cuts):
     assert r.overlap.min() >= 0 and r.overlap.max() <= 1
 
 
-def test_two_cuts_of_the_blob_with_landmarks(blob_cuts):
-    """The blob has few features (its partial-to-full map without landmarks is poor too), so the
-    pair is matched with 5 landmarks on the overlap. Bounds from the problem: marking all of a
+@pytest.mark.parametrize("n_landmarks", [0, 5])
+def test_two_cuts_of_the_blob(blob_cuts, n_landmarks):
+    """Two plane cuts of the blob, without landmarks and with 5 on the overlap (the blob has few
+    features: landmarks help it most). Bounds from the problem: marking all of a
     part gives IoU = its overlap share, so an estimate that locates the overlap beats that
     share; the map on the marked overlap is off by less than the overlap's own extent (a tenth
     of the whole's sqrt(area), against a region about 0.4 of it across), and far below a random
@@ -62,8 +63,8 @@ def test_two_cuts_of_the_blob_with_landmarks(blob_cuts):
     in_a, in_b = np.isin(a.vertices, b.vertices), np.isin(b.vertices, a.vertices)
     on_b = {v: j for j, v in enumerate(b.vertices)}
     common = np.flatnonzero(in_a)
-    pick = common[np.linspace(0, len(common) - 1, 5).astype(int)]
-    landmarks = np.array([[i, on_b[a.vertices[i]]] for i in pick])
+    pick = common[np.linspace(0, len(common) - 1, max(n_landmarks, 1)).astype(int)]
+    landmarks = np.array([[i, on_b[a.vertices[i]]] for i in pick]) if n_landmarks else None
     r = match(a.mesh, b.mesh, k=20, refine="zoomout", partial="both", landmarks=landmarks)
     mass_a, mass_b = _mass(a.mesh), _mass(b.mesh)
     share_a, share_b = mass_a[in_a].sum() / mass_a.sum(), mass_b[in_b].sum() / mass_b.sum()

@@ -8,16 +8,19 @@ whole) holds only on the overlap. The steps (why each, and what they reach: docs
 1. **bootstrap**: the smaller part matched into the larger by :func:`~.partial.match_partial` (the
    roles only set the rank schedule and the common frame). Its map is right on most of the
    overlap; the rest of the smaller part is forced somewhere onto the larger one.
-2. **core** (:func:`consistent_core`): a vertex whose geodesic distances to anchors spread over the
-   part agree with those of its image, for at least a quarter of the anchors, is taken as
-   correctly mapped: on the overlap, distances to the anchors that are also on it (30-70 % of
-   them) are kept by the true map; a vertex forced onto the other part keeps few.
-3. **trilateration** (:func:`trilaterate`): seeds spread over the core and their images; every
-   vertex of each part gets the vertex of the other whose diffusion functions ``exp(-d²/σ²)`` at
-   the seeds are nearest its own, and its relative residual. A vertex of the overlap has an
-   exact twin (the same distances to every seed, up to the cuts' detours); a vertex off it has
-   none. The residual below :data:`OVERLAP_TOLERANCE` is the overlap on each part, and a new
-   core for the next round (:data:`OVERLAP_ROUNDS` in all).
+2. **core** (:func:`consistent_core`): the vertices mapped consistently with the largest group
+   of mutually consistent anchors. The true map keeps geodesic distances on the overlap; a
+   vertex forced onto the other part keeps few; a region mapped onto its mirror image (an
+   intrinsic symmetry) keeps them within itself but not with the rest, so the group is grown
+   from the leading eigenvector of the anchors' agreement matrix (spectral matching).
+3. **trilateration** (:func:`trilaterate`): seeds spread over the core and their images,
+   each image first re-placed by the other seeds (:func:`settle_seeds`); every vertex of each
+   part gets the vertex of the other whose diffusion functions ``exp(-d²/σ²)`` at the seeds are
+   nearest its own, and its relative residual. A vertex of the overlap has an exact twin (the
+   same distances to every seed, up to the cuts' detours); a vertex off it has none. The
+   residual below :data:`OVERLAP_TOLERANCE` is the overlap on each part, and the next round's
+   core (:data:`OVERLAP_ROUNDS` in all). The same seeds give both directions, so the overlap is
+   estimated on both parts at once.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from ..fmap.nearest import search_p2p
 from .partial import AREA_SLACK, MIN_AREA_RATIO, common_frame, match_partial, partial_rank
 from .results import MatchResult
 
-__all__ = ["PairMatchResult", "consistent_core", "match_partial_pair", "trilaterate"]
+__all__ = ["PairMatchResult", "consistent_core", "match_partial_pair", "settle_seeds", "trilaterate"]
 
 #: Anchors of :func:`consistent_core`, spread by farthest points over the part.
 CORE_ANCHORS = 100
