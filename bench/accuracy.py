@@ -447,9 +447,86 @@ def partial(cfg: Settings, report: Report) -> None:
     )
 
 
+def _whole_errors(shape_w, images, truth) -> np.ndarray:
+    """Geodesic errors on the whole (units of its ``sqrt(area)``) between whole vertices."""
+    out = np.empty(len(images))
+    for u in np.unique(truth):
+        at = truth == u
+        out[at] = shape_w.distances.distances(np.array([u]))[0, images[at]]
+    return out
+
+
+def partial_pairs(cfg: Settings, report: Report) -> None:
+    """Partial-to-partial: two plane cuts of one whole (``overlapping_cuts``: each part's overlap
+    share in ``shares``), matched by ``match(a, b, partial='both')``; overlap IoU on both parts
+    (``overlap_iou`` against the true overlap, the part's vertices whose whole vertex is in the
+    other part) and the geodesic error on the true overlap (on the whole, x100), against each
+    part matched to the whole (``match(whole, part, partial=True)``, same ``k`` and refinement)
+    on the same vertices."""
+    from torchfmap import match
+    from torchfmap.data import demo_pair
+    from torchfmap.data.cuts import overlapping_cuts
+    from torchfmap.evaluate.partial import overlap_iou
+    from torchfmap.io import find_file, load_mesh
+
+    rows = []
+    if cfg.shapes == "demo":
+        wholes = [("demo", demo_pair()[0])]
+    else:
+        folder = require_data(cfg.shapes["folder"])
+        wholes = [(n, load_mesh(find_file(folder, f"{n}.off"))) for n in cfg.shapes["wholes"]]
+    for i, (name, whole) in enumerate(wholes):
+        shape_w = prepare_shape(whole, 2 * cfg.k)
+        cut_a, cut_b = overlapping_cuts(whole, seed=i, shares=tuple(cfg.shares))
+        shape_a, shape_b = (prepare_shape(c.mesh, 2 * cfg.k) for c in (cut_a, cut_b))
+        in_a, in_b = np.isin(cut_a.vertices, cut_b.vertices), np.isin(cut_b.vertices, cut_a.vertices)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t0 = time.perf_counter()
+            r = match(
+                cut_a.mesh, cut_b.mesh, k=cfg.k, refine=cfg.refine, partial="both", shapes=(shape_a, shape_b)
+            )
+            t = time.perf_counter() - t0
+            to_whole = [
+                match(whole, c.mesh, k=cfg.k, refine=cfg.refine, partial=True, shapes=(shape_w, s)).p2p_yx
+                for c, s in ((cut_a, shape_a), (cut_b, shape_b))
+            ]
+        err = _whole_errors(shape_w, cut_a.vertices[r.p2p_yx[in_b]], cut_b.vertices[in_b])
+        marked = r.overlap_y[in_b] > 0.5
+        row = dict(
+            whole=name,
+            share_a=float(shape_a.operators[1].diagonal() @ in_a / shape_a.area),
+            share_b=float(shape_b.operators[1].diagonal() @ in_b / shape_b.area),
+            iou_a=overlap_iou(r.overlap, np.flatnonzero(in_a), shape_a.operators[1]),
+            iou_b=overlap_iou(r.overlap_y, np.flatnonzero(in_b), shape_b.operators[1]),
+            err=100 * float(err.mean()),
+            err_marked=100 * float(err[marked].mean()) if marked.any() else float("nan"),
+            p2f_a=100 * float(_whole_errors(shape_w, to_whole[0][in_a], cut_a.vertices[in_a]).mean()),
+            p2f_b=100 * float(_whole_errors(shape_w, to_whole[1][in_b], cut_b.vertices[in_b]).mean()),
+            time=t,
+        )
+        row["err / p2f"] = row["err"] / max(0.5 * (row["p2f_a"] + row["p2f_b"]), 1e-9)
+        rows.append(row)
+        log(f"{name}: IoU {row['iou_a']:.3f} {row['iou_b']:.3f}, error x100 {row['err']:.2f}")
+        report.rows_csv(rows)
+    keys = [k for k in rows[0] if k != "whole"]
+    mean = {"whole": "mean"} | {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    median = {"whole": "median"} | {k: float(np.median([r[k] for r in rows])) for k in keys}
+    report.table(
+        "Partial-to-partial: overlap IoU on each part, mean geodesic error x100 on the true overlap",
+        [*rows, mean, median],
+        note="share_a/b: the true overlap's share of each part's area; iou_a/b: overlap_iou of overlap / "
+        "overlap_y; err: b's vertices of the true overlap, their images on a against the truth, geodesic "
+        "on the whole; err_marked: those the estimate marks (overlap_y > 0.5); p2f_a/b: each part matched "
+        "to the whole (partial=True), error on the same overlap vertices; err / p2f: err over their mean; "
+        "time: match(partial='both') alone.",
+    )
+
+
 CASES = {
     "partial": partial,
     "partial_smal": partial,
+    "partial_pairs": partial_pairs,
     "bases": bases,
     "landmark_sweep": landmark_sweep,
     "weight_sweep": weight_sweep,

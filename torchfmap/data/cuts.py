@@ -21,7 +21,10 @@ from ..operators.geodesic import geodesic_distances
 #: interval of plane offsets: the ratio is met to within one face's area).
 CUT_STEPS = 60
 
-__all__ = ["Cut", "cut_holes", "cut_plane"]
+#: Draws of :func:`overlapping_cuts` before it gives up.
+OVERLAP_DRAWS = 50
+
+__all__ = ["Cut", "cut_holes", "cut_plane", "overlapping_cuts"]
 
 
 class Cut(NamedTuple):
@@ -99,3 +102,36 @@ def cut_holes(mesh: Mesh, area_ratio: float, n_holes: int = 3, *, seed: int = 0)
     drop = np.zeros(mesh.n_faces, dtype=bool)
     drop[order[removed]] = True
     return _kept_part(mesh, drop)
+
+
+def overlapping_cuts(
+    mesh: Mesh, *, seed: int = 0, shares: tuple[float, float] = (0.3, 0.7), area_ratios=(0.45, 0.85)
+) -> tuple[Cut, Cut]:
+    """Two plane cuts of ``mesh`` that overlap partly (partial-to-partial test data): the first
+    on the negative side of a random normal ``n``, the second on the negative side of
+    ``-n`` plus a random tilt, each keeping an area ratio drawn in ``area_ratios``; drawn with
+    ``seed`` until the overlap (the whole's vertices in both, by lumped area) is within
+    ``shares`` of each part's area, at most :data:`OVERLAP_DRAWS` draws. Part-a vertex ``i`` and
+    part-b vertex ``j`` correspond iff ``a.vertices[i] == b.vertices[j]``.
+
+    Raises:
+        ParameterError: ``shares`` not ``0 <= lo < hi <= 1``, or no draw met them.
+    """
+    lo, hi = shares
+    if not 0 <= lo < hi <= 1:
+        raise ParameterError(f"shares must be 0 <= lo < hi <= 1, got {shares!r}.")
+    rng = np.random.default_rng(seed)
+    area = np.zeros(mesh.n_vertices)
+    np.add.at(area, mesh.faces, np.repeat(mesh.face_areas[:, None] / 3, 3, axis=1))
+    for _ in range(OVERLAP_DRAWS):
+        normal = rng.normal(size=3)
+        other = -normal / np.linalg.norm(normal) + 0.8 * rng.normal(size=3)
+        ra, rb = rng.uniform(*area_ratios, size=2)
+        a, b = cut_plane(mesh, ra, normal=normal), cut_plane(mesh, rb, normal=other)
+        common = area[np.intersect1d(a.vertices, b.vertices)].sum()
+        if all(lo <= common / area[c.vertices].sum() <= hi for c in (a, b)):
+            return a, b
+    raise ParameterError(
+        f"no two plane cuts of {mesh.name or 'the mesh'} overlapping by {lo:g}-{hi:g} of each in "
+        f"{OVERLAP_DRAWS} draws (seed {seed}). Fix: wider shares or area_ratios, or another seed."
+    )

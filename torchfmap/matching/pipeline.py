@@ -32,6 +32,7 @@ from ..kinds.refiners import RefineMethod, check_eigenbases, check_refine
 from ..mesh import Mesh
 from .checks import check_meshes, check_unused, check_zoomout_sizes, given_bases_kind, warn_if_partial
 from .landmark_default import match_landmark_default, refine_guarded
+from .overlap import match_partial_pair
 from .partial import match_partial
 from .quality import warn_collapsed
 from .quality import warn_if_off_by_one as warn_if_off_by_one
@@ -39,6 +40,23 @@ from .results import MatchResult
 from .solve import P2PMode, prepare_shapes, solve_pair
 
 __all__ = ["match"]
+
+
+def check_partial(partial) -> bool | str:
+    """``partial`` as ``match`` takes it: False, True (``y`` a part of ``x``) or ``'both'`` (two
+    overlapping parts).
+
+    Raises:
+        ParameterError: anything else.
+    """
+    if isinstance(partial, (bool, np.bool_)):
+        return bool(partial)
+    if isinstance(partial, str) and partial == "both":
+        return partial
+    raise ParameterError(
+        f"partial is False, True (y a part of x) or 'both' (two parts of one whole, overlapping partly), "
+        f"got {partial!r}."
+    )
 
 
 def match(
@@ -62,7 +80,7 @@ def match(
     zoomout_samples: int | None = None,
     bases: tuple[Basis, Basis] | None = None,
     shapes: tuple[PreparedShape, PreparedShape] | None = None,
-    partial: bool = False,
+    partial: bool | str = False,
     progress: bool = False,
 ) -> MatchResult:
     """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
@@ -127,8 +145,13 @@ def match(
             in the same units: the partial functional map of :mod:`torchfmap.matching.partial` (the
             eigenbases in one frame, a rank-limited ``C_xy`` ``(r, k)``, ZoomOut within the
             part's rank, SHOT descriptors; ``result.overlap`` ``(V_x,)`` the estimated part on
-            the whole). ``refine`` is ``'zoomout'`` or None; ``basis``, ``bases``, ``times``,
-            ``p2p_mode``, ``zoomout_samples`` and the WKS settings do not apply.
+            the whole). ``'both'``: ``x`` and ``y`` are two parts of one whole that overlap only
+            partly (:mod:`torchfmap.matching.overlap`): the result is a
+            :class:`~torchfmap.matching.overlap.PairMatchResult` with ``overlap`` ``(V_x,)`` and
+            ``overlap_y`` ``(V_y,)``, the estimated overlap on each, and ``p2p_yx`` meant on
+            ``overlap_y > 0.5``. Either way ``refine`` is ``'zoomout'`` or None; ``basis``,
+            ``bases``, ``times``, ``p2p_mode``, ``zoomout_samples`` and the WKS settings do not
+            apply.
         progress: a status line on stderr (tqdm) naming each step as it starts, with the time
             so far (dense meshes take minutes); the command line shows it unless ``--quiet``.
 
@@ -143,6 +166,7 @@ def match(
     with Steps("match", progress) as steps:  # a status line naming each step (progress=True)
         t0 = time.perf_counter()
         check_meshes(mesh_x, mesh_y)
+        partial = check_partial(partial)
         if not partial:
             warn_if_partial(mesh_x, mesh_y)
         refine = check_refine(refine)
@@ -159,8 +183,9 @@ def match(
             unused += ["n_descriptors / k_descriptors"] if (n_descriptors, k_descriptors) != (20, 100) else []
             if unused:
                 raise ParameterError(
-                    f"partial=True solves in the eigenbases with SHOT descriptors and refines by ZoomOut, so "
-                    f"{', '.join(unused)} would not be used. Fix: drop it, or match without partial=True."
+                    f"partial={partial!r} solves in the eigenbases with SHOT descriptors and refines by "
+                    f"ZoomOut, so {', '.join(unused)} would not be used. Fix: drop it, or match without "
+                    f"partial={partial!r}."
                 )
             n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
             k = check_count(k, 1, n_max, "k (basis size)")
@@ -173,7 +198,8 @@ def match(
             prep = time.perf_counter() - t0
             weights = {"w_lap": w_lap, "w_orient": w_orient, "w_dcomm": w_dcomm, "w_lmk": w_lmk}
             steps("partial functional map" + (" and ZoomOut" if refine else ""))
-            result = match_partial(
+            solver = match_partial_pair if partial == "both" else match_partial
+            result = solver(
                 shape_x, shape_y, landmarks=pairs, k=k, refine=refine, k_final=k_final,
                 **{name: w for name, w in weights.items() if w is not None},
             )  # fmt: skip
