@@ -419,6 +419,7 @@ CONCEPT_TESTS = {
     "test_structure.py": "the package's structure: the import DAG, lazy imports, module sizes, one home "
     "per shared helper, error classes in one module, and this layout of the tests",
     "test_docs_names.py": "README.md and docs/*.md against the code: every name they cite exists",
+    "test_docs_claims.py": "the docs' checkable claims against the code: counts, candidate lists, extras",
     "test_readme.py": "the README's code blocks run as a reader would paste them",
     "test_api_coverage.py": "every public callable of every package is exercised by some test file",
     "test_bench.py": "the benchmark runner outside the package (python -m bench): each suite's smallest "
