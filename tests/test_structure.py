@@ -418,8 +418,8 @@ def test_operator_numerics_live_in_operators_only():
 CONCEPT_TESTS = {
     "test_structure.py": "the package's structure: the import DAG, lazy imports, module sizes, one home "
     "per shared helper, error classes in one module, and this layout of the tests",
-    "test_docs_names.py": "README.md and docs/*.md against the code: every name they cite exists",
-    "test_docs_claims.py": "the docs' checkable claims against the code: counts, candidate lists, extras",
+    "test_docs_names.py": "README.md and docs/*.md against the code: every name they cite exists, and "
+    "their checkable claims (counts, candidate lists, extras) hold",
     "test_readme.py": "the README's code blocks run as a reader would paste them",
     "test_api_coverage.py": "every public callable of every package is exercised by some test file",
     "test_bench.py": "the benchmark runner outside the package (python -m bench): each suite's smallest "
