@@ -13,7 +13,7 @@ from torchfmap.evaluate.scores import landmarks_from_gt
 from torchfmap.fmap import Refined
 from torchfmap.kinds import KINDS
 from torchfmap.matching.landmark_default import (
-    CV_MIN_LANDMARKS,
+    CV_REFINE_MIN_LANDMARKS,
     landmark_scores,
     refine_guarded,
     refinement_scores,
@@ -41,7 +41,7 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     ``match(..., refine=...)``; a refiner that scatters the map is dropped (``refined=False``,
     the start kept); a refined result is not refined again."""
     x, y, gt = bent_pair
-    lm = landmarks_from_gt(x, gt, CV_MIN_LANDMARKS - 1)  # too few to hold out: the distortion judges
+    lm = landmarks_from_gt(x, gt, CV_REFINE_MIN_LANDMARKS - 1)  # too few to hold out: the distortion judges
     shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
     start = match(x, y, landmarks=lm, basis="laplacian", k=20, shapes=shapes)
     refiner = KINDS["laplacian"].refiner("zoomout", k_final=40, landmarks=lm)

@@ -50,6 +50,12 @@ AUTO_MARGIN = DISTORTION_RESOLUTION
 CV_FOLDS = 4
 #: The cross-validation needs this many landmarks (each fold then solves with two or more).
 CV_MIN_LANDMARKS = 3
+#: A refinement is cross-validated (:func:`refine_guarded`) from this many landmarks: each of the
+#: :data:`CV_FOLDS` folds then keeps three or more, so its map and its refinement resemble the
+#: whole match's. With 3 or 4, folds of two landmarks said nothing about the full refinement: on
+#: the dev pairs (TOSCA, stretched TOSCA, SMAL_r across species, cat-lion) every refinement they
+#: vetoed at 3 landmarks lowered the error (``bench/results/accuracy_landmark_default_guard_cv.md``).
+CV_REFINE_MIN_LANDMARKS = 5
 #: A cross-validated kind replaces the distortion's choice only when its held-out landmark error
 #: is below this fraction of the chosen kind's: the held-out landmarks are few, so only a clear
 #: verdict overrides the choice (two or three landmarks cannot rank close maps).
@@ -179,7 +185,7 @@ def refine_guarded(
     **solve,
 ) -> MatchResult:
     """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`): with
-    :data:`CV_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the refinement is first
+    :data:`CV_REFINE_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the refinement is first
     cross-validated (:func:`refinement_scores`, the folds solved as ``result`` was: ``k``,
     ``times``, ``p2p_mode``, ``solve``), else judged by the distortion where ``result`` has one.
     ``make_refiner(pairs, bar=False)``: the refiner on these landmarks (``bar``: its progress bar,
@@ -190,7 +196,7 @@ def refine_guarded(
         ParameterError: as the refiner.
     """
     held_out = None
-    if cross_validate and pairs is not None and len(pairs) >= CV_MIN_LANDMARKS:
+    if cross_validate and pairs is not None and len(pairs) >= CV_REFINE_MIN_LANDMARKS:
         held_out = refinement_scores(
             shape_x, shape_y, pairs, kind, k, make_refiner, times=times, p2p_mode=p2p_mode, steps=steps,
             **solve,

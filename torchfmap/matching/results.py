@@ -6,7 +6,7 @@
 refinement only if the best evidence at hand does not say it made the map worse
 (:func:`keeps_refinement`, reported as :class:`RefineCheck`):
 
-- **held-out landmarks** (:data:`~torchfmap.matching.landmark_default.CV_MIN_LANDMARKS` or more):
+- **held-out landmarks** (:data:`~torchfmap.matching.landmark_default.CV_REFINE_MIN_LANDMARKS` or more):
   the refinement is cross-validated: each fold's map, solved without some landmarks, is
   refined without them too, and the refinement is kept unless it moves those landmarks away
   from their partners on average (:func:`~torchfmap.matching.landmark_default.refinement_scores`).
