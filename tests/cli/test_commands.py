@@ -582,5 +582,7 @@ def test_cli_match_says_the_sizes_and_the_refinement_verdict(tmp_path, bent_pair
     ]
     assert main(args) == 0
     line = capsys.readouterr().out
-    assert re.search(r"(refined by zoomout|zoomout dropped) \(refinement (kept|dropped).*: held-out landmark "
-                     r"error \d\.\d{4} -> \d\.\d{4}\)", line), line  # fmt: skip
+    figure = r"\d\.\d{4} -> \d\.\d{4}"
+    verdict = rf"\(refinement (kept|dropped).*: geodesic distortion {figure}, held-out landmark error "
+    verdict += rf"{figure}\)"
+    assert re.search(rf"(refined by zoomout|zoomout dropped) {verdict}", line), line

@@ -26,14 +26,16 @@ def test_the_guard():
     assert keeps_refinement(0.2, 0.2) and keeps_refinement(0.2, 0.1)
     assert keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION))  # a rise within the resolution
     assert not keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION) + 1e-12)
-    # held-out landmark errors of one pair's maps: any rise counts
-    assert RESOLUTION["held-out landmarks"] == 0
-    assert keeps_refinement(0.2, 0.2, "held-out landmarks")
-    assert not keeps_refinement(0.2, 0.2 + 1e-12, "held-out landmarks")
-    with pytest.raises(KeyError):
-        keeps_refinement(0.2, 0.1, "error")
-    text = str(RefineCheck("held-out landmarks", 0.03, 0.04, False))
-    assert "dropped" in text and "held-out landmark error 0.0300 -> 0.0400" in text
+    assert RESOLUTION == DISTORTION_RESOLUTION
+    text = str(RefineCheck(0.05, 0.04, True, (0.03, 0.04)))
+    assert (
+        "kept" in text
+        and "distortion 0.0500 -> 0.0400" in text
+        and "held-out landmark error 0.0300 -> 0.0400" in text
+    )
+    assert RefineCheck(0.05, 0.04, True, (0.03, 0.04)).held_out_worse
+    assert not RefineCheck(0.05, 0.04, True, (0.04, 0.03)).held_out_worse
+    assert not RefineCheck(0.05, 0.04, True).held_out_worse
 
 
 def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
@@ -50,7 +52,7 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
     np.testing.assert_array_equal(refined.p2p_yx, direct.p2p_yx)
     assert refined.refined and direct.refined and "refine" in refined.timings
     assert refined.distortion == pytest.approx(geodesic_distortion(*shapes, refined.p2p_yx))
-    assert direct.refine_check.score == "distortion" and direct.refine_check.kept
+    assert direct.refine_check.kept and direct.refine_check.held_out is None
 
     def scattering(C_xy, p2p_yx, shape_x, shape_y, basis_x, basis_y, seeds=None):
         bad = np.random.default_rng(0).integers(0, x.n_vertices, y.n_vertices)
@@ -58,14 +60,14 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
 
     dropped = refine_result(start, scattering, *shapes)
     assert not dropped.refined and dropped.distortion == start.distortion
-    assert dropped.refine_check.score == "distortion" and not dropped.refine_check.kept
+    assert not dropped.refine_check.kept
     np.testing.assert_array_equal(dropped.p2p_yx, start.p2p_yx)
     # without landmarks the distortion judges too (computed for the start and the refined map)
     plain = match(x, y, basis="laplacian", k=20, shapes=shapes)
     dropped = refine_result(plain, scattering, *shapes)
     assert not dropped.refined and dropped.distortion is None  # None: the match had no landmarks
     check = dropped.refine_check
-    assert check.score == "distortion" and not check.kept
+    assert not check.kept
     assert (
         check.before == pytest.approx(geodesic_distortion(*shapes, plain.p2p_yx))
         and check.after > check.before
@@ -76,11 +78,15 @@ def test_refine_result_is_matchs_refinement_and_drops_a_worse_map(bent_pair):
         refine_result(refined, refiner, *shapes)
 
 
-def test_held_out_landmarks_judge_a_refinement_before_it_runs(bent_pair):
+def test_held_out_landmarks_are_reported_and_warned_of_not_a_veto(bent_pair):
     """With enough landmarks the refinement is cross-validated: each fold's map (solved as
-    ``landmark_scores`` solves it, the same raw held-out error) refined without its held-out
-    landmarks; a refiner that scatters the map moves them away and is dropped without running
-    on the whole map; one that changes nothing ties, and is kept."""
+    ``landmark_scores`` solves it: the same raw held-out error) refined without its held-out
+    landmarks. The figures are reported; the distortion decides (a scattering refiner is dropped
+    by it), and a kept refinement whose folds moved the landmarks away is warned of."""
+    import warnings
+
+    from torchfmap.errors import MapWarning
+
     x, y, gt = bent_pair
     lm = landmarks_from_gt(x, gt, 8)
     shapes = (prepare_shape(x, 40), prepare_shape(y, 40))
@@ -103,15 +109,18 @@ def test_held_out_landmarks_judge_a_refinement_before_it_runs(bent_pair):
     assert raw == pytest.approx(landmark_scores(*shapes, lm, ["laplacian"], 20)["laplacian"], rel=1e-12)
     assert worse > 2 * raw  # scattered maps land far from the held-out partners
     start = match(x, y, landmarks=lm, basis="laplacian", k=20, shapes=shapes)
-    calls.clear()
     dropped = refine_guarded(start, kind, *shapes, lm, 20, make_scattering)
-    assert len(calls) == 4  # the folds only: the whole map is not refined
-    assert not dropped.refined and dropped.refine_check == RefineCheck(
-        "held-out landmarks", raw, worse, False
-    )
+    assert not dropped.refined and not dropped.refine_check.kept  # by the distortion
+    assert dropped.refine_check.held_out[1] > 2 * dropped.refine_check.held_out[0]
     np.testing.assert_array_equal(dropped.p2p_yx, start.p2p_yx)
-    kept = refine_guarded(start, kind, *shapes, lm, 20, make_identity)
-    assert kept.refined and kept.refine_check.kept and kept.refine_check.before == kept.refine_check.after
-    # given bases (no folds): the distortion judges
-    by_distortion = refine_guarded(start, kind, *shapes, lm, 20, make_scattering, cross_validate=False)
-    assert by_distortion.refine_check.score == "distortion" and not by_distortion.refined
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MapWarning)  # equal held-out errors: kept, no word
+        kept = refine_guarded(start, kind, *shapes, lm, 20, make_identity)
+    assert kept.refined and kept.refine_check.held_out[0] == kept.refine_check.held_out[1]
+    # a kept refinement that moved held-out landmarks away: warned of, with its figures
+    with pytest.warns(MapWarning, match=r"held-out landmarks away .* 0\.0100 -> 0\.0200 .*refine=None"):
+        refine_result(start, make_identity(lm), *shapes, held_out=(0.01, 0.02))
+    # too few landmarks, or given bases: no folds
+    few = refine_guarded(start, kind, *shapes, lm[: CV_REFINE_MIN_LANDMARKS - 1], 20, make_identity)
+    given = refine_guarded(start, kind, *shapes, lm, 20, make_identity, cross_validate=False)
+    assert few.refine_check.held_out is None and given.refine_check.held_out is None

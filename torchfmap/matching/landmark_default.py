@@ -50,11 +50,8 @@ AUTO_MARGIN = DISTORTION_RESOLUTION
 CV_FOLDS = 4
 #: The cross-validation needs this many landmarks (each fold then solves with two or more).
 CV_MIN_LANDMARKS = 3
-#: A refinement is cross-validated (:func:`refine_guarded`) from this many landmarks: each of the
-#: :data:`CV_FOLDS` folds then keeps three or more, so its map and its refinement resemble the
-#: whole match's. With 3 or 4, folds of two landmarks said nothing about the full refinement: on
-#: the dev pairs (TOSCA, stretched TOSCA, SMAL_r across species, cat-lion) every refinement they
-#: vetoed at 3 landmarks lowered the error (``bench/results/accuracy_landmark_default_guard_cv.md``).
+#: A refinement is cross-validated (:func:`refine_guarded`, reported, not a veto) from this many
+#: landmarks: each of the :data:`CV_FOLDS` folds then keeps three or more.
 CV_REFINE_MIN_LANDMARKS = 5
 #: A cross-validated kind replaces the distortion's choice only when its held-out landmark error
 #: is below this fraction of the chosen kind's: the held-out landmarks are few, so only a clear
@@ -144,8 +141,8 @@ def refinement_scores(
     ``make_refiner(fold_pairs)`` (the refiner the match runs, built on the fold's landmarks
     ``(L_f, 2)``; called as :func:`~torchfmap.matching.results.refine_result` calls it).
     Returns ``(raw, refined)`` mean held-out errors (units of ``sqrt(area_x)``): whether the
-    refinement moves landmarks it was not given towards their partners or away from them, the
-    evidence :func:`~torchfmap.matching.results.refine_result` keeps or drops a refinement by.
+    refinement moves landmarks it was not given towards their partners or away from them, which
+    :func:`~torchfmap.matching.results.refine_result` reports.
 
     Raises:
         ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs, or as the kind and refiner.
@@ -184,13 +181,13 @@ def refine_guarded(
     steps: Steps = SILENT,
     **solve,
 ) -> MatchResult:
-    """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`): with
-    :data:`CV_REFINE_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the refinement is first
-    cross-validated (:func:`refinement_scores`, the folds solved as ``result`` was: ``k``,
-    ``times``, ``p2p_mode``, ``solve``), else judged by the distortion where ``result`` has one.
+    """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`, the
+    distortion); with :data:`CV_REFINE_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the
+    refinement is also cross-validated and its held-out figures reported (:func:`refinement_scores`,
+    the folds solved as ``result`` was: ``k``, ``times``, ``p2p_mode``, ``solve``).
     ``make_refiner(pairs, bar=False)``: the refiner on these landmarks (``bar``: its progress bar,
-    shown for the whole map's refinement, not the folds'). ``cross_validate=False``: the
-    distortion judges even with enough landmarks (given bases, which folds cannot re-solve).
+    shown for the whole map's refinement, not the folds'). ``cross_validate=False``: no folds
+    (given bases, which folds cannot re-solve).
 
     Raises:
         ParameterError: as the refiner.
