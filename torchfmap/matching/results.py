@@ -9,8 +9,8 @@ kept unless it raises the geodesic distortion past the score's resolution
 or more landmarks the refinement is also cross-validated (each fold's map, solved without some
 landmarks, refined without them too: do they move towards their partners?) and the figures are
 reported (:class:`RefineCheck`, and a warning when a kept refinement moved them away). They
-are not a veto: on the dev pairs, of 13 refinements they would have vetoed, 12 lowered the
-ground-truth error (``docs/guide.md``, "The refinement guard").
+are not a veto: measured as one on the dev pairs, they mostly vetoed refinements that lowered
+the error (``docs/guide.md``, "The refinement guard").
 """
 
 from __future__ import annotations
@@ -110,7 +110,7 @@ def refine_result(
         warnings.warn(
             f"the refinement moved held-out landmarks away from their partners in cross-validation "
             f"(mean error {held_out[0]:.4f} -> {held_out[1]:.4f} sqrt(area)) and was kept, as the geodesic "
-            "distortion did not rise; on the dev pairs this signal foretold a worse map 1 time in 13. Fix: "
+            "distortion did not rise (on the dev pairs this signal rarely foretold a worse map). Fix: "
             "refine=None keeps the unrefined map (result.p2p_yx_initial holds it here).",
             MapWarning,
             stacklevel=4,
