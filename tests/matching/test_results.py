@@ -19,14 +19,13 @@ from torchfmap.matching.landmark_default import (
     refinement_scores,
 )
 from torchfmap.matching.quality import DISTORTION_RESOLUTION, geodesic_distortion
-from torchfmap.matching.results import RESOLUTION, RefineCheck, keeps_refinement, refine_result
+from torchfmap.matching.results import RefineCheck, keeps_refinement, refine_result
 
 
 def test_the_guard():
     assert keeps_refinement(0.2, 0.2) and keeps_refinement(0.2, 0.1)
     assert keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION))  # a rise within the resolution
     assert not keeps_refinement(0.2, 0.2 * (1 + DISTORTION_RESOLUTION) + 1e-12)
-    assert RESOLUTION == DISTORTION_RESOLUTION
     text = str(RefineCheck(0.05, 0.04, True, (0.03, 0.04)))
     assert (
         "kept" in text

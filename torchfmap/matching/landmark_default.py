@@ -65,6 +65,28 @@ def _folds(n_pairs: int, folds: int) -> list[np.ndarray]:
     return [np.arange(n_pairs) % n_folds == fold for fold in range(n_folds)]
 
 
+def _fold_map(shape_x, shape_y, kind: BasisKind, k: int, pairs, held, fold: int, times, fold_maps, solve):
+    """Fold ``fold``'s map of ``kind``, solved without the ``held`` pairs
+    (:func:`~torchfmap.matching.solve.solve_functional_map`); ``fold_maps``: a dict kept by the
+    caller (``(kind, fold) ->`` map), so the basis check and the refinement check of one match
+    solve each fold once."""
+    key = (kind.name, fold)
+    if fold_maps is not None and key in fold_maps:
+        return fold_maps[key]
+    solved = solve_functional_map(
+        shape_x,
+        shape_y,
+        kind,
+        k,
+        landmarks=pairs[~held],
+        times=times if kind.needs_landmarks else None,
+        **solve,
+    )
+    if fold_maps is not None:
+        fold_maps[key] = solved
+    return solved
+
+
 def _check_cv(pairs: np.ndarray) -> None:
     if len(pairs) < CV_MIN_LANDMARKS:
         raise ParameterError(
@@ -83,6 +105,7 @@ def landmark_scores(
     times=None,
     p2p_mode: P2PMode | None = None,
     steps: Steps = SILENT,
+    fold_maps: dict | None = None,
     **solve,
 ) -> dict[str, float]:
     """Cross-validation of the basis by the user's landmarks: for each kind, the mean error at
@@ -93,7 +116,8 @@ def landmark_scores(
     a held-out pair ``(a, b)`` scores ``d_x(p2p_yx[b], a)``, the geodesic distance on ``x`` (in
     units of ``sqrt(area)``) between where the map sends ``b`` and where it should. Kinds that
     cannot be built on a fold are left out. ``times`` go to the feature-aware kinds; ``steps``
-    names each fold as it starts; ``solve``: the other settings of
+    names each fold as it starts; ``fold_maps``: a dict of the fold maps solved so far, read and
+    filled (one match's checks share it); ``solve``: the other settings of
     :func:`~torchfmap.matching.solve.solve_pair`. Returns ``{kind: mean held-out
     error}``.
 
@@ -110,10 +134,9 @@ def landmark_scores(
         try:
             for fold, held in enumerate(every_fold):
                 steps(f"cross-validation: {name}, fold {fold + 1} of {len(every_fold)}")
-                C, bx, by, _, _ = solve_functional_map(
-                    shape_x, shape_y, kind, k, landmarks=pairs[~held],
-                    times=times if kind.needs_landmarks else None, **solve,
-                )  # fmt: skip
+                C, bx, by, _, _ = _fold_map(
+                    shape_x, shape_y, kind, k, pairs, held, fold, times, fold_maps, solve
+                )
                 sent = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode, rows=pairs[held, 1])
                 errors.extend(rows[held, sent])
         except ParameterError:
@@ -134,12 +157,14 @@ def refinement_scores(
     times=None,
     p2p_mode: P2PMode | None = None,
     steps: Steps = SILENT,
+    fold_maps: dict | None = None,
     **solve,
 ) -> tuple[float, float]:
     """The refinement cross-validated by the user's landmarks: the mean held-out landmark error
     (as :func:`landmark_scores`, same folds) of each fold's map, unrefined and refined by
     ``make_refiner(fold_pairs)`` (the refiner the match runs, built on the fold's landmarks
-    ``(L_f, 2)``; called as :func:`~torchfmap.matching.results.refine_result` calls it).
+    ``(L_f, 2)``; called as :func:`~torchfmap.matching.results.refine_result` calls it);
+    ``fold_maps`` as there.
     Returns ``(raw, refined)`` mean held-out errors (units of ``sqrt(area_x)``): whether the
     refinement moves landmarks it was not given towards their partners or away from them, which
     :func:`~torchfmap.matching.results.refine_result` reports.
@@ -155,10 +180,7 @@ def refinement_scores(
     every_fold = _folds(len(pairs), folds)
     for fold, held in enumerate(every_fold):
         steps(f"refinement check: {kind.name}, fold {fold + 1} of {len(every_fold)}")
-        C, bx, by, seeds, _ = solve_functional_map(
-            shape_x, shape_y, kind, k, landmarks=pairs[~held], times=times if kind.needs_landmarks else None,
-            **solve,
-        )  # fmt: skip
+        C, bx, by, seeds, _ = _fold_map(shape_x, shape_y, kind, k, pairs, held, fold, times, fold_maps, solve)
         p2p = kind.to_p2p(C, bx, by, mode, samplings=samplings)
         after = make_refiner(pairs[~held])(C, p2p, shape_x, shape_y, bx, by, seeds).p2p_yx
         raw.extend(rows[held, p2p[pairs[held, 1]]])
@@ -184,7 +206,8 @@ def refine_guarded(
     """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`, the
     distortion); with :data:`CV_REFINE_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the
     refinement is also cross-validated and its held-out figures reported (:func:`refinement_scores`,
-    the folds solved as ``result`` was: ``k``, ``times``, ``p2p_mode``, ``solve``).
+    the folds solved as ``result`` was: ``k``, ``times``, ``p2p_mode``, ``solve``, which may
+    hold its ``fold_maps``).
     ``make_refiner(pairs, bar=False)``: the refiner on these landmarks (``bar``: its progress bar,
     shown for the whole map's refinement, not the folds'). ``cross_validate=False``: no folds
     (given bases, which folds cannot re-solve).
@@ -261,6 +284,8 @@ def match_landmark_default(
     candidates: dict[str, MatchResult] = {}
     skipped: dict[str, str] = {}
 
+    fold_maps: dict = {}  # the folds' maps, solved once for the refinement check and the basis check
+
     def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
         def make_refiner(fold_pairs: np.ndarray, bar: bool = False):
             return kind.refiner(
@@ -271,7 +296,7 @@ def match_landmark_default(
 
         return refine_guarded(
             result, kind, shape_x, shape_y, pairs, k, make_refiner, times=times, p2p_mode=p2p_mode,
-            steps=steps, k_descriptors=k_descriptors, **solve,
+            steps=steps, k_descriptors=k_descriptors, fold_maps=fold_maps, **solve,
         )  # fmt: skip
 
     for name in AUTO_KINDS:
@@ -295,7 +320,9 @@ def match_landmark_default(
     t_cv = time.perf_counter()
     if len(pairs) >= CV_MIN_LANDMARKS:  # the landmarks as the judge: a clear verdict overrides
         cv_solve = dict(solve, k_descriptors=k_descriptors, p2p_mode=p2p_mode, steps=steps)
-        fold_scores = landmark_scores(shape_x, shape_y, pairs, list(candidates), k, times=times, **cv_solve)
+        fold_scores = landmark_scores(
+            shape_x, shape_y, pairs, list(candidates), k, times=times, fold_maps=fold_maps, **cv_solve
+        )
         top = min(fold_scores, key=fold_scores.get) if fold_scores else best
         if best in fold_scores and fold_scores[top] < CV_RATIO * fold_scores[best]:
             best = top

@@ -94,8 +94,9 @@ def match(
     The default basis: without landmarks, the Laplacian eigenbasis. With landmarks, ``match``
     chooses without ground truth (``basis='auto'``, :func:`match_landmark_default`): the map of
     least geodesic distortion among the kinds of :data:`AUTO_KINDS`; ``kind``, ``distortion``
-    and ``candidates`` of the result say what was chosen and why. With landmarks, a refinement
-    that raises the distortion is dropped (the start is kept), for every kind. The
+    and ``candidates`` of the result say what was chosen and why. A refinement that raises the
+    geodesic distortion is dropped (the start is kept), for every kind, with or without
+    landmarks (:func:`~torchfmap.matching.results.refine_result`). The
     feature-aware ``basis='diffusion'`` builds ``k`` heat kernels at corresponding seeds (see
     :func:`match_bases`), whose map is close to the identity; its solve is pulled to ``C = I``
     with weight ``w_prior`` (default :data:`~torchfmap.fmap.defaults.W_PRIOR`; at ``inf`` the

@@ -30,16 +30,13 @@ from .quality import DISTORTION_RESOLUTION, geodesic_distortion
 
 __all__ = ["MatchResult", "RefineCheck", "keeps_refinement", "refine_result"]
 
-#: The resolution of the distortion as a judge of refinements: a rise below it is noise.
-RESOLUTION = DISTORTION_RESOLUTION
-
 
 def keeps_refinement(start: float, refined: float) -> bool:
     """The one refinement guard: a refined map is kept unless its geodesic distortion
     (:func:`~torchfmap.matching.quality.geodesic_distortion`) exceeds its start's by more than
-    :data:`RESOLUTION`, its noise on near-isometric pairs, where ZoomOut that raises it slightly
-    mostly lowers the error."""
-    return refined <= (1 + RESOLUTION) * start
+    :data:`~torchfmap.matching.quality.DISTORTION_RESOLUTION`, its noise on near-isometric
+    pairs, where ZoomOut that raises it slightly mostly lowers the error."""
+    return refined <= (1 + DISTORTION_RESOLUTION) * start
 
 
 @dataclass(frozen=True)
@@ -79,8 +76,8 @@ def refine_result(
     ``get_kind(result.kind).refiner('zoomout', landmarks=pairs)``, as :func:`~torchfmap.match`
     builds it) on the prepared shapes it was solved on, under the one guard (see the module):
     kept unless the geodesic distortion of the start (``result.distortion`` where the match had
-    landmarks, else computed) rises past :data:`RESOLUTION`. ``held_out`` ``(raw, refined)``: the
-    cross-validated held-out landmark errors of this refinement
+    landmarks, else computed) rises past its resolution (:func:`keeps_refinement`).
+    ``held_out`` ``(raw, refined)``: the cross-validated held-out landmark errors of this refinement
     (:func:`~torchfmap.matching.landmark_default.refinement_scores`), reported in
     ``refine_check`` and, when the refinement is kept although they rose, by a
     :class:`~torchfmap.errors.MapWarning` with the figures. A dropped refinement returns the
