@@ -22,6 +22,13 @@ def test_factorize_backends_solve_spd(blob, backend):
     assert x.flags.c_contiguous  # callers update solutions in place with C-order BLAS calls
     x1 = fac.solve(rhs[:, 0])
     assert x1.shape == (blob.n_vertices,) and np.allclose(x1, x[:, 0])
+    out = np.full_like(rhs, np.nan)  # solved in place: every entry written, the same solution
+    assert fac.solve(rhs, out=out) is out
+    np.testing.assert_allclose(out, x, rtol=0, atol=1e-12 * np.abs(x).max())
+    with pytest.raises(ParameterError, match="C-ordered float64"):
+        fac.solve(rhs, out=np.empty((blob.n_vertices, 2)))
+    with pytest.raises(ParameterError, match="real"):
+        fac.solve(rhs + 1j, out=out)
 
 
 def test_factorize_complex_and_nonsymmetric(blob):

@@ -43,19 +43,37 @@ def available_backends() -> list[str]:
 class Factorization:
     """A factorised sparse matrix ``A (n, n)``; :meth:`solve` takes ``(n,)`` or ``(n, k)``."""
 
-    def __init__(self, backend: str, n: int, solve_fn, dtype) -> None:
+    def __init__(self, backend: str, n: int, solve_fn, dtype, solve_into=None) -> None:
         self.backend = backend
         self.n = n
         self._solve = solve_fn
+        self._solve_into = solve_into  # (b, out) -> None, C-ordered float64 arrays, if the backend can
         self.dtype = dtype
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
+    def solve(self, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``x = A^{-1} b`` for ``b`` of shape ``(n,)`` or ``(n, k)``: a C-ordered array of
         ``b``'s shape, whichever backend (SuperLU returns Fortran order for ``(n, k)``; callers
-        update the result in place with BLAS calls that need C order)."""
+        update the result in place with BLAS calls that need C order). ``out``: a C-ordered
+        float64 array of ``b``'s shape the solution is written into (and returned), so a loop
+        of solves allocates nothing; real matrices only.
+
+        Raises :class:`ParameterError` for a right-hand side or ``out`` of the wrong shape."""
         b = np.asarray(b)
         if b.shape[0] != self.n:
             raise ParameterError(f"right-hand side has {b.shape[0]} rows, the matrix has {self.n}.")
+        if out is not None:
+            if out.shape != b.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+                raise ParameterError(
+                    f"out must be a C-ordered float64 array of shape {b.shape}, got {out.dtype} "
+                    f"{out.shape}. Fix: np.empty_like(b, dtype=np.float64)."
+                )
+            if np.iscomplexobj(b) or np.issubdtype(self.dtype, np.complexfloating):
+                raise ParameterError("out= takes a real matrix and right-hand side. Fix: leave out=None.")
+            if self._solve_into is not None:
+                self._solve_into(np.ascontiguousarray(b, dtype=np.float64), out)
+            else:
+                out[...] = self._solve(b)
+            return out
         if np.iscomplexobj(b) and not np.issubdtype(self.dtype, np.complexfloating):
             return self.solve(b.real) + 1j * self.solve(b.imag)
         return np.ascontiguousarray(self._solve(b))
@@ -101,11 +119,11 @@ def _cholespy(a: sp.csc_matrix) -> Factorization:
 
     def solve(b: np.ndarray) -> np.ndarray:
         b = np.ascontiguousarray(b, dtype=np.float64)
-        x = np.zeros_like(b)
+        x = np.empty_like(b)  # every entry is written
         solver.solve(b, x)
         return x
 
-    return Factorization("cholespy", a.shape[0], solve, np.float64)
+    return Factorization("cholespy", a.shape[0], solve, np.float64, solve_into=solver.solve)
 
 
 def factorize(
