@@ -1,6 +1,7 @@
 """Suite ``learned``: trained checkpoints on validation pairs (before / after training, point-map
 rules, ZoomOut, test-time adaptation), where a recipe converges, adaptation's steps x learning
-rate, and the self-seeded second stage.
+rate, the self-seeded second stage, the learned path on dense meshes, and every model under a
+random rotation and scale (``invariance``).
 
 Pairs come from ``bench/pairs.py`` (``sets``: name -> pair specs, ``@faust_val`` etc.; files are
 read through :class:`torchfmap.nn.ShapeDataset` with the checkpoint's recipe, ``cache``: a
@@ -439,5 +440,92 @@ def dense(cfg: Settings, report: Report) -> None:
     report.table(f"{title} ({cfg.threads} thread(s)): seconds with preparation, peak RSS", rows, note=note)
 
 
-CASES = {"checkpoints": checkpoints, "curve": curve, "adapt": adapt_sweep, "stage_two": stage_two}
-CASES["dense"] = dense
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation drawn uniformly from SO(3) (QR of a Gaussian matrix, signs fixed)."""
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def invariance(cfg: Settings, report: Report) -> None:
+    """Every model on its pairs as they come and with the target turned by a random rotation
+    (about its centroid; whole-shape models also scaled by ``scale``), raw and after ZoomOut, and
+    the ratio turned / as is. Models in ``partial_models`` match plane cuts of the target
+    (``ratios`` of its area, ``LearnedMatcher(partial=True)``), turned in the whole's units (a
+    part's area against the whole's tells how partial it is). One rotation per pair and cut,
+    drawn from ``seed``."""
+    import warnings
+
+    from torchfmap.data.cuts import cut_plane
+    from torchfmap.evaluate.scores import Correspondence
+    from torchfmap.operators import DistanceRows
+
+    rows = []
+    for label, path in _checkpoints(cfg.checkpoints):
+        matcher = LearnedMatcher.from_checkpoint(path, device="cpu")
+        partial = label in cfg.partial_models
+        specs = expand(cfg.sets.get(label, cfg.sets["default"]))
+        rng = np.random.default_rng(cfg.seed)
+        errors: dict[tuple[str, str], list[float]] = {}
+        for i, spec in enumerate(specs):
+            pair = Pair(spec).subsample(max_points=cfg.max_points)
+            solver = DistanceRows(pair.x)
+            targets = []
+            if partial:
+                for ratio in cfg.ratios:
+                    cut = cut_plane(pair.y, ratio, seed=i)
+                    inv = np.full(pair.y.n_vertices, -1)
+                    inv[cut.vertices] = np.arange(cut.n_vertices)
+                    keep = inv[pair.gt.idx_y] >= 0
+                    gt = Correspondence(pair.gt.idx_x[keep], inv[pair.gt.idx_y][keep])
+                    targets.append((cut.mesh, gt, 1.0))
+            else:
+                targets.append((pair.y, pair.gt, cfg.scale))
+            for y, gt, scale in targets:
+                R = random_rotation(rng)
+                centre = y.vertices.mean(axis=0)
+                turned = Mesh((y.vertices - centre) @ R.T * scale + centre, y.faces, name=y.name)
+                for how, mesh in (("as is", y), ("turned", turned)):
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        r = matcher(pair.x, mesh, refine="zoomout", partial=partial)
+                    for refine, p2p in (("raw", r.p2p_yx_initial), ("zoomout", r.p2p_yx)):
+                        err = float(geodesic_errors(pair.x, p2p, gt, solver=solver).mean())
+                        errors.setdefault((how, refine), []).append(err)
+                log(
+                    f"{label} {spec}: "
+                    + ", ".join(f"{h} {f} {100 * e[-1]:.2f}" for (h, f), e in errors.items())
+                )
+            pair.free()
+        for refine in ("raw", "zoomout"):
+            still, turned = (100 * nanmean(errors[(h, refine)]) for h in ("as is", "turned"))
+            what = f"plane cuts {cfg.ratios}" if partial else f"whole, scale {cfg.scale}"
+            rows.append(
+                {
+                    "model": label,
+                    "targets": what,
+                    "pairs": len(errors[("as is", refine)]),
+                    "map": refine,
+                    "as is x100": still,
+                    "turned x100": turned,
+                    "turned / as is": turned / still,
+                }
+            )
+    report.table(
+        "Mean geodesic error / sqrt(area) x100 on the source, target as it comes and turned by a random "
+        "rotation (whole shapes also scaled)",
+        rows,
+        note="One uniform random rotation per pair (or cut), about the target's centroid, the same for "
+        "every model; the ratio is the turned error over the as-is error of the same pairs.",
+    )
+    report.rows_csv(rows)
+
+
+CASES = {
+    "checkpoints": checkpoints,
+    "curve": curve,
+    "adapt": adapt_sweep,
+    "stage_two": stage_two,
+    "dense": dense,
+    "invariance": invariance,
+}
