@@ -381,7 +381,7 @@ def partial(cfg: Settings, report: Report) -> None:
                                     shape_w, shape_p, landmarks=lm, k=cfg.k, refine="zoomout",
                                     descriptors=feats or (feats := (
                                         learned.features(whole, shape=shape_w),
-                                        learned.features(cut.mesh, shape=shape_p),
+                                        learned.features(cut.mesh, shape=shape_p, whole=shape_w),
                                     )),
                                 )  # fmt: skip
                             else:

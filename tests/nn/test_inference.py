@@ -326,12 +326,18 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
 
     mesh_x = permuted[0]
     part = cut_plane(mesh_x, 0.6, seed=0).mesh
-    matcher = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")
+    xyz = TrainConfig(**{**TINY.__dict__, "inputs": "wks+xyz"})
+    matcher = LearnedMatcher(build_model(xyz)[0], xyz, device="cpu")
     shapes = (prepare_shape(mesh_x, 20), prepare_shape(part, 20))
     result = matcher(mesh_x, part, partial=True, refine="zoomout", shapes=shapes)
     assert result.kind == "partial" and result.model == matcher.name and result.refined
     assert result.overlap.shape == (mesh_x.n_vertices,) and result.p2p_yx.shape == (part.n_vertices,)
-    feats = (matcher.features(mesh_x, shape=shapes[0]), matcher.features(part, shape=shapes[1]))
+    # the part's coordinate inputs are taken in the whole's frame (where it lies on the whole)
+    feats = (
+        matcher.features(mesh_x, shape=shapes[0]),
+        matcher.features(part, shape=shapes[1], whole=shapes[0]),
+    )
+    assert not np.allclose(feats[1], matcher.features(part, shape=shapes[1]))
     want = match_partial(*shapes, k=TINY.k, refine="zoomout", descriptors=feats)
     np.testing.assert_array_equal(result.p2p_yx, want.p2p_yx)
     tuned = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu", adapt_steps=1)

@@ -10,7 +10,7 @@ import torchfmap.bases.prepared as prepared
 from torchfmap import laplacian_eigenbasis, prepare_shape
 from torchfmap.data import icosphere
 from torchfmap.errors import ParameterError
-from torchfmap.nn import network_inputs, shape_arrays, shape_item
+from torchfmap.nn import coordinates_on, network_inputs, shape_arrays, shape_item
 
 from ..conftest import bumpy_blob, random_rotation
 
@@ -39,6 +39,28 @@ def test_inputs_do_not_depend_on_position_or_size(blob, rng):
     a, b = network_inputs(prepare_shape(blob, 30), 8, 20), network_inputs(prepare_shape(moved, 30), 8, 20)
     np.testing.assert_allclose(b["wks"], a["wks"], atol=1e-6)
     np.testing.assert_allclose(b["xyz"], a["xyz"] @ R.T, atol=1e-10)
+
+
+def test_a_parts_coordinates_in_its_wholes_frame_are_the_wholes_inputs(blob, rng):
+    """A part cut from the whole, lying where it lies: its coordinates in the whole's frame are the
+    whole's inputs at its vertices (the part's own frame scales them by 1 / sqrt(area ratio) and
+    shifts them); a rigid motion of both turns them, a translation leaves them."""
+    from torchfmap.data.cuts import cut_plane
+
+    whole = prepare_shape(blob, 20)
+    cut = cut_plane(blob, 0.5, seed=0)
+    on_whole = coordinates_on(cut.mesh, whole)
+    np.testing.assert_allclose(on_whole, network_inputs(whole, 8, 20)["xyz"][cut.vertices], atol=1e-12)
+    own = network_inputs(prepare_shape(cut.mesh, 20), 8, 20)["xyz"]
+    spread = np.linalg.norm(own - own.mean(axis=0), axis=1).max()
+    assert np.abs(own - on_whole).max() > 0.1 * spread  # not the part's own frame
+    R, t = random_rotation(rng), np.array([1.0, -2.0, 0.5])
+    moved = coordinates_on(
+        cut.mesh.copy(cut.mesh.vertices @ R.T + t), prepare_shape(blob.copy(blob.vertices @ R.T + t), 20)
+    )
+    np.testing.assert_allclose(moved, on_whole @ R.T, atol=1e-10)
+    with pytest.raises(ParameterError, match="prepare_shape"):
+        coordinates_on(cut.mesh, blob)
 
 
 def test_the_eigenbasis_grows_in_place_and_the_laplacian_is_not_rebuilt(blob, monkeypatch):

@@ -27,7 +27,7 @@ from .data import (
 from .devices import resolve_device
 from .functional import BasisBatch, FmapPair, GradientBatch, SoftMaps, TangentGradient
 from .inference import LearnedMatcher
-from .inputs import network_inputs, shape_arrays, shape_item
+from .inputs import coordinates_on, network_inputs, shape_arrays, shape_item
 from .item_inference import adapt, evaluate, predict_p2p
 from .modules import (
     BasisModule,
@@ -89,6 +89,7 @@ __all__ = [
     "class_pairs",
     "collate_pairs",
     "collate_shapes",
+    "coordinates_on",
     "features",
     "functional",
     "network_inputs",

@@ -29,7 +29,7 @@ from .config import TrainConfig, build_solver
 from .data import ShapeBatch
 from .devices import resolve_device
 from .functional import BasisBatch
-from .inputs import K_WKS, SEED_TIMES, has_coordinates, shape_arrays, shape_item
+from .inputs import K_WKS, SEED_TIMES, coordinates_on, has_coordinates, shape_arrays, shape_item
 from .item_inference import adapt, pair_batches, solve_xy
 from .modules import basis_arrays
 from .networks import check_network, features
@@ -241,20 +241,27 @@ class LearnedMatcher:
         coarse = shape.derive(("simplification shape", n), lambda: prepare_shape(simple.mesh, 0))
         return with_eigenpairs(coarse, self._eigenpairs(simple.mesh.n_vertices)), simple
 
-    def _items(self, shape: PreparedShape, index: int) -> tuple[dict, Basis, Simplification | None]:
+    def _items(
+        self, shape: PreparedShape, index: int, whole: PreparedShape | None = None
+    ) -> tuple[dict, Basis, Simplification | None]:
         """``(dataset item, solver basis, simplification)`` of one prepared shape: the network's
         arrays (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) of the shape
         the network runs on (:meth:`_network_shape`), the float64 basis of ``shape`` the map is
         solved in (the same kind's ``shape_basis`` shape_arrays reads) and the simplification
-        (None when the network runs on ``shape``)."""
+        (None when the network runs on ``shape``). ``whole``: coordinate inputs in that shape's
+        frame (:func:`~torchfmap.nn.inputs.coordinates_on`), not ``shape``'s own."""
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
         arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
+        if whole is not None:
+            arrays["xyz"] = coordinates_on(net_shape.mesh, whole)
         dtype = next(self.net.parameters()).dtype
         item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
         return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES), simple
 
-    def features(self, mesh: Mesh, *, shape: PreparedShape | None = None) -> np.ndarray:
+    def features(
+        self, mesh: Mesh, *, shape: PreparedShape | None = None, whole: PreparedShape | None = None
+    ) -> np.ndarray:
         """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
         adaptation, no facings), e.g. as :func:`~torchfmap.matching.partial.match_partial`'s
         ``descriptors`` or for retrieval.
@@ -262,10 +269,14 @@ class LearnedMatcher:
         Args:
             shape: ``prepare_shape(mesh, n)`` to reuse (its eigenbasis is grown in place when
                 the network needs more).
+            whole: for a part of a whole (same units, lying where it lies on the whole), the
+                whole's prepared shape: coordinate inputs are taken in the whole's frame
+                (:func:`~torchfmap.nn.inputs.coordinates_on`), so that they agree with the
+                whole's at the same points; no effect on a model without coordinate inputs.
 
         Raises:
-            ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, or the mesh is too
-                small for the model's ``k``.
+            ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, ``whole`` not a
+                prepared shape, or the mesh is too small for the model's ``k``.
         """
         check_meshes(mesh, mesh)
         need = self._eigenpairs(mesh.n_vertices, network=self._runs_on(mesh))
@@ -275,7 +286,11 @@ class LearnedMatcher:
             raise ParameterError("shape must be prepare_shape(mesh, n) of this mesh.")
         else:
             shape = with_eigenpairs(shape, need)
-        item, _, simple = self._items(shape, 0)
+        if whole is not None and not isinstance(whole, PreparedShape):
+            raise ParameterError(
+                f"whole must be the whole's prepare_shape(mesh, n), got {type(whole).__name__}."
+            )
+        item, _, simple = self._items(shape, 0, whole)
         with torch.no_grad():
             batch, _ = pair_batches(item, item, self.device)
             return _carried(self.net, batch, simple)[0].to(torch.float64).cpu().numpy()
@@ -305,7 +320,10 @@ class LearnedMatcher:
             else (min(self.config.k, min(sizes) - 1), None)
         )
         shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
-        feats = (self.features(mesh_x, shape=shapes[0]), self.features(mesh_y, shape=shapes[1]))
+        feats = (
+            self.features(mesh_x, shape=shapes[0]),
+            self.features(mesh_y, shape=shapes[1], whole=shapes[0]),
+        )
         seconds = time.perf_counter() - t0
         result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
         result.timings = {"prepare+network": seconds, **result.timings}
@@ -338,10 +356,12 @@ class LearnedMatcher:
             partial: ``y`` is a part of ``x`` (same units): the partial functional map of
                 :func:`~torchfmap.matching.partial.match_partial` of the model's ``k`` (ZoomOut to
                 ``k_final``, default ``2k``) with the network's features
-                (:meth:`features`, as each shape lies: no facings) as its descriptors. The
-                features of a part agree with the whole's only where the network's inputs do:
-                coordinate inputs (``--inputs xyz``) do near the part's vertices, WKS (global)
-                does not. The result has ``overlap`` and ``partial_rank`` as ``match``'s.
+                (:meth:`features`, as each shape lies: no facings; the part's coordinate inputs
+                in the whole's frame, ``whole=``) as its descriptors. The features of a part
+                agree with the whole's only where the network's inputs do: coordinate inputs
+                (``--inputs xyz``) do near the part's vertices when the part lies as it lies
+                on the whole, WKS (global) does not. The result has ``overlap`` and
+                ``partial_rank`` as ``match``'s.
 
         Raises:
             ParameterError: inputs that are not meshes, another refinement, ``k_final`` without

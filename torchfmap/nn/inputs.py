@@ -7,6 +7,7 @@ training, inference, ZoomOut refinement and evaluation of a shape share one Lapl
 eigendecomposition:
 
 - :func:`network_inputs`: the input features (standardised WKS, centred unit-area coordinates);
+- :func:`coordinates_on`: a part's coordinate inputs in the frame of the whole it lies on;
 - :meth:`~torchfmap.PreparedShape.gradient`: the intrinsic gradient operator;
 - :func:`shape_arrays`: all of it plus the solver and network bases as numpy arrays (what the
   on-disk cache of :class:`~torchfmap.nn.data.ShapeDataset` stores);
@@ -54,6 +55,27 @@ SEED_TIMES = (0.01, 0.03)
 _ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
 
 
+def coordinates_on(mesh: Mesh, whole: PreparedShape) -> np.ndarray:
+    """``(V, 3)`` float64: ``mesh``'s vertices as coordinate inputs in ``whole``'s input frame
+    (its unit-area frame, centred at its area-weighted centroid: :func:`network_inputs`'s
+    ``'xyz'`` of ``whole``). For a part lying where it lies on the whole, in the whole's units,
+    these are the whole's inputs at the part's points; the part's own frame (its own area and
+    centroid) would scale them by ``1 / sqrt(area ratio)`` and shift them.
+
+    Raises:
+        ParameterError: ``mesh`` not a :class:`~torchfmap.Mesh` or ``whole`` not a
+            :class:`~torchfmap.PreparedShape`.
+    """
+    if not isinstance(mesh, Mesh) or not isinstance(whole, PreparedShape):
+        raise ParameterError(
+            f"coordinates_on(mesh, whole) takes a Mesh and a PreparedShape, got {type(mesh).__name__} "
+            f"and {type(whole).__name__}. Fix: coordinates_on(part, prepare_shape(whole_mesh, n))."
+        )
+    mass = whole.operators.mass.diagonal()
+    centre = (whole.mesh.vertices * mass[:, None]).sum(axis=0) / mass.sum()
+    return (mesh.vertices - centre) * whole.scale
+
+
 def network_inputs(shape: PreparedShape, n_wks: int = 32, k_wks: int = K_WKS) -> dict[str, np.ndarray]:
     """The network's input features of one shape, float64, computed once per shape and
     ``(n_wks, k_wks)`` (cached on ``shape``): ``'wks'`` ``(V, n_wks)`` (the wave-kernel signature
@@ -72,9 +94,7 @@ def network_inputs(shape: PreparedShape, n_wks: int = 32, k_wks: int = K_WKS) ->
         eig = with_eigenpairs(shape, k_wks).eigenbasis
         feats = wks(eig.eigenvalues[:k_wks], eig.values[:, :k_wks], n_wks)
         feats = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-12)
-        mass = shape.operators.mass.diagonal()
-        xyz = shape.frame.vertices
-        return {"wks": feats, "xyz": xyz - (xyz * mass[:, None]).sum(axis=0) / mass.sum()}
+        return {"wks": feats, "xyz": coordinates_on(shape.mesh, shape)}
 
     return shape.derive(("network_inputs", n_wks, k_wks), compute)
 
