@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.csgraph import connected_components
 
-from .errors import MeshError, MeshWarning, _preview
+from .errors import MeshError, MeshWarning, ParameterError, _preview
 from .mesh_checks import (
     MeshReport,
     _as_arrays,
@@ -35,7 +35,12 @@ from .mesh_checks import (
     weld_vertices,
 )
 
-__all__ = ["Mesh", "MeshReport", "orient_faces", "validate_mesh", "weld_vertices"]
+__all__ = ["Mesh", "MeshReport", "orient_faces", "rigid_fit", "validate_mesh", "weld_vertices"]
+
+#: Share of the point pairs a rigid fit keeps at each round (those the last fit placed best).
+RIGID_KEEP = 0.5
+#: Rounds of the trimmed rigid fit.
+RIGID_ROUNDS = 8
 
 
 class Mesh:
@@ -286,3 +291,39 @@ class Mesh:
     def to_trimesh(self):
         """A ``trimesh.Trimesh`` view (``process=False``, same vertex order)."""
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def rigid_fit(
+    points: np.ndarray, targets: np.ndarray, *, keep: float = RIGID_KEEP, rounds: int = RIGID_ROUNDS
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The rotation and translation that place ``points (N, 3)`` on ``targets (N, 3)``
+    (``points @ R.T + t`` near ``targets``): a least-squares fit (Kabsch) repeated ``rounds``
+    times on the ``keep`` share of pairs the previous fit placed best (a trimmed fit, so that a
+    map's wrong pairs and a pose's bent limbs do not pull it). Returns ``(R (3, 3), t (3,),
+    residual)``: ``det R = 1`` (never a reflection) and the mean distance of the kept pairs after
+    the last fit, in the coordinates' units.
+
+    Raises:
+        ParameterError: ``points`` and ``targets`` not both ``(N, 3)`` finite with ``N >= 3``,
+            ``keep`` outside ``(0, 1]`` or ``rounds < 1``.
+    """
+    p, q = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape != q.shape or len(p) < 3:
+        raise ParameterError(
+            f"rigid_fit takes two (N, 3) arrays of the same N >= 3, got {p.shape} and {q.shape}."
+        )
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise ParameterError("rigid_fit: points and targets must be finite.")
+    if not 0 < keep <= 1 or rounds < 1:
+        raise ParameterError(f"rigid_fit needs 0 < keep <= 1 and rounds >= 1, got {keep} and {rounds}.")
+    n_keep = max(3, int(keep * len(p)))
+    kept = np.arange(len(p))
+    for _ in range(rounds):  # bounded: each round refits on the pairs the last one placed best
+        pc, qc = p[kept].mean(axis=0), q[kept].mean(axis=0)
+        u, _, vt = np.linalg.svd((p[kept] - pc).T @ (q[kept] - qc))
+        d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+        R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+        t = qc - R @ pc
+        gaps = np.linalg.norm(p @ R.T + t - q, axis=1)
+        kept = np.argsort(gaps, kind="stable")[:n_keep]
+    return R, t, float(gaps[kept].mean())

@@ -332,10 +332,11 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
     result = matcher(mesh_x, part, partial=True, refine="zoomout", shapes=shapes)
     assert result.kind == "partial" and result.model == matcher.name and result.refined
     assert result.overlap.shape == (mesh_x.n_vertices,) and result.p2p_yx.shape == (part.n_vertices,)
-    # the part's coordinate inputs are taken in the whole's frame (where it lies on the whole)
+    # the part's coordinate inputs are taken in the whole's frame, at the placement kept
+    motion = matcher.placements(*shapes, k=TINY.k)[result.placement]
     feats = (
         matcher.features(mesh_x, shape=shapes[0]),
-        matcher.features(part, shape=shapes[1], whole=shapes[0]),
+        matcher.features(part, shape=shapes[1], whole=shapes[0], motion=motion),
     )
     assert not np.allclose(feats[1], matcher.features(part, shape=shapes[1]))
     want = match_partial(*shapes, k=TINY.k, refine="zoomout", descriptors=feats)
@@ -343,6 +344,43 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
     tuned = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu", adapt_steps=1)
     with pytest.raises(ParameterError, match="adapt"):
         tuned(mesh_x, part, partial=True)
+
+
+def test_a_coordinate_models_part_is_placed_on_its_whole_wherever_it_was_saved(permuted, rng):
+    """A coordinate model's partial map tries the part as it lies and fitted to the classical
+    (rotation-invariant) partial map, and keeps the map a rigid placement explains best: the
+    fitted placement of a turned and moved part is the as-is one composed with the motion (to
+    rounding), so its map is the same; a WKS model places nothing."""
+    from torchfmap.data.cuts import cut_plane
+    from torchfmap.mesh import rigid_fit
+
+    from ..conftest import random_rotation
+
+    mesh_x = permuted[0]
+    part = cut_plane(mesh_x, 0.6, seed=0).mesh
+    R0, t0 = random_rotation(rng), np.array([0.3, -1.0, 2.0])
+    turned = part.copy(part.vertices @ R0.T + t0)
+    xyz = TrainConfig(**{**TINY.__dict__, "inputs": "xyz"})
+    matcher = LearnedMatcher(build_model(xyz)[0], xyz, device="cpu")
+    fits = [
+        matcher.placements(prepare_shape(mesh_x, 20), prepare_shape(p, 20), k=xyz.k)["fitted"]
+        for p in (part, turned)
+    ]
+    np.testing.assert_allclose(fits[1][0] @ R0, fits[0][0], atol=1e-10)
+    np.testing.assert_allclose(fits[1][0] @ t0 + fits[1][1], fits[0][1], atol=1e-10)
+    results = [matcher(mesh_x, p, partial=True, refine="zoomout") for p in (part, turned)]
+    for result, p in zip(results, (part, turned), strict=True):
+        assert set(result.candidates) == {"as it lies", "fitted"}
+        residual = {
+            n: rigid_fit(p.vertices, mesh_x.vertices[c.p2p_yx])[2] for n, c in result.candidates.items()
+        }
+        assert result.placement == min(residual, key=residual.get)
+        np.testing.assert_array_equal(result.p2p_yx, result.candidates[result.placement].p2p_yx)
+    np.testing.assert_array_equal(
+        results[0].candidates["fitted"].p2p_yx, results[1].candidates["fitted"].p2p_yx
+    )
+    wks = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu")(mesh_x, turned, partial=True)
+    assert wks.placement is None and not wks.candidates
 
 
 def test_dataset_item_maps_follow_the_learned_matchers_rule_and_need_the_models_solver(tmp_path):

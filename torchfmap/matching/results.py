@@ -138,7 +138,9 @@ class MatchResult:
     (:func:`~torchfmap.matching.landmark_default.landmark_scores`). ``model`` names the trained network
     that made the map (:class:`torchfmap.nn.LearnedMatcher`; None for :func:`match`). A partial match
     (``match(whole, part, partial=True)``, :mod:`torchfmap.matching.partial`) sets ``overlap`` ``(V_x,)``,
-    the estimated part on the whole in ``[0, 1]``, and ``partial_rank``, the rows of ``C_xy``."""
+    the estimated part on the whole in ``[0, 1]``, and ``partial_rank``, the rows of ``C_xy``; a
+    coordinate model's partial map (:class:`torchfmap.nn.LearnedMatcher`) names the ``placement``
+    of the part on the whole it was solved at, with each placement tried in ``candidates``."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -157,6 +159,7 @@ class MatchResult:
     overlap: np.ndarray | None = None
     partial_rank: int | None = None
     refine_check: RefineCheck | None = None
+    placement: str | None = None
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen

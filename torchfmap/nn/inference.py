@@ -15,13 +15,14 @@ from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
+from ..fmap.defaults import DEFAULT_K
 from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, check_refine, pair_samplings
 from ..matching.checks import check_meshes, check_unused, warn_if_partial
 from ..matching.partial import match_partial
 from ..matching.results import MatchResult, refine_result
-from ..mesh import Mesh
+from ..mesh import Mesh, rigid_fit
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
 from .coarse import Simplification, check_coarse, coarse_size, simplify
@@ -242,25 +243,30 @@ class LearnedMatcher:
         return with_eigenpairs(coarse, self._eigenpairs(simple.mesh.n_vertices)), simple
 
     def _items(
-        self, shape: PreparedShape, index: int, whole: PreparedShape | None = None
+        self, shape: PreparedShape, index: int, whole: PreparedShape | None = None, motion=None
     ) -> tuple[dict, Basis, Simplification | None]:
         """``(dataset item, solver basis, simplification)`` of one prepared shape: the network's
         arrays (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) of the shape
         the network runs on (:meth:`_network_shape`), the float64 basis of ``shape`` the map is
         solved in (the same kind's ``shape_basis`` shape_arrays reads) and the simplification
-        (None when the network runs on ``shape``). ``whole``: coordinate inputs in that shape's
-        frame (:func:`~torchfmap.nn.inputs.coordinates_on`), not ``shape``'s own."""
+        (None when the network runs on ``shape``). ``whole``, ``motion``: coordinate inputs in
+        that shape's frame (:func:`~torchfmap.nn.inputs.coordinates_on`), not ``shape``'s own."""
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
         arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
         if whole is not None:
-            arrays["xyz"] = coordinates_on(net_shape.mesh, whole)
+            arrays["xyz"] = coordinates_on(net_shape.mesh, whole, motion)
         dtype = next(self.net.parameters()).dtype
         item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
         return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES), simple
 
     def features(
-        self, mesh: Mesh, *, shape: PreparedShape | None = None, whole: PreparedShape | None = None
+        self,
+        mesh: Mesh,
+        *,
+        shape: PreparedShape | None = None,
+        whole: PreparedShape | None = None,
+        motion: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
         adaptation, no facings), e.g. as :func:`~torchfmap.matching.partial.match_partial`'s
@@ -273,6 +279,8 @@ class LearnedMatcher:
                 whole's prepared shape: coordinate inputs are taken in the whole's frame
                 (:func:`~torchfmap.nn.inputs.coordinates_on`), so that they agree with the
                 whole's at the same points; no effect on a model without coordinate inputs.
+            motion: with ``whole``, ``(R (3, 3), t (3,))``: the part placed at
+                ``vertices @ R.T + t`` on the whole first (a part saved turned).
 
         Raises:
             ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, ``whole`` not a
@@ -290,7 +298,9 @@ class LearnedMatcher:
             raise ParameterError(
                 f"whole must be the whole's prepare_shape(mesh, n), got {type(whole).__name__}."
             )
-        item, _, simple = self._items(shape, 0, whole)
+        if motion is not None and whole is None:
+            raise ParameterError("motion places a part on its whole. Fix: pass whole= with it.")
+        item, _, simple = self._items(shape, 0, whole, motion)
         with torch.no_grad():
             batch, _ = pair_batches(item, item, self.device)
             return _carried(self.net, batch, simple)[0].to(torch.float64).cpu().numpy()
@@ -320,15 +330,42 @@ class LearnedMatcher:
             else (min(self.config.k, min(sizes) - 1), None)
         )
         shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
-        feats = (
-            self.features(mesh_x, shape=shapes[0]),
-            self.features(mesh_y, shape=shapes[1], whole=shapes[0]),
+        feats_x = self.features(mesh_x, shape=shapes[0])
+        placements = (
+            self.placements(*shapes, k=k0) if has_coordinates(self.config.inputs) else {"as it lies": None}
         )
         seconds = time.perf_counter() - t0
-        result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
+        tried, residuals = {}, {}
+        for name, motion in placements.items():
+            feats_y = self.features(mesh_y, shape=shapes[1], whole=shapes[0], motion=motion)
+            tried[name] = match_partial(
+                *shapes, k=k0, refine=refine, k_final=k_final, descriptors=(feats_x, feats_y)
+            )
+            residuals[name] = rigid_fit(mesh_y.vertices, mesh_x.vertices[tried[name].p2p_yx])[2]
+        best = min(residuals, key=residuals.get)  # the map a rigid placement explains best
+        result = tried[best]
         result.timings = {"prepare+network": seconds, **result.timings}
         result.model = self.name
+        if len(tried) > 1:
+            result.placement, result.candidates = best, tried
         return result
+
+    def placements(
+        self, shape_x: PreparedShape, shape_y: PreparedShape, *, k: int = DEFAULT_K
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Rigid motions ``(R (3, 3), t (3,))`` of a part ``y`` onto its whole ``x`` that a
+        coordinate model's partial map tries (:meth:`__call__`, ``partial=True``), by name:
+        ``'as it lies'`` (the identity: a part saved in its whole's frame) and ``'fitted'``
+        (:func:`~torchfmap.mesh.rigid_fit` of the part onto the images of the classical partial
+        map, SHOT descriptors, ``k`` functions, unrefined: rotation-invariant, so a part saved
+        turned is put back). Each placement's map is solved and the one a rigid placement
+        explains best is kept (the least trimmed residual of :func:`~torchfmap.mesh.rigid_fit`:
+        a map that sends the part onto the wrong region cannot be placed rigidly). Placements
+        turned upside down were tried and not kept: that residual does not rank them
+        (docs/guide.md, "Partial shapes")."""
+        p2p = match_partial(shape_x, shape_y, k=k).p2p_yx
+        R, t, _ = rigid_fit(shape_y.mesh.vertices, shape_x.mesh.vertices[p2p])
+        return {"as it lies": (np.eye(3), np.zeros(3)), "fitted": (R, t)}
 
     def __call__(
         self,
