@@ -314,7 +314,8 @@ def seeded_refine(cfg: Settings, report: Report) -> None:
 
 def _partial_pairs(cfg: Settings):
     """``(name, whole, other, gt_whole, gt_other)``: dev pairs whose target is cut; the ground truth
-    as corresponding rows (``corres/<name>.vts``, or the demo pair's map)."""
+    as corresponding rows (``corres/<name>.vts``; a folder without ``corres/``, such as SCAPE's
+    registered poses, has the identity on vertex ids; or the demo pair's map)."""
     from torchfmap.data import demo_pair
     from torchfmap.io import find_file, load_mesh, read_vts
 
@@ -325,7 +326,10 @@ def _partial_pairs(cfg: Settings):
     folder = require_data(cfg.shapes["folder"])
     for i, j in cfg.shapes["pairs"]:
         a, b = (load_mesh(find_file(folder, f"{n}.off")) for n in (i, j))
-        gt = [read_vts(find_file(folder / "corres", f"{n}.vts")) for n in (i, j)]
+        if (folder / "corres").is_dir():
+            gt = [read_vts(find_file(folder / "corres", f"{n}.vts")) for n in (i, j)]
+        else:  # registered poses: vertex k of every pose is vertex k of the template
+            gt = [np.arange(a.n_vertices)] * 2
         yield f"{i}-{j}", a, b, *gt
 
 
