@@ -335,19 +335,20 @@ class LearnedMatcher:
             self.placements(*shapes, k=k0) if has_coordinates(self.config.inputs) else {"as it lies": None}
         )
         seconds = time.perf_counter() - t0
-        tried, residuals = {}, {}
+        tried = {}
         for name, motion in placements.items():
             feats_y = self.features(mesh_y, shape=shapes[1], whole=shapes[0], motion=motion)
             tried[name] = match_partial(
                 *shapes, k=k0, refine=refine, k_final=k_final, descriptors=(feats_x, feats_y)
             )
-            residuals[name] = rigid_fit(mesh_y.vertices, mesh_x.vertices[tried[name].p2p_yx])[2]
-        best = min(residuals, key=residuals.get)  # the map a rigid placement explains best
-        result = tried[best]
+        result = next(iter(tried.values()))
+        if len(tried) > 1:  # the map a rigid placement explains best
+            residual = {n: rigid_fit(mesh_y.vertices, mesh_x.vertices[r.p2p_yx])[2] for n, r in tried.items()}
+            best = min(residual, key=residual.get)
+            result = tried[best]
+            result.placement, result.candidates = best, tried
         result.timings = {"prepare+network": seconds, **result.timings}
         result.model = self.name
-        if len(tried) > 1:
-            result.placement, result.candidates = best, tried
         return result
 
     def placements(
@@ -397,8 +398,9 @@ class LearnedMatcher:
                 in the whole's frame, ``whole=``) as its descriptors. The features of a part
                 agree with the whole's only where the network's inputs do: coordinate inputs
                 (``--inputs xyz``) do near the part's vertices when the part lies as it lies
-                on the whole, WKS (global) does not. The result has ``overlap`` and
-                ``partial_rank`` as ``match``'s.
+                on the whole, WKS (global) does not; a coordinate model tries the part at each
+                of its :meth:`placements` (a part saved turned) and keeps one (``placement``).
+                The result has ``overlap`` and ``partial_rank`` as ``match``'s.
 
         Raises:
             ParameterError: inputs that are not meshes, another refinement, ``k_final`` without
