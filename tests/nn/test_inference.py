@@ -383,6 +383,36 @@ def test_a_coordinate_models_part_is_placed_on_its_whole_wherever_it_was_saved(p
     assert wks.placement is None and not wks.candidates
 
 
+def test_a_shot_models_features_ignore_rigid_motion_and_scale_of_wholes_and_parts(permuted, rng):
+    """SHOT inputs (local frames, radius in units of the whole's ``sqrt(area)``) and an intrinsic
+    network: a whole turned, moved and scaled 3x gets the same features, and so does a part turned
+    with its own motion (its radius is its whole's); the partial map has one placement."""
+    from torchfmap.data.cuts import cut_plane
+
+    from ..conftest import random_rotation
+
+    mesh_x = permuted[0]
+    part = cut_plane(mesh_x, 0.6, seed=0).mesh
+    cfg = TrainConfig(**{**TINY.__dict__, "inputs": "shot"})
+    matcher = LearnedMatcher(build_model(cfg)[0], cfg, device="cpu")
+
+    def moved(mesh, scale):
+        return mesh.copy(scale * mesh.vertices @ random_rotation(rng).T + rng.normal(size=3))
+
+    whole, turned = prepare_shape(mesh_x, 20), moved(mesh_x, 3.0)
+    fx = matcher.features(mesh_x, shape=whole)
+    # float32 through the network on inputs equal to float64 rounding (as for a permuted copy)
+    atol = 1e3 * 2**-24 * np.abs(fx).max()
+    np.testing.assert_allclose(matcher.features(turned), fx, rtol=0, atol=atol)
+    fy = matcher.features(part, shape=prepare_shape(part, 20), whole=whole)
+    np.testing.assert_allclose(
+        matcher.features(moved(part, 1.0), whole=whole), fy, rtol=0, atol=atol
+    )
+    assert not np.allclose(matcher.features(part), fy, atol=atol)  # its own radius is another
+    result = matcher(mesh_x, moved(part, 1.0), partial=True)
+    assert result.placement is None and not result.candidates
+
+
 def test_dataset_item_maps_follow_the_learned_matchers_rule_and_need_the_models_solver(tmp_path):
     """``predict_p2p`` converts in float64 by the orthogonal rule, as ``LearnedMatcher`` does (one
     rule); ``evaluate`` takes the model's own solver and refuses to guess one."""

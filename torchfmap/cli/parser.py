@@ -352,9 +352,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--inputs",
-        choices=["wks", "xyz", "wks+xyz"],
+        choices=["wks", "xyz", "wks+xyz", "shot"],
         default=None,
-        help="per-vertex network inputs: WKS, coordinates, or both (default: wks)",
+        help="per-vertex network inputs: WKS, coordinates, both, or SHOT (local, blind to rigid motions "
+        "and scale: for parts turned any way; default: wks)",
     )
     p.add_argument(
         "--augment",

@@ -109,15 +109,19 @@ def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -
 SHOT_RADIUS = 0.08
 
 
+def shot_descriptors(shape: PreparedShape, whole: PreparedShape | None = None) -> np.ndarray:
+    """``(V, 352)`` SHOT (:func:`~torchfmap.descriptors.shot`) of ``shape``'s mesh at
+    :data:`SHOT_RADIUS` times ``sqrt(area)`` of ``whole`` (default: ``shape`` itself), computed
+    once per shape and radius (:meth:`~torchfmap.bases.prepared.PreparedShape.derive`). A part
+    and its whole share the whole's radius (same units), so their signatures agree away from the
+    cut; a whole's own radius makes the signatures invariant to rigid motions and uniform scale."""
+    radius = SHOT_RADIUS * np.sqrt((shape if whole is None else whole).mesh.area)
+    return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
+
+
 def _descriptors(shape_x: PreparedShape, shape_y: PreparedShape) -> tuple[np.ndarray, np.ndarray]:
-    """SHOT on both meshes at one physical radius (:data:`SHOT_RADIUS` of the whole), computed
-    once per shape and radius (:meth:`~torchfmap.bases.prepared.PreparedShape.derive`)."""
-    radius = SHOT_RADIUS * np.sqrt(shape_x.mesh.area)
-
-    def signature(shape: PreparedShape) -> np.ndarray:
-        return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
-
-    return signature(shape_x), signature(shape_y)
+    """SHOT on the whole ``x`` and the part ``y`` at one physical radius (:func:`shot_descriptors`)."""
+    return shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)
 
 
 def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs: np.ndarray, a: float):

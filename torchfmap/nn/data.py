@@ -27,7 +27,7 @@ from ..io import load_mesh, mesh_files
 from ..kinds import learned_kind
 from ..mesh import Mesh
 from .functional import BasisBatch, GradientBatch
-from .inputs import INPUTS, shape_arrays, shape_item
+from .inputs import INPUTS, has_shot, shape_arrays, shape_item
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,8 @@ class ShapeDataset(torch.utils.data.Dataset):
         self.names = [f.name.split(".")[0] for f in self.files]
         self.cache = _open_cache(default_cache_dir() if cache_dir is None else cache_dir)
         self.params = {"k": k, "n_wks": n_wks, "k_net": k_net, "basis": basis, "version": 4}
+        if has_shot(inputs):  # keys of the other inputs' entries stay as they were
+            self.params["shot"] = True
         self.inputs, self.dtype = inputs, dtype
         self.items: list[dict | None] = [None] * len(self.files)
         self.precompute(rank, world_size, progress)
@@ -141,7 +143,8 @@ class ShapeDataset(torch.utils.data.Dataset):
         p = self.params
 
         def compute():
-            return shape_arrays(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"])
+            shot = "shot" in p
+            return shape_arrays(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"], shot=shot)
 
         if self.cache is None:
             return compute()

@@ -20,7 +20,7 @@ from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, check_refine, pair_samplings
 from ..matching.checks import check_meshes, check_unused, warn_if_partial
-from ..matching.partial import match_partial
+from ..matching.partial import match_partial, shot_descriptors
 from ..matching.results import MatchResult, refine_result
 from ..mesh import Mesh, rigid_fit
 from .augment import move_xyz, yaw_matrices
@@ -30,7 +30,7 @@ from .config import TrainConfig, build_solver
 from .data import ShapeBatch
 from .devices import resolve_device
 from .functional import BasisBatch
-from .inputs import K_WKS, SEED_TIMES, coordinates_on, has_coordinates, shape_arrays, shape_item
+from .inputs import K_WKS, SEED_TIMES, coordinates_on, has_coordinates, has_shot, shape_arrays, shape_item
 from .item_inference import adapt, pair_batches, solve_xy
 from .modules import basis_arrays
 from .networks import check_network, features
@@ -253,9 +253,12 @@ class LearnedMatcher:
         that shape's frame (:func:`~torchfmap.nn.inputs.coordinates_on`), not ``shape``'s own."""
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
-        arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis)
+        shot = has_shot(cfg.inputs)
+        arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis, shot=shot)
         if whole is not None:
             arrays["xyz"] = coordinates_on(net_shape.mesh, whole, motion)
+            if shot:
+                arrays["shot"] = shot_descriptors(net_shape, whole)
         dtype = next(self.net.parameters()).dtype
         item = shape_item(arrays, cfg.inputs, dtype=dtype, name=shape.mesh.name or "", index=index)
         return item, get_kind(cfg.basis).shape_basis(shape, cfg.k, times=SEED_TIMES), simple

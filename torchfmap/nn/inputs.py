@@ -24,21 +24,30 @@ import torch
 
 from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, prepare_shape, with_eigenpairs
-from ..descriptors import wks
+from ..descriptors import SHOT_GRID, wks
 from ..errors import ParameterError
 from ..fmap.defaults import DEFAULT_K
 from ..kinds import get_kind, learned_kind
+from ..matching.partial import shot_descriptors
 from ..mesh import Mesh
 from .modules import basis_arrays
 
 #: Per-vertex network inputs (``TrainConfig.inputs``): WKS channels, unit-area coordinates,
-#: or both (the WKS channels first, the three coordinates last, which augmentation moves).
-INPUTS = ("wks", "xyz", "wks+xyz")
+#: both (the WKS channels first, the three coordinates last, which augmentation moves), or SHOT
+#: (local and invariant to rigid motions and scale: a part's agree with its whole's away from
+#: the cut, however either is turned).
+INPUTS = ("wks", "xyz", "wks+xyz", "shot")
 
 
 def input_channels(inputs: str, n_wks: int) -> int:
     """Channels of one of :data:`INPUTS` with ``n_wks`` WKS channels."""
-    return sum({"wks": n_wks, "xyz": 3}[part] for part in inputs.split("+"))
+    return sum({"wks": n_wks, "xyz": 3, "shot": int(np.prod(SHOT_GRID))}[part] for part in inputs.split("+"))
+
+
+def has_shot(inputs: str | None) -> bool:
+    """Whether inputs of one of :data:`INPUTS` include SHOT (computed only for them: it costs a
+    neighbourhood search per vertex)."""
+    return inputs is not None and "shot" in inputs.split("+")
 
 
 def has_coordinates(inputs: str | None) -> bool:
@@ -124,6 +133,7 @@ def shape_arrays(
     *,
     k_net: int = 0,
     basis: str = "laplacian",
+    shot: bool = False,
 ) -> dict[str, np.ndarray]:
     """Arrays for training and inference of one shape, float64, in the frame of its operators
     (the unit-area frame, unless the shape was prepared with the caller's operators).
@@ -135,7 +145,9 @@ def shape_arrays(
 
     - solver basis (``basis`` kind, ``k`` functions): ``values (V, k)``, ``mass (V,)``, ``lam``, ``U``;
     - network basis (``k_net`` eigenfunctions, 0: none): ``net_values (V, k_net)``, ``net_lam``, ``net_U``;
-    - inputs (:func:`network_inputs`): ``wks (V, n_wks)``, ``xyz (V, 3)``;
+    - inputs (:func:`network_inputs`): ``wks (V, n_wks)``, ``xyz (V, 3)``; with ``shot``,
+      ``shot (V, 352)`` (:func:`~torchfmap.matching.partial.shot_descriptors` at the shape's own
+      radius);
     - gradient operator (:meth:`~torchfmap.PreparedShape.gradient`): ``grad_rows, grad_cols,
       grad_x, grad_y, grad_order_t (E,)``;
     - the original ``vertices``, ``faces``.
@@ -172,6 +184,8 @@ def shape_arrays(
         net = basis_arrays(full.truncated(k_net))
         arrays.update({f"net_{name}": net[name] for name in ("values", "lam", "U")})
     arrays.update(network_inputs(shape, n_wks, k_wks))
+    if shot:
+        arrays["shot"] = shot_descriptors(shape)
     arrays.update(shape.gradient())
     arrays["vertices"] = mesh.vertices
     arrays["faces"] = mesh.faces
@@ -184,8 +198,8 @@ def shape_item(
     arrays: dict[str, np.ndarray], inputs: str = "wks", dtype=torch.float32, name: str = "", index: int = 0
 ) -> dict:
     """A dataset item (see :class:`~torchfmap.nn.data.ShapeDataset`) from :func:`shape_arrays`
-    arrays: floats cast to ``dtype``, ``inputs`` (``'wks'``, ``'xyz'``, or ``'wks+xyz'``: the
-    WKS channels then the three coordinates) as the item's ``'inputs'``, index arrays int64."""
+    arrays: floats cast to ``dtype``, ``inputs`` (one of :data:`INPUTS`, ``'wks+xyz'``: the WKS
+    channels then the three coordinates) as the item's ``'inputs'``, index arrays int64."""
     item = {k: torch.as_tensor(arrays[k], dtype=dtype) for k in _ITEM_FLOATS if k in arrays}
     parts = [arrays[name] for name in inputs.split("+")]
     item["inputs"] = torch.as_tensor(np.concatenate(parts, axis=1), dtype=dtype)
