@@ -1,12 +1,5 @@
-"""Ground truth of a pair: which source vertex corresponds to which target vertex.
-
-Ground truth comes in the field's formats: the identity (same mesh connectivity, vertex ``i``
-matches ``i``), a 0-based map file (line ``v``: the source vertex of target vertex ``v``), or
-pairs of 1-based ``.vts`` files whose rows correspond (the files are read by
-:func:`torchfmap.io.read_map` and :func:`torchfmap.io.read_vts`). Every form is turned into a
-:class:`Correspondence` ``(idx_x, idx_y)``: the same order as landmark pairs ``(x, y)``.
-:mod:`torchfmap.evaluate.scores` scores maps against it (and re-exports these names).
-"""
+"""Ground truth of a pair as a :class:`Correspondence` ``(idx_x, idx_y)``, from the identity, a 0-based map or
+two ``.vts`` files."""
 
 from __future__ import annotations
 
@@ -22,10 +15,7 @@ from ..mesh import Mesh
 
 
 class Correspondence(NamedTuple):
-    """Ground truth: ``idx_x[r]`` on the source corresponds to ``idx_y[r]`` on the target.
-
-    Both ``(P,)`` int arrays; the order ``(x, y)`` is the order of landmark pairs.
-    """
+    """Ground truth: ``idx_x[r]`` on the source matches ``idx_y[r]`` on the target; ``(P,)`` ints each."""
 
     idx_x: np.ndarray
     idx_y: np.ndarray
@@ -47,10 +37,8 @@ def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
     """From two 0-based ``.vts`` index arrays whose rows correspond.
 
     Raises:
-        ParameterError: file paths instead of arrays (read them with
-            :func:`~torchfmap.io.read_vts`, which also makes them 0-based), or row counts that
-            differ.
-    """
+        ParameterError: paths instead of arrays (read them with :func:`~torchfmap.io.read_vts`), or row counts
+            that differ."""
     if any(isinstance(v, (str, os.PathLike)) for v in (vts_x, vts_y)):
         raise ParameterError(
             "gt_from_vts takes the 0-based index arrays of two .vts files, not their paths. Fix: "
@@ -62,13 +50,11 @@ def gt_from_vts(vts_x: np.ndarray, vts_y: np.ndarray) -> Correspondence:
 
 
 def vts_ground_truth(corres: str | os.PathLike, name_x: str, name_y: str) -> Correspondence:
-    """The ground truth of shapes ``name_x`` and ``name_y`` from a data set's ``corres/`` folder:
-    ``<name>.vts`` (or ``.vts.gz``) files whose rows correspond (the field's layout: FAUST_r,
-    SCAPE_r, SMAL_r, TOSCA).
+    """The ground truth of ``name_x`` and ``name_y`` from a ``corres/`` folder of ``<name>.vts`` (or
+    ``.vts.gz``) files.
 
     Raises:
-        ParameterError: a missing file (named, with the fix), or as :func:`gt_from_vts`.
-    """
+        ParameterError: a missing file, or as :func:`gt_from_vts`."""
     corres = Path(corres)
     found = {n: find_file(corres, f"{n}.vts") for n in (name_x, name_y)}
     absent = [str(corres / f"{n}.vts") for n, p in found.items() if p is None]
@@ -78,14 +64,11 @@ def vts_ground_truth(corres: str | os.PathLike, name_x: str, name_y: str) -> Cor
 
 
 def as_correspondence(gt, n_x: int | None = None) -> Correspondence:
-    """``gt`` checked and as int64 arrays; with ``n_x``, its source vertices checked against a
-    mesh of ``n_x`` vertices.
+    """``gt`` checked, as int64 arrays; with ``n_x``, its source vertices checked against ``[0, n_x)``.
 
     Raises:
-        ParameterError: anything but a :class:`Correspondence` (a plain pair is refused: its order
-            cannot be checked, and a swapped pair scores silently wrong); index arrays of
-            different lengths, or source vertices outside ``[0, n_x)``.
-    """
+        ParameterError: anything but a :class:`Correspondence`, arrays of different lengths, or source
+            vertices outside ``[0, n_x)``."""
     if not isinstance(gt, Correspondence):
         raise ParameterError(
             f"gt must be a Correspondence(idx_x, idx_y), got {type(gt).__name__}. Fix: build it with "
@@ -100,8 +83,11 @@ def as_correspondence(gt, n_x: int | None = None) -> Correspondence:
 
 
 def landmarks_from_gt(mesh_x: Mesh, gt: Correspondence, n: int) -> np.ndarray:
-    """``(n, 2)`` landmark pairs ``(x vertex, y vertex)``: ground-truth rows spread over ``x``
-    by Euclidean farthest-point sampling (deterministic; for experiments with known landmarks)."""
+    """``(n, 2)`` landmark pairs ``(x vertex, y vertex)``: ground-truth rows spread by Euclidean farthest
+    points on ``x``.
+
+    Raises:
+        ParameterError: ``n`` outside ``[1, P]``."""
     idx_x, idx_y = as_correspondence(gt)
     if not 1 <= n <= len(idx_x):
         raise ParameterError(

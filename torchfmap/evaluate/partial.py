@@ -1,9 +1,5 @@
-"""Evaluation of partial-to-full matching: the partial collections ``torchfmap eval --partial``
-reads (:func:`discover_partial_pairs`) and the overlap score (:func:`overlap_iou`). Errors are
-those of :mod:`torchfmap.evaluate.scores`: geodesic on the whole, over the part's vertices with
-ground truth (:func:`~torchfmap.evaluate.scores.geodesic_errors` of the pairs'
-:class:`~torchfmap.evaluate.ground_truth.Correspondence`).
-"""
+"""Evaluation of partial-to-full matching: partial collections (:func:`discover_partial_pairs`) and the
+overlap score (:func:`overlap_iou`)."""
 
 from __future__ import annotations
 
@@ -20,8 +16,7 @@ from .scores import Correspondence
 __all__ = ["PARTIAL_LAYOUT", "PARTIAL_LAYOUTS", "discover_partial_pairs", "overlap_iou", "part_radius"]
 
 
-#: The true region of a part on its whole (:func:`part_radius`): within this many of the part's
-#: mean edge lengths of a ground-truth image.
+#: The true region of a part on its whole: within this many of the part's mean edge lengths of an image.
 REGION_RADIUS = 0.75
 #: The partial collections :func:`discover_partial_pairs` reads, by name: how each is laid out.
 PARTIAL_LAYOUTS = {
@@ -30,34 +25,20 @@ PARTIAL_LAYOUTS = {
     "SHREC'16": "null/<whole>.off, cuts/ or holes/<cuts|holes>_<whole>_shape_<i>.off with a .baryc_gt beside "
     "each (or those folders' off/ and corres/<part>.vts)",
 }
-#: Sub-folders of the ``torchfmap`` layout: the whole shapes, the parts, their maps to the wholes.
+#: Sub-folders of the ``torchfmap`` layout: wholes, parts, their maps to the wholes.
 PARTIAL_LAYOUT = ("full", "partial", "corres")
 #: The part folders of the SHREC'16 layout.
 SHREC16_PARTS = ("cuts", "holes")
 
 
 def discover_partial_pairs(folder: str | os.PathLike, map_base: int = 0):
-    """Pairs of a partial collection, read as laid out (:data:`PARTIAL_LAYOUTS`): yields
-    ``(whole, part, path_whole, path_part, gt)``, ``gt`` a
-    :class:`~torchfmap.evaluate.ground_truth.Correspondence` (whole vertices, part vertices) of the
-    part's vertices with ground truth.
-
-    - ``torchfmap``: ``full/``, ``partial/`` (each part named after its whole, ``<whole>_...``;
-      any name when there is one whole), ``corres/<part>.map`` one line per part vertex, its
-      vertex on the whole (``map_base`` 0 or 1; ``-1``, or 0 when 1-based, for none).
-    - ``shapes+maps``: ``shapes/`` holds wholes and parts, ``maps/<part>_<whole>.map`` one line per
-      part vertex as above (the file name's split into two shapes of ``shapes/`` names both).
-    - ``SHREC'16``: ``null/<whole>.off``, ``cuts/`` and ``holes/`` with
-      ``<kind>_<whole>_shape_<i>.off`` and its ``.baryc_gt`` (per part vertex a 1-based triangle
-      of the whole and barycentric weights: the corner of largest weight is the vertex; rows
-      naming no triangle of the whole are left out), or the field's converted copy of it: each of
-      those folders' ``off/`` and ``corres/<part>.vts`` (1-based whole vertex per part vertex).
+    """Yields ``(whole, part, path_whole, path_part, gt)`` of a collection in one of :data:`PARTIAL_LAYOUTS`,
+    ``gt`` a :class:`~torchfmap.evaluate.ground_truth.Correspondence` (whole, part vertices); a ``.map`` has
+    per part vertex its ``map_base``-based whole vertex (``-1``, or 0 if 1-based: none).
 
     Raises:
-        ParameterError: a folder in none of the layouts (one line naming them), a missing map or
-            ground truth, a part naming no whole, a map whose length is not the part's vertex
-            count or whose indices leave the whole.
-    """
+        ParameterError: a folder in no layout, a missing map or ground truth, a part naming no whole, or a map
+            that does not fit the meshes."""
     folder = Path(folder)
     if map_base not in (0, 1):
         raise ParameterError(f"map_base is 0 or 1, got {map_base!r}.")
@@ -118,13 +99,8 @@ def _shapes_maps_layout(folder: Path, map_base: int):
                 f"shapes in {folder / 'shapes'}. Fix: name it <part>_<whole>.map after two shapes there."
             )
         part, whole = named[0]
-        yield (
-            whole,
-            part,
-            shapes[whole],
-            shapes[part],
-            _part_map(map_file, map_base, shapes[part], shapes[whole]),
-        )
+        gt = _part_map(map_file, map_base, shapes[part], shapes[whole])
+        yield whole, part, shapes[whole], shapes[part], gt
 
 
 def _shrec16_layout(folder: Path):
@@ -165,9 +141,7 @@ def _shrec16_layout(folder: Path):
 
 
 def _barycentric_vertices(path: Path, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A ``.baryc_gt`` file (per part vertex: a 1-based triangle of the whole and three
-    barycentric weights) as ``(whole vertices, part rows)``: each row's corner of largest weight;
-    rows naming no triangle of the whole (SHREC'16's cat has some) are left out."""
+    """A ``.baryc_gt`` file as ``(whole vertices, part rows)``: each row's heaviest corner."""
     try:
         table = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as err:
@@ -185,20 +159,12 @@ def _barycentric_vertices(path: Path, faces: np.ndarray) -> tuple[np.ndarray, np
 
 
 def overlap_iou(overlap: np.ndarray, true_vertices, mass, *, points=None, radius: float = 0.0) -> float:
-    """Area-weighted intersection over union of the estimated part ``overlap > 0.5`` (``(V_x,)``,
-    :attr:`~torchfmap.MatchResult.overlap`) and the true part on the whole; ``mass`` the whole's
-    lumped mass, a ``(V_x, V_x)`` diagonal matrix or its ``(V_x,)`` diagonal (any scale).
-
-    The true part is a region, not a vertex sample: every vertex of the whole within ``radius``
-    of one of ``true_vertices`` (the ground-truth images of the part's vertices), ``points``
-    ``(V_x, 3)`` the whole's vertices. A part meshed more coarsely than its whole has images a
-    few of the whole's edges apart; with ``radius`` about the part's edge length (as
-    :func:`part_radius` gives) the region between them counts too. ``radius=0``: the images
-    alone (a part cut from the whole's own vertices).
+    """Area-weighted IoU of the estimated part ``overlap > 0.5`` ``(V_x,)`` and the true part: the whole's
+    vertices (``points`` ``(V_x, 3)``) within ``radius`` (e.g. :func:`part_radius`; 0: the images alone) of
+    ``true_vertices``. ``mass``: the whole's lumped mass, ``(V_x, V_x)`` or ``(V_x,)``.
 
     Raises:
-        ParameterError: ``radius > 0`` without ``points``.
-    """
+        ParameterError: ``radius > 0`` without ``points``."""
     area = np.asarray(mass.diagonal() if np.ndim(mass) == 2 else mass, dtype=np.float64)
     est = np.asarray(overlap) > 0.5
     true = np.zeros(len(area), dtype=bool)
@@ -215,10 +181,7 @@ def overlap_iou(overlap: np.ndarray, true_vertices, mass, *, points=None, radius
 
 
 def part_radius(part_vertices: np.ndarray, part_faces: np.ndarray) -> float:
-    """The radius of the true region of :func:`overlap_iou` for a part: :data:`REGION_RADIUS`
-    times its mean edge length, in the part's units (the whole's, as partial matching
-    requires). An equilateral triangle's points lie within ``1 / sqrt(3)`` of its edge of one of
-    its corners; the margin covers triangles of uneven shape."""
+    """The radius of :func:`overlap_iou`'s region: :data:`REGION_RADIUS` times the mean edge length."""
     v, f = np.asarray(part_vertices, dtype=np.float64), np.asarray(part_faces, dtype=np.int64)
     edges = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).ravel()
     return float(REGION_RADIUS * edges.mean()) if len(edges) else 0.0

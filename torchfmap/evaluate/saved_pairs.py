@@ -1,12 +1,5 @@
-"""Scored pairs of a collection kept on disk as they finish (``torchfmap eval --out FILE``), so a
-run stopped by Ctrl-C, a lost worker or a full disk resumes where it stopped.
-
-The file is a checksummed ``.npz`` (:func:`torchfmap._util.files.save_arrays`: written to a temporary
-file, verified, renamed), rewritten whole after each finished pair or chunk: it always holds
-every pair finished before its last successful write, and never a half-written one. It records
-the settings it was scored with (a JSON text); a run with other settings refuses to reuse or
-overwrite it.
-"""
+"""Scored pairs kept on disk as they finish (``torchfmap eval --out FILE``) so a stopped run resumes: a
+checksummed ``.npz`` rewritten atomically, with the settings it was scored with."""
 
 from __future__ import annotations
 
@@ -23,27 +16,20 @@ from ..errors import CorruptFileError, ParameterError
 from .collection import PairResult
 from .scores import MapReport
 
-#: Seconds between two rewrites of the file while pairs come in (each rewrite writes every kept
-#: pair: rewriting after each pair of a long run would cost quadratic time).
+#: Seconds between two rewrites of the file while pairs come in (each rewrite writes every pair).
 SAVE_INTERVAL = 5.0
-#: Columns of the ``numbers`` array: the match time, the overlap IoU (NaN: none) and the report
-#: (a file written before the report's last three fields has only the first seven columns).
+#: Columns of the ``numbers`` array: match time, overlap IoU (NaN: none), the report (older files: 7).
 _NUMBERS = ("seconds", "iou", "mean_error", "median_error", "auc", "coverage", "smoothness", "n_points",
             "n_total", "mean_error_se")  # fmt: skip
 
 
 class SavedPairs:
-    """The pairs scored so far under ``settings`` (a JSON-able dict), kept in ``path``.
-
-    Opening reads the file when it exists (its pairs are then :attr:`results`); :meth:`add`
-    appends finished pairs, :meth:`flush` rewrites the file atomically (also every
-    :data:`SAVE_INTERVAL` seconds while pairs come). A failed write (full disk, no permission)
-    warns once and the run goes on; the file keeps the pairs of its last write.
+    """The pairs scored under ``settings`` (a JSON-able dict), kept in ``path`` (read into :attr:`results` if
+    it exists). :meth:`add` appends, :meth:`flush` rewrites; a failed write warns once.
 
     Raises:
         ParameterError: a file of other settings, or a name without ``.npz``.
-        CorruptFileError: a file that is not one of these (truncated, altered, foreign).
-    """
+        CorruptFileError: a file that is not one of these."""
 
     def __init__(self, path: str | os.PathLike, settings: dict) -> None:
         self.path = Path(path)
@@ -87,16 +73,14 @@ class SavedPairs:
         return {(r.source, r.target) for r in self.results}
 
     def add(self, results: list[PairResult]) -> None:
-        """Keep ``results``; the file is rewritten when :data:`SAVE_INTERVAL` seconds have passed
-        since its last write (:meth:`flush` writes now)."""
+        """Keep ``results``; rewrite the file if :data:`SAVE_INTERVAL` seconds passed since the last write."""
         self.results.extend(results)
         self._dirty = True
         if time.monotonic() - self._written >= SAVE_INTERVAL:
             self.flush()
 
     def flush(self) -> None:
-        """Rewrite the file with every kept pair, atomically, if any came since the last write (a
-        failed write warns once; the file then keeps the pairs of its last write)."""
+        """Rewrite the file atomically with every kept pair, if any came since the last write."""
         if not self._dirty:
             return
         arrays = {

@@ -1,13 +1,5 @@
-"""Evaluation: geodesic error, PCK curves, coverage, bijectivity, smoothness, shape distances.
-
-Ground truth (:class:`Correspondence`, :func:`gt_identity`, :func:`gt_from_map`,
-:func:`gt_from_vts`, :func:`landmarks_from_gt`) lives in :mod:`torchfmap.evaluate.ground_truth` and is
-re-exported here.
-
-Errors are geodesic distances on the source ``x`` between the predicted and the true match,
-divided by ``sqrt(area_x)`` (the convention of the field). Distances come from the heat method
-on the rows needed only (one solve per distinct true vertex), never an all-pairs matrix.
-"""
+"""Evaluation against ground truth (re-exported from :mod:`torchfmap.evaluate.ground_truth`): geodesic errors
+on the source ``x`` over ``sqrt(area_x)``, PCK, coverage, smoothness, shape distances, pair discovery."""
 
 from __future__ import annotations
 
@@ -28,32 +20,21 @@ from .ground_truth import gt_from_map as gt_from_map
 from .ground_truth import gt_from_vts as gt_from_vts
 from .ground_truth import landmarks_from_gt as landmarks_from_gt
 
-# -- pointwise errors --------------------------------------------------------------------------
-#: ``max_points='auto'`` scores every ground-truth point on source meshes of at most this many
-#: vertices (the field's benchmark meshes, scored in full as their figures are published) ...
+#: ``max_points='auto'`` scores every ground-truth point on source meshes of at most this many vertices ...
 FULL_EVAL_VERTICES = 10_000
-#: ... and on larger ones (a distance solve per point costs at least ``O(V_x)``) this many, drawn
-#: uniformly without replacement (seeded): the mean error's standard error ``σ / sqrt(n) · sqrt(1 - n / P)``
-#: is then at most ``σ / sqrt(500)``, under 4.5 % of the errors' standard deviation ``σ``; it is
-#: reported (:attr:`MapReport.mean_error_se`).
+#: ... and on larger ones this many, drawn uniformly without replacement (seeded).
 SAMPLED_EVAL_POINTS = 500
-#: Distance rows solved at once (bounds the memory to this many ``(V_x,)`` rows).
+#: Distance rows solved at once (bounds the memory).
 ROWS_PER_BATCH = 256
 
 
 def evaluated_rows(n_rows: int, n_source: int, max_points="auto", seed: int = 0) -> np.ndarray | None:
-    """The ground-truth rows :func:`geodesic_errors` scores: sorted indices into the ``n_rows``
-    rows, or None for all of them.
-
-    ``max_points``: ``'auto'`` (every row when the source mesh has at most
-    :data:`FULL_EVAL_VERTICES` vertices ``n_source``, else :data:`SAMPLED_EVAL_POINTS` of
-    them), None (every row), or an int >= 1 (at most that many). A sample is uniform without
-    replacement, drawn by ``numpy.random.default_rng(seed)``: the same rows for the same
-    ground truth, so pairs with one source share their distance rows.
+    """Sorted indices of the ``n_rows`` ground-truth rows :func:`geodesic_errors` scores, or None for all.
+    ``max_points``: ``'auto'`` (all if ``n_source`` <= :data:`FULL_EVAL_VERTICES`, else
+    :data:`SAMPLED_EVAL_POINTS`), None, or an int >= 1 (a sample by ``numpy.random.default_rng(seed)``).
 
     Raises:
-        ParameterError: ``max_points`` none of these (e.g. 0, a bool or another string).
-    """
+        ParameterError: ``max_points`` none of these."""
     if isinstance(max_points, str) and max_points == "auto":
         max_points = None if n_source <= FULL_EVAL_VERTICES else SAMPLED_EVAL_POINTS
     integer = isinstance(max_points, (int, np.integer)) and not isinstance(max_points, bool)
@@ -78,27 +59,13 @@ def geodesic_errors(
     seed: int = 0,
     progress: bool = False,
 ) -> np.ndarray:
-    """Geodesic error of ``p2p_yx`` at the ground-truth pairs scored: ``(P,)``, or ``(n,)`` for a
-    sample (the rows of :func:`evaluated_rows`, in order).
-
-    Args:
-        mesh_x: the source mesh (errors are measured on it).
-        p2p_yx: ``(V_y,)`` predicted source vertex of every target vertex.
-        gt: :class:`Correspondence` ``(idx_x, idx_y)``; a plain tuple raises ParameterError.
-        solver: distances on ``mesh_x`` (a :class:`GeodesicSolver`, or a
-            :class:`~torchfmap.operators.DistanceRows` cache to share rows across pairs with
-            this source); built here when None.
-        normalize: divide by ``sqrt(area_x)``.
-        max_points: which pairs are scored (:func:`evaluated_rows`): ``'auto'`` (default:
-            every pair on source meshes of at most :data:`FULL_EVAL_VERTICES` vertices, a
-            sample of :data:`SAMPLED_EVAL_POINTS` above), None (every pair) or at most this many.
-        seed: of the sample.
-        progress: a progress bar (tqdm, on stderr) over the distance solves.
+    """Geodesic errors on ``mesh_x`` of ``p2p_yx`` ``(V_y,)`` at the pairs of ``gt`` (a
+    :class:`Correspondence`): ``(P,)``, or ``(n,)`` for a sample (:func:`evaluated_rows`). ``solver``: a
+    :class:`GeodesicSolver` or :class:`~torchfmap.operators.DistanceRows` of ``mesh_x``; ``normalize``: over
+    ``sqrt(area_x)``.
 
     Raises:
-        ParameterError: a map or ground truth that does not fit the meshes, or a bad
-            ``max_points``.
-    """
+        ParameterError: a map or ground truth that does not fit the meshes, or a bad ``max_points``."""
     idx_x, idx_y = as_correspondence(gt, mesh_x.n_vertices)
     p2p_yx = check_p2p(p2p_yx, None, mesh_x.n_vertices, "p2p_yx")
     if idx_y.size and (idx_y.max() >= len(p2p_yx) or idx_y.min() < 0):
@@ -110,7 +77,7 @@ def geodesic_errors(
     solver = solver or GeodesicSolver(mesh_x)
     errors = np.empty(len(idx_x))
     uniq, inverse = np.unique(idx_x, return_inverse=True)
-    step = ROWS_PER_BATCH  # bounded memory: this many distance rows at a time
+    step = ROWS_PER_BATCH
     with tqdm(total=len(uniq), desc="scoring", unit="row", leave=False, disable=not progress) as bar:
         for start in range(0, len(uniq), step):
             rows = solver.distances(uniq[start : start + step])
@@ -129,24 +96,9 @@ def error_floor(
     solver: GeodesicSolver | DistanceRows | None = None,
     normalize: bool = True,
 ) -> np.ndarray:
-    """The error a vertex-to-vertex map cannot avoid against ``gt``: ``(P,)``, one per row.
-
-    Ground truth built by nearest vertices (a template's points on a remeshed surface, as in
-    FAUST_r, SMAL_r and any remesh) gives several rows the same target vertex ``idx_y`` with
-    different source vertices ``idx_x``; a point map sends that vertex to one vertex, so those rows
-    cannot all score zero. Each group of rows sharing a target vertex is given the one of its
-    source vertices of least mean distance to the group's sources; the rows' distances to it
-    are returned (zero where a target vertex has one source vertex). The optimum may lie between
-    the group's sources: an upper bound on the floor, tight for small groups. A coarser meshing
-    raises it; compare :func:`geodesic_errors` across meshings above it.
-
-    Args:
-        mesh_x: the source mesh.
-        gt: :class:`Correspondence` ``(idx_x, idx_y)``.
-        solver: distances on ``mesh_x`` (built here when None), :data:`ROWS_PER_BATCH` source rows
-            at a time.
-        normalize: divide by ``sqrt(area_x)``.
-    """
+    """``(P,)`` the error no vertex-to-vertex map avoids against ``gt`` (rows sharing a target vertex:
+    distance to their best common source; an upper bound). ``solver``, ``normalize`` as
+    :func:`geodesic_errors`."""
     idx_x, idx_y = as_correspondence(gt, mesh_x.n_vertices)
     floor = np.zeros(len(idx_x))
     order = np.argsort(idx_y, kind="stable")
@@ -154,17 +106,17 @@ def error_floor(
         g for g in np.split(order, np.flatnonzero(np.diff(idx_y[order])) + 1) if len(np.unique(idx_x[g])) > 1
     ]  # fmt: skip
     cands = [np.unique(idx_x[g]) for g in groups]
-    table = [np.zeros((len(g), len(c))) for g, c in zip(groups, cands, strict=True)]  # row -> each candidate
+    table = [np.zeros((len(g), len(c))) for g, c in zip(groups, cands, strict=True)]
     wanted: dict[int, list[int]] = {}  # source vertex -> the groups whose rows it is
     for n in range(len(groups)):
         for c in cands[n].tolist():
             wanted.setdefault(c, []).append(n)
     solver = solver or GeodesicSolver(mesh_x)
     sources = np.fromiter(wanted, dtype=np.int64, count=len(wanted))
-    for start in range(0, len(sources), ROWS_PER_BATCH):  # bounded memory
+    for start in range(0, len(sources), ROWS_PER_BATCH):
         batch = sources[start : start + ROWS_PER_BATCH]
         for row, x in zip(np.maximum(solver.distances(batch), 0.0), batch.tolist(), strict=True):
-            for n in wanted[x]:  # distances from the true source, as geodesic_errors measures them
+            for n in wanted[x]:
                 at = idx_x[groups[n]] == x
                 table[n][at] = row[cands[n]]
                 table[n][at, cands[n] == x] = 0.0
@@ -196,15 +148,13 @@ def bijectivity_error(
 ) -> float:
     """Mean normalised geodesic distance on ``y`` between ``v`` and ``p2p_xy[p2p_yx[v]]``."""
     back = np.asarray(p2p_xy)[np.asarray(p2p_yx)]
-    # v is the truth for the round trip: the "prediction" at target v is back[v]
     gt = Correspondence(np.arange(mesh_y.n_vertices), back)
     errs = geodesic_errors(mesh_y, np.arange(mesh_y.n_vertices), gt, max_points=max_points, seed=seed)
     return float(errs.mean())
 
 
 def smoothness(mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray) -> float:
-    """Mean edge stretch ``|x(p(i)) - x(p(j))| / |y_i - y_j|`` over the edges of ``y``,
-    with lengths normalised by ``sqrt(area)`` (1 for an isometry; large for a noisy map)."""
+    """Mean edge stretch of ``p2p_yx`` over ``y``'s edges, lengths over ``sqrt(area)`` (1: an isometry)."""
     e = mesh_y.edges
     p = np.asarray(p2p_yx)
     src = np.linalg.norm(mesh_x.vertices[p[e[:, 0]]] - mesh_x.vertices[p[e[:, 1]]], axis=1)
@@ -214,10 +164,7 @@ def smoothness(mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray) -> float:
 
 @dataclass
 class MapReport:
-    """Summary numbers of one map. ``n_points`` of the ``n_total`` ground-truth points were
-    scored (fewer for a sample, :func:`evaluated_rows`); ``mean_error_se`` is the standard error
-    of ``mean_error`` as an estimate of the mean over all ``n_total`` (0 when all were scored);
-    0 for both counts: not recorded."""
+    """Summary numbers of one map; ``n_points`` of ``n_total`` points scored, ``mean_error_se``: its SE."""
 
     mean_error: float
     median_error: float
@@ -242,14 +189,10 @@ class MapReport:
 
 
 def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapReport, np.ndarray]:
-    """``(MapReport, errors)`` of ``p2p_yx`` against ground truth ``gt``; ``kwargs``: those of
-    :func:`geodesic_errors` (``max_points='auto'``: a sample on source meshes of more than
-    :data:`FULL_EVAL_VERTICES` vertices, recorded in the report's ``n_points`` / ``n_total`` /
-    ``mean_error_se``; ``max_points=None``: every point).
+    """``(MapReport, errors)`` of ``p2p_yx`` against ``gt``; ``kwargs``: those of :func:`geodesic_errors`.
 
-    Raises :class:`ParameterError` unless ``p2p_yx`` has one integer entry per vertex of
-    ``mesh_y``, each a vertex of ``mesh_x`` (a map in the wrong direction is refused).
-    """
+    Raises:
+        ParameterError: ``p2p_yx`` not one vertex of ``mesh_x`` per vertex of ``mesh_y``."""
     p2p_yx = np.asarray(p2p_yx)
     if p2p_yx.shape != (mesh_y.n_vertices,):
         raise ParameterError(
@@ -258,7 +201,7 @@ def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapR
             + (" (this looks like a map x -> y)." if p2p_yx.shape == (mesh_x.n_vertices,) else ".")
         )
     errors = geodesic_errors(mesh_x, p2p_yx, gt, **kwargs)
-    n, total = len(errors), len(gt[0])  # the standard error of n drawn without replacement:
+    n, total = len(errors), len(gt[0])  # the standard error of n drawn without replacement
     se = float(np.std(errors, ddof=1) / np.sqrt(n) * np.sqrt(1 - n / total)) if 1 < n < total else 0.0
     report = MapReport(
         float(errors.mean()),
@@ -273,18 +216,12 @@ def evaluate_map(mesh_x: Mesh, mesh_y: Mesh, p2p_yx, gt, **kwargs) -> tuple[MapR
     return report, errors
 
 
-# -- shape comparison --------------------------------------------------------------------------
 def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> np.ndarray:
-    """Shape-difference operator of ``C_xy`` (Rustamov et al. 2013), ``(K_x, K_x)``: how the
-    map changes an inner-product form.
-
-    ``form='area'`` (the L2 form): ``C_xyᵀ C_xy`` (identity for area-preserving maps between
-    B-orthonormal bases); ``'conformal'`` (the Dirichlet form): ``W_x⁺ C_xyᵀ W_y C_xy``
-    (identity for conformal maps).
+    """``(K_x, K_x)`` shape difference (Rustamov et al. 2013): ``'area'`` ``C_xyᵀ C_xy``, ``'conformal'``
+    ``W_x⁺ C_xyᵀ W_y C_xy``.
 
     Raises:
-        ParameterError: an unknown ``form``, or ``'conformal'`` without ``W_x`` and ``W_y``.
-    """
+        ParameterError: an unknown ``form``, or ``'conformal'`` without ``W_x`` and ``W_y``."""
     C = np.asarray(C_xy, dtype=np.float64)
     if form == "area":
         return C.T @ C
@@ -296,14 +233,16 @@ def shape_difference(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -
 
 
 def shape_distance(C_xy: np.ndarray, W_x=None, W_y=None, form: str = "area") -> float:
-    """``‖D - I‖_F / sqrt(K)`` of the shape difference ``D`` (:func:`shape_difference`, same
-    ``form``): 0 for isometric shapes."""
+    """``‖D - I‖_F / sqrt(K)`` of :func:`shape_difference` ``D``: 0 for isometric shapes."""
     D = shape_difference(C_xy, W_x, W_y, form)
     return float(np.linalg.norm(D - np.eye(len(D))) / np.sqrt(len(D)))
 
 
 def retrieval_accuracy(distances: np.ndarray, labels) -> float:
-    """Leave-one-out nearest-neighbour class accuracy of a ``(N, N)`` distance matrix."""
+    """Leave-one-out nearest-neighbour class accuracy of a ``(N, N)`` distance matrix.
+
+    Raises:
+        ParameterError: ``distances`` not ``(N, N)``."""
     D = np.array(distances, dtype=np.float64)
     labels = np.asarray(labels)
     if D.shape != (len(labels), len(labels)):
@@ -314,37 +253,22 @@ def retrieval_accuracy(distances: np.ndarray, labels) -> float:
 
 #: The pair protocols of :func:`discover_pairs` (or a test-pairs file's path).
 PAIR_PROTOCOLS = ("auto", "consecutive", "all")
-#: Sub-folders of a data set that hold its meshes (DUO-FM / ULRSSM layouts: ``shapes_train/``,
-#: ``shapes_test/`` or ``off/`` beside ``corres/``).
+#: Sub-folders of a data set that hold its meshes (beside ``corres/``).
 MESH_SUBFOLDERS = ("shapes_test", "shapes_train", "off", "shapes")
 
 
 def _data_set_places(folder: Path) -> tuple[Path, ...]:
-    """Where a folder's ``corres/`` and ``test_pairs.txt`` are looked for: in it, and beside it
-    when it is a data set's mesh sub-folder (:data:`MESH_SUBFOLDERS`)."""
+    """Where ``corres/`` and ``test_pairs.txt`` may be: the folder (and its parent, for a sub-folder)."""
     return (folder, folder.parent) if folder.name in MESH_SUBFOLDERS else (folder,)
 
 
-def _corres_folder(folder: Path) -> Path | None:
-    """The ``corres/`` of a folder's meshes (:func:`_data_set_places`), or None."""
-    return next((p / "corres" for p in _data_set_places(folder) if (p / "corres").is_dir()), None)
-
-
 def select_pairs(folder: str | os.PathLike, pairs="auto") -> tuple[list[tuple[str, str]], str]:
-    """``(pairs, protocol)``: the ordered ``(name_x, name_y)`` pairs of a folder's meshes to score,
-    and a sentence saying which they are (for a report's footer).
-
-    ``pairs``: ``'auto'`` (the folder's ``test_pairs.txt``, or for a data set's mesh sub-folder
-    such as ``shapes_test/`` the one beside it; else consecutive meshes), ``'consecutive'``
-    (mesh ``i`` -> mesh ``i + 1`` in name order),
-    ``'all'`` (every ordered pair), or the path of a test-pairs file (``'source target'`` per
-    line).
+    """``(pairs, protocol)``: the ordered ``(name_x, name_y)`` pairs of a folder's meshes and a sentence
+    saying which. ``pairs``: ``'auto'`` (a ``test_pairs.txt`` in or beside the folder, else consecutive),
+    ``'consecutive'``, ``'all'``, or a test-pairs file.
 
     Raises:
-        ParameterError: fewer than two meshes (with the sub-folder to name, for a data set laid
-            out as ``shapes_train/`` / ``shapes_test/`` beside ``corres/``), an unknown protocol,
-            or a pairs file naming absent meshes.
-    """
+        ParameterError: fewer than two meshes, an unknown protocol, or a pairs file naming absent meshes."""
     folder = Path(folder)
     names = [shape_name(p) for p in mesh_files(folder)]
     if len(names) < 2:
@@ -388,25 +312,16 @@ def select_pairs(folder: str | os.PathLike, pairs="auto") -> tuple[list[tuple[st
 
 
 def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pairs="auto"):
-    """Pairs and ground truth of a data folder: yields ``(name_x, name_y, path_x, path_y, gt)``.
-
-    Meshes are the folder's :func:`~torchfmap.io.mesh_files` (``.gz`` included), named by
-    :func:`~torchfmap.io.shape_name`; which pairs: :func:`select_pairs` (``pairs``).
-    ``corres/<name>.vts`` files, in the folder or, for a data set's mesh sub-folder
-    (:data:`MESH_SUBFOLDERS`, e.g. ``shapes_test/``), beside it, give ``.vts`` ground truth.
-    Without them, ``identity`` says whether vertex
-    ``i`` of one mesh is vertex ``i`` of the other: ``True`` for every pair of equal vertex counts;
-    ``None`` (default) only where the two meshes have the same face list (one template, e.g.
-    registrations); ``False`` never. Every file may be gzip-compressed (``<name>.gz``).
+    """Yields ``(name_x, name_y, path_x, path_y, gt)`` of a data folder (pairs: :func:`select_pairs`); ``gt``
+    from ``corres/<name>.vts`` in or beside it, else the identity where vertex counts match and ``identity``
+    is True, or (None) the face lists match too.
 
     Raises:
-        ParameterError: as :func:`select_pairs`, or a pair without ground truth (the message
-            names the fix).
-    """
+        ParameterError: as :func:`select_pairs`, or a pair without ground truth."""
     folder = Path(folder)
     meshes = {shape_name(p): p for p in mesh_files(folder)}
     chosen, _ = select_pairs(folder, pairs)
-    corres = _corres_folder(folder)
+    corres = next((p / "corres" for p in _data_set_places(folder) if (p / "corres").is_dir()), None)
     for a, b in chosen:
         if corres is not None:
             gt = vts_ground_truth(corres, a, b)
@@ -418,8 +333,9 @@ def discover_pairs(folder: str | os.PathLike, identity: bool | None = None, pair
                     why, fix = "their vertex counts differ", "."
                 else:
                     why = "their face lists differ"
-                    fix = ", or, if the meshes do share vertex order, pass identity=True"
-                    fix += " (CLI: --gt identity)."
+                    fix = (
+                        ", or, if the meshes do share vertex order, pass identity=True (CLI: --gt identity)."
+                    )
                 raise ParameterError(
                     f"no ground truth for {a}/{b}: no corres/ folder, and {why}, so vertex i of one need "
                     f"not be vertex i of the other. Fix: add corres/<name>.vts files{fix}"

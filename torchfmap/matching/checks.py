@@ -1,6 +1,4 @@
-"""The checks of :func:`torchfmap.match`'s arguments that need the library's types: settings
-that would change nothing, and given bases (their meshes, their order, whether their columns
-correspond, their kind)."""
+"""Checks of :func:`torchfmap.match`'s arguments that need the library's types."""
 
 from __future__ import annotations
 
@@ -19,12 +17,10 @@ from ..operators.laplacian import laplacian, mass_matrix
 
 
 def check_meshes(mesh_x, mesh_y) -> None:
-    """Refuse inputs that are not :class:`~torchfmap.Mesh` objects, naming how to make one (a
-    path is loaded with ``load_mesh``; vertex and face arrays become ``Mesh(vertices, faces)``).
+    """Refuse inputs that are not :class:`~torchfmap.Mesh` objects, naming how to make one.
 
     Raises:
-        ParameterError: ``mesh_x`` or ``mesh_y`` is not a Mesh.
-    """
+        ParameterError: ``mesh_x`` or ``mesh_y`` is not a Mesh."""
     for mesh, name in ((mesh_x, "mesh_x"), (mesh_y, "mesh_y")):
         if isinstance(mesh, Mesh):
             continue
@@ -37,21 +33,17 @@ def check_meshes(mesh_x, mesh_y) -> None:
         raise ParameterError(f"{name} is a {type(mesh).__name__}, not a torchfmap Mesh. Fix: {fix}.")
 
 
-#: A mesh whose boundary is at least this long (in units of ``sqrt(area)``) looks cut: a closed
-#: shape has none, small holes of scans a few hundredths, a plane cut through a body about 1.
+#: A mesh whose boundary is at least this long (units of ``sqrt(area)``) looks cut (a plane cut: ~1).
 PARTIAL_BOUNDARY = 0.5
 
 
 def boundary_length(mesh: Mesh) -> float:
-    """Total length of ``mesh``'s boundary edges over ``sqrt(area)`` (scale-free; 0 if closed),
-    seams left out: a boundary edge between the positions of another boundary edge (an open seam,
-    duplicated vertices that a weld closes; :func:`~torchfmap.mesh_checks.coincident_groups`) is
-    not the edge of a cut."""
+    """Total length of ``mesh``'s boundary edges over ``sqrt(area)`` (0 if closed), open seams left out."""
     edges = mesh.boundary_edges
     if not len(edges):
         return 0.0
     first = coincident_groups(mesh.vertices)
-    keys = np.sort(first[edges], axis=1)  # each edge by the positions of its ends
+    keys = np.sort(first[edges], axis=1)
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     edges = edges[counts[inverse.ravel()] == 1]
     lengths = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
@@ -59,10 +51,7 @@ def boundary_length(mesh: Mesh) -> float:
 
 
 def warn_if_partial(mesh_x: Mesh, mesh_y: Mesh, *, stacklevel: int = 3) -> None:
-    """Warn (:class:`~torchfmap.errors.MapWarning`) when one mesh looks like a part of the other
-    (a long boundary, :data:`PARTIAL_BOUNDARY`, where the other has little): a full-shape
-    functional map assumes both shapes whole, and its map of a part can be near-random. The
-    warning gives the boundary lengths and the area ratio, and what helps."""
+    """Warn (:class:`~torchfmap.errors.MapWarning`) when one mesh looks like a part of the other."""
     bx, by = boundary_length(mesh_x), boundary_length(mesh_y)
     which, cut, other = ("mesh_y", by, bx) if by >= bx else ("mesh_x", bx, by)
     if cut < PARTIAL_BOUNDARY or other > 0.5 * cut:
@@ -79,7 +68,7 @@ def warn_if_partial(mesh_x: Mesh, mesh_y: Mesh, *, stacklevel: int = 3) -> None:
 
 
 def check_unused(kind: BasisKind, refine, k_final, times) -> None:
-    """Refuse settings that would change nothing in this call (a silent no-op misleads)."""
+    """Refuse settings that would change nothing in this call (``k_final``, ``times``)."""
     if k_final is not None and refine != "zoomout":
         raise ParameterError(
             f"k_final={k_final} is the size ZoomOut grows the basis to; without refine='zoomout' it "
@@ -93,33 +82,26 @@ def check_unused(kind: BasisKind, refine, k_final, times) -> None:
 
 
 def check_zoomout_sizes(kind: BasisKind, refine, k: int, k_final) -> None:
-    """Refuse a ZoomOut that would shrink in a kind whose ZoomOut grows
-    (:func:`~torchfmap.fmap.refine.check_k_final`)."""
+    """Refuse a ZoomOut that would shrink in a kind whose ZoomOut grows."""
     if refine == "zoomout" and kind.grows:
         check_k_final(k, k_final)
 
 
-#: A given basis fits its mesh when its vertex areas (normalised to sum 1) are within this
-#: relative L1 distance of the mesh's own in one of the mass schemes torchfmap builds. A basis
-#: built on these very coordinates fits to rounding; the tolerance also admits coordinates moved
-#: by about 1e-4 of an edge (a mesh written with fewer digits and read back), while another pose
-#: or meshing with as many vertices moves a share of the area orders of magnitude larger.
+#: A given basis fits its mesh when its vertex areas are within this L1 distance of the mesh's own.
 MASS_FIT_TOL = 1e-3
-#: The mass schemes a basis's areas are compared with, most common first: Voronoi (the default
-#: operators'), barycentric (also the FEM mass's row sums), intrinsic Delaunay (``'robust'``).
+#: The mass schemes a basis's areas are compared with, most common first.
 AREA_SCHEMES = ("voronoi", "barycentric", "robust")
 
 
 class VertexAreas:
-    """A mesh's vertex areas, normalised to sum 1, in each of :data:`AREA_SCHEMES`; each scheme
-    is computed when first needed and kept for the next comparison (one check's lifetime)."""
+    """A mesh's vertex areas, summing to 1, in each of :data:`AREA_SCHEMES` (computed when needed)."""
 
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
         self._areas: list[np.ndarray] = []
 
     def __iter__(self):
-        for i, scheme in enumerate(AREA_SCHEMES):  # bounded: one pass over the schemes
+        for i, scheme in enumerate(AREA_SCHEMES):
             if i == len(self._areas):
                 if scheme == "robust":
                     m = laplacian(self.mesh, scheme="robust").mass
@@ -131,10 +113,7 @@ class VertexAreas:
 
 
 def mass_mismatch(basis: Basis, mesh: Mesh | VertexAreas) -> float:
-    """Relative L1 difference of ``basis``'s vertex areas (its mass's row sums) and ``mesh``'s
-    (a :class:`VertexAreas` to reuse), both normalised to sum 1, in the scheme of
-    :data:`AREA_SCHEMES` that fits best: twice the share of the area that lies on other
-    vertices; within :data:`MASS_FIT_TOL` for a basis built on this mesh by torchfmap."""
+    """L1 distance of ``basis``'s and ``mesh``'s vertex areas in the best of :data:`AREA_SCHEMES`."""
     areas = mesh if isinstance(mesh, VertexAreas) else VertexAreas(mesh)
     b = np.asarray(basis.mass.sum(axis=1), dtype=np.float64).ravel()
     b = b / b.sum()
@@ -147,8 +126,10 @@ def mass_mismatch(basis: Basis, mesh: Mesh | VertexAreas) -> float:
 
 
 def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, bool]:
-    """``(basis_x, basis_y, together)``: checked given bases and whether they were built as a
-    pair at the same corresponding seeds (``Basis.pair_landmarks``)."""
+    """``(basis_x, basis_y, together)``: given bases checked, and whether built as a pair at the same seeds.
+
+    Raises:
+        ParameterError: not a pair of Basis objects, wrong vertex counts, or bases in the other order."""
     try:
         bx, by = bases
     except (TypeError, ValueError) as err:
@@ -161,7 +142,6 @@ def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, 
                 f"basis_{name} has {b.n_vertices} vertices but mesh_{name} has {mesh.n_vertices}. Fix: "
                 "pass the basis built on that mesh (bases in the order source, target)."
             )
-    # vertex areas are a fingerprint of the mesh a basis was built on
     areas = {"x": VertexAreas(mesh_x), "y": VertexAreas(mesh_y)}
     fit = {"x": mass_mismatch(bx, areas["x"]), "y": mass_mismatch(by, areas["y"])}
     if max(fit.values()) > MASS_FIT_TOL:
@@ -202,10 +182,8 @@ def check_given_bases(bases, mesh_x: Mesh, mesh_y: Mesh) -> tuple[Basis, Basis, 
 
 
 def given_bases_kind(bases, mesh_x: Mesh, mesh_y: Mesh, basis) -> tuple[Basis, Basis, BasisKind, bool]:
-    """``(basis_x, basis_y, kind, together)`` of given bases (:func:`check_given_bases`): their
-    kind is ``basis`` if named, else ``'laplacian'`` for eigenfunctions only, the registered kind
-    of bases built together (:func:`~torchfmap.kinds.kind_of`), else ``'stack'``; ``together``:
-    built together at corresponding seeds, by a kind that needs them."""
+    """``(basis_x, basis_y, kind, together)`` of given bases: ``kind`` is ``basis``, else ``'laplacian'`` for
+    eigenfunctions only, else the kind they were built together by, else ``'stack'``."""
     bx, by, together = check_given_bases(bases, mesh_x, mesh_y)
     eigen_only = all(c.family == "laplacian" for b in (bx, by) for c in b.columns if c.kept)
     seeded = kind_of(bx) if together else None

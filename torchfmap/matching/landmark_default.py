@@ -1,13 +1,5 @@
-"""The landmark default of :func:`torchfmap.match` (``basis=None`` or ``'auto'`` with
-landmarks): which basis to solve a pair in, chosen without ground truth.
-
-Each kind of :data:`AUTO_KINDS` is solved on shapes prepared once
-(:func:`~torchfmap.matching.solve.solve_pair`) and the map that preserves geodesic distances best is kept
-(:data:`AUTO_MARGIN` in favour of the eigenbasis). Then the user's landmarks judge: each kind is
-solved again with some landmarks held out and scored by where its map sends them
-(:func:`landmark_scores`); a kind whose held-out error is below :data:`CV_RATIO` of the chosen
-kind's replaces it.
-"""
+"""The landmark default of :func:`torchfmap.match` (``basis='auto'`` with landmarks): the least distorted map
+among :data:`AUTO_KINDS`, overridden by a clear verdict of the landmark cross-validation."""
 
 from __future__ import annotations
 
@@ -31,67 +23,41 @@ from .quality import DISTORTION_RESOLUTION, warn_if_off_by_one
 from .results import MatchResult, refine_result
 from .solve import P2PMode, prepare_shapes, solve_functional_map, solve_pair
 
-#: The kinds the landmark default (``basis=None`` or ``'auto'`` with landmarks) solves in, in
-#: order of preference: the eigenbasis first (optimal for isometries), then the feature-aware
-#: ``hybrid``; the cross-validation scores the same kinds. ``diffusion`` is not a candidate:
-#: its maps are built by trilateration from the landmarks, so they preserve geodesic distances
-#: by construction and score a lower distortion than maps with lower error, and once a
-#: feature-aware map must also be no more distorted than the eigenbasis's (the last check of
-#: :func:`match_landmark_default`) a cross-validated ``diffusion`` was never the map returned on
-#: the dev sets (SMAL_r across species, cat-lion, TOSCA, FAUST_r; 3, 7 and 15 landmarks), while
-#: its folds cost most (heat kernels at newly trilaterated seeds in every fold).
+#: The kinds the landmark default solves in, in order of preference.
 AUTO_KINDS = ("laplacian", "hybrid")
-#: The landmark default keeps the eigenbasis unless a feature-aware map distorts geodesic
-#: distances by this fraction less (:func:`~torchfmap.matching.quality.geodesic_distortion`): the score's
-#: resolution (on near-isometric pairs the scores of good maps differ by discretisation noise,
-#: and there the eigenbasis is the better basis).
+#: The eigenbasis is kept unless a feature-aware map distorts geodesic distances by this fraction less.
 AUTO_MARGIN = DISTORTION_RESOLUTION
-#: Folds of the cross-validation, at most (one held-out landmark per fold when there are fewer).
+#: Folds of the cross-validation, at most.
 CV_FOLDS = 4
-#: The cross-validation needs this many landmarks (each fold then solves with two or more).
+#: The cross-validation needs this many landmarks.
 CV_MIN_LANDMARKS = 3
-#: A refinement is cross-validated (:func:`refine_guarded`, reported, not a veto) from this many
-#: landmarks: each of the :data:`CV_FOLDS` folds then keeps three or more.
+#: A refinement is cross-validated (:func:`refine_guarded`, reported, not a veto) from this many landmarks.
 CV_REFINE_MIN_LANDMARKS = 5
-#: A cross-validated kind replaces the distortion's choice only when its held-out landmark error
-#: is below this fraction of the chosen kind's: the held-out landmarks are few, so only a clear
-#: verdict overrides the choice (two or three landmarks cannot rank close maps).
+#: A kind replaces the distortion's choice only if its held-out error is below this fraction of the chosen's.
 CV_RATIO = 0.5
 
 
-def _folds(n_pairs: int, folds: int) -> list[np.ndarray]:
-    """Fold ``f`` of ``F = min(folds, n_pairs)`` holds out the pairs ``i`` with ``i % F == f``."""
-    n_folds = min(folds, n_pairs)
-    return [np.arange(n_pairs) % n_folds == fold for fold in range(n_folds)]
-
-
 def _fold_map(shape_x, shape_y, kind: BasisKind, k: int, pairs, held, fold: int, times, fold_maps, solve):
-    """Fold ``fold``'s map of ``kind``, solved without the ``held`` pairs
-    (:func:`~torchfmap.matching.solve.solve_functional_map`); ``fold_maps``: a dict kept by the
-    caller (``(kind, fold) ->`` map), so the basis check and the refinement check of one match
-    solve each fold once."""
+    """Fold ``fold``'s map of ``kind``, solved without the ``held`` pairs; cached in ``fold_maps``."""
     key = (kind.name, fold)
     if fold_maps is not None and key in fold_maps:
         return fold_maps[key]
-    solved = solve_functional_map(
-        shape_x,
-        shape_y,
-        kind,
-        k,
-        landmarks=pairs[~held],
-        times=times if kind.needs_landmarks else None,
-        **solve,
-    )
+    times = times if kind.needs_landmarks else None
+    solved = solve_functional_map(shape_x, shape_y, kind, k, landmarks=pairs[~held], times=times, **solve)
     if fold_maps is not None:
         fold_maps[key] = solved
     return solved
 
 
-def _check_cv(pairs: np.ndarray) -> None:
+def _cv_folds(shape_x, pairs: np.ndarray, folds: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``(rows (L, V_x), held)``: distances from the pairs' ``x`` vertices and each fold's held-out mask."""
     if len(pairs) < CV_MIN_LANDMARKS:
         raise ParameterError(
             f"cross-validation holds landmarks out: {CV_MIN_LANDMARKS} or more are needed, got {len(pairs)}."
         )
+    n_folds = min(folds, len(pairs))
+    held = [np.arange(len(pairs)) % n_folds == fold for fold in range(n_folds)]
+    return shape_x.distances.distances(pairs[:, 0]), held
 
 
 def landmark_scores(
@@ -108,25 +74,13 @@ def landmark_scores(
     fold_maps: dict | None = None,
     **solve,
 ) -> dict[str, float]:
-    """Cross-validation of the basis by the user's landmarks: for each kind, the mean error at
-    the held-out landmarks of maps solved (unrefined, :func:`~torchfmap.matching.solve.solve_functional_map`)
-    with the others, converted (``p2p_mode``, default the kind's) at the held-out landmarks only.
-
-    Fold ``f`` of ``F = min(folds, L)`` holds out the landmark pairs ``i`` with ``i % F == f``;
-    a held-out pair ``(a, b)`` scores ``d_x(p2p_yx[b], a)``, the geodesic distance on ``x`` (in
-    units of ``sqrt(area)``) between where the map sends ``b`` and where it should. Kinds that
-    cannot be built on a fold are left out. ``times`` go to the feature-aware kinds; ``steps``
-    names each fold as it starts; ``fold_maps``: a dict of the fold maps solved so far, read and
-    filled (one match's checks share it); ``solve``: the other settings of
-    :func:`~torchfmap.matching.solve.solve_pair`. Returns ``{kind: mean held-out
-    error}``.
+    """``{kind: mean held-out error}`` (units of ``sqrt(area)``): each kind's unrefined maps solved without
+    each fold's landmark pairs, a held-out ``(a, b)`` scoring ``d_x(p2p_yx[b], a)``; kinds not built are left
+    out. ``fold_maps``: a cache; ``solve``: other settings of :func:`~torchfmap.matching.solve.solve_pair`.
 
     Raises:
-        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs.
-    """
-    _check_cv(pairs)
-    rows = shape_x.distances.distances(pairs[:, 0])  # (L, V_x): distances from each true match
-    every_fold = _folds(len(pairs), folds)
+        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs."""
+    rows, every_fold = _cv_folds(shape_x, pairs, folds)
     scores = {}
     for name in kinds:
         kind = get_kind(name)
@@ -160,24 +114,15 @@ def refinement_scores(
     fold_maps: dict | None = None,
     **solve,
 ) -> tuple[float, float]:
-    """The refinement cross-validated by the user's landmarks: the mean held-out landmark error
-    (as :func:`landmark_scores`, same folds) of each fold's map, unrefined and refined by
-    ``make_refiner(fold_pairs)`` (the refiner the match runs, built on the fold's landmarks
-    ``(L_f, 2)``; called as :func:`~torchfmap.matching.results.refine_result` calls it);
-    ``fold_maps`` as there.
-    Returns ``(raw, refined)`` mean held-out errors (units of ``sqrt(area_x)``): whether the
-    refinement moves landmarks it was not given towards their partners or away from them, which
-    :func:`~torchfmap.matching.results.refine_result` reports.
+    """``(raw, refined)`` mean held-out landmark errors (folds as :func:`landmark_scores`) of each fold's map
+    before and after ``make_refiner(fold_pairs)``.
 
     Raises:
-        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs, or as the kind and refiner.
-    """
-    _check_cv(pairs)
-    rows = shape_x.distances.distances(pairs[:, 0])
+        ParameterError: fewer than :data:`CV_MIN_LANDMARKS` pairs, or as the kind and refiner."""
+    rows, every_fold = _cv_folds(shape_x, pairs, folds)
     mode = p2p_mode or kind.p2p_mode
     samplings = pair_samplings(shape_x, shape_y)
     raw, refined = [], []
-    every_fold = _folds(len(pairs), folds)
     for fold, held in enumerate(every_fold):
         steps(f"refinement check: {kind.name}, fold {fold + 1} of {len(every_fold)}")
         C, bx, by, seeds, _ = _fold_map(shape_x, shape_y, kind, k, pairs, held, fold, times, fold_maps, solve)
@@ -203,18 +148,12 @@ def refine_guarded(
     steps: Steps = SILENT,
     **solve,
 ) -> MatchResult:
-    """``result`` refined under the one guard (:mod:`~torchfmap.matching.results`, the
-    distortion); with :data:`CV_REFINE_MIN_LANDMARKS` or more landmark ``pairs`` ``(L, 2)`` the
-    refinement is also cross-validated and its held-out figures reported (:func:`refinement_scores`,
-    the folds solved as ``result`` was: ``k``, ``times``, ``p2p_mode``, ``solve``, which may
-    hold its ``fold_maps``).
-    ``make_refiner(pairs, bar=False)``: the refiner on these landmarks (``bar``: its progress bar,
-    shown for the whole map's refinement, not the folds'). ``cross_validate=False``: no folds
-    (given bases, which folds cannot re-solve).
+    """``result`` refined by :func:`~torchfmap.matching.results.refine_result`, cross-validated
+    (:func:`refinement_scores`) with ``cross_validate`` and :data:`CV_REFINE_MIN_LANDMARKS` or more ``pairs``
+    ``(L, 2)``. ``make_refiner(pairs, bar=False)``: the refiner on these landmarks.
 
     Raises:
-        ParameterError: as the refiner.
-    """
+        ParameterError: as the refiner."""
     held_out = None
     if cross_validate and pairs is not None and len(pairs) >= CV_REFINE_MIN_LANDMARKS:
         held_out = refinement_scores(
@@ -241,36 +180,22 @@ def match_landmark_default(
     steps: Steps = SILENT,
     **solve,
 ) -> MatchResult:
-    """The landmark default of :func:`match` (``basis=None`` or ``'auto'`` with landmarks): each
-    kind of :data:`AUTO_KINDS` solved (:func:`solve_pair`) on shapes prepared once, the
-    eigenbasis refined as asked (ZoomOut is where it gains most) and the feature-aware kinds
-    unrefined; the map of least geodesic distortion is kept (the eigenbasis within
-    :data:`AUTO_MARGIN`), and a chosen feature-aware map is then refined (guarded by the same
-    score), so only one feature-aware refinement runs. With :data:`CV_MIN_LANDMARKS` or more
-    landmarks, the landmark cross-validation (:func:`landmark_scores`, reported as
-    ``fold_scores``) replaces that choice by the other kind when its held-out error is below
-    :data:`CV_RATIO` of the chosen kind's (refined in turn). Last, a feature-aware map
-    is returned only if, as returned (refined or not), it distorts geodesic distances no more
-    than the eigenbasis's map: the cross-validation's evidence is a few raw folds, the refined
-    eigenbasis is at hand, and neither check alone ranks every pair. Kinds that cannot be built on these
-    meshes (e.g. too few vertices for their columns) are skipped, with the reason
-    (``skipped``); ``candidates`` holds each solved kind's result (:func:`match` warns if the
-    chosen map collapsed). ``landmarks``: ``(L, 2)``
-    pairs; ``steps``: a :class:`~torchfmap._util.progress.Steps` naming each step as it starts;
-    ``solve``: the other solver settings of :func:`solve_pair`; the rest as :func:`match`.
+    """The landmark default of :func:`match`: each kind of :data:`AUTO_KINDS` solved on shapes prepared once
+    (the eigenbasis refined), the least distorted map kept (the eigenbasis within :data:`AUTO_MARGIN`) unless
+    another kind's held-out error is below :data:`CV_RATIO` of its own; a feature-aware choice is then refined
+    and kept only if no more distorted than the eigenbasis's. ``skipped``: kinds not built, with the reason.
+    ``landmarks``: ``(L, 2)``; the rest as :func:`match`.
 
     Raises:
-        ParameterError: what the eigenbasis refuses (it refuses only what every kind would),
-            or an unknown refinement; :class:`~torchfmap.MemoryEstimateError` for a ``k`` whose
-            solve would not fit in memory (before any work).
-    """
+        ParameterError: what the eigenbasis refuses, or an unknown refinement;
+            :class:`~torchfmap.MemoryEstimateError` for a ``k`` too large for memory."""
     t0 = time.perf_counter()
     refine = check_refine(refine)
     pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
-    check_count(k, 1, n_max, "k (basis size)")  # the eigenbasis's own check, before any work
+    check_count(k, 1, n_max, "k (basis size)")  # before any work
     check_solve_memory(k, k)
-    need = [k, min(k_descriptors, n_max)]  # the eigenbasis: k, and its descriptors
+    need = [k, min(k_descriptors, n_max)]
     if refine == "zoomout":
         need.append(k_final or 2 * k)
     steps("operators and eigenpairs")
@@ -283,8 +208,7 @@ def match_landmark_default(
     warn_if_off_by_one(shape_x, shape_y, pairs)
     candidates: dict[str, MatchResult] = {}
     skipped: dict[str, str] = {}
-
-    fold_maps: dict = {}  # the folds' maps, solved once for the refinement check and the basis check
+    fold_maps: dict = {}  # shared by the refinement check and the basis check
 
     def refined(result: MatchResult, kind: BasisKind) -> MatchResult:
         def make_refiner(fold_pairs: np.ndarray, bar: bool = False):

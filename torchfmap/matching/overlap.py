@@ -1,27 +1,6 @@
-"""Partial-to-partial matching: two parts ``x`` and ``y`` of one whole shape (two scans, two
-cuts) that overlap only partly, both in the same units.
-
-Neither is a part of the other, so the partial functional map of :mod:`.partial` (a part inside a
-whole) holds only on the overlap. The steps (why each, and what they reach: docs/guide.md,
-"Partial shapes"):
-
-1. **bootstrap**: the smaller part matched into the larger by :func:`~.partial.match_partial` (the
-   roles only set the rank schedule and the common frame). Its map is right on most of the
-   overlap; the rest of the smaller part is forced somewhere onto the larger one.
-2. **core** (:func:`consistent_core`): the vertices mapped consistently with the largest group
-   of mutually consistent anchors. The true map keeps geodesic distances on the overlap; a
-   vertex forced onto the other part keeps few; a region mapped onto its mirror image (an
-   intrinsic symmetry) keeps them within itself but not with the rest, so the group is grown
-   from the leading eigenvector of the anchors' agreement matrix (spectral matching).
-3. **trilateration** (:func:`trilaterate`): seeds spread over the core and their images,
-   each image first re-placed by the other seeds (:func:`settle_seeds`); every vertex of each
-   part gets the vertex of the other whose diffusion functions ``exp(-d²/σ²)`` at the seeds are
-   nearest its own, and its relative residual. A vertex of the overlap has an exact twin (the
-   same distances to every seed, up to the cuts' detours); a vertex off it has none. The
-   residual below :data:`OVERLAP_TOLERANCE` is the overlap on each part, and the next round's
-   core (:data:`OVERLAP_ROUNDS` in all). The same seeds give both directions, so the overlap is
-   estimated on both parts at once.
-"""
+"""Partial-to-partial matching of two parts of one whole that overlap only partly, in the same units: a
+bootstrap partial map, its consistent core (:func:`consistent_core`) and trilateration from seeds on it
+(:func:`trilaterate`), whose residual marks the overlap. Why: docs/guide.md, "Partial shapes"."""
 
 from __future__ import annotations
 
@@ -60,9 +39,7 @@ OVERLAP_ROUNDS = 2
 
 @dataclass
 class PairMatchResult(MatchResult):
-    """A :class:`~torchfmap.MatchResult` of two parts (``match(x, y, partial='both')``):
-    ``overlap`` ``(V_x,)`` and ``overlap_y`` ``(V_y,)`` the estimated overlap on each, in
-    ``[0, 1]`` (``> 0.5``: in it); ``p2p_yx`` is meant on ``overlap_y > 0.5``."""
+    """A :class:`~torchfmap.MatchResult` of two parts, with ``overlap_y`` ``(V_y,)`` in ``[0, 1]``."""
 
     overlap_y: np.ndarray | None = None
 
@@ -95,17 +72,10 @@ def consistent_core(
     agreement: float = CORE_AGREEMENT,
     tolerance: float = CORE_TOLERANCE,
 ) -> np.ndarray:
-    """Bool ``(V_y,)``: the vertices of ``y`` mapped consistently with the largest group of
-    mutually consistent anchors (see the module's text).
-
-    Two vertices agree when their geodesic distance on ``y`` and their images' on ``x`` differ
-    by less than ``tolerance`` (units of ``sqrt(area_x)``). Of ``n_anchors`` anchors (farthest
-    points of ``y``), the group is grown greedily in the order of the leading eigenvector of
-    their agreement matrix (spectral matching, Leordeanu and Hebert 2005), each anchor joining
-    if it agrees with at least ``agreement`` of the group; a vertex is in the core if it agrees
-    with at least ``agreement`` of the group. An intrinsic symmetry (left for right) keeps
-    distances too: a region mapped onto its mirror image is consistent in itself, but not with
-    the rest, so one group holds one of them."""
+    """Bool ``(V_y,)``: vertices of ``y`` agreeing with at least ``agreement`` of the largest group of
+    mutually agreeing anchors (``n_anchors`` farthest points, grown along the leading eigenvector of their
+    agreement matrix); two vertices agree when their distance on ``y`` and their images' on ``x`` differ by
+    less than ``tolerance`` (units of ``sqrt(area_x)``)."""
     unit = np.sqrt(shape_x.mesh.area)
     anchors = _spread(shape_y, np.ones(shape_y.mesh.n_vertices, bool), n_anchors)
     d_y = _physical(shape_y, anchors, unit)
@@ -133,11 +103,9 @@ def trilaterate(
     *,
     width: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(p2p_yx, residual_y, p2p_xy, residual_x)`` from ``seeds`` ``(S, 2)`` corresponding pairs
-    (vertex of ``x``, vertex of ``y``): each vertex of one part sent to the vertex of the other
-    whose diffusion functions ``exp(-(d / width)²)`` at the seeds (``d`` geodesic, units of
-    ``sqrt(area_x)`` on both) are nearest its own, and the relative residual
-    ``|f(v) - f(p(v))| / |f(v)|`` of each vertex (1 where ``f(v)`` vanishes)."""
+    """``(p2p_yx, residual_y, p2p_xy, residual_x)`` from ``seeds`` ``(S, 2)`` (vertex of ``x``, vertex of
+    ``y``): each vertex sent to the vertex of the other part with the nearest functions ``exp(-(d / width)²)``
+    at the seeds (units of ``sqrt(area_x)``), and its relative residual (1 where ``f(v)`` vanishes)."""
     unit = np.sqrt(shape_x.mesh.area)
     width = TRILATERATION_WIDTH if width is None else width
     f_x = _features(shape_x, seeds[:, 0], unit, width)
@@ -155,10 +123,7 @@ def trilaterate(
 def settle_seeds(
     shape_x: PreparedShape, shape_y: PreparedShape, seeds: np.ndarray, *, width: float | None = None
 ) -> np.ndarray:
-    """``seeds`` ``(S, 2)`` (vertex of ``x``, vertex of ``y``) with each image on ``x`` moved,
-    within :data:`SEED_RADIUS`, to the vertex whose diffusion functions at the *other* seeds are
-    nearest the seed's own on ``y``: in :func:`trilaterate` a seed's function at itself pins
-    its image where it is, right or wrong; left out, the other seeds place it."""
+    """``seeds`` ``(S, 2)``, each image on ``x`` moved within :data:`SEED_RADIUS` to fit the other seeds."""
     unit = np.sqrt(shape_x.mesh.area)
     width = TRILATERATION_WIDTH if width is None else width
     f_x = _features(shape_x, seeds[:, 0], unit, width)
@@ -179,9 +144,7 @@ def _indicator(residual: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def _polished(shape_x, shape_y, p2p_yx, inside, *, k, refine, k_final, weights) -> np.ndarray:
-    """``p2p_yx`` with the vertices of ``y``'s estimated overlap (bool ``inside``) re-matched as a
-    part of ``x`` (:func:`~.partial.match_partial` on the overlap's largest piece), when that
-    piece is a part ``x`` can hold (area, vertex count); else ``p2p_yx`` unchanged."""
+    """``p2p_yx`` with ``y``'s overlap ``inside`` re-matched into ``x`` (:func:`~.partial.match_partial`)."""
     mesh = shape_y.mesh
     drop = ~inside[mesh.faces].all(axis=1)
     if drop.all():
@@ -216,24 +179,14 @@ def match_partial_pair(
     polish: bool = False,
     settle: bool = True,
 ) -> PairMatchResult:
-    """Match two overlapping parts ``x`` and ``y`` of one whole on prepared shapes
-    (:func:`torchfmap.match` with ``partial='both'`` prepares them and checks the arguments):
-    see the module's text. ``landmarks`` ``(L, 2)`` (vertex of ``x``, vertex of ``y``) must lie
-    on the overlap; they are kept among the seeds.
-
-    Returns a :class:`PairMatchResult`: ``p2p_yx`` ``(V_y,)``, ``overlap`` ``(V_x,)``,
-    ``overlap_y`` ``(V_y,)``; ``C_xy`` the map's functional map ``(r, k_x)`` with ``r`` the
-    rank of the overlap (:func:`~.partial.partial_rank` of ``y``'s spectrum in ``x``'s frame,
-    scaled by the estimated overlap share); ``p2p_yx_initial`` the bootstrap map when ``y`` is
-    the smaller part (else the final map: the bootstrap then maps ``x`` into ``y``); ``kind``
-    ``'partial_pair'``. ``settle``: :func:`settle_seeds` each round; ``polish``: the marked
-    overlap of ``y`` re-matched into ``x`` by :func:`~.partial.match_partial` (tried, not the
-    default: see docs/guide.md).
+    """Match two overlapping parts ``x`` and ``y`` of one whole on prepared shapes: a :class:`PairMatchResult`
+    (``kind`` ``'partial_pair'``) with ``C_xy`` ``(r, k_x)``, ``r`` the overlap's rank; ``p2p_yx_initial`` the
+    bootstrap map if ``y`` is the smaller part. ``landmarks`` ``(L, 2)`` must lie on the overlap; ``settle``:
+    :func:`settle_seeds` each round; ``polish``: ``y``'s overlap re-matched by
+    :func:`~.partial.match_partial`.
 
     Raises:
-        ParameterError: ``rounds`` < 1 or ``tolerance`` not > 0; or as
-            :func:`~.partial.match_partial`.
-    """
+        ParameterError: ``rounds`` < 1 or ``tolerance`` not > 0; or as :func:`~.partial.match_partial`."""
     if rounds < 1 or not tolerance > 0:
         raise ParameterError(
             f"match_partial_pair needs rounds >= 1 and tolerance > 0, got {rounds}, {tolerance}."
@@ -255,7 +208,7 @@ def match_partial_pair(
     if pairs is not None:
         core[pairs[:, 1]] = True
     for _ in range(rounds):
-        if not core.any():  # nothing kept its distances: seeds over all of the smaller part
+        if not core.any():
             core = np.ones_like(core)
         on_small = _spread(small, core, TRILATERATION_SEEDS)
         if pairs is not None:
@@ -278,15 +231,9 @@ def match_partial_pair(
         p2p, overlap_x, overlap_y = p2p_sb, ov_big, ov_small
     if polish:
         t0 = time.perf_counter()
+        weights = dict(w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm, w_lmk=w_lmk)
         p2p = _polished(
-            shape_x,
-            shape_y,
-            p2p,
-            overlap_y > 0.5,
-            k=k,
-            refine=refine,
-            k_final=k_final,
-            weights=dict(w_lap=w_lap, w_orient=w_orient, w_dcomm=w_dcomm, w_lmk=w_lmk),
+            shape_x, shape_y, p2p, overlap_y > 0.5, k=k, refine=refine, k_final=k_final, weights=weights
         )
         timings["polish"] = time.perf_counter() - t0
     full = shape_x.eigenbasis

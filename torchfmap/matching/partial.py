@@ -1,15 +1,5 @@
-"""Partial-to-full matching: a part ``y`` (a scan of one side, a cut limb, a shape with holes)
-matched to a whole shape ``x``, after Partial Functional Maps (Rodolà et al. 2017).
-
-The part's eigenbasis is put in the whole's unit-area frame (:func:`common_frame`), ``C_xy`` is
-rank-limited to ``(r, k)`` (:func:`partial_rank`), descriptors are SHOT at one physical radius
-(plus heat kernels at landmarks), ZoomOut is restricted to the first ``r`` columns
-(:func:`partial_zoomout`), a second pass is re-seeded from the first map (:func:`reseeded_map`),
-and ``MatchResult.overlap`` is the band-limited indicator of the part on the whole
-(:func:`overlap_indicator`). Why each step, and what it reaches: docs/guide.md, "Partial shapes".
-
-Both meshes must be in the same units (the area ratio is read off them).
-"""
+"""Partial-to-full matching of a part ``y`` to a whole ``x`` in the same units (Partial Functional Maps,
+Rodolà et al. 2017); why each step: docs/guide.md, "Partial shapes"."""
 
 from __future__ import annotations
 
@@ -34,21 +24,13 @@ from ..seeds import farthest_point_sampling
 from .quality import geodesic_distortion
 from .results import MatchResult, keeps_refinement
 
-#: A part may be up to this much larger than the whole (meshing and measurement noise on a
-#: "part" that is in fact the whole shape); beyond it the shapes are taken to be swapped.
+#: A part may be up to this much larger than the whole (noise); beyond it the shapes look swapped.
 AREA_SLACK = 1.05
-#: The smallest part, as a share of the whole's area, that a partial map is attempted for: the
-#: part's rank is about ``k * a`` (Weyl's law), under 1 at ``k = 100`` below this share, so a
-#: smaller ratio means meshes in different units (millimetres against metres: 1e-6) or a part
-#: too small to be matched by its spectrum.
+#: The smallest part, as a share of the whole's area, that a partial map is attempted for.
 MIN_AREA_RATIO = 0.01
-
-#: Seeds of the re-seeded pass (:func:`reseeded_map`), landmarks included; fewer on a part of
-#: fewer vertices.
+#: Seeds of the re-seeded pass (:func:`reseeded_map`), landmarks included.
 RESEED_SEEDS = 100
-#: Width ``σ = 2 sqrt(t)`` of the re-seeded pass's diffusion functions ``exp(-d²/σ²)``, in units
-#: of the whole's ``sqrt(area)``: a few seeds' spacing (100 seeds on a unit area are about
-#: 0.1 apart), so that each vertex is placed by its nearest seeds.
+#: Width ``σ`` of the re-seeded pass's functions ``exp(-d²/σ²)``, units of the whole's ``sqrt(area)``.
 RESEED_WIDTH = 0.15
 
 __all__ = [
@@ -60,10 +42,8 @@ def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
     """``area(y) / area(x)`` in the meshes' own units, capped at 1.
 
     Raises:
-        ParameterError: the part is larger than the whole by more than :data:`AREA_SLACK`
-            (swapped shapes or different units), or smaller than :data:`MIN_AREA_RATIO` of it
-            (different units, or a part too small for a spectral map).
-    """
+        ParameterError: over :data:`AREA_SLACK` (swapped or different units) or under
+            :data:`MIN_AREA_RATIO`."""
     a = mesh_y.area / mesh_x.area
     units = (
         "If the meshes are in different units (millimetres and metres make areas 1e6 apart), "
@@ -87,9 +67,7 @@ def area_ratio(mesh_x: Mesh, mesh_y: Mesh) -> float:
 
 
 def common_frame(basis: Basis, a: float) -> Basis:
-    """The part's eigenbasis (B-orthonormal in its own unit-area frame) in the whole's
-    unit-area frame, where the part has area ``a``: values ``/ sqrt(a)``, mass ``· a``,
-    eigenvalues ``/ a`` (the stiffness, scale-free in 2-D, is kept; ``Φᵀ L Φ = Λ / a``)."""
+    """The part's eigenbasis in the whole's unit-area frame (the part of area ``a``)."""
     return Basis(
         basis.values / np.sqrt(a), basis.mass * a, basis.provenance, orthonormal=basis.orthonormal,
         stiffness=basis.stiffness / a, eigenvalues=basis.eigenvalues / a,
@@ -97,45 +75,23 @@ def common_frame(basis: Basis, a: float) -> Basis:
 
 
 def partial_rank(eigenvalues_x: np.ndarray, eigenvalues_y: np.ndarray, k: int) -> int:
-    """``r = #{j : λ_y,j <= λ_x,k}``, both spectra in one frame (:func:`common_frame`): how many of
-    the part's eigenfunctions the whole's first ``k`` can express, at least 1 and at most the
-    part's eigenpairs given."""
+    """``r = #{j : λ_y,j <= λ_x,k}`` (in one frame, :func:`common_frame`), at least 1."""
     lam_max = float(eigenvalues_x[k - 1])
     return int(np.clip(np.sum(np.asarray(eigenvalues_y) <= lam_max * (1 + 1e-9)), 1, len(eigenvalues_y)))
 
 
-#: SHOT's support radius in units of the whole's ``sqrt(area)`` (the same physical radius on the
-#: part: both meshes are in the same units).
+#: SHOT's support radius in units of the whole's ``sqrt(area)`` (the same on the part).
 SHOT_RADIUS = 0.08
 
 
 def shot_descriptors(shape: PreparedShape, whole: PreparedShape | None = None) -> np.ndarray:
-    """``(V, 352)`` SHOT (:func:`~torchfmap.descriptors.shot`) of ``shape``'s mesh at
-    :data:`SHOT_RADIUS` times ``sqrt(area)`` of ``whole`` (default: ``shape`` itself), computed
-    once per shape and radius (:meth:`~torchfmap.bases.prepared.PreparedShape.derive`). A part
-    and its whole share the whole's radius (same units), so their signatures agree away from the
-    cut; a whole's own radius makes the signatures invariant to rigid motions and uniform scale."""
+    """``(V, 352)`` SHOT of ``shape`` at :data:`SHOT_RADIUS` times ``sqrt(area)`` of ``whole`` (or own)."""
     radius = SHOT_RADIUS * np.sqrt((shape if whole is None else whole).mesh.area)
     return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
 
 
-def _descriptors(shape_x: PreparedShape, shape_y: PreparedShape) -> tuple[np.ndarray, np.ndarray]:
-    """SHOT on the whole ``x`` and the part ``y`` at one physical radius (:func:`shot_descriptors`)."""
-    return shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)
-
-
-def _landmark_descriptors(shape_x: PreparedShape, shape_y: PreparedShape, pairs: np.ndarray, a: float):
-    """Heat kernels at the landmarks at the same physical times on both shapes (the whole's
-    relative times ``t``; the part's own frame is ``1 / a`` times larger), in the common frame."""
-    hx = landmark_descriptors(pairs[:, 0], operators=shape_x.operators)
-    hy = landmark_descriptors(pairs[:, 1], operators=shape_y.operators, area=1.0 / a)
-    return hx, hy / a
-
-
 def overlap_indicator(C_xy: np.ndarray, full: Basis, part: Basis) -> np.ndarray:
-    """``(V_x,)`` the part's constant function extended by zero onto the whole through
-    ``C_xy`` ``(r, k)`` (``v = Φ_x Cᵀ Φ_yᵀ B_y 1``, bases in the common frame), clipped to
-    ``[0, 1]``: where the part lies on the whole, band-limited."""
+    """``(V_x,)`` the part on the whole, ``Φ_x Cᵀ Φ_yᵀ B_y 1`` through ``C_xy`` ``(r, k)``, in ``[0, 1]``."""
     r, k = C_xy.shape
     ones = part.project(np.ones(part.n_vertices))[:r]
     return np.clip(full.values[:, :k] @ (C_xy.T @ ones), 0.0, 1.0)
@@ -151,13 +107,9 @@ def partial_zoomout(
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
     samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ZoomOut for a part: from ``k`` to ``k_final`` columns of the whole, each step fitting
-    ``C = Φ_y⁺ Π Φ_x`` on the part's first ``r(k)`` eigenfunctions (:func:`partial_rank`) and
-    converting back (``'orthogonal'``: each part vertex's row of ``Φ_y`` among the rows of
-    ``Φ_x Cᵀ``, with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended as in
-    :func:`~torchfmap.fmap.zoomout`); with ``samplings`` (the whole's and the part's
-    :class:`~torchfmap.fmap.nearest.SurfaceSampling`) on their samples, the final map searched
-    locally. Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
+    """ZoomOut for a part, ``k`` to ``k_final`` columns of the whole, each step on the part's first ``r(k)``
+    eigenfunctions; ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))``, ``samplings`` as
+    :func:`~torchfmap.fmap.zoomout`. Returns ``(C_xy (r(k_final), k_final), p2p_yx (V_y,))``."""
     anchors = check_anchors(anchors, full, part)
     step = zoomout_step(k) if step is None else step
     sizes = list(range(k + step, k_final, step)) + [k_final]
@@ -177,28 +129,22 @@ def reseeded_map(
     n_seeds: int = RESEED_SEEDS,
     width: float = RESEED_WIDTH,
 ) -> np.ndarray:
-    """``(V_y,)`` a map of the part ``y`` into the whole ``x`` re-seeded from ``p2p_yx`` ``(V_y,)``.
-
-    Seeds on the part: the landmarks' part vertices ``(L, 2)`` (whole, part) first, then
-    farthest points up to ``n_seeds`` in all; their images on the whole: the landmarks' whole
-    vertices, then ``p2p_yx`` of the others. On each shape, each seed gives the function
-    ``exp(-(d / width)²)`` of the geodesic distance ``d`` to it, in units of the whole's
-    ``sqrt(area)`` on both (the part's distances scaled by ``sqrt(a)``); every part vertex goes
-    to the whole vertex whose values at all seeds are nearest to its own. Both meshes in the same
-    units, as :func:`match_partial` requires.
+    """``(V_y,)`` map of the part ``y`` into the whole ``x`` re-seeded from ``p2p_yx``: seeds are the
+    ``landmarks`` ``(L, 2)`` (whole, part), then farthest points of the part up to ``n_seeds`` with their
+    ``p2p_yx`` images; each part vertex goes to the whole vertex whose functions ``exp(-(d / width)²)`` at the
+    seeds (units of the whole's ``sqrt(area)``) are nearest.
 
     Raises:
-        ParameterError: ``n_seeds`` < 1 or ``width`` not > 0; ``p2p_yx`` not ``(V_y,)`` indices
-            into ``x``; landmarks not ``(L, 2)``.
-        SeedError: landmarks outside either mesh or repeated (:func:`check_landmark_pairs`).
-    """
+        ParameterError: ``n_seeds`` < 1, ``width`` not > 0, ``p2p_yx`` not ``(V_y,)`` indices into ``x``,
+            landmarks not ``(L, 2)``.
+        SeedError: landmarks outside either mesh or repeated."""
     if n_seeds < 1 or not width > 0:
         raise ParameterError(f"reseeded_map needs n_seeds >= 1 and width > 0, got {n_seeds}, {width}.")
     n_x, n_y = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
     p2p_yx = check_p2p(p2p_yx, n_y, n_x, "p2p_yx")
     pairs = np.zeros((0, 2), np.int64) if landmarks is None else check_landmark_pairs(landmarks, n_x, n_y)
     n = int(min(max(n_seeds, len(pairs)), n_y))
-    on_part = farthest_point_sampling(  # rows kept in the shape: solved once for seeds and functions
+    on_part = farthest_point_sampling(
         shape_y.mesh, n, landmarks=pairs[:, 1] if len(pairs) else None, start=0,
         distances=shape_y.distances,
     )  # fmt: skip
@@ -207,7 +153,7 @@ def reseeded_map(
     d_x = shape_x.distances.distances(unique).T[:, column]
     d_y = shape_y.distances.distances(on_part).T * np.sqrt(area_ratio(shape_x.mesh, shape_y.mesh))
     query, reference = np.exp(-((d_y / width) ** 2)), np.exp(-((d_x / width) ** 2))
-    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: near where the first map went
+    samplings = pair_samplings(shape_x, shape_y)  # dense pairs: searched near the first map
     coarse = None if samplings is None else samplings[0].cell[p2p_yx[samplings[1].index]]
     return search_p2p(query, reference, samplings, coarse=coarse, precision="double")
 
@@ -226,26 +172,15 @@ def match_partial(
     w_lmk: float = W_LMK,
     descriptors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> MatchResult:
-    """Match the part ``y`` to the whole ``x`` on prepared shapes (:func:`torchfmap.match` with
-    ``partial=True`` prepares them and checks the arguments): see the module's text.
-
-    Returns a :class:`~torchfmap.MatchResult` whose ``p2p_yx`` gives every vertex of the part a
-    vertex of the whole, ``C_xy`` is ``(r, k)`` (``(r(k_final), k_final)`` refined) in the
-    whole's eigenbasis and the part's eigenbasis in the whole's frame, ``overlap`` ``(V_x,)``
-    the estimated part on the whole (:func:`overlap_indicator`), ``partial_rank`` ``r`` and
-    ``kind`` ``'partial'``. ``refine``: None, or ``'zoomout'`` (:func:`partial_zoomout` to
-    ``k_final``, default ``2k``, then :func:`reseeded_map`, :func:`partial_zoomout` kept under the
-    distortion guard, and :func:`reseeded_map` again: see the module's text). ``landmarks``:
-    ``(L, 2)`` checked pairs (whole, part), pointwise constraints and heat-kernel descriptors.
-    ``descriptors``: ``(V_x, D)``, ``(V_y, D)`` pointwise features to solve with instead of SHOT
-    (e.g. features of a network trained for parts; they must agree on the part and on the whole
-    where the part lies).
+    """Match the part ``y`` to the whole ``x`` on prepared shapes: a :class:`~torchfmap.MatchResult` (``kind``
+    ``'partial'``) with ``C_xy`` ``(r, k)`` (refined: ``(r(k_final), k_final)``), ``overlap`` ``(V_x,)`` and
+    ``partial_rank`` ``r``. ``refine``: None or ``'zoomout'`` (:func:`partial_zoomout`, default ``k_final =
+    2k``, and :func:`reseeded_map`); ``landmarks``: ``(L, 2)`` checked pairs (whole, part); ``descriptors``:
+    ``(V_x, D)``, ``(V_y, D)`` features instead of SHOT.
 
     Raises:
-        ParameterError: the part is larger than the whole, ``refine`` other than None or
-            ``'zoomout'``, ``k_final < k`` (:func:`~torchfmap.fmap.refine.check_k_final`), or
-            either shape prepared with fewer eigenpairs than needed.
-    """
+        ParameterError: the part larger than the whole, ``refine`` not None or ``'zoomout'``, ``k_final < k``,
+            or shapes prepared with too few eigenpairs."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     check_refine(refine, allowed=("zoomout",), what="partial matching")
@@ -261,20 +196,19 @@ def match_partial(
     part = common_frame(shape_y.eigenbasis, a)
     r = partial_rank(full.eigenvalues, part.eigenvalues, k)
     timings["operators+eigen"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
     if descriptors is None:
-        desc_x, desc_y = _descriptors(shape_x, shape_y)
+        desc_x, desc_y = shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)
     else:
         desc_x, desc_y = (np.asarray(d, dtype=np.float64) for d in descriptors)
-    if landmarks is not None:
-        hx, hy = _landmark_descriptors(shape_x, shape_y, landmarks, a)
+    if landmarks is not None:  # heat kernels at the same physical times on both, in the common frame
+        hx = landmark_descriptors(landmarks[:, 0], operators=shape_x.operators)
+        hy = landmark_descriptors(landmarks[:, 1], operators=shape_y.operators, area=1.0 / a) / a
         desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])
     norms = np.sqrt(np.einsum("vd,vd->d", desc_x, full.mass @ desc_x))
     norms = np.where(norms > 0, norms, 1.0)
     desc_x, desc_y = desc_x / norms, desc_y / norms
     timings["descriptors"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
     bx, by = full.truncated(k), part.truncated(r)
     C = solve_fmap(
@@ -289,7 +223,7 @@ def match_partial(
     if refine:
         t0 = time.perf_counter()
         anchors = None
-        if landmarks is not None:  # distances in the whole's units: the part's times sqrt(a)
+        if landmarks is not None:  # the part's distances in the whole's units
             ax, ay = landmark_coordinates(shape_x, shape_y, landmarks)
             anchors = (ax, ay * np.sqrt(a))
         p2p = partial_zoomout(p2p, full, part, k, k_final, anchors=anchors, samplings=samplings)[1]

@@ -1,15 +1,5 @@
-"""The classical matching pipeline: bases -> descriptors -> functional map -> point map -> refinement.
-
-:func:`match` is the recipe; each step is public for callers with their own bases or
-descriptors. What a basis *kind* means (whether it needs landmarks, how its functions are
-built, its solver weights, point-map rule and refiner) lives in the registry
-:data:`torchfmap.kinds.KINDS`; this module reads it and never compares kind names.
-
-:func:`match` dispatches: one kind (:func:`solve_pair` on shapes prepared once, then the kind's
-refiner), or, with landmarks and no ``basis``, the landmark default
-(:func:`match_landmark_default`: :func:`solve_pair` per candidate kind, the least distorted map
-kept). Evaluating whole collections is :mod:`torchfmap.evaluate.collection`.
-"""
+"""The classical matching pipeline :func:`match`: bases -> descriptors -> functional map -> point map ->
+refinement, for one kind, the landmark default or partial shapes."""
 
 from __future__ import annotations
 
@@ -43,12 +33,10 @@ __all__ = ["match"]
 
 
 def check_partial(partial) -> bool | str:
-    """``partial`` as ``match`` takes it: False, True (``y`` a part of ``x``) or ``'both'`` (two
-    overlapping parts).
+    """``partial``: False, True (``y`` a part of ``x``) or ``'both'`` (two overlapping parts).
 
     Raises:
-        ParameterError: anything else.
-    """
+        ParameterError: anything else."""
     if isinstance(partial, (bool, np.bool_)):
         return bool(partial)
     if isinstance(partial, str) and partial == "both":
@@ -83,99 +71,53 @@ def match(
     partial: bool | str = False,
     progress: bool = False,
 ) -> MatchResult:
-    """Match ``y`` to ``x``: returns ``p2p_yx`` and ``C_xy``.
+    """Match ``y`` to ``x``: a :class:`MatchResult` with ``p2p_yx`` ``(V_y,)`` and ``C_xy``.
 
-    The steps, each public for callers with their own bases or descriptors:
-    :func:`prepare_shape` -> :func:`match_bases` -> :func:`match_descriptors` ->
-    :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` (together
-    :func:`solve_pair`) -> the kind's refiner (:meth:`~torchfmap.kinds.BasisKind.refiner`,
-    :func:`refine_result`).
-
-    The default basis: without landmarks, the Laplacian eigenbasis. With landmarks, ``match``
-    chooses without ground truth (``basis='auto'``, :func:`match_landmark_default`): the map of
-    least geodesic distortion among the kinds of :data:`AUTO_KINDS`; ``kind``, ``distortion``
-    and ``candidates`` of the result say what was chosen and why. A refinement that raises the
-    geodesic distortion is dropped (the start is kept), for every kind, with or without
-    landmarks (:func:`~torchfmap.matching.results.refine_result`). The
-    feature-aware ``basis='diffusion'`` builds ``k`` heat kernels at corresponding seeds (see
-    :func:`match_bases`), whose map is close to the identity; its solve is pulled to ``C = I``
-    with weight ``w_prior`` (default :data:`~torchfmap.fmap.defaults.W_PRIOR`; at ``inf`` the
-    identity is the map and no descriptors are computed).
+    The steps: :func:`prepare_shape` -> :func:`match_bases` -> :func:`match_descriptors` ->
+    :func:`~torchfmap.fmap.solve_fmap` -> :func:`~torchfmap.fmap.fmap_to_p2p` (together :func:`solve_pair`) ->
+    the kind's refiner, dropped if it raises the geodesic distortion (:func:`refine_result`). Default basis:
+    the Laplacian eigenbasis without landmarks, ``'auto'`` with them (:func:`match_landmark_default`: the
+    least distorted map among :data:`AUTO_KINDS`).
 
     Args:
-        mesh_x, mesh_y: source and target.
-        landmarks: ``(L, 2)`` corresponding pairs ``(vertex on x, vertex on y)``; required by
-            the feature-aware bases, used as descriptors and constraints by the eigenbasis.
-        basis: a kind of :data:`torchfmap.kinds.KINDS` (``'laplacian'``, ``'diffusion'``,
-            ``'harmonic'``, ``'stack'``, ``'hybrid'``, ``'eigen_diffusion'``), or ``'auto'``;
-            default: ``'auto'`` with landmarks, ``'laplacian'`` without (see above).
-        k: basis size; every basis has exactly ``k`` columns.
-        refine: ``'icp'`` or ``'zoomout'`` (the kind's own refiner: the eigenbasis grows up to
-            ``k_final``, default ``2k``; feature-aware kinds iterate at a fixed size from the
-            current map, then move their seeds), or None.
+        landmarks: ``(L, 2)`` pairs ``(vertex on x, vertex on y)``; required by feature-aware bases.
+        basis: a kind of :data:`torchfmap.kinds.KINDS`, or ``'auto'``.
+        k: basis size (columns of every basis).
+        refine: ``'icp'``, ``'zoomout'`` (the kind's; eigenbases grow to ``k_final``, default ``2k``) or None.
         n_descriptors, k_descriptors: see :func:`match_descriptors`.
-        w_lap, w_orient, w_dcomm, w_lmk: weights of Laplacian commutativity (default
-            the kind's ``w_lap``), orientation preservation (tells left from right,
-            which WKS alone cannot), descriptor commutativity and pointwise landmark
-            preservation (see :func:`~torchfmap.fmap.solve_fmap`; defaults: the kind's
-            ``w_orient``, :data:`~torchfmap.fmap.defaults.W_DCOMM`, ``W_LMK``). With the last
-            three at 0 the solve is the exact row-wise one; otherwise preconditioned CG.
-        w_prior: proximity-to-identity weight for feature-aware bases (see above).
-        times: relative diffusion times of feature-aware bases (default: one time,
-            :func:`~torchfmap.kinds.seed_time` of the seed count).
-        p2p_mode: functional map -> point map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`);
-            default: the kind's ``p2p_mode`` (``'orthogonal'`` for the eigenbasis).
-        zoomout_samples: run eigenbasis ZoomOut on about this many surface samples per shape
-            (:func:`~torchfmap.fmap.nearest.surface_sampling`; the final point map is every
-            vertex's, searched locally). None: every vertex up to ``LOCAL_SEARCH_PAIRS``
-            (``fmap.defaults``), surface samples past it (dense meshes).
-        bases: ``(basis_x, basis_y)`` to solve in instead of building them (e.g. files written
-            by ``torchfmap basis``; ``(V_x, K_x)`` and ``(V_y, K_y)``, B-orthonormal). Their
-            columns are not assumed to correspond, so the map is solved from descriptors;
-            ``basis`` names their kind for the defaults (default: ``'laplacian'`` if every
-            column is an eigenfunction, else ``'stack'``). The map is solved in all their
-            columns (``k`` is ignored), except for ZoomOut of eigenbases: solved in their first
-            ``k`` columns and grown within their own eigenfunctions to ``k_final`` (default
-            ``2k``; they must hold that many). Other given bases refine by ICP, or, built
-            together at corresponding seeds, by the kind's own refiner.
-        shapes: ``(prepare_shape(mesh_x, ...), prepare_shape(mesh_y, ...))`` to reuse across
-            pairs (operators, eigenpairs, geodesic rows and heat kernels are then computed once
-            per shape, not once per pair); eigenpairs are extended in place when a call needs
-            more. The maps are the same as without.
-        partial: ``y`` is a part of ``x`` (a cut, a scan of one side, a shape with holes), both
-            in the same units: the partial functional map of :mod:`torchfmap.matching.partial` (the
-            eigenbases in one frame, a rank-limited ``C_xy`` ``(r, k)``, ZoomOut within the
-            part's rank, SHOT descriptors; ``result.overlap`` ``(V_x,)`` the estimated part on
-            the whole). ``'both'``: ``x`` and ``y`` are two parts of one whole that overlap only
-            partly (:mod:`torchfmap.matching.overlap`): the result is a
-            :class:`~torchfmap.matching.overlap.PairMatchResult` with ``overlap`` ``(V_x,)`` and
-            ``overlap_y`` ``(V_y,)``, the estimated overlap on each, and ``p2p_yx`` meant on
-            ``overlap_y > 0.5``. Either way ``refine`` is ``'zoomout'`` or None; ``basis``,
-            ``bases``, ``times``, ``p2p_mode``, ``zoomout_samples`` and the WKS settings do not
-            apply.
-        progress: a status line on stderr (tqdm) naming each step as it starts, with the time
-            so far (dense meshes take minutes); the command line shows it unless ``--quiet``.
+        w_lap, w_orient, w_dcomm, w_lmk: weights of :func:`~torchfmap.fmap.solve_fmap` (defaults: the kind's,
+            :data:`~torchfmap.fmap.defaults.W_DCOMM`, ``W_LMK``).
+        w_prior: pull of feature-aware maps to ``C = I`` (default :data:`~torchfmap.fmap.defaults.W_PRIOR`).
+        times: relative diffusion times of feature-aware bases (default :func:`~torchfmap.kinds.seed_time`).
+        p2p_mode: conversion of :func:`~torchfmap.fmap.fmap_to_p2p` (default: the kind's).
+        zoomout_samples: eigenbasis ZoomOut on ~this many samples a shape (None: past ``LOCAL_SEARCH_PAIRS``).
+        bases: B-orthonormal ``(basis_x, basis_y)`` to solve in (columns not assumed to correspond; ``k``
+            ignored but for eigenbasis ZoomOut), of kind ``basis`` (default ``'laplacian'`` or ``'stack'``).
+        shapes: ``(prepare_shape(mesh_x, ...), prepare_shape(mesh_y, ...))`` to reuse across pairs; same maps.
+        partial: True: ``y`` a part of ``x`` in the same units (:mod:`torchfmap.matching.partial`, sets
+            ``overlap`` ``(V_x,)``); ``'both'``: two partly overlapping parts (a
+            :class:`~torchfmap.matching.overlap.PairMatchResult`). Then ``refine`` is ``'zoomout'`` or None,
+            and ``basis``, ``bases``, ``times``, ``p2p_mode``, ``zoomout_samples``, WKS settings are refused.
+        progress: a status line on stderr naming each step.
 
     Raises:
-        ParameterError: inputs that are not meshes (e.g. paths: the fix names ``load_mesh``),
-            unknown basis or refinement, a feature-aware basis without landmarks,
-            an invalid ``k``, given bases that do not fit the meshes, or given eigenbases with
-            fewer columns than ZoomOut's ``k_final``; :class:`~torchfmap.SeedError` for invalid
-            landmarks; :class:`~torchfmap.MemoryEstimateError` (a ParameterError) for a ``k`` whose
-            solve would not fit in the memory available (refused before any work).
-    """
-    with Steps("match", progress) as steps:  # a status line naming each step (progress=True)
+        ParameterError: inputs that are not meshes, unknown basis or refinement, a feature-aware basis without
+            landmarks, an invalid ``k``, given bases that do not fit the meshes or ``k_final``;
+            :class:`~torchfmap.SeedError` for invalid landmarks; :class:`~torchfmap.MemoryEstimateError` for a
+            ``k`` whose solve would not fit in memory."""
+    with Steps("match", progress) as steps:
         t0 = time.perf_counter()
         check_meshes(mesh_x, mesh_y)
         partial = check_partial(partial)
         if not partial:
             warn_if_partial(mesh_x, mesh_y)
         refine = check_refine(refine)
-        if times is not None:  # every kind that reads them would refuse them; refused before any work
+        if times is not None:  # refused before any work
             relative_times(times, 1)
         pairs = None
         if landmarks is not None and len(np.atleast_1d(landmarks)):
             pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
+        n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
         if partial:
             given = {"basis": basis, "bases": bases, "times": times, "p2p_mode": p2p_mode,
                      "zoomout_samples": zoomout_samples}  # fmt: skip
@@ -188,7 +130,6 @@ def match(
                     f"ZoomOut, so {', '.join(unused)} would not be used. Fix: drop it, or match without "
                     f"partial={partial!r}."
                 )
-            n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
             k = check_count(k, 1, n_max, "k (basis size)")
             if refine:
                 check_k_final(k, k_final)
@@ -226,7 +167,6 @@ def match(
         kind, together = get_kind(basis or "laplacian"), False
         if bases is not None:  # together: built as a pair at corresponding seeds (columns correspond)
             given_x, given_y, kind, together = given_bases_kind(bases, mesh_x, mesh_y, basis)
-        # ZoomOut of given eigenbases grows within them (from their first k columns)
         given_eigen = bases is not None and refine == "zoomout" and kind.grows and not kind.needs_landmarks
         if bases is not None and refine == "zoomout" and not given_eigen and not together:
             raise ParameterError(
@@ -235,17 +175,15 @@ def match(
             )
         if bases is not None and not given_eigen:
             k = min(given_x.k, given_y.k)
-        n_max = min(mesh_x.n_vertices, mesh_y.n_vertices) - 1
         k = check_count(k, 1, n_max, "k (basis size)")
         check_count(k_descriptors, 2, 10**9, "k_descriptors")
         check_unused(kind, refine, k_final, times)
         check_zoomout_sizes(kind, refine, k, k_final)
         check_solve_memory(k, k)
-        grow = refine == "zoomout" and kind.grows
         eigenbases = (given_x, given_y) if given_eigen else None
         if given_eigen:  # refused before any work
             check_eigenbases(eigenbases, k_final or 2 * k)
-        grow_shapes = (k_final or 2 * k) if grow and eigenbases is None else 0  # ZoomOut's eigenpairs
+        grow_shapes = (k_final or 2 * k) if refine == "zoomout" and kind.grows and eigenbases is None else 0
         steps("operators")
         shape_x, shape_y = prepare_shapes(mesh_x, mesh_y, shapes, 0)
         if pairs is not None:

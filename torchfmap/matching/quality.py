@@ -1,20 +1,5 @@
-"""How good is a point map, without ground truth: scores that :func:`torchfmap.match` chooses by.
-
-- :func:`geodesic_distortion`: how much the map changes geodesic distances. Anchors spread over
-  ``y`` (farthest points) and their images on ``x`` are compared by their distances to every
-  vertex: ``mean |d_y(a, v) - d_x(p(a), p(v))|`` in units of ``sqrt(area)``. A correct map of
-  an isometry scores the discretisation noise only; maps that tear a part off, send a leg to
-  another leg or scatter vertices score more, and so do correct maps of non-isometric pairs, but
-  the *same* amount for every candidate of one pair, so scores of one pair compare maps. It is
-  blind to intrinsic symmetries (a left-right swap preserves distances).
-- :func:`orientation_agreement`: the area share of ``y``'s triangles whose image on ``x`` keeps
-  its orientation, as ``2 share - 1`` in ``[-1, 1]``: near 1 for smooth orientation-preserving
-  maps, near -1 for mirror images, near 0 for scattered ones. Reported beside the distortion.
-- :func:`landmark_distortion`: distances among landmark pairs compared on the two shapes
-  (landmarks read with the wrong index base or swapped columns stand out);
-  :func:`warn_if_off_by_one` warns on that;
-- :func:`warn_collapsed`: a map that reaches only a few source vertices.
-"""
+"""Scores of a point map without ground truth, which :func:`torchfmap.match` chooses and guards by, and
+warnings on misread landmarks and collapsed maps."""
 
 from __future__ import annotations
 
@@ -30,27 +15,18 @@ from ..seeds import farthest_point_sampling
 
 #: Anchors of :func:`geodesic_distortion` (farthest points on ``y``).
 N_ANCHORS = 64
-#: The resolution of :func:`geodesic_distortion` as a judge: maps whose scores differ by less than
-#: this fraction are not told apart (on near-isometric pairs good maps differ by discretisation
-#: noise). The landmark default's choice and every refinement's guard read it.
+#: Relative resolution of :func:`geodesic_distortion`: maps whose scores differ by less are not told apart.
 DISTORTION_RESOLUTION = 0.1
-#: :func:`warn_if_off_by_one` reads landmark files of at least this many pairs (fewer distances
-#: among them do not tell readings apart: 3 landmarks give 3 distances).
+#: :func:`warn_if_off_by_one` judges landmark files of at least this many pairs ...
 MISREAD_MIN_LANDMARKS = 5
-#: ... and warns when the pairs shifted by -1 distort distances by this factor less than given,
-#: judged on fewer than :data:`OFF_BY_ONE_MANY` pairs (a shift by one vertex often lands near the
-#: intended vertex: a weaker signal than a swap, and few distances among few pairs are noisy) ...
+#: ... and warns when the pairs shifted by -1 distort distances by this factor less than given ...
 OFF_BY_ONE_RATIO = 0.7
-#: ... or by this factor less on :data:`OFF_BY_ONE_MANY` pairs or more (the mean over their
-#: distances is steadier: on dev pairs, SMAL_r across species, TOSCA with stretched copies, FAUST_r,
-#: correct files shifted by -1 never scored below 0.89 of as given, 1-based ones mostly below 0.85).
+#: ... or by this factor less on :data:`OFF_BY_ONE_MANY` pairs or more (a steadier mean) ...
 OFF_BY_ONE_RATIO_MANY = 0.85
 OFF_BY_ONE_MANY = 10
-#: ... or the pairs with swapped columns by this factor less.
+#: ... or the pairs with swapped columns by this factor less ...
 SWAPPED_RATIO = 0.5
-#: ... judging each reading on at most this many of the pairs, evenly spread over the file's
-#: order (190 distances among them; a misreading shifts most of them): the check costs two
-#: distance solves (each ``O(V)``) per pair judged and reading, bounded whatever the file holds.
+#: ... judging each reading on at most this many pairs, evenly spread (bounds the geodesic solves).
 MISREAD_MAX_LANDMARKS = 20
 
 __all__ = [
@@ -66,8 +42,7 @@ __all__ = [
 
 
 def distortion_anchors(shape_y: PreparedShape, n_anchors: int = N_ANCHORS) -> np.ndarray:
-    """``(A,)`` anchors of :func:`geodesic_distortion` on ``y``: ``min(n_anchors, V_y)``
-    Euclidean farthest points (deterministic: they start from vertex 0's farthest point)."""
+    """``(A,)`` anchors of :func:`geodesic_distortion`: ``min(n_anchors, V_y)`` farthest points of ``y``."""
     n = min(n_anchors, shape_y.mesh.n_vertices)
     return shape_y.derive(
         ("anchors", n), lambda: farthest_point_sampling(shape_y.mesh, n, metric="euclidean")
@@ -82,16 +57,12 @@ def geodesic_distortion(
     *,
     area_ratio: float = 1.0,
 ) -> float:
-    """``mean_{a, v} |s d_y(a, v) - d_x(p(a), p(v))|`` over anchors ``a`` on ``y`` (default
-    :func:`distortion_anchors`) and every vertex ``v`` of ``y``, ``p = p2p_yx``, in units of
-    ``sqrt(area)`` (prepared shapes live in their unit-area frame). ``s = sqrt(area_ratio)``:
-    for a part ``y`` of ``x`` (area ratio ``a``, :mod:`torchfmap.matching.partial`), ``y``'s distances in
-    ``x``'s units. Lower is better; ``0`` for an exact isometry. Distance rows are computed by,
-    and kept in, each shape's ``distances``.
+    """``mean_{a, v} |s d_y(a, v) - d_x(p(a), p(v))|`` over ``anchors`` ``a`` and vertices ``v`` of ``y``, ``p
+    = p2p_yx``, in units of ``sqrt(area)``; ``s = sqrt(area_ratio)`` for a part ``y`` of ``x``. ``0`` for an
+    isometry.
 
     Raises:
-        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``; ``area_ratio`` not > 0.
-    """
+        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``; ``area_ratio`` not > 0."""
     p2p = check_p2p(p2p_yx, shape_y.mesh.n_vertices, shape_x.mesh.n_vertices, "p2p_yx")
     if not area_ratio > 0:
         raise ParameterError(f"area_ratio must be > 0 (the part's area over the whole's), got {area_ratio}.")
@@ -103,13 +74,11 @@ def geodesic_distortion(
 
 
 def orientation_agreement(mesh_x: Mesh, mesh_y: Mesh, p2p_yx) -> float:
-    """``2 s - 1`` where ``s`` is the area share of ``y``'s faces whose image triangle on ``x``
-    (vertices ``p2p_yx[face]``) turns the same way as ``x``'s vertex normals there; faces whose
-    image has a repeated vertex are left out (0.0 if every face is). In ``[-1, 1]``.
+    """``2 s - 1`` in ``[-1, 1]``, ``s`` the area share of ``y``'s faces whose image on ``x`` turns as ``x``'s
+    normals (degenerate images left out; 0.0 if all are).
 
     Raises:
-        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``.
-    """
+        ParameterError: ``p2p_yx`` not ``(V_y,)`` indices into ``x``."""
     p2p = check_p2p(p2p_yx, mesh_y.n_vertices, mesh_x.n_vertices, "p2p_yx")
     a, b, c = (p2p[mesh_y.faces[:, i]] for i in range(3))
     kept = (a != b) & (b != c) & (a != c)
@@ -122,26 +91,18 @@ def orientation_agreement(mesh_x: Mesh, mesh_y: Mesh, p2p_yx) -> float:
 
 
 def landmark_distortion(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> float:
-    """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(a_i, b_i)``, in units of
-    ``sqrt(area)``: small for corresponding landmarks on near-isometric shapes, large for
-    landmarks that do not correspond (e.g. read with the wrong index base)."""
+    """Mean ``|d_x(a_i, a_j) - d_y(b_i, b_j)|`` over landmark pairs ``(L, 2)``, in units of ``sqrt(area)``."""
     dx = shape_x.distances.distances(landmarks[:, 0])[:, landmarks[:, 0]]
     dy = shape_y.distances.distances(landmarks[:, 1])[:, landmarks[:, 1]]
     return float(np.mean(np.abs(dx - dy)))
 
 
 def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks: np.ndarray) -> None:
-    """Warn (``UserWarning``) when another reading of the landmark pairs fits the shapes far
-    better than the given one, by :func:`landmark_distortion` (distances among landmarks agree
-    on corresponding points): the pairs shifted by -1 (a 1-based file; at least
-    :data:`MISREAD_MIN_LANDMARKS` pairs, better by :data:`OFF_BY_ONE_RATIO`, or by
-    :data:`OFF_BY_ONE_RATIO_MANY` on :data:`OFF_BY_ONE_MANY` pairs or more) or with their
-    columns swapped (target vertex first; better by :data:`SWAPPED_RATIO`). Judged on at most
-    :data:`MISREAD_MAX_LANDMARKS` pairs: at most ``6 · MISREAD_MAX_LANDMARKS`` geodesic solves
-    (those of the given pairs reused by the feature-aware bases)."""
+    """Warn (``UserWarning``) when the landmark pairs shifted by -1 or with swapped columns fit far better
+    than as given (:func:`landmark_distortion`; thresholds: :data:`OFF_BY_ONE_RATIO` and kin)."""
     if len(landmarks) < MISREAD_MIN_LANDMARKS:
         return
-    one_based = landmarks.min() >= 1  # of every pair: one 0 rules the shifted reading out
+    one_based = landmarks.min() >= 1
     nx, ny = shape_x.mesh.n_vertices, shape_y.mesh.n_vertices
     swappable = landmarks[:, 1].max() < nx and landmarks[:, 0].max() < ny
     if len(landmarks) > MISREAD_MAX_LANDMARKS:
@@ -169,14 +130,12 @@ def warn_if_off_by_one(shape_x: PreparedShape, shape_y: PreparedShape, landmarks
             return
 
 
-#: A point map reaching under this fraction of the vertices it could reach (``min(V_x, V_y)``)
-#: has collapsed (e.g. an extreme regulariser weight): :func:`match` warns.
+#: A point map reaching under this fraction of the ``min(V_x, V_y)`` vertices it could reach has collapsed.
 COLLAPSE_COVERAGE = 0.05
 
 
 def warn_collapsed(p2p_yx: np.ndarray, n_x: int, stacklevel: int = 3) -> None:
-    """Warn (:class:`~torchfmap.errors.MapWarning`) when ``p2p_yx`` reaches under
-    :data:`COLLAPSE_COVERAGE` of the ``min(V_x, V_y)`` source vertices it could reach."""
+    """Warn (:class:`~torchfmap.errors.MapWarning`) if ``p2p_yx`` reaches under :data:`COLLAPSE_COVERAGE`."""
     reachable = min(n_x, len(p2p_yx))
     reached = len(np.unique(p2p_yx))
     if reachable > 1 and reached < COLLAPSE_COVERAGE * reachable:

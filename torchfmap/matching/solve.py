@@ -1,9 +1,5 @@
-"""The solve step of classical matching, shared by :func:`torchfmap.match` and the landmark
-default (:mod:`torchfmap.matching.landmark_default`): descriptors (:func:`match_descriptors`), a kind's
-pair of bases (:func:`match_bases`) and the unrefined map of one kind on prepared shapes
-(:func:`solve_pair`). What a basis *kind* means lives in the registry
-:data:`torchfmap.kinds.KINDS`; this module reads it and never compares kind names.
-"""
+"""The solve step shared by :func:`torchfmap.match` and the landmark default: descriptors, a kind's pair of
+bases and one kind's unrefined map (:func:`solve_pair`)."""
 
 from __future__ import annotations
 
@@ -42,16 +38,11 @@ def match_descriptors(
     n_descriptors: int = 20,
     k_descriptors: int = 100,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(V_x, D)``, ``(V_y, D)`` descriptors of :func:`match`, normalised (unit B-norm columns).
-
-    ``n_descriptors`` WKS columns (evenly subsampled from
-    :data:`~torchfmap.descriptors.WKS_ENERGIES` energies computed on the first
-    ``k_descriptors`` eigenpairs of each prepared shape), then, with ``landmarks`` ``(L, 2)``,
-    two heat kernels per landmark (:func:`~torchfmap.descriptors.landmark_descriptors`).
+    """``(V_x, D)``, ``(V_y, D)`` unit-B-norm descriptors: ``n_descriptors`` WKS columns on ``k_descriptors``
+    eigenpairs, then, with ``landmarks`` ``(L, 2)``, :func:`~torchfmap.descriptors.landmark_descriptors`.
 
     Raises:
-        ParameterError: ``n_descriptors < 1`` or shapes prepared without eigenpairs.
-    """
+        ParameterError: ``n_descriptors < 1`` or shapes prepared without eigenpairs."""
     if n_descriptors < 1:
         raise ParameterError(f"n_descriptors must be >= 1, got {n_descriptors}.")
     out = []
@@ -68,10 +59,7 @@ def match_descriptors(
 
 
 def _landmark_columns(shape: PreparedShape, landmarks: np.ndarray) -> np.ndarray:
-    """``(V, L·T)`` :func:`~torchfmap.descriptors.landmark_descriptors` of ``landmarks`` on a
-    prepared shape, each landmark's columns solved once and kept in ``shape.derived`` (the
-    landmark cross-validation solves with subsets of the same landmarks; a kernel does not
-    depend on the others it is solved with)."""
+    """``(V, L·T)`` landmark descriptors on a prepared shape, each landmark solved once (cached)."""
     kept = shape.derive("landmark descriptors", dict)
     missing = [int(v) for v in dict.fromkeys(np.asarray(landmarks).tolist()) if int(v) not in kept]
     if missing:
@@ -89,25 +77,19 @@ def match_bases(
     landmarks: np.ndarray | None = None,
     times=None,
 ) -> tuple[Basis, Basis, np.ndarray | None]:
-    """The pair of B-orthonormal bases :func:`match` solves in, with exactly ``k`` columns each,
-    and the corresponding seed pairs ``(S, 2)`` they are built at (None when the columns do not
-    correspond): ``KINDS[kind].pair_bases`` (:data:`torchfmap.kinds.KINDS`). The seed pairs are
-    also recorded on both bases (``Basis.pair_landmarks``, saved with them), so that
-    ``match(bases=...)`` can tell them from bases built apart.
+    """The pair of B-orthonormal ``k``-column bases of ``kind`` and their seed pairs ``(S, 2)`` (None when
+    columns do not correspond; also set as ``Basis.pair_landmarks``).
 
     Raises:
-        ParameterError: an unknown kind, a kind that needs landmarks without them, or ``k``
-            outside its range.
-    """
+        ParameterError: an unknown kind, a kind needing landmarks without them, or ``k`` out of range."""
     bx, by, seeds = get_kind(kind).pair_bases(shape_x, shape_y, k, landmarks, times)
-    if seeds is not None:  # recorded (and saved with the bases): they were built together
+    if seeds is not None:
         bx.pair_landmarks = by.pair_landmarks = np.asarray(seeds, dtype=np.int64).reshape(-1, 2)
     return bx, by, seeds
 
 
 class SolvedMap(NamedTuple):
-    """A kind's functional map before its point map: ``C_xy (K_y, K_x)`` in the pair of bases
-    it was solved in, their seed pairs ``(S, 2)`` (or None) and the timings so far."""
+    """A kind's functional map ``C_xy (K_y, K_x)``, its bases, seed pairs ``(S, 2)`` or None, timings."""
 
     C_xy: np.ndarray
     basis_x: Basis
@@ -136,13 +118,10 @@ def solve_functional_map(
     n_eigen: int = 0,
     steps: Steps = SILENT,
 ) -> SolvedMap:
-    """:func:`solve_pair` up to the functional map (its point map left to the caller: the
-    landmark cross-validation converts only the held-out landmarks); arguments as there;
-    ``steps`` names each step as it starts (:class:`~torchfmap._util.progress.Steps`).
+    """:func:`solve_pair` up to the functional map; arguments as there.
 
     Raises:
-        ParameterError: as :func:`solve_pair`.
-    """
+        ParameterError: as :func:`solve_pair`."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     n_max = min(shape_x.mesh.n_vertices, shape_y.mesh.n_vertices) - 1
@@ -156,7 +135,6 @@ def solve_functional_map(
     for shape in (shape_x, shape_y):
         with_eigenpairs(shape, n_eigen)
     timings["operators+eigen"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
     steps(f"{kind.name}: basis")
     if bases is None:
@@ -164,7 +142,6 @@ def solve_functional_map(
     else:
         bx, by = bases
     timings["basis"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
     steps(f"{kind.name}: descriptors")
     if need_desc:
@@ -172,7 +149,6 @@ def solve_functional_map(
             shape_x, shape_y, landmarks, n_descriptors=n_descriptors, k_descriptors=k_descriptors
         )
     timings["descriptors"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
 
     def solve_block(block_x: Basis, block_y: Basis, prior) -> np.ndarray:
@@ -200,25 +176,13 @@ def solve_pair(
     p2p_mode: P2PMode | None = None,
     **settings,
 ) -> MatchResult:
-    """The unrefined map of one kind on prepared shapes (the solve step :func:`match` and
-    :func:`match_landmark_default` share): eigenpairs grown in place to what the kind, its
-    descriptors and ``n_eigen`` (e.g. a later ZoomOut) need -> :func:`match_bases` (or the
-    given ``bases``) -> :func:`match_descriptors` -> the kind's ``solve_map`` (each block by
-    :func:`~torchfmap.fmap.solve_fmap` with the kind's weights unless given) -> the kind's
-    ``to_p2p``.
-
-    ``landmarks``: checked ``(L, 2)`` pairs, or None; ``settings`` (those of
-    :func:`solve_functional_map`): ``bases``: given ``(basis_x, basis_y)`` of ``k`` columns,
-    ``seeds`` their seed pairs ``(S, 2)`` if built together (then pulled to ``C = I``), else
-    None; ``n_eigen``: eigenpairs to hold for a later ZoomOut; ``times``, ``n_descriptors``,
-    ``k_descriptors`` and the weights as :func:`match`; ``steps``: a
-    :class:`~torchfmap._util.progress.Steps` naming each step as it starts. Returns an unrefined
-    :class:`MatchResult` (``distortion`` set with landmarks; timings ``operators+eigen``,
-    ``basis``, ``descriptors``, ``fmap+p2p``).
+    """One kind's unrefined :class:`MatchResult` on prepared shapes (``distortion`` set with landmarks):
+    :func:`match_bases` (or given ``bases`` with their ``seeds``) -> :func:`match_descriptors` -> the kind's
+    ``solve_map`` and ``to_p2p``. ``landmarks``: checked ``(L, 2)`` pairs or None; ``settings``: those of
+    :func:`solve_functional_map` (``n_eigen``: eigenpairs to hold for ZoomOut; the rest as :func:`match`).
 
     Raises:
-        ParameterError: as the kind's bases, or ``k`` / ``k_descriptors`` out of range.
-    """
+        ParameterError: as the kind's bases, or ``k`` / ``k_descriptors`` out of range."""
     kind = get_kind(kind)
     C, bx, by, seeds, timings = solve_functional_map(
         shape_x, shape_y, kind, k, landmarks=landmarks, **settings
@@ -228,19 +192,17 @@ def solve_pair(
     p2p = kind.to_p2p(C, bx, by, p2p_mode or kind.p2p_mode, samplings=pair_samplings(shape_x, shape_y))
     timings["fmap+p2p"] = timings.pop("fmap") + time.perf_counter() - t0
     distortion = None
-    if landmarks is not None:  # the score that chooses among kinds and guards the refinement
+    if landmarks is not None:
         settings.get("steps", SILENT)(f"{kind.name}: distortion")
         distortion = geodesic_distortion(shape_x, shape_y, p2p)
     return MatchResult(p2p, C, bx, by, p2p, timings, seeds, kind.name, distortion)
 
 
 def prepare_shapes(mesh_x: Mesh, mesh_y: Mesh, shapes, n_eigen: int) -> tuple[PreparedShape, PreparedShape]:
-    """``shapes`` checked against the meshes (eigenpairs grown in place to ``n_eigen``), else
-    both meshes prepared (:func:`~torchfmap.prepare_shape`).
+    """``shapes`` checked against the meshes (eigenpairs grown to ``n_eigen``), else both prepared.
 
     Raises:
-        ParameterError: ``shapes`` that are not the meshes' prepared shapes.
-    """
+        ParameterError: ``shapes`` that are not the meshes' prepared shapes."""
     if shapes is None:
         return prepare_shape(mesh_x, n_eigen), prepare_shape(mesh_y, n_eigen)
     return tuple(with_eigenpairs(s, n_eigen) for s in check_prepared(shapes, (mesh_x, mesh_y)))
