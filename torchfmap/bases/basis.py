@@ -1,11 +1,5 @@
-"""The :class:`Basis` result type: basis values, mass, provenance of every column, save/load.
-
-``values`` is ``(V, K)``; ``mass`` the ``(V, V)`` sparse mass matrix ``B`` of the mesh, so that
-``project(f) = values.T @ B @ f`` (exact coefficients when the basis is B-orthonormal) and
-``reconstruct(c) = values @ c``. ``provenance`` records every *input* column (kind, seed,
-relative time, eigen-index) and whether orthonormalisation kept it; ``columns`` lists the kept
-ones, in the order of ``values``.
-"""
+"""The :class:`Basis` result type: ``(V, K)`` values, the mesh's mass matrix, the provenance of
+every input column (kept or dropped by orthonormalisation), save/load."""
 
 from __future__ import annotations
 
@@ -25,14 +19,9 @@ _FORMAT_VERSION = 1
 
 @dataclass(frozen=True)
 class Column:
-    """Where a basis column comes from.
-
-    ``family``: the function family, ``'diffusion'``, ``'harmonic'``, ``'laplacian'``
-    (an eigenfunction) or ``'custom'`` (``kind`` is its old name); ``seed``: the
-    seed vertex (``-1`` if none); ``time``: relative diffusion time ``t`` (absolute time is
-    ``t * |M|``; None if none); ``index``: eigenfunction index (``-1`` if none); ``kept``:
-    survived orthonormalisation.
-    """
+    """Where a basis column comes from: ``family`` (``'diffusion'``, ``'harmonic'``, ``'laplacian'``
+    or ``'custom'``), ``seed`` vertex, relative diffusion ``time`` (absolute ``t * |M|``),
+    eigenfunction ``index`` (``-1``/None: none); ``kept``: survived orthonormalisation."""
 
     family: str
     seed: int = -1
@@ -51,17 +40,10 @@ class Column:
 
 
 class Basis:
-    """A set of functions on a mesh, with the mass matrix and per-column provenance.
-
-    Args:
-        values: ``(V, K)`` basis functions (columns).
-        mass: ``(V, V)`` sparse mass matrix (or ``(V,)`` lumped diagonal).
-        provenance: one :class:`Column` per *input* column; exactly ``K`` of them have
-            ``kept=True``, in the order of ``values``' columns.
-        orthonormal: whether ``values.T @ mass @ values == I`` (set by orthonormalisation).
-        stiffness: optional ``(V, V)`` stiffness ``L``, for :meth:`projected_laplacian`.
-        eigenvalues: optional ``(K,)`` eigenvalues, for a Laplacian eigenbasis.
-    """
+    """A set of functions on a mesh: ``values`` ``(V, K)``; ``mass`` ``(V, V)`` sparse (or ``(V,)``
+    lumped); ``provenance``: one :class:`Column` per input column, ``K`` of them ``kept``;
+    ``orthonormal``: ``values.T @ mass @ values == I``; optional ``stiffness`` ``(V, V)`` and
+    ``eigenvalues`` ``(K,)``."""
 
     def __init__(
         self,
@@ -95,12 +77,10 @@ class Basis:
         self.orthonormal = orthonormal
         self.stiffness = None if stiffness is None else sp.csr_matrix(stiffness, dtype=np.float64)
         self.eigenvalues = None if eigenvalues is None else np.asarray(eigenvalues, dtype=np.float64)
-        #: ``(n, 2)`` landmark pairs ``(source, target)`` this basis was built from together with
-        #: its partner (``torchfmap basis SRC TGT --landmarks``), or None: saved and loaded with
-        #: the basis so that ``match --bases`` can tell corresponding bases from unrelated ones.
+        #: ``(n, 2)`` landmark pairs ``(source, target)`` this basis was built from with its
+        #: partner, or None (saved with the basis).
         self.pair_landmarks: np.ndarray | None = None
 
-    # -- sizes and provenance -----------------------------------------------------------------
     @property
     def n_vertices(self) -> int:
         return self.values.shape[0]
@@ -134,17 +114,13 @@ class Basis:
             f"orthonormal={self.orthonormal})"
         )
 
-    # -- linear algebra -----------------------------------------------------------------------
     def gram(self) -> np.ndarray:
         """``(K, K)`` Gram matrix ``Φᵀ B Φ`` (the identity for an orthonormal basis)."""
         return self.values.T @ (self.mass @ self.values)
 
     def project(self, f: np.ndarray) -> np.ndarray:
-        """Coefficients ``Φᵀ B f``: ``(V,)`` -> ``(K,)`` or ``(V, D)`` -> ``(K, D)``.
-
-        These are the best approximation's coefficients only when the basis is B-orthonormal;
-        otherwise use :meth:`least_squares`.
-        """
+        """Coefficients ``Φᵀ B f``: ``(V,)`` -> ``(K,)`` or ``(V, D)`` -> ``(K, D)`` (the best
+        approximation's only when B-orthonormal; else :meth:`least_squares`)."""
         f = np.asarray(f, dtype=np.float64)
         if f.shape[0] != self.n_vertices:
             raise ParameterError(f"f has {f.shape[0]} rows, the basis has {self.n_vertices} vertices.")
@@ -168,11 +144,8 @@ class Basis:
         return self.values.T @ (self.stiffness @ self.values)
 
     def truncated(self, k: int) -> Basis:
-        """The first ``k`` columns as a new :class:`Basis` (mass, stiffness and flags kept).
-
-        Provenance keeps the first ``k`` kept columns and the dropped columns recorded before
-        them. Raises :class:`ParameterError` unless ``1 <= k <= K``.
-        """
+        """The first ``k`` columns as a new :class:`Basis` (mass, stiffness, flags and the
+        provenance up to them kept). Raises :class:`ParameterError` unless ``1 <= k <= K``."""
         k = check_count(k, 1, self.k, "k (columns kept)")
         prov, kept = [], 0
         for c in self.provenance:
@@ -187,7 +160,6 @@ class Basis:
         """``(K,)`` support fraction of each column; see :func:`support_fraction`."""
         return support_fraction(self.values, eps=eps, mass=self.mass if weighted else None)
 
-    # -- persistence --------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
         """Write to ``.npz`` atomically (temp file + rename) with a checksum verified on load."""
         path = Path(path)
@@ -225,14 +197,8 @@ class Basis:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Basis:
-        """Read a basis written by :meth:`save`.
-
-        Raises:
-            FileReadError: no such file, a folder, no permission.
-            CorruptFileError: a truncated or altered file, or one whose checksum holds but whose
-                arrays are not a basis of this format (missing, of the wrong shape or dtype,
-                non-finite values, mass indices outside the vertices).
-        """
+        """Read a basis written by :meth:`save`. Raises FileReadError (no such file, a folder, no
+        permission) or CorruptFileError (altered or truncated, or not a basis of this format)."""
         arrays = load_arrays(path, what="basis file")
         try:
             return cls._from_arrays(arrays)
@@ -263,16 +229,10 @@ class Basis:
 
         mass = matrix("mass")
         stiffness = matrix("stiff") if "stiff_data" in arrays else None
+        fields = (arrays[f"prov_{name}"] for name in ("kind", "seed", "time", "index", "kept"))
         prov = [
             Column(str(k), int(s), None if np.isnan(t) else float(t), int(i), bool(kept))
-            for k, s, t, i, kept in zip(
-                arrays["prov_kind"],
-                arrays["prov_seed"],
-                arrays["prov_time"],
-                arrays["prov_index"],
-                arrays["prov_kept"],
-                strict=True,
-            )
+            for k, s, t, i, kept in zip(*fields, strict=True)
         ]
         basis = cls(values, mass, prov, bool(arrays["orthonormal"]), stiffness, arrays.get("eigenvalues"))
         basis.pair_landmarks = arrays.get("pair_landmarks")
@@ -280,16 +240,8 @@ class Basis:
 
 
 def support_fraction(values: np.ndarray, eps: float = 1e-3, mass=None) -> np.ndarray:
-    """Fraction of the surface where ``|f| > eps * max|f|``, per column.
-
-    Args:
-        values: ``(V,)`` or ``(V, K)`` functions.
-        eps: relative threshold.
-        mass: optional ``(V, V)`` mass matrix: area-weighted fraction instead of vertex count.
-
-    Returns:
-        ``(K,)`` fractions in ``[0, 1]`` (a scalar for a single function).
-    """
+    """``(K,)`` fraction in ``[0, 1]`` of the surface where ``|f| > eps * max|f|``, per column of
+    ``values (V, K)`` (a scalar for ``(V,)``); with ``mass`` ``(V, V)``: area-weighted."""
     f = np.abs(np.asarray(values, dtype=np.float64))
     single = f.ndim == 1
     f = f[:, None] if single else f

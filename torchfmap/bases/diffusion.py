@@ -1,9 +1,5 @@
-"""The diffusion basis: heat kernels at seeds and relative times.
-
-The kernels come from :func:`~torchfmap.operators.heat.heat_kernels` (absolute times; its
-module describes the methods). :func:`diffusion_basis` takes relative times ``t`` and
-multiplies them by the area ``|M|``, which makes the basis scale invariant.
-"""
+"""The diffusion basis: heat kernels (:func:`~torchfmap.operators.heat.heat_kernels`) at seeds and
+relative times ``t`` (absolute ``t·|M|``: scale invariant)."""
 
 from __future__ import annotations
 
@@ -33,15 +29,10 @@ def diffusion_basis(
     local: bool | Literal["auto"] = "auto",
     **kwargs,
 ) -> Basis:
-    """Diffusion basis: heat kernels at every seed and relative time ``t`` (absolute ``t·|M|``).
-
-    Columns are ordered by time (small to large), then by seed. Not orthonormal: see
-    :func:`~torchfmap.bases.orthonormalize` or :func:`~torchfmap.basis_stack`. ``method``,
-    ``kernel``, ``tol``, ``local`` and ``kwargs`` go to
+    """Heat kernels at every seed and relative time ``t`` (absolute ``t·|M|``), not orthonormal: a
+    :class:`Basis` of ``(V, T·S)`` values, time-major, provenance ``('diffusion', seed, t)``.
+    ``method``, ``kernel``, ``tol``, ``local`` and ``kwargs`` go to
     :func:`~torchfmap.operators.heat.heat_kernels`.
-
-    Returns:
-        a :class:`Basis` with ``V x (T·S)`` values and provenance ``('diffusion', seed, t)``.
 
     Raises:
         ParameterError: a time that is not finite and > 0, or what ``heat_kernels`` raises.

@@ -1,8 +1,4 @@
-"""The Laplace-Beltrami eigenbasis (the usual functional-map basis).
-
-The eigenpairs of ``L φ = λ B φ`` come from :func:`~torchfmap.operators.eigen.eigenpairs`
-(B-orthonormal, ``λ`` ascending, signs fixed by its convention).
-"""
+"""The Laplace-Beltrami eigenbasis (:func:`~torchfmap.operators.eigen.eigenpairs` of ``L φ = λ B φ``)."""
 
 from __future__ import annotations
 
@@ -13,11 +9,9 @@ from .basis import Basis, Column
 
 
 def laplacian_eigenbasis(mesh: Mesh, k: int, *, operators: Operators | None = None) -> Basis:
-    """The first ``k`` Laplace-Beltrami eigenfunctions as a B-orthonormal :class:`Basis`.
-
-    The eigenvalues are kept in ``basis.eigenvalues`` (``(k,)``, ascending). Raises what
-    :func:`~torchfmap.operators.eigen.eigenpairs` raises (``k`` outside ``[1, V]``, ...).
-    """
+    """The first ``k`` Laplace-Beltrami eigenfunctions as a B-orthonormal :class:`Basis`, with
+    ``eigenvalues`` ``(k,)`` ascending. Raises what :func:`~torchfmap.operators.eigen.eigenpairs`
+    raises."""
     L, B = operators if operators is not None else laplacian(mesh)
     lam, phi = eigenpairs(L, B, k)
     prov = [Column("laplacian", index=i) for i in range(k)]

@@ -1,21 +1,5 @@
-"""B-orthonormalisation with removal of numerically dependent columns.
-
-Two schemes, both processing columns *in the given order* (so a stack ordered diffusion ->
-harmonic -> Laplacian keeps the earliest columns and drops later ones that add nothing):
-
-``mgs``
-    Gram-Schmidt in the inner product ``<f, g>_B = fᵀ B g``, by panels of ``MGS_PANEL``
-    columns (matrix products against the earlier columns, column by column within a panel),
-    with one full re-orthogonalisation pass ("twice is enough"). A column is dropped when
-    its remainder has B-norm below ``tol`` times its original B-norm. Orthogonality
-    ``Φᵀ B Φ = I`` to ~1e-15.
-``cholqr``
-    Cholesky-QR2 in the B inner product: a Cholesky factorisation of the Gram matrix
-    ``Fᵀ B F`` that skips (drops) columns whose pivot falls below ``tol**2`` times their
-    squared norm, then a second Cholesky-QR pass for full orthogonality. Matrix-matrix only,
-    so much faster for wide stacks; the Gram matrix squares the condition number, so it can
-    only resolve dependence down to about ``1e-7``: keep ``tol >= 1e-7`` with it.
-"""
+"""B-orthonormalisation dropping numerically dependent columns, in the given order: ``mgs``
+(Gram-Schmidt twice) or ``cholqr`` (Cholesky-QR2; faster, resolves dependence only to 1e-7)."""
 
 from __future__ import annotations
 
@@ -30,14 +14,12 @@ from ..errors import ParameterError
 from .basis import Basis, Column
 
 SCHEMES = ("mgs", "cholqr")
-#: Columns :func:`mgs` projects out of the earlier kept columns together, by matrix products
-#: (block Gram-Schmidt twice; within a panel, column by column twice).
+#: Columns :func:`mgs` projects out of the earlier kept columns together, by matrix products.
 MGS_PANEL = 32
 
 
 class _Mass:
-    """The product with a mass matrix, ``B @ x`` for ``(V,)`` or ``(V, n)`` arrays: elementwise for
-    a diagonal (lumped) mass, given as ``(V,)`` or as a diagonal matrix (no sparse product then)."""
+    """``B @ x`` for ``(V,)`` or ``(V, n)`` arrays, elementwise for a diagonal (lumped) mass."""
 
     def __init__(self, mass) -> None:
         diagonal = lumped_diagonal(mass)
@@ -52,25 +34,9 @@ class _Mass:
 
 
 def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
-    """Gram-Schmidt with re-orthogonalisation in the B inner product, by panels.
-
-    Columns are taken in panels of :data:`MGS_PANEL`: a panel is first projected out of
-    every column kept before it by block classical Gram-Schmidt, twice (two matrix products
-    per pass, ``Q_kᵀ (B P)`` and ``P -= Q_k C``: the kept columns are read twice per panel, not
-    twice per column, which makes the cost ``O(V K² / panel)`` in memory traffic instead of
-    ``O(V K²)``); then its columns one by one against the columns kept from the same panel,
-    twice. Every column is thus projected twice against every earlier kept column ("twice is
-    enough"), the same result as the column-by-column scheme to round-off.
-
-    Args:
-        F: ``(V, K)`` input columns.
-        mass: ``(V, V)`` SPD mass matrix (or ``(V,)`` diagonal).
-        tol: relative drop tolerance: a column is dropped when its remainder has B-norm below
-            ``tol`` times its own B-norm.
-
-    Returns:
-        ``(Q (V, R), kept (R,))``: B-orthonormal columns and the indices of the kept inputs.
-    """
+    """``(Q (V, R), kept (R,))``: B-orthonormal columns of ``F (V, K)`` (``mass`` ``(V, V)`` SPD or
+    ``(V,)``) and the kept inputs, by Gram-Schmidt twice in panels of :data:`MGS_PANEL`. A column
+    is dropped when its remainder's B-norm is below ``tol`` times its own."""
     B = _Mass(mass)
     F = np.asarray(F, dtype=np.float64)
     V, K = F.shape
@@ -80,14 +46,14 @@ def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]
     for p0 in range(0, K, MGS_PANEL):
         P = np.array(F[:, p0 : p0 + MGS_PANEL], order="F")
         norm0 = np.sqrt(np.maximum(np.einsum("ij,ij->j", P, B @ P), 0.0))
-        for _ in range(2 if r else 0):  # block passes against the columns kept so far
+        for _ in range(2 if r else 0):
             P -= Q[:, :r] @ (Q[:, :r].T @ (B @ P))
-        r0 = r  # the columns kept from this panel start here
+        r0 = r
         for j in range(P.shape[1]):
             if norm0[j] == 0.0 or not np.isfinite(norm0[j]):
                 continue
             v = P[:, j]
-            for _ in range(2 if r > r0 else 0):  # the second pass is the re-orthogonalisation
+            for _ in range(2 if r > r0 else 0):
                 v -= Q[:, r0:r] @ (Q[:, r0:r].T @ (B @ v))
             Bv = B @ v
             norm = np.sqrt(max(v @ Bv, 0.0))
@@ -103,15 +69,8 @@ def mgs(F: np.ndarray, mass, tol: float = 1e-8) -> tuple[np.ndarray, np.ndarray]
 
 
 def _polish(Q: np.ndarray, B, r0: int, r: int) -> None:
-    """Columns ``r0:r`` of ``Q`` (one panel) projected once more out of columns ``:r0`` and
-    re-orthonormalised by one Cholesky-QR step, in place.
-
-    A column kept with a small remainder ``ρ`` (its norm over its input norm, at least the drop
-    tolerance) carries round-off of order ``ε/ρ`` along the earlier panels once it is divided by
-    its norm; the column-by-column scheme removes it with its second pass over every column,
-    here one block pass per panel does. The panel is then orthonormal to ``ε/ρ``, so its Gram
-    matrix is within that of the identity and Cholesky-QR is exact to round-off; the factor is
-    triangular, so column ``j`` still spans what the first ``j`` inputs add."""
+    """Columns ``r0:r`` of ``Q`` projected once more out of columns ``:r0`` and re-orthonormalised
+    by one Cholesky-QR step, in place."""
     panel = Q[:, r0:r]
     panel -= Q[:, :r0] @ (Q[:, :r0].T @ (B @ panel))
     gram = panel.T @ (B @ panel)
@@ -120,10 +79,7 @@ def _polish(Q: np.ndarray, B, r0: int, r: int) -> None:
 
 
 def cholqr(F: np.ndarray, mass, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
-    """Cholesky-QR2 in the B inner product with in-order dropping; see the module docstring.
-
-    Returns ``(Q (V, R), kept (R,))`` like :func:`mgs`.
-    """
+    """Cholesky-QR2 in the B inner product with in-order dropping; returns like :func:`mgs`."""
     B = _Mass(mass)
     F = np.asarray(F, dtype=np.float64)
     norms = np.sqrt(np.maximum(np.einsum("ij,ij->j", F, B @ F), 0.0))
@@ -155,14 +111,9 @@ CHOLQR_MIN_TOL = 1e-7
 
 
 def orthonormalize(basis: Basis, scheme: str = "mgs", tol: float | None = None) -> Basis:
-    """A B-orthonormal :class:`Basis` spanning the same functions, with dropped columns recorded.
-
-    Args:
-        basis: input functions (any :class:`Basis`; its kept columns are processed in order).
-        scheme: ``'mgs'`` (default) or ``'cholqr'``.
-        tol: relative tolerance below which a column counts as dependent on the earlier ones
-            (default :data:`DEFAULT_TOL` of the scheme).
-    """
+    """A B-orthonormal :class:`Basis` spanning ``basis``'s kept columns (in order), dependent ones
+    recorded as dropped; ``scheme``: ``'mgs'`` or ``'cholqr'``; ``tol``: relative drop tolerance
+    (default :data:`DEFAULT_TOL`)."""
     tol = _check(scheme, tol)
     Q, kept = (mgs if scheme == "mgs" else cholqr)(basis.values, basis.mass, tol)
     return _with_kept(basis, Q, kept)
@@ -184,8 +135,7 @@ def _check(scheme: str, tol: float | None) -> float:
 
 
 def _with_kept(basis: Basis, Q: np.ndarray, kept: np.ndarray) -> Basis:
-    """``Q`` as a Basis whose provenance marks the input columns ``kept`` (indices into the
-    basis' kept columns) as kept and the others as dropped."""
+    """``Q`` as a Basis whose provenance keeps the inputs ``kept`` (indices into the kept columns)."""
     kept_set = set(np.asarray(kept).tolist())
     prov: list[Column] = []
     col = 0
@@ -201,18 +151,8 @@ def _with_kept(basis: Basis, Q: np.ndarray, kept: np.ndarray) -> Basis:
 def orthonormalize_pair(
     basis_x: Basis, basis_y: Basis, scheme: str = "mgs", tol: float | None = None
 ) -> tuple[Basis, Basis]:
-    """Orthonormalise two bases of *corresponding* columns, dropping the same columns on both.
-
-    Column ``j`` of ``basis_x`` and of ``basis_y`` are the same function on two shapes (e.g.
-    the heat kernel of landmark ``j`` at one time). Orthonormalising each alone may drop a
-    column on one shape and keep it on the other, after which the columns no longer
-    correspond. Here a column is kept only where it is independent on *both* shapes (the
-    union of the drops is removed and both are redone until they agree), so column ``i`` of
-    the results is built from the same inputs on both shapes.
-
-    Returns:
-        ``(Φ_x (V_x, R), Φ_y (V_y, R))``, B-orthonormal, with identical kept/dropped provenance.
-    """
+    """Orthonormalise two bases of corresponding columns, keeping a column only where it is
+    independent on both shapes: ``(Φ_x (V_x, R), Φ_y (V_y, R))``, identical provenance."""
     tol = _check(scheme, tol)
     if basis_x.k != basis_y.k:
         raise ParameterError(

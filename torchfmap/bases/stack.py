@@ -1,9 +1,5 @@
-"""Stacks of feature-aware functions, orthonormalised in the paper's order.
-
-Order (paper Sect. 4): diffusion functions from small to large time, then harmonic functions,
-then Laplacian eigenfunctions. Orthonormalising in this order keeps the most local functions
-intact and drops later columns that are numerically in the span of earlier ones.
-"""
+"""Stacks of feature-aware functions, orthonormalised in the paper's order (Sect. 4): diffusion
+(small to large time), harmonic, then Laplacian eigenfunctions."""
 
 from __future__ import annotations
 
@@ -22,8 +18,7 @@ from .orthonormalize import orthonormalize
 
 
 def concatenate(bases: list[Basis]) -> Basis:
-    """Columns of several bases on the same mesh side by side (provenance kept); one basis is
-    returned as it is (so an eigenbasis keeps its eigenvalues and orthonormality)."""
+    """Bases on the same mesh side by side (provenance kept); one basis is returned as it is."""
     if not bases:
         raise ParameterError("nothing to concatenate. Fix: pass at least one basis.")
     if len(bases) == 1:
@@ -51,21 +46,10 @@ def basis_stack(
     heat_tol: float = 1e-8,
     local: bool | Literal["auto"] = "auto",
 ) -> Basis:
-    """B-orthonormal stack: diffusion (small -> large t), harmonic, then Laplacian functions.
-
-    Args:
-        mesh: the surface.
-        seeds: ``(k,)`` seed vertices shared by the diffusion and harmonic parts.
-        times: relative diffusion times (absolute ``t·|M|``); empty for no diffusion part.
-        harmonic: include the harmonic functions of ``seeds``.
-        n_eigen: number of Laplacian eigenfunctions appended last.
-        orthonormalization: ``'mgs'`` or ``'cholqr'``; ``tol`` its drop tolerance. ``None``
-            returns the raw stack (to orthonormalise two shapes' stacks together with
-            :func:`~torchfmap.bases.orthonormalize_pair`).
-
-    Returns:
-        a B-orthonormal :class:`Basis`; ``basis.dropped`` lists the columns removed as dependent.
-    """
+    """B-orthonormal stack of diffusion (``times``, relative; empty: none), harmonic (at ``seeds
+    (k,)``) and ``n_eigen`` Laplacian functions, in that order; ``orthonormalization``: ``'mgs'``,
+    ``'cholqr'`` (drop tolerance ``tol``) or None for the raw stack. ``basis.dropped`` lists the
+    dependent columns."""
     ops = operators if operators is not None else laplacian(mesh)
     parts: list[Basis] = []
     if len(np.atleast_1d(times)):

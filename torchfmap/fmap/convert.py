@@ -1,13 +1,5 @@
-"""Point-to-point maps <-> functional maps (nearest neighbours: :mod:`~torchfmap.fmap.nearest`).
-
-Direction is in every name: ``p2p_yx[v]`` is the vertex of ``x`` matched to vertex ``v`` of
-``y`` (so functions pull back as ``f_y = f_x[p2p_yx]``), and ``C_xy`` ``(K_y, K_x)`` maps
-coefficients on ``x`` to coefficients on ``y``. For B-orthonormal bases,
-``C_xy = Φ_yᵀ B_y Φ_x[p2p_yx]`` and, conversely, ``Φ_y C_xy ≈ Φ_x[p2p_yx]``: each row of
-``Φ_y C_xy`` is matched to its nearest row of ``Φ_x`` (``mode='pullback'``, valid in any
-basis). ``mode='orthogonal'`` matches rows of ``Φ_y`` to rows of ``Φ_x C_xyᵀ`` instead, the
-classical choice for (near-)orthogonal ``C`` in eigenbases.
-"""
+"""Point-to-point maps <-> functional maps: ``p2p_yx[v]`` is the vertex of ``x`` matched to vertex
+``v`` of ``y``; ``C_xy`` ``(K_y, K_x)`` maps coefficients on ``x`` to coefficients on ``y``."""
 
 from __future__ import annotations
 
@@ -43,19 +35,11 @@ def fmap_to_p2p(
     rows: np.ndarray | None = None,
     samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ) -> np.ndarray:
-    """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, using the first columns of each basis);
-    ``rows`` ``(R,)``: only these vertices of ``y`` (an ``(R,)`` map).
-
-    ``mode``: ``'pullback'`` (nearest neighbour of each row of ``Φ_y C_xy`` among the rows of
-    ``Φ_x``; valid in any basis, the default) or ``'orthogonal'`` (of each row of ``Φ_y`` among
-    the rows of ``Φ_x C_xyᵀ``; the classical choice in eigenbases, a kind's ``p2p_mode``).
-    ``samplings``: both shapes' :class:`SurfaceSampling` ``(x, y)``: every vertex of ``y``
-    searched locally (:func:`~torchfmap.fmap.nearest.local_nearest`; not with ``rows``; ``search``
-    then does not apply).
-
-    The nearest-neighbour search runs in float32 by default (see :func:`nearest_neighbor`):
-    a vertex whose two best matches are equally good to 1e-6 may pick either.
-    """
+    """``p2p_yx`` ``(V_y,)`` from ``C_xy`` (``(k_y, k_x)``, the first columns of each basis);
+    ``rows`` ``(R,)``: only these vertices of ``y``. ``mode``: ``'pullback'`` (rows of ``Φ_y C_xy``
+    among rows of ``Φ_x``) or ``'orthogonal'`` (rows of ``Φ_y`` among rows of ``Φ_x C_xyᵀ``).
+    ``samplings``: both shapes' :class:`SurfaceSampling` ``(x, y)``: search locally (not with
+    ``rows``; ``search`` then does not apply)."""
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
     ky, kx = C_xy.shape
     if samplings is not None and rows is None:
@@ -75,12 +59,8 @@ def values_to_p2p(
     precision: Literal["double", "single"] = "single",
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """The point-map rules of :func:`fmap_to_p2p` on plain arrays: ``C_xy (K_y, K_x)``,
-    ``phi_x (V_x, K_x)``, ``phi_y (V_y, K_y)`` -> ``p2p_yx (V_y,)`` (for callers whose bases
-    are arrays or tensors, e.g. the learned path). ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))``,
-    coordinates that correspond on both shapes (checked by the caller, e.g.
-    :func:`~torchfmap.fmap.zoomout`), are appended to both embeddings at equal weight: scaled so
-    that their mean row norm on ``y`` is the spectral embedding's."""
+    """:func:`fmap_to_p2p` on arrays ``C_xy (K_y, K_x)``, ``phi_x (V_x, K_x)``, ``phi_y (V_y, K_y)``
+    -> ``p2p_yx (V_y,)``; ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended to the embeddings."""
     query, ref = embedding_pair(C_xy, phi_x, phi_y, mode=mode, anchors=anchors)
     return nearest_neighbor(query, ref, search=search, precision=precision)
 
@@ -93,8 +73,7 @@ def embedding_pair(
     mode: Literal["pullback", "orthogonal"],
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(E_y (V_y, D), E_x (V_x, D))``: the query and reference rows whose nearest neighbours
-    are the point map of :func:`values_to_p2p` (same arguments)."""
+    """``(E_y (V_y, D), E_x (V_x, D))``: the rows whose nearest neighbours are :func:`values_to_p2p`."""
     if mode == "pullback":
         query, ref = phi_y @ C_xy, phi_x
     elif mode == "orthogonal":
@@ -118,12 +97,8 @@ def fmap_to_p2p_bijective(
     search: Literal["auto", "brute", "kdtree"] = "auto",
     precision: Literal["double", "single"] = "single",
 ) -> np.ndarray:
-    """``p2p_yx`` that is consistent with both directions (Ren et al. 2021's bijective term).
-
-    Each vertex ``v`` of ``y`` is embedded as ``[Φ_y C_xy, Φ_y](v)`` and each vertex ``u`` of
-    ``x`` as ``[Φ_x, Φ_x C_yx](u)``; nearest neighbours in this joint space favour matches that
-    both maps agree on.
-    """
+    """``p2p_yx`` consistent with both directions (Ren et al. 2021): nearest neighbours of
+    ``[Φ_y C_xy, Φ_y]`` among ``[Φ_x, Φ_x C_yx]``."""
     C_xy = _check_fmap(C_xy, basis_x.k, basis_y.k)
     C_yx = _check_fmap(C_yx, basis_y.k, basis_x.k)
     ky, kx = C_xy.shape

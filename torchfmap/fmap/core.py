@@ -1,18 +1,5 @@
-"""The functional-map core: one implementation in torch, shared by every caller.
-
-The classical path (:mod:`torchfmap.fmap.solver`, numpy in and out) and the differentiable
-layers (:mod:`torchfmap.nn`) both call these functions; they take torch tensors with any
-number of leading batch dimensions, follow the input's dtype and device, and keep the
-autograd graph. Nothing is kept between calls.
-
-The regularised energy ``w_desc ‖C A_x - A_y‖² + w_lap ‖C W_x - W_y C‖²`` (``W`` the projected
-Laplacians) becomes a diagonal mask after rotating by the eigenvectors of ``W_x`` and ``W_y``
-(:func:`spectral_frame`): in that frame the problem splits into one ``K_x x K_x`` system per
-row of ``C`` (:func:`solve_rowwise`), exact in any B-orthonormal basis.
-
-Data checks (finite Gram matrices, singular systems) run under ``check``
-(:func:`torchfmap._util.torch_checks.resolve_check`); shape and dtype checks always run.
-"""
+"""The functional-map core in torch, shared by :mod:`torchfmap.fmap.solver` and :mod:`torchfmap.nn`:
+any leading batch dimensions, the input's dtype and device, autograd kept."""
 
 from __future__ import annotations
 
@@ -44,18 +31,9 @@ class SpectralFrame(NamedTuple):
 
 
 def spectral_frame(W: torch.Tensor) -> SpectralFrame:
-    """Eigen-decomposition ``W = U diag(lam) Uᵀ`` of projected Laplacians. ``W`` of an
-    eigenbasis is already diagonal (off-diagonal entries below ``sqrt(eps) ‖W‖``, eigenvalues
-    ascending): its frame is read off with ``U = I``, no eigensolve.
-
-    Args:
-        W: ``(..., K, K)`` projected Laplacians ``Φᵀ L Φ`` (symmetrised here, so a
-            non-symmetric ``L`` gives the frame of its symmetric part).
-
-    Returns:
-        :class:`SpectralFrame` ``(lam (..., K) ascending, U (..., K, K) orthogonal)``, in ``W``'s
-        dtype and device.
-    """
+    """:class:`SpectralFrame` ``(lam (..., K) ascending, U (..., K, K))`` of projected Laplacians
+    ``W (..., K, K)`` (symmetrised), in ``W``'s dtype and device; ``U = I`` for an eigenbasis's
+    (diagonal, ascending) ``W``."""
     if W.shape[-1] != W.shape[-2]:
         raise ParameterError(f"W must be square (..., K, K), got {tuple(W.shape)}.")
     W = 0.5 * (W + W.transpose(-1, -2))
@@ -63,7 +41,6 @@ def spectral_frame(W: torch.Tensor) -> SpectralFrame:
     off = torch.linalg.matrix_norm(W - torch.diag_embed(lam))
     tol = torch.finfo(W.dtype).eps ** 0.5 * torch.linalg.matrix_norm(W)
     if W.numel() and bool((off <= tol).all()) and bool((lam[..., 1:] >= lam[..., :-1]).all()):
-        # an eigenbasis: W is diag(lambda) up to round-off, its frame is read off (no eigh)
         eye = torch.eye(W.shape[-1], dtype=W.dtype, device=W.device).expand(W.shape)
         return SpectralFrame(lam.clone(), eye.clone())
     return SpectralFrame(*torch.linalg.eigh(W))
@@ -76,20 +53,10 @@ def laplacian_mask(
     gamma: float = 0.5,
     valid: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """``(..., K_y, K_x)`` penalty on the rotated map, normalised to mean 1 per batch item.
-
-    Args:
-        lam_x, lam_y: ``(..., K_x)``, ``(..., K_y)`` eigenvalues of the projected Laplacians
-            (negative round-off values are clipped to 0).
-        mask: ``'laplacian'``: ``(λ_x,j - λ_y,i)²``; ``'resolvent'``: the resolvent mask of
-            Ren et al. 2019 with exponent ``gamma`` on eigenvalues scaled by their common
-            maximum (invariant to a common scaling of the eigenvalues).
-        valid: optional ``(..., K_y, K_x)`` 0/1 marking the entries of a padded batch that
-            exist; the mean is taken over those only, so padding does not change the result.
-
-    Raises:
-        ParameterError: unknown ``mask``.
-    """
+    """``(..., K_y, K_x)`` penalty on the rotated map, mean 1 per batch item, from eigenvalues
+    ``lam_x (..., K_x)``, ``lam_y (..., K_y)``: ``mask='laplacian'``: ``(λ_x,j - λ_y,i)²``;
+    ``'resolvent'``: Ren et al. 2019's (exponent ``gamma``). ``valid``: optional ``(..., K_y,
+    K_x)`` 0/1 of a padded batch. Raises ParameterError for an unknown ``mask``."""
     lx = lam_x.clip(min=0)[..., None, :]
     ly = lam_y.clip(min=0)[..., :, None]
     if mask == "laplacian":
@@ -124,28 +91,13 @@ def solve_rowwise(
     *,
     check: bool | None = None,
 ) -> torch.Tensor:
-    """Minimise ``w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C_ij² + w_prior ‖C - P‖²`` exactly,
-    one system per row.
-
-    Args:
-        A_x, A_y: ``(..., K_x, D)``, ``(..., K_y, D)`` descriptor coefficients.
-        mask: ``(..., K_y, K_x)`` non-negative penalty ``M``.
-        valid: optional ``(..., K_y, K_x)`` 0/1 marking existing entries of a padded batch:
-            padded coefficients get a unit diagonal and a zero right-hand side, so they come
-            out 0 and the valid block equals the unpadded solution.
-        prior, w_prior: optional ``(..., K_y, K_x)`` map ``P`` the solution is pulled towards
-            (e.g. the identity between bases built at corresponding seeds), and its weight.
-        check: run the data checks (an overflowing Gram matrix, a singular system); None: on
-            CPU tensors only (see the module docstring). Unchecked, such inputs give non-finite
-            maps instead of an error.
-
-    Returns:
-        ``C (..., K_y, K_x)``. One batched LU over the ``(..., K_y, K_x, K_x)`` systems;
-        differentiable (the backward reuses the LU factors).
+    """``C (..., K_y, K_x)`` minimising ``w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C_ij² + w_prior
+    ‖C - P‖²`` exactly (one system per row, differentiable); ``A_x (..., K_x, D)``, ``A_y (..., K_y,
+    D)``, ``mask``, ``valid`` (0/1 of a padded batch) and ``prior`` ``(..., K_y, K_x)``. ``check``:
+    refuse overflowing Gram matrices and singular systems (None: on CPU only).
 
     Raises:
-        ParameterError: not float32/float64; with ``check``, an overflowing Gram matrix or a
-            singular system.
+        ParameterError: not float32/float64; with ``check``, overflow or a singular system.
     """
     if A_x.dtype not in (torch.float32, torch.float64):
         raise ParameterError(
@@ -160,7 +112,7 @@ def solve_rowwise(
             f"the descriptor Gram matrix overflows {A_x.dtype} (features too large). Fix: normalise "
             "the features (e.g. to unit norm per vertex) or solve in float64."
         )
-    diag = w_lap * mask  # (..., Ky, Kx): added to the diagonal of row i's system
+    diag = w_lap * mask  # (..., Ky, Kx): row i's diagonal
     if prior is not None and w_prior:
         diag = diag + w_prior
         rhs = rhs + w_prior * prior
@@ -184,31 +136,18 @@ def _singular_reason(G: torch.Tensor, diag: torch.Tensor) -> str:
 
 
 def _rowwise_solve():
-    """The autograd Function of :func:`solve_rowwise`, defined on first use (torch is
-    imported then); cached, as a class statement would be."""
+    """The autograd Function of :func:`solve_rowwise`, defined on first use (lazy torch)."""
 
     class _RowwiseSolve(torch.autograd.Function):
-        """``c_i = (G + diag(d_i))⁻¹ r_i`` for every row ``i``; ``G (..., Kx, Kx)``,
-        ``d, r (..., Ky, Kx)`` -> ``c (..., Ky, Kx)``; ``check``: refuse singular systems
-        (reads the LU's info, a host sync).
-
-        Forward: one batched LU of the ``(..., Ky, Kx, Kx)`` systems. Backward reuses the LU
-        factors (``u_i = S_i⁻ᵀ ∂c_i``) and returns ``∂G = -Σ_i u_i c_iᵀ``, ``∂d_i = -u_i ∘ c_i``,
-        ``∂r_i = u_i`` without building a ``(..., Ky, Kx, Kx)`` gradient. Under
-        ``create_graph=True`` (higher derivatives) the backward is recomputed with differentiable
-        dense solves.
-        """
+        """``c_i = (G + diag(d_i))⁻¹ r_i`` per row; ``G (..., Kx, Kx)``, ``d, r (..., Ky, Kx)``. The
+        backward reuses the LU; under ``create_graph=True`` it uses differentiable dense solves."""
 
         @staticmethod
         def forward(ctx, G, diag, rhs, check):
             shape = (*G.shape[:-2], diag.shape[-2], *G.shape[-2:])
             systems = G.unsqueeze(-3).expand(shape).contiguous()
             systems.diagonal(dim1=-2, dim2=-1).add_(diag)
-            # LAPACK works column-major: the transposed view Sᵀ is its native layout, so the LU
-            # is computed in place in the systems' own buffer (one (..., Ky, Kx, Kx) allocation
-            # per call, not two: fresh pages of a large allocation cost as much as the LU);
-            # S x = r is then solved as (Sᵀ)ᵀ x = r (adjoint=True), exact whether or not
-            # round-off left S slightly unsymmetric
+            # Sᵀ is LAPACK's column-major layout: LU in place, then S x = r as (Sᵀ)ᵀ x = r (adjoint)
             LU = systems.mT
             pivots = torch.empty(shape[:-1], dtype=torch.int32, device=G.device)
             info = torch.empty(shape[:-2], dtype=torch.int32, device=G.device)
@@ -249,17 +188,8 @@ def rotate_and_solve(
     w_prior: float = 0.0,
     check: bool | None = None,
 ) -> torch.Tensor:
-    """``C_xy (..., K_y, K_x)`` in any B-orthonormal basis from its spectral frames.
-
-    Args:
-        A_x, A_y: ``(..., K_x, D)``, ``(..., K_y, D)`` descriptor coefficients ``Φᵀ M F``.
-        lam_x, U_x, lam_y, U_y: the frames ``W = U diag(lam) Uᵀ`` (:func:`spectral_frame`).
-        valid, prior, w_prior, check: see :func:`solve_rowwise` (``prior`` in the unrotated
-            frame; ``‖C - P‖`` is unchanged by the orthogonal rotations).
-
-    Rotating ``A`` by ``U`` makes ``‖C W_x - W_y C‖²`` the diagonal mask ``(λ_x,j - λ_y,i)²``
-    on ``C' = U_yᵀ C U_x``, so :func:`solve_rowwise` is exact; the result is rotated back.
-    """
+    """``C_xy (..., K_y, K_x)`` solved by :func:`solve_rowwise` in the frames ``lam_x, U_x, lam_y,
+    U_y`` (:func:`spectral_frame`); ``A_x, A_y`` and ``prior`` unrotated, the rest as there."""
     A_xr = U_x.transpose(-1, -2) @ A_x
     A_yr = U_y.transpose(-1, -2) @ A_y
     Pr = None if prior is None else U_y.transpose(-1, -2) @ prior @ U_x

@@ -1,6 +1,5 @@
-"""Nearest-neighbour search between the rows of two embeddings: exhaustive (memory-bounded
-blocks, or a KD-tree in low dimensions) and, for maps between surfaces, local around samples
-(:func:`surface_sampling`, :func:`local_nearest`), which no dense mesh's map outgrows."""
+"""Nearest-neighbour search between the rows of two embeddings: exhaustive, or local around
+surface samples (:func:`surface_sampling`, :func:`local_nearest`)."""
 
 from __future__ import annotations
 
@@ -32,19 +31,9 @@ def nearest_neighbor(
     precision: Literal["double", "single"] = "double",
     block_bytes: int = NN_BLOCK_BYTES,
 ) -> np.ndarray:
-    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for every row of
-    ``query (M, D)``; :func:`nearest_neighbor_distance` also returns the distances.
-
-    Brute force evaluates ``|r|² - 2 q·r`` for a block of queries at a time in one reused
-    ``(block, N)`` buffer of at most ``block_bytes`` (memory is bounded whatever ``M`` and
-    ``N``); a KD-tree is used for low dimensions under ``search='auto'``. Ties go to the
-    lowest index.
-
-    ``precision='single'`` runs the brute-force products in float32 (faster: see
-    ``python -m bench speed --case nn_speed``); rows whose nearest and second-nearest distances differ by
-    less than float32
-    round-off may then resolve differently from float64.
-    """
+    """Index ``(M,)`` (int64) of the nearest row of ``reference (N, D)`` for every row of ``query
+    (M, D)`` (ties: lowest index). Brute force in blocks of at most ``block_bytes``, float32
+    products under ``precision='single'``; ``search='auto'``: a KD-tree in low dimensions."""
     return _nearest(query, reference, search, precision, block_bytes)[0]
 
 
@@ -85,8 +74,7 @@ def _nearest(query, reference, search: str, precision: str, block_bytes: int):
     if search != "brute":
         raise ParameterError(f"unknown search {search!r}. Fix: 'auto', 'brute' or 'kdtree'.")
     dtype = np.float32 if precision == "single" else np.float64
-    # |r|² - 2 q·r as ONE product [q, 1] · [-2r, |r|²]ᵀ (|q|² is constant per row: not needed
-    # for the argmin), so each block costs a GEMM and an argmin, no elementwise passes
+    # |r|² - 2 q·r as one GEMM [q, 1] · [-2r, |r|²]ᵀ (|q|² does not change the argmin)
     n_dim = reference.shape[1]
     ref_aug = np.empty((len(reference), n_dim + 1), dtype=dtype)
     ref_aug[:, :n_dim] = -2.0 * reference
@@ -105,16 +93,10 @@ def _nearest(query, reference, search: str, precision: str, block_bytes: int):
 
 
 class SurfaceSampling(NamedTuple):
-    """A shape's vertices grouped around evenly spread samples (:func:`surface_sampling`):
-    the coarse level of the local nearest-neighbour search (:func:`local_nearest`) and of
-    ZoomOut on samples.
-
-    ``index (S,)`` the sampled vertices; ``cell (V,)`` the sample (``0..S-1``) nearest each
-    vertex in space; ``weight (S,)`` each cell's area (the vertex masses summed, the quadrature
-    weights of least-squares fits on samples); ``neighbors (S, m)`` each sample's ``m`` nearest
-    samples, itself first; ``order (V,)`` the vertices sorted by cell and ``start (S + 1,)`` where
-    each cell's run begins in it; ``ring (R,)`` the vertices of each sample's neighbouring cells,
-    sample by sample, sample ``s``'s from ``ring_start[s]`` to ``ring_start[s + 1]``."""
+    """Vertices grouped around samples: ``index (S,)`` samples; ``cell (V,)`` each vertex's nearest
+    sample; ``weight (S,)`` cell areas; ``neighbors (S, m)`` nearest samples (itself first);
+    ``order (V,)`` vertices by cell, cell ``c`` at ``start[c]:start[c + 1]``; ``ring (R,)`` each
+    sample's neighbouring cells' vertices, sample ``s``'s at ``ring_start[s]:ring_start[s + 1]``."""
 
     index: np.ndarray
     cell: np.ndarray
@@ -143,19 +125,9 @@ VOXELS_PER_SAMPLE = 4
 
 
 def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> SurfaceSampling:
-    """``n_samples`` evenly spread vertices of a surface and the cells around them.
-
-    The samples are :func:`spread_samples` of the vertices ``points (V, 3)``: ``O(V)`` work plus
-    ``O(n_samples²)``, deterministic, by position only. Where the vertex density varies, crowded cells are
-    split (more samples there, so there may be more than ``n_samples`` in all: read
-    ``len(index)``). Each vertex joins the cell of its nearest sample;
-    ``mass (V,)`` (lumped vertex areas) gives the cells' weights. ``n_samples >= V`` samples every
-    vertex.
-
-    Raises:
-        ParameterError: ``points`` not ``(V, 3)`` finite, ``mass`` not ``(V,)``, or
-            ``n_samples < 1``.
-    """
+    """``n_samples`` evenly spread vertices of ``points (V, 3)`` and their cells, weighted by ``mass
+    (V,)``; crowded cells are split (so read ``len(index)``). Raises ParameterError: ``points`` not
+    ``(V, 3)`` finite, ``mass`` not ``(V,)``, or ``n_samples < 1``."""
     points = np.asarray(points, dtype=np.float64)
     mass = np.asarray(mass, dtype=np.float64).ravel()
     if points.ndim != 2 or points.shape[1] != 3 or not len(points) or not np.isfinite(points).all():
@@ -171,7 +143,7 @@ def surface_sampling(points: np.ndarray, mass: np.ndarray, n_samples: int) -> Su
         index = _split_crowded_cells(points, spread_samples(points, mass, n_samples), -(-n // n_samples))
     tree = cKDTree(points[index])
     cell = tree.query(points, k=1)[1].astype(np.int64)
-    cell[index] = np.arange(len(index))  # a sample is in its own cell, whatever the ties
+    cell[index] = np.arange(len(index))
     m = min(SAMPLE_NEIGHBORS, len(index))
     neighbors = tree.query(points[index], k=m)[1].reshape(len(index), m).astype(np.int64)
     neighbors[:, 0] = np.arange(len(index))
@@ -198,11 +170,8 @@ def _segments(values: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np
 
 
 def _split_crowded_cells(points: np.ndarray, index: np.ndarray, per_cell: int) -> np.ndarray:
-    """``index`` with samples added inside every cell of more than :data:`CROWDED_CELL` x
-    ``per_cell`` vertices (farthest points within it, one per ``per_cell`` of its vertices),
-    so that no cell of a mesh whose vertex density varies holds many times the mean: the local
-    search compares each cell with cells around its image, at a cost that grows with the
-    square of their vertex counts."""
+    """``index`` with farthest-point samples added in every cell of more than :data:`CROWDED_CELL`
+    x ``per_cell`` vertices (one per ``per_cell`` of its vertices)."""
     cell = cKDTree(points[index]).query(points, k=1)[1]
     sizes = np.bincount(cell, minlength=len(index))
     order = np.argsort(cell, kind="stable")
@@ -217,9 +186,8 @@ def _split_crowded_cells(points: np.ndarray, index: np.ndarray, per_cell: int) -
 
 
 def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.ndarray:
-    """One vertex per occupied voxel of a grid of about ``n_voxels`` voxels over the surface
-    (edge ``sqrt(area / n_voxels)``, the area estimated by ``mass``): the vertex nearest the
-    voxel's centre. Returns the vertices ``(W,)``, sorted."""
+    """Sorted vertices ``(W,)``: per occupied voxel of a grid of about ``n_voxels`` voxels over the
+    surface (area from ``mass``), the vertex nearest its centre."""
     area = float(mass.sum())
     lo = points.min(axis=0)
     extent = float(np.ptp(points, axis=0).max())
@@ -230,7 +198,7 @@ def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.n
     off = np.einsum("ij,ij->i", points - centre, points - centre)
     dims = grid.max(axis=0) + 1
     key = (grid[:, 0] * dims[1] + grid[:, 1]) * dims[2] + grid[:, 2]
-    # by voxel, nearest the centre first, ties by position (a vertex-permuted copy: the same points)
+    # ties by position: a vertex-permuted copy gets the same points
     order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], off, key))
     first = np.ones(len(order), dtype=bool)
     first[1:] = key[order][1:] != key[order][:-1]
@@ -238,13 +206,8 @@ def _voxel_thinning(points: np.ndarray, mass: np.ndarray, n_voxels: int) -> np.n
 
 
 def spread_samples(points: np.ndarray, mass: np.ndarray, n: int) -> np.ndarray:
-    """At most ``n`` distinct vertices ``(S,)`` (sorted) spread evenly over a surface: one per
-    occupied voxel of a grid of about :data:`VOXELS_PER_SAMPLE` ``x n`` voxels (edge
-    ``sqrt(area / (4 n))``, the area from ``mass (V,)`` in the units of ``points (V, 3)``), then
-    farthest-point sampling in space among those, from the one farthest from their centroid.
-    Deterministic and chosen by position only (a vertex-permuted copy gets the same points);
-    ``O(V + n W)`` for ``W`` occupied voxels. Fewer than ``n`` only where fewer points are
-    distinct."""
+    """At most ``n`` distinct sorted vertices ``(S,)`` spread over ``points (V, 3)`` (areas ``mass
+    (V,)``): voxel thinning, then farthest points. Deterministic, by position only."""
     candidates = _voxel_thinning(points, mass, VOXELS_PER_SAMPLE * n)
     if len(candidates) < n:  # fewer voxels than samples: every vertex is a candidate
         candidates = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
@@ -254,8 +217,7 @@ def spread_samples(points: np.ndarray, mass: np.ndarray, n: int) -> np.ndarray:
 
 
 def _farthest_points(points: np.ndarray, n: int, first: int = 0) -> np.ndarray:
-    """At most ``n`` distinct rows of ``points (W, 3)`` by farthest-point sampling in space, from
-    row ``first``: fewer when fewer points are distinct."""
+    """At most ``n`` distinct rows of ``points (W, 3)`` by farthest-point sampling from row ``first``."""
     centred = points - points.min(axis=0)  # float32 keeps relative precision near the origin
     coords = [np.ascontiguousarray(centred[:, j], dtype=np.float32) for j in range(3)]
     chosen = np.empty(n, dtype=np.int64)
@@ -286,25 +248,10 @@ def local_nearest(
     precision: Literal["double", "single"] = "single",
     only_samples: bool = False,
 ) -> np.ndarray:
-    """The nearest row of ``reference (N, D)`` for every row of ``query (M, D)``, searched near
-    where a coarse map puts each query vertex: sub-quadratic for maps between surfaces.
-
-    ``coarse (S_q,)``: for each sample of the query surface, the sample of the reference surface
-    (an index into ``sampling_r.index``) it is mapped to; None: the nearest sample rows
-    (:func:`nearest_neighbor` between the ``S_q`` and ``S_r`` sample rows). The vertices of one
-    query cell are then compared with the reference vertices in the cells around the images of
-    that cell's neighbouring samples (each image with its own neighbours). Why it finds the
-    nearest row: a map from a smooth embedding is continuous, so a vertex goes near where the
-    samples around it go; it differs from the exhaustive search only where the map jumps by more
-    than a sample's neighbourhood (the exhaustive search's answer there is no better a
-    correspondence). Cost ``O(M · m² · N / S_r · D)`` instead of ``O(M N D)``.
-    ``only_samples``: search for the query's samples only, each among the ring of its coarse
-    image (``sampling_r.ring``; the other entries of the returned ``(M,)`` are -1), at
-    ``O(S_q · m · N / S_r · D)``.
-
-    Raises:
-        ParameterError: rows that do not match the samplings, or a bad ``coarse``.
-    """
+    """The nearest row of ``reference (N, D)`` for every row of ``query (M, D)``, searched around
+    where ``coarse (S_q,)`` (each query sample's reference sample; None: nearest sample rows) puts
+    each query cell. ``only_samples``: the query's samples only (other entries -1). Raises
+    ParameterError for rows that do not match the samplings, or a bad ``coarse``."""
     query = np.asarray(query)
     reference = np.asarray(reference)
     if len(query) != sampling_q.n_vertices or len(reference) != sampling_r.n_vertices:
@@ -323,8 +270,8 @@ def local_nearest(
     r = np.ascontiguousarray(reference, dtype=dtype)
     r_sq = np.einsum("ij,ij->i", r, r)
     out = np.full(len(query), -1, dtype=np.int64)
-    if only_samples:  # each sample among its image's ring, in blocks of bounded memory
-        q = np.ascontiguousarray(query[sampling_q.index], dtype=dtype)  # the samples' rows only
+    if only_samples:  # in blocks of bounded memory
+        q = np.ascontiguousarray(query[sampling_q.index], dtype=dtype)
         owners = np.arange(len(sampling_q.index))
         sizes = np.diff(sampling_r.ring_start)[coarse]
         per_row = max(1, int(NN_BLOCK_BYTES // (q.itemsize * max(1, q.shape[1]))))
@@ -364,10 +311,8 @@ def search_p2p(
     coarse: np.ndarray | None = None,
     precision: Literal["double", "single"] = "single",
 ) -> np.ndarray:
-    """The point map ``(M,)``: the nearest row of ``reference (N, D)`` (rows of ``x``) for every
-    row of ``query (M, D)`` (rows of ``y``): exhaustively (:func:`nearest_neighbor`) when
-    ``samplings`` is None, else locally around the samples of both surfaces ``(x, y)``
-    (:func:`local_nearest`, ``coarse`` as there). The one choice between the two searches."""
+    """The point map ``(M,)``: nearest row of ``reference (N, D)`` (``x``) for every row of ``query
+    (M, D)`` (``y``): exhaustive when ``samplings`` ``(x, y)`` is None, else :func:`local_nearest`."""
     if samplings is None:
         return nearest_neighbor(query, reference, precision=precision)
     return local_nearest(query, reference, samplings[1], samplings[0], coarse=coarse, precision=precision)

@@ -1,19 +1,6 @@
-"""Refinement of functional maps: ICP and ZoomOut, in eigenbases and feature-aware bases.
-
-Which applies where:
-
-- **ICP** (Ovsjanikov et al. 2012): alternate nearest neighbours and the closest orthogonal
-  ``C``. Any pair of B-orthonormal bases of equal size ``K`` in which isometries give
-  orthogonal maps: eigenbases, and feature-aware bases built from *corresponding* seeds.
-- **ZoomOut** (Melzi et al. 2019): alternate nearest neighbours and ``C = Φ_yᵀ B_y Φ_x[p2p]``
-  while the basis grows. It needs *nested* bases. For an eigenbasis, the first ``k``
-  eigenfunctions with ``k`` increasing. For feature-aware bases, pass a sequence of bases with
-  growing spans (:func:`zoomout_sequence`): more scales (large to small ``t``) or more seeds
-  (harmonic spans are nested in the seed set); or iterate at a fixed size, then move the seeds.
-
-These functions take bases and plain settings only; the refiners that choose among them for a
-kind of basis (``ICP``, ``ZoomOut``, ... in ``torchfmap.kinds.refiners``) call them.
-"""
+"""Refinement of functional maps: ICP (Ovsjanikov et al. 2012) and ZoomOut (Melzi et al. 2019), by
+eigenbasis prefixes (:func:`zoomout`) or over sequences of bases with growing spans
+(:func:`zoomout_sequence`); the kinds' refiners call these with bases and plain settings."""
 
 from __future__ import annotations
 
@@ -43,12 +30,9 @@ def icp_refine(
     mode: Mode = "orthogonal",
     samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
 ):
-    """ICP refinement; returns ``(C_xy, p2p_yx)``. ``C_xy`` must be square.
-
-    ``mode`` is the point-map conversion (:func:`~torchfmap.fmap.fmap_to_p2p`): ``'orthogonal'``
-    (the default) is the classical choice in eigenbases; ``'pullback'`` works in any basis.
-    ``samplings``: both shapes' surface samplings, every point map searched locally.
-    """
+    """ICP refinement of a square ``C_xy``; returns ``(C_xy, p2p_yx)``. ``mode``: the point-map
+    conversion (:func:`~torchfmap.fmap.fmap_to_p2p`; ``'pullback'`` works in any basis);
+    ``samplings``: both shapes' surface samplings, every point map searched locally."""
     C = np.asarray(C_xy, dtype=np.float64)
     if C.shape[0] != C.shape[1]:
         raise ParameterError(f"ICP needs a square map, got {C.shape}. Fix: use the same K on both shapes.")
@@ -88,8 +72,8 @@ def _check_samples(subsample, basis_x: Basis, basis_y: Basis) -> Samples | None:
 
 
 def check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, np.ndarray] | None:
-    """``anchors`` as ``(A_x (V_x, m), A_y (V_y, m))`` float64 arrays, one finite row per vertex of
-    each basis (None passes). Raises ParameterError naming what is wrong."""
+    """``anchors`` as float64 ``(A_x (V_x, m), A_y (V_y, m))``, finite, one row per vertex (None
+    passes). Raises ParameterError naming what is wrong."""
     if anchors is None:
         return None
     try:
@@ -111,12 +95,9 @@ def check_anchors(anchors, basis_x: Basis, basis_y: Basis) -> tuple[np.ndarray, 
 
 
 class Samples(NamedTuple):
-    """Where ZoomOut iterates when not on every vertex: ``x (S_x,)`` and ``y (S_y,)`` sampled
-    vertices, ``weight (S_y,)`` the quadrature weights of the least-squares fit on ``y``'s
-    samples (None: unweighted), ``surfaces``: both shapes'
-    :class:`~torchfmap.fmap.nearest.SurfaceSampling` (whose ``index`` are ``x`` and ``y``) when
-    the final point map is searched locally (:func:`~torchfmap.fmap.nearest.local_nearest`),
-    None for the exhaustive search."""
+    """Where ZoomOut iterates when not on every vertex: sampled vertices ``x (S_x,)``, ``y (S_y,)``;
+    ``weight (S_y,)``: fit weights on ``y``'s samples (None: unweighted); ``surfaces``: both
+    shapes' ``SurfaceSampling`` to search the final map locally (None: exhaustive search)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -125,8 +106,7 @@ class Samples(NamedTuple):
 
     @classmethod
     def of_surfaces(cls, sampling_x: SurfaceSampling, sampling_y: SurfaceSampling) -> Samples:
-        """Iterations on the samples of two surfaces, fitted with their cells' areas, the final
-        map searched locally."""
+        """Iterations on two surfaces' samples, fitted with their cells' areas, final map local."""
         return cls(sampling_x.index, sampling_y.index, sampling_y.weight, (sampling_x, sampling_y))
 
     @classmethod
@@ -136,11 +116,8 @@ class Samples(NamedTuple):
 
 
 class ZoomOutStep(Protocol):
-    """One variant of ZoomOut (:func:`zoomout_iterations`): how a point map gives a functional
-    map at a size, and how a functional map gives the embeddings whose nearest neighbours are
-    the next point map. ``rows``: None (every vertex), or the :class:`Samples` the step works on:
-    ``fit`` then gets the images (vertices of ``x``) of ``y``'s samples ``rows.y``, and ``embed``
-    returns the rows of the samples only."""
+    """One ZoomOut variant: ``fit`` a map at a size from a point map; ``embed`` it as the rows whose
+    nearest neighbours are the next point map. ``rows``: None (every vertex) or :class:`Samples`."""
 
     def fit(self, p2p_yx: np.ndarray, size, rows: Samples | None) -> np.ndarray: ...
 
@@ -150,9 +127,8 @@ class ZoomOutStep(Protocol):
 
 
 def least_squares_fit(phi_y: np.ndarray, target: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
-    """``C`` minimising ``Σ_s w_s ‖phi_y[s] C - target[s]‖²`` (unweighted when ``weight`` is
-    None): the functional map fitted on samples, the quadrature of ``C = Φ_yᵀ B_y Φ_x[p2p]``
-    when ``w`` are the samples' areas."""
+    """``C`` minimising ``Σ_s w_s ‖phi_y[s] C - target[s]‖²`` (``weight`` None: unweighted): the
+    map fitted on samples, a quadrature of ``C = Φ_yᵀ B_y Φ_x[p2p]`` when ``w`` are areas."""
     if weight is not None:
         root = np.sqrt(weight)[:, None]
         phi_y, target = phi_y * root, target * root
@@ -161,11 +137,8 @@ def least_squares_fit(phi_y: np.ndarray, target: np.ndarray, weight: np.ndarray 
 
 @dataclass(frozen=True)
 class SpectralStep:
-    """ZoomOut's step in a pair of bases (:class:`ZoomOutStep`): at size ``k``, ``C`` is
-    ``(rank(k), k)`` (``rank`` None: ``k``; a part's rank schedule for partial maps), fitted by
-    projection (``C = Φ_yᵀ B_y Φ_x[p2p]``) on every vertex or by least squares on samples; the
-    point map by ``mode`` with ``anchors`` ``(A_x (V_x, m), A_y (V_y, m))`` appended
-    (:func:`~torchfmap.fmap.convert.embedding_pair`)."""
+    """ZoomOut's step in a pair of bases: at size ``k``, ``C`` is ``(rank(k), k)`` (``rank`` None:
+    ``k``); point maps by ``mode`` with ``anchors`` appended."""
 
     basis_x: Basis
     basis_y: Basis
@@ -202,24 +175,11 @@ def zoomout_iterations(
     guard: EnergyGuard | None = None,
     progress: bool = False,
 ):
-    """The one ZoomOut loop, under every variant (plain, anchored, partial, hybrid, fixed size,
-    the learned path's): ``C = step.fit(p2p, size)``, then the point map from
-    ``step.embed(C, size)``, for each of ``sizes`` in turn (bounded by their number).
-
-    Start from ``C_xy`` (converted to a point map first) or from ``p2p_yx`` ``(V_y,)``; exactly
-    one. With ``samples`` the iterations fit and match samples only (cost per iteration
-    ``S_x S_y k`` instead of ``V_x V_y k``); the final point map is the nearest row of every
-    vertex, searched near where the samples went when ``samples.surfaces`` is given
-    (:func:`~torchfmap.fmap.nearest.local_nearest`), exhaustively otherwise. ``guard``
-    (:class:`EnergyGuard`) is offered the start and every point map on every vertex (with
-    samples: the start, when given as ``p2p_yx``, and the end), and its lowest-energy map is
-    returned, refitted at the last size. ``progress``: a bar over the sizes.
-
-    Returns ``(C, p2p_yx (V_y,))``: the last (or the guard's) map and its ``C`` at the last size.
-
-    Raises:
-        ParameterError: both or neither start given, or no size.
-    """
+    """The ZoomOut loop of every variant: for each of ``sizes``, ``C = step.fit(p2p, size)``, then
+    the point map from ``step.embed(C, size)``, from exactly one of ``C_xy`` and ``p2p_yx (V_y,)``
+    (else ParameterError). ``samples``: iterate on samples, the final map on every vertex.
+    ``guard`` (:class:`EnergyGuard`): offered every map on every vertex; its best is returned.
+    Returns ``(C, p2p_yx (V_y,))``, ``C`` at the last size."""
     sizes = list(sizes)
     if (C_xy is None) == (p2p_yx is None) or (p2p_yx is not None and not sizes):
         raise ParameterError(
@@ -246,7 +206,6 @@ def zoomout_iterations(
             images, coarse = _sample_images(step, C, None, samples, fine=bool(sizes))
         for i, size in enumerate(sizes):
             C = step.fit(images, size, samples)
-            # the last images would fit nothing: only the coarse match the final search starts from
             images, coarse = _sample_images(step, C, size, samples, fine=i + 1 < len(sizes))
             bar.update()
         query, reference = step.embed(C, sizes[-1] if sizes else None, None)
@@ -261,11 +220,8 @@ def zoomout_iterations(
 
 
 def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples, *, fine: bool = True):
-    """``(images (S_y,), coarse (S_y,))``: the vertices of ``x`` that ``C`` sends ``y``'s samples
-    to, and the samples of ``x`` they were found near. The samples are matched among ``x``'s
-    samples; with surface samplings and ``fine``, each is then matched among every vertex near
-    its match (:func:`~torchfmap.fmap.nearest.local_nearest`), so the fit sees no error of the
-    samples' spacing on ``x`` (without ``fine``: the coarse images)."""
+    """``(images (S_y,), coarse (S_y,))``: where ``C`` sends ``y``'s samples among ``x``'s vertices,
+    and the samples of ``x`` they matched (``fine``: refined locally with surface samplings)."""
     query, reference = step.embed(C, size, samples)
     coarse = nearest_neighbor(query, reference, precision="single")
     if samples.surfaces is None or not fine:
@@ -277,13 +233,8 @@ def _sample_images(step: ZoomOutStep, C: np.ndarray, size, samples: Samples, *, 
 
 
 def check_k_final(k: int, k_final: int | None) -> None:
-    """The one rule of ZoomOut's sizes, wherever they are given (``match``, partial matching,
-    the learned path, :func:`zoomout`): ZoomOut grows the basis from ``k``, so ``k_final``
-    (None: the default ``2k``) is at least ``k``.
-
-    Raises:
-        ParameterError: ``k_final < k``.
-    """
+    """ZoomOut grows the basis from ``k``: raise ParameterError unless ``k_final`` (None: ``2k``) is
+    ``>= k``."""
     if k_final is not None and k_final < k:
         raise ParameterError(
             f"k_final={k_final} is below k={k}: ZoomOut grows the basis from k to k_final. Fix: "
@@ -305,34 +256,17 @@ def zoomout(
     p2p_yx: np.ndarray | None = None,
     progress: bool = False,
 ):
-    """ZoomOut by basis prefixes: from ``C_xy.shape`` up to ``(k_final, k_final)``.
-
-    Meaningful when the first columns span nested, coarse-to-fine subspaces (eigenbases).
-
-    ``guard``: ZoomOut never returns a map worse than its start by its own energy
-    (:func:`zoomout_energy`, the orthogonality defect of the map's prefixes, Melzi et al. 2019
-    Eq. 2): the point map of every iteration (with ``subsample``: the start and the end) is
-    scored at ``k_final`` and the best one is returned, with its ``C`` of size ``k_final``.
+    """ZoomOut by basis prefixes (nested bases): from ``C_xy.shape`` to ``(k_final, k_final)``.
 
     Args:
-        step: eigenfunctions added per iteration (default
-            :func:`~torchfmap.fmap.defaults.zoomout_step` of the start size).
-        mode: point-map conversion (default ``'orthogonal'``, the classical choice in
-            eigenbases).
-        subsample: ``(vertices of x, vertices of y)``: run the iterations on these samples only
-            (nearest neighbours between samples, least-squares maps), as in the ZoomOut
-            paper's accelerated variant; only the final point map uses every vertex. The cost
-            of an iteration drops from ``V_x V_y k`` to ``S_x S_y k``. A :class:`Samples`
-            (e.g. :meth:`Samples.of_surfaces`) also weighs the fit by the samples' areas and
-            searches the final map locally, so no step compares every vertex with every vertex.
-        anchors: ``(A_x (V_x, m), A_y (V_y, m))``: coordinates that correspond on both shapes
-            (e.g. geodesic distances to landmark pairs,
-            :func:`~torchfmap.kinds.refiners.landmark_coordinates`), appended
-            to the spectral embedding of every point-map step at equal weight, so the map also
-            keeps each vertex's distances to the landmarks. The spectral embedding alone is
-            ambiguous where the shapes are not isometric; the anchors tie it to known pairs.
-        p2p_yx: ``(V_y,)`` the point map ``C_xy`` came from, if known: with ``subsample`` the
-            guard scores it as the start (without, the start is ``C_xy``'s own point map).
+        step: eigenfunctions added per iteration (default :func:`~torchfmap.fmap.defaults.zoomout_step`).
+        mode: point-map conversion.
+        subsample: ``(vertices of x, vertices of y)`` or :class:`Samples`: iterate on these only;
+            the final point map uses every vertex.
+        guard: return the iterate of lowest :func:`zoomout_energy` (never worse than the start).
+        anchors: ``(A_x (V_x, m), A_y (V_y, m))``: corresponding coordinates appended to every
+            point-map step's embedding.
+        p2p_yx: ``(V_y,)`` the point map ``C_xy`` came from: the guard's start with ``subsample``.
         progress: a progress bar over the iterations.
 
     Returns:
@@ -355,16 +289,14 @@ def zoomout(
         p2p_yx = check_p2p(p2p_yx, basis_y.n_vertices, basis_x.n_vertices, "p2p_yx")
         return zoomout_iterations(spectral, sizes[1:] or sizes, p2p_yx=p2p_yx, samples=samples, guard=best,
                                   progress=progress)  # fmt: skip
-    if samples is not None and guard:  # the start scored on every vertex, as without samples
+    if samples is not None and guard:
         best.offer(search_p2p(*spectral.embed(C, None, None), samples.surfaces))
     return zoomout_iterations(spectral, sizes[1:], C_xy=C, samples=samples, guard=best, progress=progress)
 
 
 class EnergyGuard:
-    """ZoomOut's guard (the one rule of :func:`zoomout` and the hybrid kind's ZoomOut): every
-    point map offered is scored by :func:`zoomout_energy` in ``basis_x, basis_y`` over the prefix
-    ``sizes``, and the lowest-energy one is kept (the first of equal ones), so ZoomOut never
-    returns a map worse than its start by its own energy. ``enabled=False``: nothing is kept."""
+    """ZoomOut's guard: keeps the offered point map of lowest :func:`zoomout_energy` in
+    ``basis_x, basis_y`` over ``sizes`` (the first of equal ones). ``enabled=False``: keeps none."""
 
     def __init__(self, basis_x: Basis, basis_y: Basis, sizes, *, enabled: bool = True) -> None:
         self.basis_x, self.basis_y, self.sizes, self.enabled = basis_x, basis_y, list(sizes), enabled
@@ -380,16 +312,13 @@ class EnergyGuard:
                 self.energy, self.p2p_yx = energy, p2p_yx
 
     def replaces(self, p2p_yx: np.ndarray) -> bool:
-        """Whether the kept map is another than ``p2p_yx`` (the last iterate): the caller then
-        returns the kept one, refitted at the final size."""
+        """Whether the kept map is another than ``p2p_yx`` (the last iterate)."""
         return self.p2p_yx is not None and self.p2p_yx is not p2p_yx
 
 
 def zoomout_energy(p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, sizes) -> float:
-    """ZoomOut's energy of a point map (Melzi et al. 2019, Eq. 2): ``Σ_k ‖C_kᵀ C_k - I‖² / k``
-    over the prefix sizes ``k`` in ``sizes``, ``C_k`` the ``(k, k)`` prefix of the map's
-    ``C = Φ_yᵀ B_y Φ_x[p2p]`` at the largest size. Small for maps whose functional maps are
-    orthogonal at every scale (near-isometries); a map mixing up parts raises it."""
+    """ZoomOut's energy of a point map (Melzi et al. 2019, Eq. 2): ``Σ_k ‖C_kᵀ C_k - I‖² / k`` over
+    ``k`` in ``sizes``, ``C_k`` the ``(k, k)`` prefix of ``C = Φ_yᵀ B_y Φ_x[p2p]`` at the largest."""
     kf = max(sizes)
     C = p2p_to_fmap(p2p_yx, basis_x, basis_y, kf, kf)
     total = 0.0
@@ -401,8 +330,7 @@ def zoomout_energy(p2p_yx: np.ndarray, basis_x: Basis, basis_y: Basis, sizes) ->
 
 @dataclass(frozen=True)
 class SequenceStep:
-    """ZoomOut's step over explicit sequences of bases (:func:`zoomout_sequence`): at size ``i``
-    the pair ``(bases_x[i], bases_y[i])``, ``C`` fitted in it and converted by ``mode``."""
+    """ZoomOut's step over sequences of bases: at size ``i`` the pair ``(bases_x[i], bases_y[i])``."""
 
     bases_x: tuple[Basis, ...]
     bases_y: tuple[Basis, ...]
@@ -420,23 +348,11 @@ class SequenceStep:
 
 
 def zoomout_sequence(
-    p2p_yx: np.ndarray,
-    bases_x: list[Basis],
-    bases_y: list[Basis],
-    *,
-    mode: Mode = "pullback",
-    subsample=None,
+    p2p_yx: np.ndarray, bases_x: list[Basis], bases_y: list[Basis], *, mode: Mode = "pullback", subsample=None
 ):
-    """ZoomOut over explicit sequences of bases with growing spans (feature-aware bases).
-
-    Starting from a point map, for each pair ``(bases_x[i], bases_y[i])``: project, then
-    convert back (:func:`zoomout_iterations` with a :class:`SequenceStep`). With ``subsample``
-    ``(vertices of x, vertices of y)`` (or :class:`Samples`), only the first projection uses
-    every vertex; the later steps match samples to samples and fit ``C`` by least squares (as
-    :func:`zoomout`'s accelerated variant), and only the final point map is computed on every
-    vertex. ``mode``: the point-map conversion (default ``'pullback'``, valid in any basis).
-    Returns ``(C_xy in the last pair, p2p_yx (V_y,))``.
-    """
+    """ZoomOut over sequences of bases with growing spans: from a point map, for each pair
+    ``(bases_x[i], bases_y[i])`` project and convert back by ``mode`` (``subsample`` as
+    :func:`zoomout`). Returns ``(C_xy in the last pair, p2p_yx (V_y,))``."""
     if len(bases_x) != len(bases_y) or not bases_x:
         raise ParameterError("bases_x and bases_y must be non-empty sequences of the same length.")
     p2p = check_p2p(p2p_yx, bases_y[0].n_vertices, bases_x[0].n_vertices, "p2p_yx")
@@ -444,13 +360,12 @@ def zoomout_sequence(
     step = SequenceStep(tuple(bases_x), tuple(bases_y), mode)
     if samples is None:
         return zoomout_iterations(step, range(len(bases_x)), p2p_yx=p2p)
-    C = p2p_to_fmap(p2p, bases_x[0], bases_y[0])  # the first projection on every vertex
+    C = p2p_to_fmap(p2p, bases_x[0], bases_y[0])
     return zoomout_iterations(step, range(1, len(bases_x)), C_xy=C, samples=samples)
 
 
 class Refined(NamedTuple):
-    """Result of a refiner (``torchfmap.kinds.refiners``): the map, the bases it lives in and
-    their seed pairs ``(S, 2)`` (or None)."""
+    """A refiner's result: the map, its bases and their seed pairs ``(S, 2)`` (or None)."""
 
     C_xy: np.ndarray
     p2p_yx: np.ndarray

@@ -1,28 +1,7 @@
-"""Regularised functional-map solver that works in any B-orthonormal basis.
-
-Notation: ``C_xy`` has shape ``(K_y, K_x)`` and maps coefficients of a function on ``x`` to
-coefficients on ``y``. Descriptor coefficients are ``A_x = Φ_xᵀ B_x F_x`` (``(K_x, D)``), the
-projected Laplacians ``W_x = Φ_xᵀ L_x Φ_x`` (full ``(K_x, K_x)`` for feature-aware bases,
-diagonal for an eigenbasis). The energy is
-
-    w_desc ‖C A_x - A_y‖² + w_lap Σ_ij M_ij C'_ij² + w_dcomm Σ_f ‖C D_x^f - D_y^f C‖²
-    + w_orient Σ_f ‖C O_x^f ∓ O_y^f C‖² + w_lmk ‖P_y C - P_x‖²
-
-with ``C' = U_yᵀ C U_x`` in the eigenvectors of ``W_x = U_x Λ_x U_xᵀ`` and ``W_y``. For the
-plain Laplacian mask ``M_ij = (λ_x,j - λ_y,i)²`` the second term *equals*
-``‖C W_x - W_y C‖²`` (the rotations are orthogonal), so with only the first two terms the
-problem splits into ``K_y`` independent ``K_x x K_x`` systems, solved in one batched call:
-exact and cheap in any basis. The resolvent mask (Ren et al. 2019) is used the same way.
-The other terms couple rows; then conjugate gradients on the normal equations (warm-started
-from the row-wise solution) solve the full problem.
-
-``D^f = Φᵀ B diag(f) Φ`` are multiplication operators (descriptor commutativity, Nogneng &
-Ovsjanikov 2017); ``O^f = Φᵀ A (n × ∇f)·∇ Φ`` are orientation operators (Ren et al. 2018);
-``P = Φ[landmarks]`` evaluates the basis at landmarks (pointwise landmark preservation); each
-landmark's pair of rows is scaled to mean unit norm.
-Each pair of operators ``(D_x^f, D_y^f)`` is scaled to mean unit Frobenius norm, so the
-weights do not depend on the meshes' scale or the descriptors' units.
-"""
+"""Regularised functional-map solver in any B-orthonormal basis: ``C_xy (K_y, K_x)`` minimises
+``w_desc ‖C A_x - A_y‖² + w_lap Σ M_ij C'_ij² + w_dcomm Σ_f ‖C D_x^f - D_y^f C‖² + w_orient Σ_f
+‖C O_x^f ∓ O_y^f C‖² + w_lmk ‖P_y C - P_x‖²`` (``C'`` in the eigenvectors of ``W = Φᵀ L Φ``);
+exact row by row without coupling terms, else by preconditioned CG."""
 
 from __future__ import annotations
 
@@ -41,43 +20,35 @@ from ..mesh import Mesh
 from . import core
 from .defaults import W_LAP_SMOOTH, W_LMK, W_ORIENT
 
-#: Descriptors used for the commutativity / orientation operators (evenly spaced columns).
+#: Descriptors used for the commutativity / orientation operators (evenly spaced columns), which
+#: cost K^3 per descriptor and CG step.
 MAX_OPERATOR_DESCRIPTORS = 16
 
 
 def basis_frame(basis: Basis) -> core.SpectralFrame:
-    """:class:`~torchfmap.fmap.core.SpectralFrame` ``(lam (K,), U (K, K))`` of ``basis``'s
-    projected Laplacian ``W = Φᵀ L Φ`` (:func:`~torchfmap.fmap.core.spectral_frame`: read off
-    for an eigenbasis, decomposed otherwise), as numpy arrays."""
-    with torch_threads(1):  # a small eigenproblem: see torchfmap._util.threads
+    """:class:`~torchfmap.fmap.core.SpectralFrame` ``(lam (K,), U (K, K))`` (numpy) of ``basis``'s
+    projected Laplacian ``W = Φᵀ L Φ`` (:func:`~torchfmap.fmap.core.spectral_frame`)."""
+    with torch_threads(1):
         lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
     return core.SpectralFrame(lam.numpy(), U.numpy())
 
 
 def multiplication_operator(basis: Basis, f: np.ndarray, weighted: np.ndarray | None = None) -> np.ndarray:
-    """``(K, K)`` ``Φᵀ B diag(f) Φ``: multiplication by ``f`` in the basis, computed as
-    ``(f ⊙ BΦ)ᵀ Φ`` (``B`` is symmetric). ``weighted``: ``B Φ`` ``(V, K)`` when already at hand
-    (several operators of one basis share it: one sparse product, not one per operator)."""
+    """``(K, K)`` ``Φᵀ B diag(f) Φ``: multiplication by ``f (V,)`` in the basis. ``weighted``:
+    ``B Φ`` ``(V, K)`` when already at hand (shared by several operators of one basis)."""
     weighted = basis.mass @ basis.values if weighted is None else weighted
     return (f[:, None] * weighted).T @ basis.values
 
 
 def solve_bytes(k_x: int, k_y: int) -> int:
-    """Estimated peak bytes of the dense arrays of one :func:`solve_fmap` in bases of ``k_x`` and
-    ``k_y`` columns (float64): the ``(K_y, K_x, K_x)`` row systems twice (the exact row-wise
-    solve's systems and their LU factors; CG's row blocks beside a term of theirs, then beside
-    their inverse) and the ``2 · MAX_OPERATOR_DESCRIPTORS`` operator pairs of the coupling terms.
-    A lower bound: the bases and descriptors, which the caller holds, are not counted."""
+    """Estimated peak bytes (a lower bound) of one :func:`solve_fmap` in bases of ``k_x`` and ``k_y``
+    columns."""
     return 8 * (2 * k_y * k_x * k_x + 2 * MAX_OPERATOR_DESCRIPTORS * (k_x * k_x + k_y * k_y))
 
 
 def check_solve_memory(k_x: int, k_y: int) -> None:
-    """Refuse a solve in bases of ``k_x`` and ``k_y`` columns whose :func:`solve_bytes` exceed
-    the memory available now (:func:`~torchfmap._util.checks.available_memory`), before any work.
-
-    Raises:
-        MemoryEstimateError: the estimate and the memory available in GiB, and the fix.
-    """
+    """Raise MemoryEstimateError (estimate, memory available, fix) before any work if
+    :func:`solve_bytes` exceed the memory available now."""
     needed, available = solve_bytes(k_x, k_y), _checks.available_memory()
     if available is not None and needed > available:
         raise MemoryEstimateError(
@@ -94,19 +65,8 @@ ORIENT_FACE_CHUNK = 1024
 def orientation_operators(
     mesh: Mesh, basis: Basis, F: np.ndarray, dtype: type = np.float64
 ) -> list[np.ndarray]:
-    """``(K, K)`` operators of the vector fields ``n × ∇f`` (one per column ``f`` of ``F (V, J)``)
-    acting by ``g -> (n × ∇f)·∇g``, area-lumped to vertices: ``O[k, l] = Σ_faces (A/3)
-    (Σ_corners φ_k) (n × ∇f)·∇φ_l`` (Ren et al. 2018).
-
-    On a face with corners ``v_0, v_1, v_2`` (counter-clockwise about ``n``) the hat gradients
-    satisfy ``n·(∇h_a × ∇h_b) = 1/(2A)`` for ``(a, b)`` in cyclic order, so
-    ``(n × ∇f)·∇g = n·(∇f × ∇g) = (1/2A) Σ_c f(v_c) (g(v_{c+1}) - g(v_{c-1}))``: the area
-    cancels and ``O = (1/6) Σ_faces Σ_c f(v_c) S ⊗ (φ(v_{c+1}) - φ(v_{c-1}))`` with ``S`` the
-    sum of ``φ`` over the corners. No gradients, normals or areas are needed; all ``J`` fields
-    share one GEMM per chunk of faces. ``dtype=np.float32`` runs the per-face products and the
-    GEMMs in single precision (accumulated in float64; entries to float32 round-off relative:
-    :func:`build_problem` uses it, the operators only enter a weighted penalty).
-    """
+    """``(K, K)`` operators ``g -> (n × ∇f)·∇g``, area-lumped, one per column ``f`` of ``F (V, J)``
+    (Ren et al. 2018); ``dtype=np.float32``: single-precision products, float64 sums."""
     phi = np.asarray(basis.values, dtype=dtype)
     F = np.asarray(F, dtype=dtype).reshape(mesh.n_vertices, -1)
     faces = mesh.faces
@@ -115,7 +75,7 @@ def orientation_operators(
     buf = np.empty((min(ORIENT_FACE_CHUNK, len(faces)), J, K), dtype=dtype)
     for f0 in range(0, len(faces), ORIENT_FACE_CHUNK):
         fc = faces[f0 : f0 + ORIENT_FACE_CHUNK]
-        corners = [phi[fc[:, c]] for c in range(3)]  # 3 x (f, K)
+        corners = [phi[fc[:, c]] for c in range(3)]
         S = corners[0] + corners[1] + corners[2]
         diff = np.stack([corners[(c + 1) % 3] - corners[(c + 2) % 3] for c in range(3)], axis=1)
         per_face = buf[: len(fc)]
@@ -180,12 +140,8 @@ class FmapProblem:
         return rhs
 
     def row_blocks(self) -> np.ndarray:
-        """``(K_y, K_x, K_x)`` diagonal blocks of the Hessian, one per row of ``C'``.
-
-        Exact for the descriptor and Laplacian terms; for a coupling term
-        ``w ‖C Dx - s Dy C‖²`` row ``i``'s block is ``w (Dx Dxᵀ + (DyᵀDy)_ii I - s (Dy)_ii (Dx + Dxᵀ))``
-        (the rest of the term couples rows); landmarks add ``w (Pyᵀ Py)_ii I``.
-        """
+        """``(K_y, K_x, K_x)`` diagonal blocks of the Hessian, one per row of ``C'`` (coupling
+        terms' within-row parts included)."""
         ky, kx = self.shape
         eye = np.eye(kx)
         G = self.w_desc * (self.A_x @ self.A_x.T)
@@ -206,19 +162,12 @@ class FmapProblem:
         return blocks
 
     def solve(self, tol: float = 1e-8, maxiter: int = 2000) -> np.ndarray:
-        """The minimiser ``C'`` (rotated frame).
-
-        Descriptor + Laplacian terms only: the exact row-wise solve. With coupling terms:
-        conjugate gradients on the normal equations, preconditioned by the inverse of the
-        Hessian's row blocks (:meth:`row_blocks`, which include the within-row part of the
-        coupling terms) and started from their solution (without the coupling terms in the
-        blocks, CG needs far more iterations). Raises :class:`ConvergenceError` if CG has not
-        converged to ``tol`` after ``maxiter`` iterations.
-        """
+        """The minimiser ``C'``. Raises :class:`ConvergenceError` if CG has not converged to
+        ``tol`` after ``maxiter`` iterations."""
         if not self.commute and self.landmarks is None:
             t = core.as_tensor
             prior = None if self.prior is None else t(self.prior)
-            with torch_threads(1):  # K small K x K systems: see torchfmap._util.threads
+            with torch_threads(1):
                 return core.solve_rowwise(
                     t(self.A_x), t(self.A_y), t(self.mask), self.w_desc, self.w_lap, None, prior, self.w_prior
                 ).numpy()
@@ -299,13 +248,11 @@ def build_problem(
             "normalise them first, e.g. torchfmap.descriptors.normalize_descriptors(F, mass)."
         )
     commute = []
-    # commutativity operators cost K^3 per descriptor and CG step: use at most
-    # MAX_OPERATOR_DESCRIPTORS descriptors, evenly spaced
     op_cols = np.unique(
         np.linspace(0, desc_x.shape[1] - 1, min(MAX_OPERATOR_DESCRIPTORS, desc_x.shape[1])).astype(int)
     )
     if w_dcomm > 0:
-        bx, by = basis_x.mass @ basis_x.values, basis_y.mass @ basis_y.values  # shared by the operators
+        bx, by = basis_x.mass @ basis_x.values, basis_y.mass @ basis_y.values
         for j in op_cols:
             Dx = fx.U.T @ multiplication_operator(basis_x, desc_x[:, j], bx) @ fx.U
             Dy = fy.U.T @ multiplication_operator(basis_y, desc_y[:, j], by) @ fy.U
@@ -366,35 +313,16 @@ def solve_fmap(
     prior=None,
     w_prior: float = 0.0,
 ) -> np.ndarray:
-    """Regularised functional map ``C_xy`` (``(K_y, K_x)``) in any B-orthonormal bases.
+    """Regularised functional map ``C_xy`` (``(K_y, K_x)``) in B-orthonormal bases with stiffness,
+    from ``(V_x, D)``, ``(V_y, D)`` descriptors. Defaults: :mod:`torchfmap.fmap.defaults`.
 
-    Defaults are the plain numbers of :mod:`torchfmap.fmap.defaults` (those of
-    :class:`torchfmap.nn.RegularizedFMSolver`); :func:`torchfmap.match` passes the weights of
-    the kind of basis it solves in.
-
-    Args:
-        basis_x, basis_y: B-orthonormal bases with stiffness (``W = Φᵀ L Φ``).
-        desc_x, desc_y: ``(V_x, D)``, ``(V_y, D)`` corresponding descriptors.
-        w_desc: descriptor preservation weight.
-        w_lap: Laplacian commutativity weight (default
-            :data:`~torchfmap.fmap.defaults.W_LAP_SMOOTH`, for eigenbases; bases holding heat
-            kernels want ``W_LAP_KERNELS``); ``mask='laplacian'`` or ``'resolvent'``.
-        w_dcomm: descriptor commutativity weight (multiplication operators).
-        w_orient: orientation term weight, needs ``meshes=(mesh_x, mesh_y)`` (default:
-            :data:`~torchfmap.fmap.defaults.W_ORIENT` when meshes are given, else 0);
-            ``orient_reversing=True`` for mirror maps.
-        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)`` with weight ``w_lmk`` (default:
-            ``W_LMK`` when landmarks are given).
-        prior, w_prior: a ``(K_y, K_x)`` map the solution is pulled towards, ``w_prior ‖C - P‖²``
-            (e.g. the identity between bases built at corresponding seeds); ``w_prior`` is
-            relative to the descriptor term (1 weighs like an average row of ``‖C A_x - A_y‖²``).
-
-    Returns:
-        ``C_xy``.
-
-    Raises:
-        MemoryEstimateError: bases too large for the memory available (:func:`solve_bytes`),
-            before any work.
+    ``w_desc``, ``w_lap`` (``mask``: ``'laplacian'`` or ``'resolvent'``), ``w_dcomm``: descriptor,
+    Laplacian- and descriptor-commutativity weights. ``w_orient``: needs ``meshes=(mesh_x,
+    mesh_y)`` (default ``W_ORIENT`` with meshes, else 0; ``orient_reversing``: mirror maps).
+    ``landmarks``: ``(L, 2)`` pairs ``(x vertex, y vertex)``, weight ``w_lmk`` (default
+    ``W_LMK``). ``prior``: a ``(K_y, K_x)`` map pulled towards by ``w_prior ‖C - P‖²``,
+    ``w_prior`` relative to the descriptor term. Raises MemoryEstimateError for bases too large
+    for the memory available (:func:`solve_bytes`).
     """
     check_solve_memory(basis_x.k, basis_y.k)
     has_landmarks = landmarks is not None and len(np.atleast_1d(landmarks)) > 0

@@ -1,11 +1,5 @@
-"""The basis kinds: how each builds a pair of bases, solves its map and refines it (see
-:mod:`.base` for what a kind holds), their registry :data:`KINDS` (:mod:`.registry`) and their
-refiners (:mod:`.refiners`). They sit above the functional-map layer, whose solver and
-refinements they call with plain weights; nothing below them knows a kind.
-
-A new kind is one module in this folder and one line in the tuple below (or, from outside the
-package, :func:`register_kind`).
-"""
+"""The basis kinds, their registry :data:`KINDS` and their refiners. A new kind is one module here
+and one line in the tuple below (or :func:`register_kind`)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""The eigen + diffusion kind: the first ``k // 2`` eigenfunctions, then heat kernels at
-farthest-point seeds of each shape (the learned path's mixed basis).
-
-Its seeds are sampled on each shape on its own, so columns do not correspond between shapes:
-the map is solved from descriptors, and ZoomOut iterates at fixed size (``'fixed'``).
-"""
+"""The eigen + diffusion kind: the first ``k // 2`` eigenfunctions, then heat kernels at each
+shape's own farthest-point seeds (columns do not correspond: solved from descriptors)."""
 
 from __future__ import annotations
 
@@ -26,12 +22,8 @@ class EigenDiffusionKind(BasisKind):
         return k // 2
 
     def shape_basis(self, shape, k, *, seeds=None, times=None):
-        """The eigenfunctions, then the kernels at ``seeds`` and farthest-point seeds (one
-        spare seed), orthonormalised in that order and cut to ``k``.
-
-        Raises:
-            ParameterError: fewer than ``k`` independent columns.
-        """
+        """The eigenfunctions, then kernels at ``seeds`` and farthest-point seeds, orthonormalised
+        and cut to ``k`` (ParameterError if fewer than ``k`` independent columns)."""
         eig = with_eigenpairs(shape, k // 2).eigenbasis
         chosen = seeds_for(shape, k - k // 2, DIFFUSION.columns_per_seed(times), seeds)
         parts = ([eig.truncated(k // 2)] if k // 2 else []) + [DIFFUSION.functions(shape, chosen, times)]
@@ -43,8 +35,7 @@ class EigenDiffusionKind(BasisKind):
         return basis.truncated(k)
 
     def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
-        """Each shape's :meth:`shape_basis` (landmarks, if any, seeded first on each side); the
-        columns do not correspond, so no seed pairs are returned."""
+        """Each shape's :meth:`shape_basis` (landmarks seeded first); no seed pairs returned."""
         lx, ly = (None, None) if landmarks is None else (landmarks[:, 0], landmarks[:, 1])
         bx = self.shape_basis(shape_x, k, seeds=lx, times=times)
         return bx, self.shape_basis(shape_y, k, seeds=ly, times=times), None
@@ -57,7 +48,5 @@ EIGEN_DIFFUSION = EigenDiffusionKind(
     w_lap=W_LAP_KERNELS,
     p2p_mode="pullback",
     column_families=frozenset({"laplacian", "diffusion"}),
-    # in a basis whose columns do not correspond, a strong orientation term (minimised by C = 0)
-    # shrinks the map until the point map collapses onto a few vertices: keep it weak
-    w_orient=1e-2,
+    w_orient=1e-2,  # strong orientation (minimised by C = 0) collapses non-corresponding maps
 )

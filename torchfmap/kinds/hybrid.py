@@ -1,26 +1,5 @@
-"""The hybrid kind: an eigenbasis block and a feature-aware block, solved block-diagonally.
-
-After Hybrid Functional Maps (Bastian et al., CVPR 2024), with the paper's second basis replaced
-by the feature-aware one: each shape's basis is the first ``k_e`` Laplace-Beltrami
-eigenfunctions followed by ``k_f`` heat kernels at corresponding seeds (the landmarks, then
-farthest points placed on ``y`` through the landmarks). Each block is B-orthonormal on its own;
-the two are not orthogonalised against each other. The map is block-diagonal,
-``C = diag(C_e, C_f)``:
-
-- ``C_e`` is solved from descriptors in the eigen block, as the eigenbasis kind does
-  (descriptor, Laplacian-commutativity, orientation and landmark terms);
-- ``C_f`` is the identity (column ``i`` is the same kernel on both shapes);
-- the point map is the nearest neighbour in the concatenated embedding
-  ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` against ``[Φ_e, w Φ_f]`` with ``w = feature_weight``.
-
-Why it helps: on near-isometric pairs the eigen block carries the isometry exactly (an isometry
-preserves eigenfunctions), and the kernel block, which is identical by construction at
-corresponding seeds, tells apart what the eigenbasis confuses (symmetric limbs, left and right).
-On non-isometric pairs the kernels stay correct near the seeds where eigenfunctions drift.
-
-ZoomOut (:class:`HybridZoomOut`, :func:`hybrid_zoomout`) grows the eigen block and refits both
-blocks from the point map at each step.
-"""
+"""The hybrid kind (after Bastian et al., CVPR 2024): eigenfunctions, then heat kernels at
+corresponding seeds, each block B-orthonormal; the map is block-diagonal, ``diag(C_e, I)``."""
 
 from __future__ import annotations
 
@@ -42,19 +21,14 @@ from .refiners import grown_eigenbases, pair_samplings
 
 
 def join_blocks(eigen: Basis, feature: Basis) -> Basis:
-    """One basis ``(V, k_e + k_f)``: the eigen block's columns, then the feature block's (same
-    mesh; :func:`~torchfmap.bases.stack.concatenate`); each block B-orthonormal, the whole not
+    """One basis ``(V, k_e + k_f)``: the eigen block's columns, then the feature block's
     (``orthonormal=False``)."""
     return concatenate([eigen, feature])
 
 
 def split_blocks(basis: Basis) -> tuple[Basis, Basis]:
-    """``(eigen block, feature block)`` of a hybrid basis: its leading eigenfunction columns,
-    then the rest.
-
-    Raises:
-        ParameterError: a basis without leading eigenfunctions or without other columns.
-    """
+    """``(eigen block, feature block)``: the leading eigenfunctions, the rest (ParameterError if
+    either is empty)."""
     families = basis.families()
     eigen = families == "laplacian"
     k_e = int(np.argmax(~eigen)) if (~eigen).any() else len(families)
@@ -73,22 +47,14 @@ def split_blocks(basis: Basis) -> tuple[Basis, Basis]:
 
 @dataclass(frozen=True, kw_only=True)
 class HybridKind(BasisKind):
-    """Eigen block + feature-aware block (see the module docstring).
-
-    ``feature_share``: the fraction of the ``k`` columns in the feature block (at least one,
-    and at least one eigenfunction); ``feature_weight``: the feature block's weight ``w`` in
-    the point-map embedding.
-    """
+    """Eigen block + feature-aware block: ``feature_share`` of the ``k`` columns (at least one of
+    each) in the feature block, weighted ``feature_weight`` ``w`` in point maps."""
 
     feature_share: float = 0.3
     feature_weight: float = 1.0
 
     def blocks(self, k: int) -> tuple[int, int]:
-        """``(k_e, k_f)`` of a basis of ``k`` columns.
-
-        Raises:
-            ParameterError: ``k < 2`` (each block needs a column).
-        """
+        """``(k_e, k_f)`` of a basis of ``k`` columns (ParameterError if ``k < 2``)."""
         if k < 2:
             raise ParameterError(f"a hybrid basis needs k >= 2 (one column per block), got {k}.")
         k_f = min(max(1, round(self.feature_share * k)), k - 1)
@@ -98,14 +64,8 @@ class HybridKind(BasisKind):
         return self.blocks(k)[0]
 
     def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
-        """The eigen blocks (first ``k_e`` eigenfunctions of each shape) and the diffusion
-        kind's bases of ``k_f`` columns at corresponding seeds, joined (:func:`join_blocks`).
-
-        Eigenpairs are computed (in place) for shapes prepared with fewer than ``k_e``.
-
-        Raises:
-            ParameterError: no landmarks, or ``k < 2``.
-        """
+        """``k_e`` eigenfunctions and ``k_f`` diffusion columns at corresponding seeds, joined.
+        Raises ParameterError: no landmarks, or ``k < 2``."""
         k_e, k_f = self.blocks(k)
         if landmarks is None:
             raise ParameterError(
@@ -126,8 +86,7 @@ class HybridKind(BasisKind):
         return list(split_blocks(basis))
 
     def recognises(self, basis: Basis) -> bool:
-        """Eigenfunctions and heat kernels, blocks not orthogonalised together (a jointly
-        B-orthonormal mix is ``eigen_diffusion``)."""
+        """Eigenfunctions and heat kernels, not orthonormal together (else ``eigen_diffusion``)."""
         return super().recognises(basis) and not basis.orthonormal
 
     def uses_descriptors(self, w_prior: float) -> bool:
@@ -142,9 +101,8 @@ class HybridKind(BasisKind):
         return C
 
     def embeddings(self, C_xy, basis_x, basis_y) -> tuple[np.ndarray, np.ndarray]:
-        """``(Φ_x-side (V_x, K_y), Φ_y-side (V_y, K_y))`` embeddings of the point map:
-        ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` and ``[Φ_e, w Φ_f]`` (the off-diagonal blocks of ``C_xy`` are
-        not used)."""
+        """``(E_x (V_x, K_y), E_y (V_y, K_y))``: ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` and ``[Φ_e, w Φ_f]``
+        (off-diagonal blocks of ``C_xy`` unused)."""
         (ex, fx), (ey, fy) = split_blocks(basis_x), split_blocks(basis_y)
         side_y, side_x = HybridStep(ex, ey, fx, fy, self.feature_weight).embed(C_xy, ex.k, None)
         return side_x, side_y
@@ -152,9 +110,7 @@ class HybridKind(BasisKind):
     def zoomout_refiner(
         self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
     ):
-        """:class:`HybridZoomOut` to ``k_final`` columns in all (the eigen blocks of given
-        hybrid ``eigenbases``, or the shapes' own eigenbases, hold the eigenfunctions it grows
-        in)."""
+        """:class:`HybridZoomOut` to ``k_final`` columns in the eigen blocks of ``eigenbases``."""
         if eigenbases is not None:
             eigenbases = tuple(split_blocks(b)[0] for b in eigenbases)
         return HybridZoomOut(self, k_final, eigenbases, progress)
@@ -162,9 +118,8 @@ class HybridKind(BasisKind):
 
 @dataclass(frozen=True)
 class HybridZoomOut:
-    """The refiner of ``refine='zoomout'`` in hybrid bases: :func:`hybrid_zoomout` to
-    ``k_final`` columns in all (default: twice the start), growing the eigen block in
-    ``eigenbases`` (given ones) or the shapes' own eigenbases."""
+    """``refine='zoomout'`` in hybrid bases: :func:`hybrid_zoomout` to ``k_final`` (default: twice
+    the start)."""
 
     kind: HybridKind
     k_final: int | None = None
@@ -195,21 +150,10 @@ def hybrid_zoomout(
     samplings: tuple[SurfaceSampling, SurfaceSampling] | None = None,
     progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, Basis, Basis]:
-    """ZoomOut of a hybrid pair of bases (this module): the eigen block
-    grows from its size to ``k_final - k_f`` eigenfunctions by ``step`` (default
-    :func:`~torchfmap.fmap.defaults.zoomout_step` of its size) while the feature block keeps its
-    ``k_f`` columns; at each size both blocks are refitted from the point map
-    (``C = Φᵀ B_y Φ[p2p]`` per block) and the point map is recomputed from the joint embedding.
-
-    ``guard``: ZoomOut's :class:`~torchfmap.fmap.refine.EnergyGuard`, scored in the eigen block
-    (the feature block is not orthonormal, so it has no orthogonality energy): the start and
-    every iterate are scored over the eigen sizes and the lowest-energy point map is returned,
-    with both blocks refitted from it at the final size. ``eigenbases``: the eigenfunctions the
-    eigen block grows in (given ones); None: the shapes' own, computed in place when they hold
-    fewer than ``k_final - k_f``. ``samplings``: both shapes'
-    :class:`~torchfmap.fmap.nearest.SurfaceSampling`: the iterations run on their samples and
-    the final map is searched locally (:func:`~torchfmap.fmap.refine.zoomout_iterations`);
-    ``progress``: a bar over the sizes.
+    """ZoomOut of a hybrid pair: the eigen block grows to ``k_final - k_f`` by ``step`` in
+    ``eigenbases`` (None: the shapes' own), the feature block keeps ``k_f``; both are refitted at
+    each size. ``guard`` scores the eigen block; ``samplings`` as in
+    :func:`~torchfmap.fmap.refine.zoomout_iterations`.
 
     Returns ``(C_xy, p2p_yx, basis_x, basis_y)`` in the grown bases.
 
@@ -238,10 +182,7 @@ def hybrid_zoomout(
 
 @dataclass(frozen=True)
 class HybridStep:
-    """ZoomOut's step in hybrid bases (:func:`~torchfmap.fmap.refine.zoomout_iterations`): at
-    eigen size ``size``, ``C = diag(C_e (size, size), C_f (k_f, k_f))`` fitted per block, and the
-    point map from the joint embedding ``[Φ_e C_eᵀ, w Φ_f C_fᵀ]`` against ``[Φ_e, w Φ_f]``
-    (:meth:`HybridKind.embeddings`)."""
+    """ZoomOut's step in hybrid bases: ``C = diag(C_e (size, size), C_f (k_f, k_f))``."""
 
     eig_x: Basis
     eig_y: Basis
@@ -272,12 +213,10 @@ HYBRID = HybridKind(
     name="hybrid",
     summary="eigenfunctions + heat kernels at corresponding seeds, block-diagonal map",
     needs_landmarks=True,
-    # the eigen block is solved as the eigenbasis kind solves it (same weights)
     w_lap=W_LAP_SMOOTH,
     w_orient=W_ORIENT,
     p2p_mode="orthogonal",
     grows=True,
     column_families=frozenset({"laplacian", "diffusion"}),
-    # the torch solver is one regularised solve, not block-diagonal (classical path only)
-    learned=False,
+    learned=False,  # the torch solver is not block-diagonal
 )

@@ -13,18 +13,13 @@ from .refiners import ZoomOut
 
 @dataclass(frozen=True, kw_only=True)
 class EigenKind(BasisKind):
-    """Eigenbases need no landmarks; their maps of near-isometries are near-orthogonal, so the
-    point map is ``'orthogonal'`` and ZoomOut grows them (``grows``)."""
+    """Eigenbases: no landmarks, ``'orthogonal'`` point maps, grown by ZoomOut."""
 
     def n_eigen(self, k: int) -> int:
         return k
 
     def pair_bases(self, shape_x, shape_y, k, landmarks=None, times=None):
-        """The first ``k`` eigenfunctions of each prepared shape (no seeds).
-
-        Raises:
-            ParameterError: a shape prepared with fewer than ``k`` eigenpairs.
-        """
+        """The first ``k`` eigenfunctions of each shape (ParameterError if a shape holds fewer)."""
         if shape_x.n_eigen < k or shape_y.n_eigen < k:
             raise ParameterError("the eigenbasis needs eigenpairs. Fix: prepare_shape(mesh, n_eigen >= k).")
         return shape_x.eigenbasis.truncated(k), shape_y.eigenbasis.truncated(k), None
@@ -37,10 +32,7 @@ class EigenKind(BasisKind):
     def zoomout_refiner(
         self, *, k_final, mode, n_fixed, times, zoomout_samples, eigenbases, landmarks, progress
     ):
-        """:class:`~torchfmap.kinds.refiners.ZoomOut`: the eigenbases grown from the map's size to
-        ``k_final`` (the shapes' own, or the given ``eigenbases``), on ``zoomout_samples``
-        surface samples per shape if given (by default on dense pairs), keeping the distances
-        to ``landmarks``."""
+        """:class:`~torchfmap.kinds.refiners.ZoomOut` to ``k_final`` (arguments as :meth:`refiner`)."""
         return ZoomOut(k_final, mode, zoomout_samples, eigenbases, landmarks, progress=progress)
 
 

@@ -1,10 +1,5 @@
-"""The registry of basis kinds: name -> kind object (:class:`~torchfmap.kinds.BasisKind`).
-
-:mod:`torchfmap.kinds` registers each built-in kind on import; a kind from outside the package
-is registered with :func:`register_kind`. Everything that asks about a kind (``match``, the
-command line's ``--basis`` choices, the datasets, the learned layers) reads it here; the
-functional-map layer below (:mod:`torchfmap.fmap`) knows no kind and takes plain weights.
-"""
+"""The registry of basis kinds: name -> kind object (:class:`~torchfmap.kinds.BasisKind`);
+:mod:`torchfmap.kinds` registers the built-in ones on import."""
 
 from __future__ import annotations
 
@@ -17,12 +12,8 @@ KINDS: dict = {}
 
 
 def register_kind(kind: BasisKind):
-    """Add ``kind`` (a :class:`torchfmap.kinds.BasisKind`) to :data:`KINDS` under its ``name``;
-    returns it. Registering a name again replaces the kind.
-
-    Raises:
-        ParameterError: an object without a non-empty string ``name``.
-    """
+    """Add ``kind`` to :data:`KINDS` under its ``name`` (replacing any) and return it; ParameterError
+    without a non-empty string ``name``."""
     name = getattr(kind, "name", None)
     if not isinstance(name, str) or not name:
         raise ParameterError(f"a basis kind needs a non-empty string name, got {name!r}.")
@@ -31,11 +22,7 @@ def register_kind(kind: BasisKind):
 
 
 def get_kind(name):
-    """The kind called ``name`` (a kind object is returned as it is).
-
-    Raises:
-        ParameterError: an unknown name.
-    """
+    """The kind called ``name`` (a kind object as it is); ParameterError for an unknown name."""
     if not isinstance(name, str) and hasattr(name, "pair_bases"):
         return name
     try:
@@ -45,11 +32,7 @@ def get_kind(name):
 
 
 def learned_kind(name):
-    """:func:`get_kind` for the torch layers: the kind, if :mod:`torchfmap.nn` solves in it.
-
-    Raises:
-        ParameterError: an unknown kind, or one the learned path does not solve in.
-    """
+    """:func:`get_kind`, refusing (ParameterError) a kind the torch layers do not solve in."""
     kind = get_kind(name)
     if not kind.learned:
         usable = ", ".join(n for n, k in KINDS.items() if k.learned)
@@ -61,7 +44,5 @@ def learned_kind(name):
 
 
 def kind_of(basis: Basis) -> str | None:
-    """The first registered kind that recognises ``basis`` (``kind.recognises``: by default its
-    kept columns' families, e.g. ``'stack'`` for heat kernels and harmonic functions), or None
-    for other mixes."""
+    """The name of the first registered kind that recognises ``basis`` (``kind.recognises``), or None."""
     return next((name for name, kind in KINDS.items() if kind.recognises(basis)), None)

@@ -1,8 +1,5 @@
-"""The stack kind: heat kernels (small to large time), then harmonic functions, at the same seeds.
-
-The paper's order (Sect. 4): orthonormalising diffusion before harmonic functions keeps the
-most local functions intact and drops later columns in the span of earlier ones.
-"""
+"""The stack kind: heat kernels (small to large time), then harmonic functions, at the same seeds
+(the paper's order, Sect. 4)."""
 
 from __future__ import annotations
 
