@@ -1,20 +1,6 @@
-"""Input checks shared by several modules: the one home of each (imports only :mod:`.errors`).
-
-- :func:`check_vertex_indices`: 1-D, integral, in range, distinct vertex indices (seeds,
-  landmarks, geodesic sources, landmark pairs of a functional map).
-- :func:`check_landmark_pairs`: ``(L, 2)`` corresponding vertex pairs of two meshes.
-- :func:`check_p2p`: a point map ``p2p_yx`` (one source vertex per target vertex).
-- :func:`check_seeds_cover_components`: every connected component of a mesh holds a seed
-  (harmonic and Dirichlet problems are undefined on a component without one).
-- :func:`is_symmetric` / :func:`check_symmetric`: whether a stiffness matrix is symmetric up to
-  round-off, with one tolerance rule (:func:`symmetry_tolerance`).
-- :func:`lumped_diagonal` / :func:`check_lumped_mass`: whether a mass matrix is lumped
-  (diagonal), and its diagonal.
-- :func:`check_tolerance`: a relative accuracy target in ``[TOL_MIN, TOL_MAX)``.
-- :func:`check_times`: diffusion (heat) times, finite and > 0.
-
-Every error names the problem and the fix (``... Fix: ...``).
-"""
+"""Input checks shared by several modules, the one home of each (imports only :mod:`.errors`): vertex
+indices, landmark pairs, point maps, seeds per component, symmetry of a stiffness, lumped masses,
+tolerances, times, counts and memory. Every error names the problem and the fix (``... Fix: ...``)."""
 
 from __future__ import annotations
 
@@ -25,19 +11,16 @@ import scipy.sparse as sp
 
 from ..errors import ParameterError, SeedError
 
-if TYPE_CHECKING:  # annotations only: the mesh module sits above this one
+if TYPE_CHECKING:  # the mesh module sits above this one
     from ..mesh import Mesh
 
 #: Safety factor of :func:`symmetry_tolerance` over the worst-case summation error.
 SYMMETRY_SAFETY = 8.0
 
 
-# -- vertex indices --------------------------------------------------------------------------
 def check_vertex_indices(indices, n_vertices: int, what: str = "sources") -> np.ndarray:
-    """Validate a 1-D array of vertex indices: integral, in range, no duplicates, not empty.
-
-    Returns the indices as int64; integral floats (``3.0``) are accepted.
-    """
+    """A 1-D, non-empty array of distinct vertex indices in range, as int64 (integral floats accepted);
+    else :class:`SeedError`."""
     idx = np.atleast_1d(np.asarray(indices))
     if idx.size == 0:
         raise SeedError(f"{what} is empty. Fix: give at least one vertex index.")
@@ -125,27 +108,9 @@ def check_seeds_cover_components(mesh: Mesh, seeds: np.ndarray) -> None:
         )
 
 
-# -- symmetry ------------------------------------------------------------------------------
 def symmetry_tolerance(A) -> float:
-    """Largest ``|A - Aᵀ|_max`` that counts as round-off: ``8 · m · eps · |A|_max``.
-
-    ``m`` is the largest number of stored entries in a row (``V`` for a dense matrix) and
-    ``eps`` the machine epsilon of float64.
-
-    Why: an assembled stiffness entry ``L_ij`` is a floating-point sum of per-triangle (or
-    per-edge) contributions, at most ``m`` of them (a vertex has at most ``m - 1``
-    neighbours). ``L_ij`` and ``L_ji`` are the same exact sum, possibly accumulated in another
-    order (a different assembly path, a library such as ``robust-laplacian``, a transpose
-    product). Recursive summation of ``m`` terms errs by at most ``(m - 1) u Σ|terms|``
-    (``u = eps / 2``, Higham, *Accuracy and Stability*, §4.2), and ``Σ|terms|`` is bounded by
-    the diagonal, i.e. by ``|A|_max``, for the non-negative weights of a Laplacian; the two
-    orders differ by at most twice that, ``(m - 1) · eps · |A|_max``. The factor 8 covers
-    cancelling (obtuse cotan) weights and a rescaling or cast after assembly. The resulting
-    relative tolerance (~1e-14 on triangle meshes, ``m ≈ 7``) is ten orders of magnitude below
-    the asymmetry of a genuinely non-symmetric operator (mean-value weights: ``O(1)``
-    relative), so the rule is not sensitive to the factor. It scales with the matrix, so a
-    mesh in millimetres and one in metres get the same answer.
-    """
+    """Largest ``|A - Aᵀ|_max`` that counts as round-off: ``8 · m · eps · |A|_max``, ``m`` the most
+    stored entries of a row (``V`` for a dense matrix): a bound on summing ``m`` terms in two orders."""
     if sp.issparse(A):
         A = sp.csr_matrix(A)
         m = int(np.diff(A.indptr).max()) if A.shape[0] else 1
@@ -175,17 +140,10 @@ def is_symmetric(A) -> bool:
 
 
 def check_symmetric(
-    L,
-    what: str,
-    fix: str = "build L with laplacian(mesh, scheme='cotan') or scheme='robust'",
+    L, what: str, fix: str = "build L with laplacian(mesh, scheme='cotan') or scheme='robust'"
 ) -> None:
-    """Raise :class:`ParameterError` unless the stiffness ``L`` is symmetric (:func:`is_symmetric`).
-
-    Args:
-        what: who needs it, e.g. ``'heat kernels'`` (the message reads "heat kernels need a
-            symmetric Laplacian").
-        fix: what the caller should do instead.
-    """
+    """Raise :class:`ParameterError` unless ``L`` is symmetric (:func:`is_symmetric`); ``what`` needs it
+    (``'heat kernels'``), ``fix`` says what to do instead."""
     defect, tol = symmetry_defect(L), symmetry_tolerance(L)
     if not defect <= tol:
         raise ParameterError(
@@ -194,14 +152,9 @@ def check_symmetric(
         )
 
 
-# -- lumped mass ---------------------------------------------------------------------------
 def lumped_diagonal(B) -> np.ndarray | None:
-    """The diagonal ``(V,)`` of a mass matrix ``B`` if ``B`` is diagonal (lumped), else None.
-
-    Explicitly stored zeros are ignored (a lumped mass may store a zero for an unreferenced
-    vertex, or a zero off the diagonal after arithmetic). A ``(V,)`` array is taken as the
-    diagonal itself.
-    """
+    """The diagonal ``(V,)`` of a mass matrix ``B`` if it is diagonal (stored zeros ignored), else None;
+    a ``(V,)`` array is taken as the diagonal itself."""
     if not sp.issparse(B):
         B = np.asarray(B)
         if B.ndim == 1:
@@ -228,20 +181,14 @@ def check_lumped_mass(
     return d
 
 
-# -- tolerances ------------------------------------------------------------------------------
-#: Smallest relative tolerance an iterative method is asked for: a few units of double round-off.
+#: Smallest relative tolerance an iterative method is asked for.
 TOL_MIN = 1e-14
-#: Tolerances at or above this leave nothing of the answer (errors of 100 %).
+#: Tolerances must be below this.
 TOL_MAX = 1.0
 
 
 def check_tolerance(tol, what: str = "tol") -> float:
-    """A relative accuracy target as a float in ``[TOL_MIN, TOL_MAX)``.
-
-    Raises :class:`ParameterError` for NaN, inf, values <= 0 (which would make iterative
-    refinement loops chase an unreachable target), values below double round-off, and values
-    >= 1 (a 100 % error bound is no bound).
-    """
+    """A relative accuracy target as a float in ``[TOL_MIN, TOL_MAX)``, else :class:`ParameterError`."""
     try:
         value = float(tol)
     except (TypeError, ValueError) as err:
@@ -262,27 +209,22 @@ def check_times(times, what: str = "diffusion times", fix: str = "t > 0") -> np.
     return out
 
 
-# -- counts ----------------------------------------------------------------------------------
 def check_count(value, low: int, high: int, what: str) -> int:
-    """An integer in ``[low, high]`` (a basis size, a number of seeds...), as ``int``.
-
-    Refuses bools, floats (``20.0``) and out-of-range values with :class:`ParameterError`.
-    """
+    """An integer in ``[low, high]`` as ``int``; bools, floats (``20.0``) and out-of-range values raise
+    :class:`ParameterError`."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
         raise ParameterError(f"{what} must be an integer in [{low}, {high}], got {value!r}.")
     return int(value)
 
 
-#: Bytes per vertex of a prepared shape besides its eigenvectors (operators, a sparse Cholesky
-#: factor, geodesic solver); eigenpairs add :data:`EIGEN_VECTORS` float64 vectors of ``V``
-#: entries per eigenpair (the solver's blocks).
+#: Bytes per vertex of a prepared shape besides its eigenvectors.
 BYTES_PER_VERTEX = 2048
+#: float64 ``(V,)`` vectors held per eigenpair.
 EIGEN_VECTORS = 4
 
 
 def available_memory() -> int | None:
-    """Bytes of memory available to new allocations (``MemAvailable`` of ``/proc/meminfo``);
-    None where that cannot be read (not Linux)."""
+    """Bytes of memory available (``MemAvailable`` of ``/proc/meminfo``); None where unreadable."""
     try:
         with open("/proc/meminfo") as fh:
             for line in fh:
@@ -294,13 +236,8 @@ def available_memory() -> int | None:
 
 
 def check_memory(n_vertices: int, n_eigen: int, what: str) -> None:
-    """Refuse, before any work, a computation on ``n_vertices`` with ``n_eigen`` eigenpairs whose
-    estimated memory (:data:`BYTES_PER_VERTEX` + :data:`EIGEN_VECTORS` float64 vectors per
-    eigenpair) exceeds the memory available now: it would swap for hours instead of failing.
-
-    Raises:
-        ParameterError: the estimate, what is available and the fix.
-    """
+    """Raise :class:`ParameterError` if ``n_vertices`` with ``n_eigen`` eigenpairs need more memory
+    (:data:`BYTES_PER_VERTEX`, :data:`EIGEN_VECTORS`) than is available now."""
     needed = n_vertices * (BYTES_PER_VERTEX + 8 * EIGEN_VECTORS * n_eigen)
     available = available_memory()
     if available is not None and needed > available:

@@ -1,15 +1,6 @@
-"""Atomic, checksummed ``.npz`` files: the one writer and reader behind ``Basis.save/load`` and
-the training precompute cache.
-
-Writing: the arrays and a SHA-256 of them go to a temporary file in the destination folder,
-named uniquely per process *and* thread (``.{name}.{pid}.{thread}.{random}.tmp``), which is
-flushed, fsync'ed and renamed over the destination with :func:`os.replace` (atomic on POSIX
-and Windows). Readers therefore see the old file or the new one, never a mix; two writers of
-one path both succeed and the last rename wins; the temporary file is removed whatever fails.
-
-Reading: the checksum is recomputed and compared; an unreadable, truncated or altered file
-raises :class:`~torchfmap.errors.CorruptFileError`.
-"""
+"""Atomic, checksummed files (``.npz`` arrays, checkpoint bytes) and output locks. Writes go to a
+per-process-and-thread temporary file, fsync'ed and renamed over the destination (:func:`os.replace`);
+reads recompute the checksum (:class:`~torchfmap.errors.CorruptFileError` on a mismatch)."""
 
 from __future__ import annotations
 
@@ -43,23 +34,17 @@ def checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-#: Bytes the temporary file of :func:`atomic_write` adds to a name (``.{name}.{pid}.{thread}.{12
-#: hex}.tmp``: a process id of up to 7 digits, a thread id of up to 20).
+#: Bytes the temporary file of :func:`atomic_write` adds to a name (``.{name}.{pid}.{thread}.{hex}.tmp``).
 TEMP_NAME_EXTRA = 48
 
 
 def check_file_name(path: str | os.PathLike) -> None:
-    """Refuse a file name longer than its folder's file system allows, less the
-    :data:`TEMP_NAME_EXTRA` bytes of the temporary file every output is written through (the
-    operating system would say only "File name too long", about the temporary file).
-
-    Raises:
-        ParameterError: the name is too long (the message gives its length and the limit).
-    """
+    """Raise :class:`ParameterError` for a file name longer than its file system allows, less
+    :data:`TEMP_NAME_EXTRA` bytes for the temporary file."""
     path = Path(path)
     try:
         name_max = os.pathconf(path.parent if str(path.parent) else ".", "PC_NAME_MAX")
-    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or a folder not there yet
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no folder yet
         name_max = 255
     size = len(os.fsencode(path.name))
     if size + TEMP_NAME_EXTRA > name_max:
@@ -86,22 +71,17 @@ def _pid_alive(pid: int) -> bool:
 
 @contextlib.contextmanager
 def output_lock(path: str | os.PathLike, what: str = "file"):
-    """Hold ``<path>.lock`` (this process's pid in it) while this process writes ``path`` over a
-    long run (a training's checkpoint), so that a second run writing the same path is refused
-    instead of taking turns with the first. A lock whose process is gone (killed) is taken over.
-
-    Raises:
-        ParameterError: another live process holds the lock.
-    """
+    """Hold ``<path>.lock`` (holding this pid) while writing ``path`` over a long run; a lock of a
+    dead process is taken over. Raises :class:`ParameterError` if another live process holds it."""
     lock = Path(f"{path}.lock")
-    for _ in range(3):  # bounded: a stale lock is removed and the creation tried again
+    for _ in range(3):  # a stale lock is removed and the creation tried again
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             try:
                 holder = int(lock.read_text().strip() or 0)
             except (OSError, ValueError):
-                holder = 0  # being written this instant, or not ours: judged on the next pass
+                holder = 0  # being written this instant: judged on the next pass
             if holder and holder != os.getpid() and _pid_alive(holder):
                 raise ParameterError(
                     f"{path} is being written by another process (pid {holder}; lock {lock}). Fix: "
@@ -125,8 +105,7 @@ def output_lock(path: str | os.PathLike, what: str = "file"):
 
 
 def remove_stale_temps(path: str | os.PathLike) -> int:
-    """Delete temporary files of ``path`` left by writers that were killed (their process is
-    gone); returns how many. Files of live processes are kept."""
+    """Delete temporary files of ``path`` left by dead writers; returns how many."""
     path = Path(path)
     removed = 0
     for tmp in path.parent.glob(f".{path.name}.*.tmp"):
@@ -145,16 +124,11 @@ def atomic_write(
     write: Callable[[IO[bytes]], None],
     verify: Callable[[Path], object] | None = None,
 ) -> Path:
-    """Write ``path`` atomically: ``write(fh)`` fills a temporary file in the same folder, which
-    is fsync'ed, checked by ``verify(temp_path)`` (which raises if the bytes on disk are not what
-    was meant) and renamed over ``path``. The temporary file never outlives the call, and
-    temporary files of ``path`` left by killed writers are removed first
-    (:func:`remove_stale_temps`).
+    """Write ``path`` atomically: ``write(fh)`` fills a temporary file, fsync'ed, checked by
+    ``verify(temp_path)`` and renamed over ``path``; the temporary file never outlives the call.
 
     Raises:
-        FileWriteError (also the original OSError subclass, same errno): the write or the
-            rename failed (full disk, no permission, read-only folder); the message names
-            ``path`` and says that any previous file there is unchanged.
+        FileWriteError (also the original OSError subclass): the write or the rename failed.
         CorruptFileError: ``verify`` refused the written file (nothing was replaced).
         ParameterError: a file name too long for its file system (:func:`check_file_name`).
     """
@@ -177,7 +151,7 @@ def atomic_write(
         )
         raise file_write_error(err, message) from err
     finally:
-        if tmp.exists():  # the write, the check or the rename failed
+        if tmp.exists():
             tmp.unlink()
     return path
 
@@ -199,15 +173,10 @@ def save_arrays(
 def load_arrays(
     path: str | os.PathLike, checksum_key: str = CHECKSUM_KEY, what: str = "file"
 ) -> dict[str, np.ndarray]:
-    """The arrays of a file written by :func:`save_arrays`, checksum verified (and removed).
-
-    Raises:
-        FileReadError: no such file, a folder, no permission (also ``FileNotFoundError``, ...).
-        CorruptFileError: unreadable (e.g. truncated), no checksum, or a checksum mismatch.
-    """
+    """The arrays of a file written by :func:`save_arrays`, checksum verified (and removed); raises
+    :class:`FileReadError` (cannot be read) or :class:`CorruptFileError` (unreadable, checksum mismatch)."""
     path = Path(path)
-    try:
-        # the file is opened here, not by np.load: a corrupt file then never leaks its handle
+    try:  # opened here, not by np.load: a corrupt file never leaks its handle
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
     except OSError as err:  # missing, a folder, no permission: not corrupt
@@ -235,11 +204,8 @@ def save_checked_bytes(path: str | os.PathLike, payload: bytes) -> Path:
 
 
 def load_checked_bytes(path: str | os.PathLike, what: str = "file") -> bytes:
-    """The payload of a file written by :func:`save_checked_bytes`, its checksum verified.
-
-    Raises :class:`CorruptFileError` for a missing header, a truncated or altered payload, and
-    :class:`FileReadError` for a file that cannot be read.
-    """
+    """The payload of a file written by :func:`save_checked_bytes`, its checksum verified; raises
+    :class:`CorruptFileError` (no header, altered) or :class:`FileReadError` (cannot be read)."""
     try:
         data = Path(path).read_bytes()
     except OSError as err:

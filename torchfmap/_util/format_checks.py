@@ -1,6 +1,5 @@
-"""Sanity checks of mesh file bytes before parsing (OFF header counts, face lines and index
-base; STL bytes), so a malformed file gets a message naming its problem and the fix instead
-of a parser's error. Used by :mod:`torchfmap.io`, the home of every file format."""
+"""Sanity checks of mesh file bytes before parsing (OFF, STL, PLY, OBJ), so that a malformed file gets
+a :class:`MeshError` naming its problem and the fix; used by :mod:`torchfmap.io`."""
 
 from __future__ import annotations
 
@@ -10,11 +9,8 @@ from ..errors import MeshError
 
 
 def off_header_counts(text: str) -> tuple[int, int, int, int] | None:
-    """``(n_vertices, n_faces, vertex lines, face lines)`` declared and present in OFF text.
-
-    Comments (``#``) and blank lines are skipped; the counts may follow ``OFF`` on its line.
-    None if the header cannot be read (trimesh then reports the parse error).
-    """
+    """``(n_vertices, n_faces, vertex lines, face lines)`` declared and present in OFF text
+    (comments and blank lines skipped); None if the header cannot be read."""
     lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
     if not lines or not lines[0].split()[0].upper().endswith("OFF"):
@@ -33,8 +29,7 @@ def off_header_counts(text: str) -> tuple[int, int, int, int] | None:
 
 
 def off_without_comments(text: str) -> str:
-    """OFF text without its comments (``#`` to the end of a line) and blank lines: trimesh's OFF
-    reader takes them only before the counts, the format allows them on any line."""
+    """OFF text without its comments and blank lines (trimesh takes them only before the counts)."""
     lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
     return "\n".join(ln for ln in lines if ln) + "\n"
 
@@ -54,17 +49,15 @@ def check_off(text: str, name: str) -> None:
             f"{name!r} is truncated: its OFF header declares {n_v} vertices and {n_f} faces, the file "
             f"holds {have_v} vertex lines and {have_f} face lines. Fix: copy or export the file again."
         )
-    if have_f > n_f:  # a reader stops at the declared count: lines would be dropped or shifted
+    if have_f > n_f:
         raise MeshError(
             f"{name!r} holds {have_v + have_f} vertex and face lines, its OFF header declares {n_v} "
             f"vertices and {n_f} faces: lines were added, doubled or the counts edited. Fix: copy or "
             "export the file again (or correct the header counts)."
         )
-    # a face line starts with its corner count: under 3 is no face (trimesh would drop it, and
-    # the mesh would load with a new hole)
     lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
-    start = len(lines) - have_f
+    start = len(lines) - have_f  # a face line starts with its corner count: under 3, trimesh drops it
     _check_off_rows(lines[start - n_v : start], lines[start:], name)
     short = [
         (start + i, ln)
@@ -103,8 +96,7 @@ def check_off(text: str, name: str) -> None:
 
 
 def _check_off_rows(vertex_lines: list[str], face_lines: list[str], name: str) -> None:
-    """Vertex lines of numbers, all of one length (3, or more with normals or colours), and face
-    lines ``n i_1 ... i_n`` (colours may follow): what a shifted or edited count would break."""
+    """Vertex lines of 3 or more numbers, all of one length, and face lines ``n i_1 ... i_n``."""
     widths = {len(ln.split()) for ln in vertex_lines}
     bad = next((ln for ln in vertex_lines if not all(is_float(t) for t in ln.split())), None)
     if bad is not None or len(widths) > 1 or (widths and min(widths) < 3):
@@ -124,8 +116,7 @@ def _check_off_rows(vertex_lines: list[str], face_lines: list[str], name: str) -
 
 
 def check_stl(data: bytes, name: str) -> None:
-    """Refuse bytes that are neither binary STL (80-byte header, a triangle count ``n`` and
-    ``50 n`` bytes) nor ASCII STL (``solid`` ... ``facet``)."""
+    """Refuse bytes that are neither binary STL (84-byte header, ``50 n`` bytes) nor ASCII STL."""
     if len(data) >= 84 and len(data) == 84 + 50 * int.from_bytes(data[80:84], "little"):
         return
     head = data[:1024].lstrip().lower()
@@ -140,8 +131,7 @@ def check_stl(data: bytes, name: str) -> None:
 
 
 def _check_stl_vertices(text: str, name: str) -> None:
-    """ASCII STL ``vertex`` lines hold three numbers (some trimesh versions read a damaged
-    coordinate such as ``-`` or ``1.5x`` as a number)."""
+    """ASCII STL ``vertex`` lines hold three numbers."""
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split()
         if fields[:1] == ["vertex"] and not (len(fields) == 4 and all(is_float(t) for t in fields[1:])):
@@ -152,14 +142,11 @@ def _check_stl_vertices(text: str, name: str) -> None:
 
 
 def check_ply(data: bytes, name: str) -> None:
-    """Refuse an ASCII PLY file whose element lines disagree with its header (trimesh reads the
-    numbers as one stream, so a missing or doubled line would shift every later row): one line
-    per element, as many lines as the header declares, each vertex line with one value per
-    property, each list line with as many values as its count says. Binary PLY is left to
-    trimesh's reader, which checks the sizes."""
+    """Refuse an ASCII PLY file whose element lines disagree with its header (line count, values per
+    line, list lengths); binary PLY is left to trimesh."""
     end = data.find(b"end_header")
     if end < 0:
-        return  # trimesh names the problem
+        return
     header = [ln.split() for ln in data[:end].decode("latin-1").splitlines()]
     if not any(f[:2] == ["format", "ascii"] for f in header):
         return
@@ -211,7 +198,7 @@ def check_ply(data: bytes, name: str) -> None:
 #: PLY's integer property types.
 _PLY_INTEGER_TYPES = {"char", "uchar", "short", "ushort", "int", "uint", "int8", "uint8", "int16",
                       "uint16", "int32", "uint32"}  # fmt: skip
-#: The statements of the OBJ format (geometry, grouping, display); a line starting otherwise is damaged.
+#: The statements of the OBJ format.
 _OBJ_STATEMENTS = {
     "v", "vt", "vn", "vp", "f", "l", "p", "g", "o", "s", "mg", "mtllib", "usemtl", "usemap", "maplib",
     "cstype", "deg", "bmat", "step", "curv", "curv2", "surf", "parm", "trim", "hole", "scrv", "sp", "end",
@@ -220,9 +207,8 @@ _OBJ_STATEMENTS = {
 
 
 def check_obj(text: str, name: str) -> None:
-    """Refuse OBJ lines that start with no OBJ statement, vertex lines that are not 3 or more
-    numbers and face lines whose corners are not non-zero integers (``i``, ``i/t``, ``i//n``,
-    ``i/t/n``): trimesh's reader is lenient and would load such a file with changed rows."""
+    """Refuse OBJ lines that start with no OBJ statement, vertex lines that are not 3 or more numbers
+    and face lines whose corners are not non-zero integers (``i``, ``i/t``, ``i//n``, ``i/t/n``)."""
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split("#", 1)[0].split()
         if fields and fields[0] not in _OBJ_STATEMENTS:
@@ -246,11 +232,8 @@ def check_obj(text: str, name: str) -> None:
 
 
 def read_obj(text: str, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(V, 3)`` float64 vertices and ``(F, 3)`` int64 faces of an OBJ text already passed by
-    :func:`check_obj`: every ``v`` line in file order (unreferenced vertices kept, texture and
-    normal indices ignored, so no vertex is split, merged or dropped), polygons fanned into
-    triangles, 1-based and negative (relative) corners made 0-based. Raises :class:`MeshError`
-    naming ``name`` for a corner outside the vertices defined before its face."""
+    """``(V, 3)`` float64 vertices (every ``v`` line) and ``(F, 3)`` int64 faces (polygons fanned, made
+    0-based) of an OBJ text passed by :func:`check_obj`; :class:`MeshError` for a corner out of range."""
     vertices, faces = [], []
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split("#", 1)[0].split()

@@ -1,10 +1,5 @@
-"""``torch`` for the classical modules, imported on first use.
-
-The classical path (meshes, operators, bases, the default feature-aware ``match``) needs no
-torch; the functional-map core and the sparse conversions do. They use :data:`torch`, a stand-in
-whose first attribute access imports torch (about a second), so ``import torchfmap`` stays
-light. ``torchfmap.nn`` imports torch directly.
-"""
+"""``torch`` for the classical modules, imported on first attribute access, so that ``import
+torchfmap`` stays light (``torchfmap.nn`` imports torch directly)."""
 
 from __future__ import annotations
 
@@ -19,7 +14,7 @@ class LazyModule:
         self._name = name
 
     def _module(self) -> ModuleType:
-        return importlib.import_module(self._name)  # cached by Python in sys.modules
+        return importlib.import_module(self._name)
 
     def __getattr__(self, attribute: str):
         return getattr(self._module(), attribute)

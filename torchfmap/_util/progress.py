@@ -1,5 +1,4 @@
-"""A status line of named steps for long computations (:func:`torchfmap.match`'s ``progress``):
-tqdm on stderr, naming the step that runs and the time since the start; nothing when disabled."""
+"""A tqdm status line of named steps for long computations (:func:`torchfmap.match`'s ``progress``)."""
 
 from __future__ import annotations
 
@@ -7,9 +6,8 @@ from tqdm import tqdm
 
 
 class Steps:
-    """``steps('name')`` shows that step ``name`` starts now (the one before has ended), as
-    ``desc: name [elapsed]``; ``close()`` (or leaving a ``with`` block) removes the line.
-    Disabled (``enabled=False``, e.g. :data:`SILENT`), it holds nothing and shows nothing."""
+    """``steps('name')`` shows ``desc: name [elapsed]`` on stderr; ``close()`` (or leaving a ``with``
+    block) removes the line. Disabled (``enabled=False``, e.g. :data:`SILENT`), it shows nothing."""
 
     def __init__(self, desc: str, enabled: bool = True) -> None:
         self.desc = desc
@@ -17,11 +15,11 @@ class Steps:
 
     def __call__(self, name: str) -> None:
         if self._bar is not None:
-            self._bar.set_description_str(f"{self.desc}: {name}")  # redraws the line
+            self._bar.set_description_str(f"{self.desc}: {name}")
 
     @property
     def enabled(self) -> bool:
-        """Whether the line is shown (for callers that pass the choice on, e.g. to a bar)."""
+        """Whether the line is shown."""
         return self._bar is not None
 
     def close(self) -> None:
@@ -35,5 +33,5 @@ class Steps:
         self.close()
 
 
-#: A disabled :class:`Steps` (no bar, no state): the default of the functions that take one.
+#: A disabled :class:`Steps`: the default of the functions that take one.
 SILENT = Steps("", enabled=False)

@@ -1,18 +1,6 @@
-"""Checks of torch inputs: the one home for the torch side (:mod:`torchfmap.fmap.core` and
-:mod:`torchfmap.nn`), as :mod:`torchfmap._util.checks` is for numpy inputs.
-
-Two kinds of check:
-
-- **shape checks** (dimensions, dtypes, devices, types) read only metadata: they always run;
-- **data checks** (finite values, index ranges, sortedness, singular systems) read tensor
-  values, which on an accelerator waits for the device (a host sync). They run when the
-  ``check`` argument of the function says so: ``check=None`` (the default everywhere) resolves
-  by :func:`resolve_check` to "on for CPU tensors, off elsewhere"; ``True`` or ``False`` force it.
-  Layers hold ``check`` as a setting and pass it on, so a function and its layer refuse the same
-  inputs. Nothing global is read: the switch is an argument, nothing else.
-
-Every error names the problem and the fix (``... Fix: ...``).
-"""
+"""Checks of torch inputs (as :mod:`torchfmap._util.checks` is for numpy ones). Shape checks read only
+metadata and always run; data checks read values (a host sync on an accelerator) and run when the
+``check`` argument says so (:func:`resolve_check`: ``None`` means on for CPU tensors only)."""
 
 from __future__ import annotations
 
@@ -21,11 +9,8 @@ from .lazy import torch
 
 
 def resolve_check(check: bool | None, tensor: torch.Tensor) -> bool:
-    """The data-check switch: ``check`` itself, or for ``None`` whether ``tensor`` is on the CPU.
-
-    Raises:
-        ParameterError: ``check`` is neither None nor a bool.
-    """
+    """The data-check switch: ``check`` itself, or for ``None`` whether ``tensor`` is on the CPU;
+    :class:`ParameterError` if ``check`` is neither None nor a bool."""
     if check is None:
         return tensor.device.type == "cpu"
     if not isinstance(check, bool):

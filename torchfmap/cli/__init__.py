@@ -1,6 +1,4 @@
-"""The command line ``torchfmap``: the parser and ``main`` (:mod:`.parser`), the classical and
-learned commands (:mod:`.commands`, :mod:`.train`), argparse types (:mod:`.types`) and messages in
-flag terms (:mod:`.messages`). Entry point ``torchfmap.cli:main``."""
+"""The command line ``torchfmap`` (entry point ``torchfmap.cli:main``)."""
 
 from .parser import build_parser, check_outputs, in_cli_terms, main
 

@@ -1,15 +1,11 @@
 """The ``torchfmap`` subcommands: one ``cmd_<name>(args) -> exit code`` per command of
-:func:`torchfmap.cli.build_parser` (which parses the flags and calls them).
-
-Files are read and written through :mod:`torchfmap.io`. The learning path (``match
---checkpoint``, ``eval --checkpoint``, ``train``) imports torch and :mod:`torchfmap.nn` inside its
-command only, so the classical commands start without torch.
-"""
+:func:`torchfmap.cli.build_parser`; only ``--checkpoint`` paths import torch."""
 
 from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -80,16 +76,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     gt = gt_from_map(gt_ba)
     landmarks = landmarks_from_gt(a, gt, 8)
     t0 = time.perf_counter()
-    shapes = (prepare_shape(a, 100), prepare_shape(b, 100))  # every row: WKS on 100, ZoomOut to 80
+    shapes = (prepare_shape(a, 100), prepare_shape(b, 100))
     print(f"\nboth shapes prepared once (operators, 100 eigenpairs): {time.perf_counter() - t0:.2f} s")
-    rows = GeodesicSolver(a)  # evaluation distances on a, prefactored once
+    rows = GeodesicSolver(a)
     print(f"{'basis':<10} {'refine':<8} {'K':>4} {'mean err':>9} {'median':>8} {'AUC':>6} {'time [s]':>9}")
-    for basis, refine in (
-        ("laplacian", None),
-        ("laplacian", "zoomout"),
-        ("diffusion", None),
-        ("diffusion", "zoomout"),
-    ):
+    for basis, refine in itertools.product(("laplacian", "diffusion"), (None, "zoomout")):
         t0 = time.perf_counter()
         lm = landmarks if basis != "laplacian" else None
         result = match(a, b, landmarks=lm, basis=basis, k=40, refine=refine, shapes=shapes)
@@ -135,11 +126,9 @@ def cmd_basis(args: argparse.Namespace) -> int:
     loaded = [load_mesh(m, allow_components=args.allow_components) for m in meshes]
     kind = get_kind(args.kind or ("diffusion" if args.landmarks else "laplacian"))
     pair = len(loaded) == 2
-    if pair:
-        landmarks = read_landmark_pairs(args.landmarks) if args.landmarks else None
-    else:
-        landmarks = read_landmarks(args.landmarks) if args.landmarks else None
-    if landmarks is not None and kind.n_eigen(args.k) >= args.k:  # every column an eigenfunction
+    read = read_landmark_pairs if pair else read_landmarks
+    landmarks = read(args.landmarks) if args.landmarks else None
+    if landmarks is not None and kind.n_eigen(args.k) >= args.k:  # no seeded column
         raise TorchFmapError(
             f"--landmarks are seeds, and the {kind.name} basis has none. Fix: drop --landmarks, or "
             "pick a feature-aware --basis (diffusion, harmonic, stack, hybrid)."
@@ -150,7 +139,7 @@ def cmd_basis(args: argparse.Namespace) -> int:
         raise TorchFmapError(f"--k {args.k} needs {what} of more than {args.k} vertices ({small}).")
     with tqdm(total=2, desc="basis", unit="step", disable=args.quiet) as bar:
         bar.set_postfix_str("operators")
-        shapes = [prepare_shape(m, 0, laplacian=args.laplacian) for m in loaded]  # unit-area frames
+        shapes = [prepare_shape(m, 0, laplacian=args.laplacian) for m in loaded]
         bar.update()
         bar.set_postfix_str(f"{kind.name}, k={args.k}")
         if pair:
@@ -165,17 +154,13 @@ def cmd_basis(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Flags a checkpoint fixes (its basis, size and solver), refused with ``--checkpoint`` by
-#: ``match`` and ``eval`` alike (those a command has).
+#: Flags a checkpoint fixes, refused with ``--checkpoint``.
 CHECKPOINT_FIXES = ("k", "basis", "bases", "w_lap", "times", "p2p_mode")
 
 
 def _learned_matcher(args: argparse.Namespace):
-    """The :class:`~torchfmap.nn.LearnedMatcher` of ``--checkpoint`` after the one check of the
-    flags that ``match`` and ``eval`` share: flags the checkpoint fixes (:data:`CHECKPOINT_FIXES`)
-    and landmarks (the learned matcher takes none) are refused, refinement is ZoomOut or none;
-    without ``--checkpoint``, ``--adapt`` and ``--device`` are refused. None without
-    ``--checkpoint``."""
+    """The :class:`~torchfmap.nn.LearnedMatcher` of ``--checkpoint`` (None without it) after checking
+    the flags ``match`` and ``eval`` share; :class:`TorchFmapError` for conflicting ones."""
     if not args.checkpoint:
         for flag, value in (("--adapt", args.adapt), ("--device", args.device)):
             if value:
@@ -211,15 +196,14 @@ def _learned_matcher(args: argparse.Namespace):
             "--k-final is the size ZoomOut grows to; without --refine zoomout it changes nothing. "
             "Fix: --refine zoomout, or drop --k-final."
         )
-    from ..nn import LearnedMatcher  # torch: only for this path
+    from ..nn import LearnedMatcher
 
     device = args.device or "auto"
     return LearnedMatcher.from_checkpoint(args.checkpoint, device=device, adapt_steps=args.adapt)
 
 
 def _learned_how(matcher, args: argparse.Namespace, grown: int | None = None) -> str:
-    """What a learned match ran, in words (the status line and the plot title); ``grown``: the
-    size ZoomOut reached (default: as asked, before any cap for small meshes)."""
+    """What a learned match ran, in words; ``grown``: the size ZoomOut reached (default: as asked)."""
     refine = "-"
     if args.refine:
         k = matcher.config.k
@@ -228,7 +212,7 @@ def _learned_how(matcher, args: argparse.Namespace, grown: int | None = None) ->
 
 
 def cmd_match(args: argparse.Namespace) -> int:
-    with Steps("match", enabled=not args.quiet) as steps:  # dense meshes take seconds to read
+    with Steps("match", enabled=not args.quiet) as steps:
         steps("reading the meshes")
         src = load_mesh(args.source, allow_components=args.allow_components)
         tgt = load_mesh(args.target, allow_components=args.allow_components)
@@ -259,7 +243,7 @@ def cmd_match(args: argparse.Namespace) -> int:
     refined = ""
     if args.refine:
         refined = f", refined by {args.refine}" if result.refined else f", {args.refine} dropped"
-        if result.refine_check is not None:  # the evidence, kept or dropped
+        if result.refine_check is not None:
             refined += f" ({result.refine_check})"
     chose = ""
     if result.candidates:
@@ -273,8 +257,7 @@ def cmd_match(args: argparse.Namespace) -> int:
 
 
 def _sizes(args: argparse.Namespace, result) -> str:
-    """The basis size, and where ZoomOut grew it from: ``k 40 -> 80 (ZoomOut grows k to
-    --k-final, default 2k)``."""
+    """The basis size, and where ZoomOut grew it from."""
     start, final = DEFAULT_K if args.k is None else args.k, result.C_xy.shape[1]
     if result.refined and args.refine == "zoomout" and final != start:
         return f"k {start} -> {final} (ZoomOut grows k to --k-final, default 2k)"
@@ -292,9 +275,7 @@ def _partial_how(result) -> str:
 
 
 def _write_map(args: argparse.Namespace, src, tgt, p2p: np.ndarray, how: str) -> int:
-    """Write the map file (:func:`~torchfmap.io.write_map`: atomic, line i: source vertex of
-    target vertex i, ``.gz`` compressed; ``--out -``: the same lines on stdout, the status lines
-    then on stderr), report, and draw ``--png`` / ``--html``."""
+    """Write the map (``--out -``: stdout, status on stderr), report, and draw ``--png`` / ``--html``."""
     to_stdout = args.out == "-"
     if to_stdout:
         sys.stdout.write("".join(f"{int(i)}\n" for i in p2p))
@@ -322,8 +303,7 @@ def _dask_executor(address: str):
 
 
 def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
-    """``evaluate_pairs`` settings of ``torchfmap eval`` and the plot's title: the classical
-    pipeline's, or a trained network's (``--checkpoint``, checked as ``match`` checks it)."""
+    """``evaluate_pairs`` settings of ``torchfmap eval`` and the plot's title."""
     if args.landmarks and args.gt_landmarks:
         raise TorchFmapError("--landmarks and --gt-landmarks both give landmarks. Fix: pass one of them.")
     if args.maps:
@@ -359,8 +339,7 @@ def _eval_method(args: argparse.Namespace) -> tuple[dict, str]:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    """``torchfmap eval``: with ``--out``, one run at a time writes the file
-    (:func:`~torchfmap._util.files.output_lock`: a second run on a file in use is refused)."""
+    """``torchfmap eval``; with ``--out``, under :func:`~torchfmap._util.files.output_lock`."""
     if not args.out:
         return _eval(args)
     with output_lock(args.out, "--out"):
@@ -369,9 +348,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def _eval(args: argparse.Namespace) -> int:
     settings, title = _eval_method(args)
-    # absolute paths: workers of a cluster may run in another folder
     identity = {None: None, "identity": True, "files": False}[args.gt]
-    folder = Path(args.folder).resolve()
+    folder = Path(args.folder).resolve()  # workers of a cluster may run in another folder
     if args.partial:
         if args.pairs != "auto" or args.gt:
             raise TorchFmapError(
@@ -385,12 +363,12 @@ def _eval(args: argparse.Namespace) -> int:
             "the true part on the whole, area-weighted"
         )
     else:
-        _, protocol = select_pairs(folder, args.pairs)  # refuses a bad --pairs before any work
+        _, protocol = select_pairs(folder, args.pairs)  # refuses a bad --pairs first
         pairs = list(discover_pairs(folder, identity, args.pairs))[: args.max_pairs or None]
     if args.max_pairs and len(pairs) == args.max_pairs:
         protocol += f", the first {len(pairs)} (--max-pairs)"
     saved = None
-    if args.out:  # what changes a pair's score: the folder, the method, the ground truth, the points
+    if args.out:  # what changes a pair's score
         scored_by = {"folder": folder, "method": title, "k_final": args.k_final, "w_lap": args.w_lap,
                      "gt": args.gt, "partial": args.partial, "map_base": args.map_base,
                      "max_points": args.max_points}  # fmt: skip
@@ -413,7 +391,7 @@ def _eval(args: argparse.Namespace) -> int:
             on_results=None if saved is None else saved.add,
             **settings,
         )
-    except (EvaluationInterrupted, WorkerLost) as stop:  # the pairs scored before are shown
+    except (EvaluationInterrupted, WorkerLost) as stop:
         finished = stop.finished if saved is None else saved.in_order(all_pairs)
         why = "Ctrl-C" if isinstance(stop, EvaluationInterrupted) else "a worker died"
         if finished:
@@ -421,11 +399,11 @@ def _eval(args: argparse.Namespace) -> int:
         kept = ""
         if saved is not None:
             saved.flush()
-            if saved.done and Path(args.out).exists():  # no pair finished: no file to name
+            if saved.done and Path(args.out).exists():
                 kept = f"; the finished pairs are in {args.out}: the same command resumes"
         print(f"torchfmap: {stop} ({why}){kept}", file=sys.stderr)
         return 130 if isinstance(stop, EvaluationInterrupted) else 1
-    finally:  # whatever ended the run (an error in a pair too), the finished pairs are kept
+    finally:
         if saved is not None:
             saved.flush()
     if saved is not None:
@@ -435,8 +413,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _print_table(results, title: str, protocol: str, png) -> None:
-    """The ``eval`` table of ``results`` (one row a pair, then all pairs), its footer and, with
-    ``png``, the PCK plot."""
+    """The ``eval`` table of ``results``, its footer and, with ``png``, the PCK plot."""
     partial = any(r.iou is not None for r in results)
     print(
         "| source | target | mean err | median | AUC | coverage | time [s] |" + (" IoU |" if partial else "")

@@ -1,6 +1,4 @@
-"""The command line's messages: errors and warnings as one line each, ``torchfmap: error: ...``
-/ ``torchfmap: warning: ...``, with the library's fixes said in flags (``--basis laplacian``)
-instead of Python arguments (``basis='laplacian'``)."""
+"""The command line's one-line errors and warnings, the library's fixes said in flags."""
 
 from __future__ import annotations
 
@@ -38,8 +36,7 @@ CLI_TERMS = (
 
 
 def in_cli_terms(text: str) -> str:
-    """A library message with its Python fixes (``basis='laplacian'``, ``allow_components=True``)
-    said as the flags that do the same (``--basis laplacian``, ``--allow-components``)."""
+    """A library message with its Python fixes (``basis='x'``) said as flags (``--basis x``)."""
     for pattern, flag in CLI_TERMS:
         text = pattern.sub(flag, text)
     return text
@@ -48,13 +45,12 @@ def in_cli_terms(text: str) -> str:
 def error_line(err: BaseException) -> str:
     """``torchfmap: error: ...``, naming the error class where it says more than 'error'."""
     name = type(err).__name__
-    text = err.strerror if isinstance(err, OSError) and err.strerror else str(err)  # no "[Errno 2]"
+    text = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
     text = in_cli_terms(text)
     plain = name in ("TorchFmapError", "FileWriteError", "FileReadError")
     return f"torchfmap: error: {text}" if plain else f"torchfmap: error ({name}): {text}"
 
 
 def warning_line(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` of the command line: ``torchfmap: warning: <message>`` on stderr,
-    without Python's source line, its fixes in the command line's terms."""
+    """``warnings.showwarning`` of the command line: ``torchfmap: warning: <message>`` on stderr."""
     print(f"torchfmap: warning: {in_cli_terms(str(message))}", file=sys.stderr)

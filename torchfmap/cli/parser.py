@@ -1,9 +1,5 @@
-"""Command line: ``torchfmap demo | info | basis | match | eval | train`` (see ``torchfmap --help``).
-
-This module parses the flags (:func:`build_parser`, the argparse types, :func:`check_outputs`)
-and runs the command through :func:`main`; the commands themselves are in
-:mod:`torchfmap.cli.commands` (and :mod:`torchfmap.cli.train`, the learned path's).
-"""
+"""The ``torchfmap`` command line's flags (:func:`build_parser`, :func:`check_outputs`) and :func:`main`;
+the commands are in :mod:`torchfmap.cli.commands` and :mod:`torchfmap.cli.train`."""
 
 from __future__ import annotations
 
@@ -42,15 +38,13 @@ Flags mean the same in every subcommand: --k is the basis size, --out the output
 mesh, two for a pair; eval: a FOLDER of <source>-<target>.txt pair files). Run
 'torchfmap COMMAND --help'."""
 
-#: Every basis kind of the registry (torchfmap.kinds.KINDS), for the commands that take one.
 BASES = list(KINDS)
 LEARNED_BASES = [name for name, kind in KINDS.items() if kind.learned]
 
 
 class _DefaultsFormatter(argparse.HelpFormatter):
-    """Appends ``(default: X)`` to an option's help only where it says something: not when the
-    help already states its default, the option is required or a flag, or the default is None
-    (each option's help then says what None means)."""
+    """Appends ``(default: X)`` to an option's help unless the help states it, the option is required
+    or positional, or the default is None, False or suppressed."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
@@ -67,26 +61,15 @@ class _DefaultsFormatter(argparse.HelpFormatter):
 
 def _refine_flags(p: argparse.ArgumentParser) -> None:
     """The refinement and solver flags ``match`` and ``eval`` share."""
+    p.add_argument("--refine", choices=list(REFINE_METHODS), help="refinement (default: none)")
+    p.add_argument("--k-final", type=positive_int, help="eigenbasis ZoomOut target size (default: 2k)")
     p.add_argument(
-        "--refine",
-        choices=list(REFINE_METHODS),
-        default=None,
-        help="refinement (default: none)",
-    )
-    p.add_argument(
-        "--k-final", type=positive_int, default=None, help="eigenbasis ZoomOut target size (default: 2k)"
-    )
-    p.add_argument(
-        "--w-lap",
-        type=nonnegative_float,
-        default=None,
-        help="Laplacian-commutativity weight (default: per basis)",
+        "--w-lap", type=nonnegative_float, help="Laplacian-commutativity weight (default: per basis)"
     )
 
 
 def _checkpoint_flags(p: argparse.ArgumentParser, what: str) -> None:
-    """The trained-network flags ``match`` and ``eval`` share (checked alike by
-    :func:`torchfmap.cli.commands._learned_matcher`)."""
+    """The trained-network flags ``match`` and ``eval`` share."""
     p.add_argument(
         "--checkpoint",
         help=f"a network trained by 'torchfmap train' (a path, or a shipped name, see 'torchfmap "
@@ -96,13 +79,13 @@ def _checkpoint_flags(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument(
         "--device",
         choices=["auto", "cpu", "cuda"],
-        default=None,
         help="where the network, its solver and the point-map search run (with --checkpoint; default: "
         "auto, CUDA when available); operators and eigenbases stay on the CPU",
     )
 
 
 QUIET = "no progress bar and no status lines (the results and errors still come)"
+ALLOW_COMPONENTS = "accept meshes with several connected components"
 
 
 def _sub(sub, name: str, help_text: str) -> argparse.ArgumentParser:
@@ -140,13 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--basis",
         dest="kind",
         choices=BASES,
-        default=None,
         help="basis kind (default: diffusion with --landmarks, else laplacian)",
     )
     p.add_argument("--k", type=positive_int, default=DEFAULT_K, help="basis size (exactly k columns)")
-    p.add_argument(
-        "--allow-components", action="store_true", help="accept meshes with several connected components"
-    )
+    p.add_argument("--allow-components", action="store_true", help=ALLOW_COMPONENTS)
     p.add_argument(
         "--landmarks",
         metavar="FILE",
@@ -157,7 +137,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--times",
         type=time_list,
-        default=None,
         help="relative diffusion times of feature-aware kinds (default: one, matched to the seed count)",
     )
     p.add_argument("--laplacian", choices=["cotan", "robust", "mean_value"], default="cotan", help="operator")
@@ -176,7 +155,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--basis",
         choices=["auto", *BASES],
-        default=None,
         help="basis kind (default: with --landmarks 'auto', the kind whose map distorts geodesic "
         "distances least, eigenbasis preferred; without, laplacian)",
     )
@@ -187,7 +165,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--k",
         type=positive_int,
-        default=None,
         help=f"basis size, every basis has exactly k columns (default: {DEFAULT_K}; --checkpoint fixes "
         "its own)",
     )
@@ -195,19 +172,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--times",
         type=time_list,
-        default=None,
         help="relative diffusion times of feature bases, e.g. 0.01,0.03 (default: one time matched to "
         "the seed count)",
     )
     p.add_argument(
         "--p2p-mode",
         choices=["pullback", "orthogonal"],
-        default=None,
         help="point-map rule (default: orthogonal for laplacian and hybrid, else pullback)",
     )
-    p.add_argument(
-        "--allow-components", action="store_true", help="accept meshes with several connected components"
-    )
+    p.add_argument("--allow-components", action="store_true", help=ALLOW_COMPONENTS)
     p.add_argument("--out", required=True, help="map file: line i = source of target vertex i; -: stdout")
     p.add_argument("--png", help="also save a colour-transfer picture (needs matplotlib)")
     p.add_argument(
@@ -242,14 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gt",
         choices=["files", "identity"],
-        default=None,
         help="ground truth: corres/*.vts files only, or identity (vertex i is vertex i) for meshes "
         "of equal vertex counts (default: the files, else identity where the face lists agree)",
     )
-    p.add_argument(
-        "--basis", choices=["auto", *BASES], default=None, help="basis kind (default: as in match)"
-    )
-    p.add_argument("--k", type=positive_int, default=None, help=f"basis size (default: {DEFAULT_K})")
+    p.add_argument("--basis", choices=["auto", *BASES], help="basis kind (default: as in match)")
+    p.add_argument("--k", type=positive_int, help=f"basis size (default: {DEFAULT_K})")
     _refine_flags(p)
     p.add_argument(
         "--landmarks",
@@ -289,7 +259,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--threads",
         type=positive_int,
-        default=None,
         help="BLAS/torch threads per process (default: all CPUs / workers); equal --threads give "
         "identical results with any --workers",
     )
@@ -323,26 +292,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--minutes",
         type=positive_float,
-        default=None,
         help="time budget of the whole run; any of --minutes / --epochs / --max-steps given replaces "
         "the whole budget (of the recipe file, --init or --resume)",
     )
     p.add_argument(
-        "--epochs",
-        type=positive_int,
-        default=None,
-        help="epochs of all ordered pairs (default: 5 when no budget is given)",
+        "--epochs", type=positive_int, help="epochs of all ordered pairs (default: 5 when no budget is given)"
     )
-    p.add_argument("--max-steps", type=count, default=None, help="optimiser steps (default, or 0: no limit)")
+    p.add_argument("--max-steps", type=count, help="optimiser steps (default, or 0: no limit)")
     p.add_argument(
-        "--basis",
-        choices=LEARNED_BASES,
-        default=None,
-        help="basis kind of the learned map (default: laplacian)",
+        "--basis", choices=LEARNED_BASES, help="basis kind of the learned map (default: laplacian)"
     )
-    p.add_argument(
-        "--k", type=positive_int, default=None, help=f"functional-map basis size (default: {DEFAULT_K})"
-    )
+    p.add_argument("--k", type=positive_int, help=f"functional-map basis size (default: {DEFAULT_K})")
     p.add_argument(
         "--pairs",
         choices=["classes", "all"],
@@ -353,33 +313,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--inputs",
         choices=["wks", "xyz", "wks+xyz", "shot"],
-        default=None,
         help="per-vertex network inputs: WKS, coordinates, both, or SHOT (local, blind to rigid motions "
         "and scale: for parts turned any way; default: wks)",
     )
     p.add_argument(
         "--augment",
         choices=["rigid", "up", "scale", "none"],
-        default=None,
         help="moves of XYZ inputs at each step: rotation and scaling, rotation about the y axis and "
         "scaling (shapes standing alike, facing anywhere), scaling only (shapes aligned alike), or "
         "none (default: rigid)",
     )
-    p.add_argument("--n-wks", type=positive_int, default=None, help="WKS input channels (default: 32)")
+    p.add_argument("--n-wks", type=positive_int, help="WKS input channels (default: 32)")
+    p.add_argument("--k-net", type=count, help="eigenfunctions of the network's diffusion (default: 96)")
     p.add_argument(
-        "--k-net", type=count, default=None, help="eigenfunctions of the network's diffusion (default: 96)"
+        "--clip-grad", type=nonnegative_float, help="gradient-norm clipping per step (default: 0: none)"
     )
-    p.add_argument(
-        "--clip-grad",
-        type=nonnegative_float,
-        default=None,
-        help="gradient-norm clipping per step (default: 0: none)",
-    )
-    p.add_argument("--width", type=positive_int, default=None, help="network width (default: 48)")
-    p.add_argument("--c-out", type=positive_int, default=None, help="feature channels (default: 64)")
-    p.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default: 1e-3)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (default: 0)")
-    p.add_argument("--cache", default=None, help="precompute cache folder (default: per-user cache)")
+    p.add_argument("--width", type=positive_int, help="network width (default: 48)")
+    p.add_argument("--c-out", type=positive_int, help="feature channels (default: 64)")
+    p.add_argument("--lr", type=positive_float, help="Adam learning rate (default: 1e-3)")
+    p.add_argument("--seed", type=int, help="random seed (default: 0)")
+    p.add_argument("--cache", help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")
     p.add_argument(
@@ -400,9 +353,9 @@ def _as_list(value) -> list:
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    """Refuse, before any work, output paths that cannot be written: a missing or read-only
-    folder, an existing folder as the file, a name too long for its file system; ``--png``
-    without matplotlib, ``--html`` without plotly installed."""
+    """Raise :class:`TorchFmapError`, before any work, for output paths that cannot be written (no or
+    read-only folder, a folder as the file, a name too long), ``--png`` / ``--html`` without their
+    library."""
     values = [(flag, v) for flag in ("out", "png", "html") for v in _as_list(getattr(args, flag, None))]
     values = [(flag, v) for flag, v in values if not (flag == "out" and v == "-" and args.command == "match")]
     for flag, value in values:
@@ -429,7 +382,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (Ctrl-C), 141 the output pipe was closed (e.g. ``| head``). No traceback for any of these."""
     args = build_parser().parse_args(argv)
     try:
-        with warnings.catch_warnings():  # one line per warning, in the command's terms
+        with warnings.catch_warnings():
             warnings.showwarning = _warning_line
             check_outputs(args)
             return args.func(args)
@@ -437,12 +390,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(_error_line(err), file=sys.stderr)
         return 1 if isinstance(err, OSError) else 2
     except BrokenPipeError:
-        # the reader went away (``| head``): stop quietly; point stdout at /dev/null so the
-        # interpreter's final flush does not raise again
+        # the reader went away (``| head``): /dev/null as stdout, so the final flush does not raise
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
-    except OSError as err:  # reading: a missing file, a folder given as a file, no permission...
+    except OSError as err:
         print(f"torchfmap: error: {err}. Fix: check the path and its permissions.", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -1,6 +1,4 @@
-"""The bodies of ``torchfmap models`` and ``torchfmap train``: the learned path's commands,
-which import torch and :mod:`torchfmap.nn` on first use (``import torchfmap`` and the
-classical commands stay without torch)."""
+"""``torchfmap models`` and ``torchfmap train``, which import torch and :mod:`torchfmap.nn` when run."""
 
 from __future__ import annotations
 
@@ -18,10 +16,10 @@ RECIPE_FLAGS = (
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from ..nn.checkpoints import read_checkpoint, read_recipe  # torch: only for this command
+    from ..nn.checkpoints import read_checkpoint, read_recipe
     from ..nn.shipped import shipped_models
 
-    if args.recipe:  # the recipe file that `torchfmap train --config` trains by again
+    if args.recipe:
         print(read_recipe(args.recipe).to_json(), end="")
         return 0
     models = shipped_models()
@@ -38,17 +36,15 @@ def cmd_models(args: argparse.Namespace) -> int:
 
 
 def _recipe(args: argparse.Namespace):
-    """The run's :class:`~torchfmap.nn.TrainConfig` and its budget's source: the defaults (or,
-    with ``--init``, the checkpoint's recipe with the default budget: a new run), then the
-    ``--config`` file, then the flags; with ``--resume`` of an existing checkpoint, its recipe,
-    which the file and flags must not contradict. A budget given (flags, else the file) replaces
-    the whole budget, with ``--init`` and ``--resume`` alike."""
+    """The run's :class:`~torchfmap.nn.TrainConfig`: the defaults (or ``--init``'s recipe), then
+    ``--config``, then the flags; with ``--resume``, the checkpoint's recipe, which they must not
+    contradict. A budget given replaces the whole budget."""
     from ..nn.checkpoints import read_checkpoint, read_recipe
     from ..nn.config import BUDGET_FIELDS, TrainConfig
 
     given = {n: getattr(args, n) for n in RECIPE_FLAGS if getattr(args, n, None) is not None}
     bounds = {"epochs": args.epochs, "minutes": args.minutes, "max_steps": args.max_steps}
-    if any(bounds.values()):  # the command line's budget, whole
+    if any(bounds.values()):
         unbounded = {"epochs": None, "minutes": 0.0, "max_steps": 0}
         given.update(unbounded | {k: v for k, v in bounds.items() if v})
     asked = {**(TrainConfig.read_json(args.config) if args.config else {}), **given}
@@ -81,8 +77,7 @@ def _recipe(args: argparse.Namespace):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    """``torchfmap train``: one run at a time writes a checkpoint
-    (:func:`~torchfmap._util.files.output_lock`)."""
+    """``torchfmap train``, under :func:`~torchfmap._util.files.output_lock`."""
     with output_lock(args.out, "--out"):
         return _train(args)
 
@@ -102,7 +97,7 @@ def _train(args: argparse.Namespace) -> int:
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
     pairs = class_pairs(shapes.names, within=args.pairs == "classes")
     validate, picked = None, []
-    if args.validate_every:  # the unsupervised loss (full soft maps) on a fixed spread of training pairs
+    if args.validate_every:  # the unsupervised loss on a fixed spread of training pairs
         picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
         solver, loss_fn = build_solver(config)
         validate = unsupervised_score(shapes, picked, solver, loss_fn, device=device, augment=config.augment)
@@ -128,15 +123,13 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-#: A trained network whose best validation loss is above this fraction of the untrained one has
-#: barely moved: ``train`` warns.
+#: ``train`` warns when the best validation loss is above this fraction of the untrained one.
 UNMOVED = 0.9
 
 
 def _validation_summary(state, n_pairs: int, fine_tune: bool = False) -> str:
-    """What the validation score means, against the step-0 score of the weights training started
-    from (untrained, or the --init weights of a ``fine_tune``); warns on stderr when training from
-    scratch did not move it (a fine-tune starts from a low score: any gain is progress)."""
+    """The validation score against the step-0 one, in words; warns on stderr when training from
+    scratch barely moved it."""
     if not state.scores:
         return ""
     text = (
@@ -158,8 +151,7 @@ def _validation_summary(state, n_pairs: int, fine_tune: bool = False) -> str:
 
 
 def _fit_or_interrupted(trainer, progress: bool):
-    """``(trainer.fit(progress), None)``, or on Ctrl-C ``(None, message)`` saying which step the
-    trainer's checkpoint holds (it is written atomically, so it is always a whole one)."""
+    """``(trainer.fit(progress), None)``, or on Ctrl-C ``(None, message)`` naming the checkpoint's step."""
     from ..nn.checkpoints import read_checkpoint
 
     out = trainer.checkpoint

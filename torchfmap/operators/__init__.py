@@ -7,14 +7,7 @@ from .eigen import eigenpairs
 from .geodesic import DistanceRows, GeodesicSolver, geodesic_distances
 from .gradient import gradient_operator, tangent_frames
 from .heat import heat_apply, heat_kernels
-from .laplacian import (
-    Operators,
-    laplacian,
-    mass_matrix,
-    normalize_area,
-    point_cloud_laplacian,
-    total_area,
-)
+from .laplacian import Operators, laplacian, mass_matrix, normalize_area, point_cloud_laplacian, total_area
 from .solvers import Factorization, available_backends, factorize
 
 __all__ = [

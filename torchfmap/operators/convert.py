@@ -16,12 +16,9 @@ def scipy_to_torch(
     device: torch.device | str | None = None,
     layout: torch.layout | None = None,
 ) -> torch.Tensor:
-    """A scipy sparse ``(M, N)`` matrix as a coalesced torch sparse tensor.
-
-    Args:
-        dtype: defaults to the matrix's own dtype (float64 stays float64).
-        layout: ``torch.sparse_coo`` (default) or ``torch.sparse_csr``.
-    """
+    """A scipy sparse ``(M, N)`` matrix as a coalesced torch sparse tensor of ``layout``
+    ``torch.sparse_coo`` (default) or ``torch.sparse_csr`` (else ValueError); ``dtype``: the matrix's own
+    by default."""
     layout = torch.sparse_coo if layout is None else layout
     coo = sp.coo_matrix(matrix)
     coo.sum_duplicates()
@@ -29,7 +26,6 @@ def scipy_to_torch(
     if dtype is not None:
         values = values.to(dtype)
     indices = torch.from_numpy(np.vstack([coo.row, coo.col]).astype(np.int64))
-    # indices come from a duplicate-free scipy matrix, so the invariant check is not needed
     out = torch.sparse_coo_tensor(
         indices, values, coo.shape, device=device, check_invariants=False
     ).coalesce()

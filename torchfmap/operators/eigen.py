@@ -1,12 +1,6 @@
-"""Generalised eigensolvers for ``L φ = λ B φ``, with a fixed sign convention.
-
-Pairs are B-orthonormal (``φᵀ B φ = I``), ``λ`` ascending. Eigenvectors are defined up to sign; we fix it
-so that the B-weighted third moment ``Σ_i B_ii φ_i³`` is positive (ties: the entry of largest
-magnitude is positive). Both rules are invariant under rigid motion and vertex permutation.
-Dense ``eigh`` on small meshes; beyond, ARPACK or block Lanczos (:func:`block_lanczos`) on the
-same shift-inverted factorisation. :func:`~torchfmap.bases.laplacian_eigenbasis` wraps the
-result as a :class:`~torchfmap.bases.Basis`.
-"""
+"""Generalised eigensolvers for ``L φ = λ B φ``: B-orthonormal pairs, ``λ`` ascending, each sign fixed
+so that ``Σ_i B_ii φ_i³ > 0`` (ties: the largest-magnitude entry positive). Dense ``eigh`` on small
+meshes, else ARPACK or block Lanczos (:func:`block_lanczos`) on a shift-inverted factorisation."""
 
 from __future__ import annotations
 
@@ -22,13 +16,11 @@ from .._util.threads import blas_threads
 from ..errors import ConvergenceError, CostWarning, ParameterError
 from .solvers import factorize
 
-#: Below this many vertices the dense generalised eigensolver is used (exact and robust).
+#: Up to this many vertices the dense generalised eigensolver is used.
 DENSE_LIMIT = 1500
-#: Above this many eigenpairs of a mesh beyond :data:`DENSE_LIMIT` vertices, :func:`eigenpairs`
-#: warns (:class:`~torchfmap.errors.CostWarning`): the iterative solvers' time grows as ``V k²``,
-#: so such a call runs minutes where matching settings (``k`` up to a few hundred) run seconds.
+#: Above this many eigenpairs of a mesh beyond :data:`DENSE_LIMIT` vertices, :func:`eigenpairs` warns.
 MANY_EIGENPAIRS = 300
-#: ARPACK's relative accuracy of the Ritz values (``eigsh(tol=...)``; 0 means machine precision).
+#: ARPACK's relative accuracy of the Ritz values (``eigsh(tol=...)``).
 ARPACK_TOL = 1e-10
 
 
@@ -45,56 +37,32 @@ def fix_signs(phi: np.ndarray, mass) -> np.ndarray:
 
 
 def start_vector(n: int) -> np.ndarray:
-    """A fixed ARPACK start vector, so that repeated runs give the same basis.
-
-    ARPACK otherwise starts from a random vector: inside a degenerate eigenspace (symmetric
-    shapes) the returned eigenvectors, and even which copies of a cluster converge, would differ
-    from run to run.
-    """
+    """A fixed ``(n,)`` ARPACK start vector, so that repeated runs give the same basis."""
     return np.random.default_rng(0).standard_normal(n)
 
 
-#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``); below it
-#: ARPACK's single-vector solves cost less (``python -m bench speed --case eigenpairs``).
+#: ``solver='auto'`` uses block Lanczos when ``V · k`` reaches this (and ``k >= 20``).
 BLOCK_MIN_WORK = 3_000_000
-#: Below this many vertices block Lanczos runs with one BLAS thread: a second one, spinning after
-#: each thin Gram-Schmidt product, takes the core its single-threaded solves run on
-#: (``python -m bench speed --case eigenpairs --set threads=1``).
+#: Below this many vertices block Lanczos runs with one BLAS thread.
 BLOCK_ONE_THREAD_BELOW = 100_000
-#: Shift of the block Lanczos factorisation ``L + s B`` on a unit-area surface. The null
-#: space (``λ = 0``) then maps to ``1/s``: a modest shift keeps the dynamic range ``1 + λ_k/s``
-#: of the shift-inverted spectrum small enough (< 1e6 for ``λ_k`` up to 1e4) that the block
-#: Gram-Schmidt's round-off stays below ARPACK_TOL; ARPACK's near-zero shift would leave a
-#: residual floor.
+#: Shift ``s`` of the block Lanczos factorisation ``L + s B`` on a unit-area surface.
 BLOCK_SHIFT = 1e-2
-#: Restart cycles of block Lanczos before :class:`ConvergenceError` (a generous cap: it
-#: usually needs a few).
+#: Restart cycles of block Lanczos before :class:`ConvergenceError`.
 BLOCK_MAX_CYCLES = 60
 
 
 def eigenpairs(L, B, k: int, sigma: float = -1e-8, *, solver: str = "auto") -> tuple[np.ndarray, np.ndarray]:
-    """First ``k`` generalised eigenpairs: ``(λ (k,), φ (V, k))``, B-orthonormal, signs fixed.
+    """First ``k`` generalised eigenpairs: ``(λ (k,), φ (V, k))``, float64, B-orthonormal, signs fixed.
 
-    Dense ``scipy.linalg.eigh`` up to :data:`DENSE_LIMIT` vertices. Beyond, a shift-invert
-    iteration whose inverse is our :func:`~torchfmap.operators.factorize` (a sparse Cholesky
-    where one is installed):
-
-    - ``solver='block'``: block Lanczos with full reorthogonalisation and thick restarts
-      (:func:`block_lanczos`): blocks of right-hand sides per solve, Gram-Schmidt as matrix
-      products; the same convergence test as ARPACK (residual ``<= ARPACK_TOL · |θ|``);
-    - ``solver='arpack'``: ``scipy.sparse.linalg.eigsh`` (shift ``sigma``);
-    - ``solver='auto'``: block when ``V · k >= BLOCK_MIN_WORK`` (:func:`auto_solver`), else ARPACK.
-
-    The problem is solved in a scale-free frame: ``B`` is divided by its total (the area), so
-    the shift is relative to a unit-area surface and cost and accuracy do not depend on the
-    mesh's units; the eigenpairs are scaled back.
+    Dense ``eigh`` up to :data:`DENSE_LIMIT` vertices; beyond, ``solver='block'``
+    (:func:`block_lanczos`), ``'arpack'`` (``eigsh``, shift ``sigma``) or ``'auto'``
+    (:func:`auto_solver`). Solved on ``B`` scaled to unit area, then scaled back. Warns
+    :class:`~torchfmap.errors.CostWarning` above :data:`MANY_EIGENPAIRS` pairs of a large mesh.
 
     Raises:
-        ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, an area that is not a
-            finite positive float64 (a mesh so large or small that it overflows), or more memory
-            than is available (:func:`~torchfmap._util.checks.check_memory`).
-        ConvergenceError: block Lanczos did not converge in :data:`BLOCK_MAX_CYCLES` restarts
-            (``solver='arpack'`` is the alternative).
+        ParameterError: ``k`` outside ``[1, V]``, an unknown ``solver``, a non-symmetric ``L``, an area
+            that is not finite and positive, or more memory than available.
+        ConvergenceError: block Lanczos did not converge in :data:`BLOCK_MAX_CYCLES` restarts.
     """
     n = L.shape[0]
     if not 1 <= k <= n:
@@ -138,13 +106,11 @@ def _unit_area_eigenpairs(L, B, k: int, sigma: float, solver: str) -> tuple[np.n
         and _block_dimension(k, block) + block <= n
         and (d := lumped_diagonal(B)) is not None
     ):
-        lam, phi = _block_eigenpairs(L, B, k, block, d)  # (a consistent mass goes to ARPACK)
+        lam, phi = _block_eigenpairs(L, B, k, block, d)
     else:
         lam, phi = _arpack_eigenpairs(L, B, k, sigma)
     if not (n <= DENSE_LIMIT or k >= n - 1):
-        # the Rayleigh quotients of the returned vectors: exact for them (W = Φᵀ L Φ is then
-        # diag(λ) to round-off), and their error is the square of the residual, not the
-        # Ritz value's error, which depends on the ARPACK build
+        # Rayleigh quotients: Φᵀ L Φ = diag(λ) to round-off, independent of the ARPACK build
         lam = np.einsum("vk,vk->k", phi, L @ phi) / np.einsum("vk,vk->k", phi, B @ phi)
         order = np.argsort(lam, kind="stable")
         lam, phi = lam[order], phi[:, order]
@@ -155,14 +121,12 @@ def _unit_area_eigenpairs(L, B, k: int, sigma: float, solver: str) -> tuple[np.n
 def _arpack_eigenpairs(L, B, k: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     n = L.shape[0]
     L, B = sp.csc_matrix(L), sp.csc_matrix(B)
-    fac = factorize(L - sigma * B, spd=True)  # CHOLMOD / cholespy where installed
-    # ARPACK's restarts cost ~ V ncv^2: a Lanczos basis of 1.5k (scipy's default is 2k + 1)
-    # needs as many solves and restarts more cheaply
+    fac = factorize(L - sigma * B, spd=True)
+    # a Lanczos basis of 1.5k (scipy's default is 2k + 1): cheaper restarts
     ncv = min(n, max(k + k // 2 + 1, k + 20))
     d = lumped_diagonal(B)
     if d is not None:
-        # lumped mass: the standard problem D^-1/2 L D^-1/2 ψ = λ ψ, φ = D^-1/2 ψ, spares
-        # ARPACK the B inner products (same eigenpairs, residuals at ARPACK_TOL)
+        # lumped mass: the standard problem D^-1/2 L D^-1/2 ψ = λ ψ, φ = D^-1/2 ψ
         s = np.sqrt(d)
         A = sp.csc_matrix(sp.diags(1.0 / s) @ L @ sp.diags(1.0 / s))
         op_inv = ssla.LinearOperator((n, n), matvec=lambda x: s * fac.solve(s * x), dtype=np.float64)
@@ -202,9 +166,7 @@ def _block_eigenpairs(L, B, k: int, block: int, d: np.ndarray) -> tuple[np.ndarr
 
 
 def _block_qr(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``W = Q R`` for a tall ``(n, b)`` block: Cholesky QR twice (two ``(b, b)`` Gram matrices
-    and triangular solves, cheaper than Householder at ``n >> b``: matrix products; orthonormal to
-    round-off while ``cond(W) < 1e6``), Householder when ``W`` is worse conditioned than that."""
+    """``W = Q R`` for a tall ``(n, b)`` block: Cholesky QR twice, Householder when ill-conditioned."""
     R = np.eye(W.shape[1])
     Q = W
     for _ in range(2):
@@ -221,21 +183,17 @@ def _block_qr(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def block_lanczos(op, n: int, k: int, block: int, tol: float = ARPACK_TOL, seed: int = 0):
-    """The ``k`` largest eigenpairs of a symmetric positive semi-definite operator.
+    """The ``k`` largest eigenpairs of a symmetric positive semi-definite operator (thick restarts).
 
     Args:
-        op: ``X (n, b) -> op(X) (n, b)``, symmetric (e.g. a shift-inverted Laplacian).
-        n: dimension; k: wanted pairs; block: columns per operator call.
-        tol: a pair is converged when its residual ``‖op(y) - θ y‖ <= tol · θ`` (ARPACK's rule).
-        seed: the fixed random start block (repeated runs give the same vectors).
+        op: ``X (n, b) -> op(X) (n, b)``, symmetric. block: columns per operator call.
+        tol: a pair is converged when ``‖op(y) - θ y‖ <= tol · θ``. seed: of the start block.
 
     Returns:
-        ``(θ (k,) descending, Y (n, k) orthonormal)``. Full reorthogonalisation (block
-        classical Gram-Schmidt: the local recurrence, then one pass against every vector); thick
-        restart keeps the ``k + block`` best Ritz vectors and the last
-        Lanczos block, so restarts need no new start vectors.
+        ``(θ (k,) descending, Y (n, k) orthonormal)``.
 
     Raises:
+        ParameterError: ``n`` too small for ``k`` and ``block``.
         ConvergenceError: not converged after :data:`BLOCK_MAX_CYCLES` restarts.
     """
     b = block
@@ -247,16 +205,14 @@ def block_lanczos(op, n: int, k: int, block: int, tol: float = ARPACK_TOL, seed:
     T = np.zeros((m + b, m + b))
     Q[:, :b] = np.linalg.qr(np.random.default_rng(seed).standard_normal((n, b)))[0]
     filled = b
-    restarted = 0  # the block whose operator product couples to all vectors before it
+    restarted = 0  # the block coupled to all vectors before it
     worst = np.inf
     for _ in range(BLOCK_MAX_CYCLES):
-        while filled < m + b:  # extend by one block: op of the last block, orthogonalised
+        while filled < m + b:
             j0 = filled - b
             W = op(Q[:, j0:filled])
             Qa = Q[:, :filled]
-            # first pass against the blocks W couples to in exact arithmetic (the previous one,
-            # or after a restart all kept Ritz vectors), then one full pass: Lanczos with full
-            # reorthogonalisation at about half the traffic of two full passes
+            # a pass against the blocks W couples to in exact arithmetic, then one full pass
             lo = 0 if j0 == restarted else max(0, j0 - b)
             C = np.zeros((filled, b))
             C[lo:] = Q[:, lo:filled].T @ W
@@ -279,7 +235,7 @@ def block_lanczos(op, n: int, k: int, block: int, tol: float = ARPACK_TOL, seed:
         a = m  # Rayleigh-Ritz on the first m vectors; the last block carries the residuals
         theta, U = np.linalg.eigh((T[:a, :a] + T[:a, :a].T) / 2)
         theta, U = theta[::-1], U[:, ::-1]
-        coupling = T[a : a + b, :a] @ U[:, :keep]  # (b, keep): op(Y) - Y diag(θ) = Q_last coupling
+        coupling = T[a : a + b, :a] @ U[:, :keep]  # op(Y) - Y diag(θ) = Q_last coupling
         residual = np.linalg.norm(coupling, axis=0)
         worst = float(np.max(residual[:k] / np.abs(theta[:k])))
         if worst <= tol:

@@ -1,10 +1,5 @@
-"""Geodesic distances with the heat method (potpourri3d), with a reusable solver object.
-
-The heat method (Crane et al. 2013) prefactors two sparse systems once; every further source
-costs two back-substitutions. Distances are approximate (first order in the mean edge length);
-``use_robust=True`` (default) uses the intrinsic Delaunay / tufted Laplacian, which is more
-accurate on poor triangulations and works on non-manifold meshes.
-"""
+"""Approximate geodesic distances with the heat method (potpourri3d): a solver prefactored once per
+mesh (:class:`GeodesicSolver`), a cache of its rows (:class:`DistanceRows`) and a one-shot function."""
 
 from __future__ import annotations
 
@@ -15,26 +10,16 @@ from .._util.checks import check_vertex_indices
 from ..errors import ParameterError
 from ..mesh import Mesh
 
-#: Largest mesh for which :meth:`GeodesicSolver.distance_matrix` builds a full ``(V, V)`` matrix
-#: without ``force=True`` (``V**2 * 8`` bytes: 400 MB at this size).
+#: Largest mesh for which :meth:`GeodesicSolver.distance_matrix` runs without ``force=True``.
 FULL_MATRIX_LIMIT = 7000
 
 
 class GeodesicSolver:
-    """Heat-method geodesic distances on one mesh; build once, query many times.
+    """Heat-method geodesic distances (float64) on one mesh; build once, query many times.
 
-    Vertices on another connected component than the source (and unreferenced vertices) are at
-    distance ``inf``: no path joins them.
-
-    Args:
-        mesh: the surface.
-        t_coef: time step factor of the heat method (potpourri3d default 1.0).
-        use_robust: intrinsic-Delaunay operators (recommended).
-
-    Example:
-        >>> solver = GeodesicSolver(mesh)
-        >>> d = solver.distance(0)              # (V,) distances from vertex 0
-        >>> D = solver.distances([0, 5, 9])     # (3, V): one row per source
+    Vertices on another component than the source, and unreferenced ones, are at ``inf``.
+    ``t_coef``: heat-method time step factor; ``use_robust``: intrinsic-Delaunay operators.
+    Raises :class:`ParameterError` for ``t_coef <= 0``.
     """
 
     def __init__(self, mesh: Mesh, t_coef: float = 1.0, use_robust: bool = True) -> None:
@@ -45,12 +30,12 @@ class GeodesicSolver:
             mesh.vertices, mesh.faces, t_coef=t_coef, use_robust=use_robust
         )
         labels = mesh.component_labels.copy()
-        labels[np.setdiff1d(np.arange(mesh.n_vertices), np.unique(mesh.faces))] = -1  # unreferenced
+        labels[np.setdiff1d(np.arange(mesh.n_vertices), np.unique(mesh.faces))] = -1
         self._labels = labels
         self._single = mesh.n_components == 1 and labels.min() >= 0
 
     def _cut(self, d: np.ndarray, sources: np.ndarray) -> np.ndarray:
-        """``inf`` where no source's component reaches (the heat method returns a constant)."""
+        """``inf`` where no source's component reaches."""
         if not self._single:
             d[~np.isin(self._labels, self._labels[sources]) | (self._labels < 0)] = np.inf
         return d
@@ -67,7 +52,7 @@ class GeodesicSolver:
 
     def distances(self, sources) -> np.ndarray:
         """``(S, V)``: row ``r`` holds distances from ``sources[r]``."""
-        s = check_vertex_indices(sources, self.mesh.n_vertices)  # checked once, not per row
+        s = check_vertex_indices(sources, self.mesh.n_vertices)
         out = np.empty((len(s), self.mesh.n_vertices))
         for r, i in enumerate(s.tolist()):
             out[r] = self._solver.compute_distance(i)
@@ -75,10 +60,8 @@ class GeodesicSolver:
         return out
 
     def distance_matrix(self, symmetrize: bool = True, force: bool = False) -> np.ndarray:
-        """``(V, V)`` all-pairs distances; refuses meshes above ``FULL_MATRIX_LIMIT`` unless forced.
-
-        The heat method is not exactly symmetric; ``symmetrize`` averages ``D`` and ``D.T``.
-        """
+        """``(V, V)`` all-pairs distances (``symmetrize``: averaged with ``D.T``); raises
+        :class:`ParameterError` above ``FULL_MATRIX_LIMIT`` vertices unless ``force``."""
         n = self.mesh.n_vertices
         if n > FULL_MATRIX_LIMIT and not force:
             raise ParameterError(
@@ -90,21 +73,9 @@ class GeodesicSolver:
 
 
 class DistanceRows:
-    """Geodesic distance rows of one mesh, each source solved once and kept for reuse.
-
-    Rows are kept until ``max_bytes`` of them are held (None: no bound); beyond it they are
-    computed but not kept. ``normalized=True`` gives ``max(d, 0) / sqrt(area)`` (units of the
-    square root of the area), else the solver's distances unchanged.
-
-    Args:
-        mesh: the surface.
-        solver: its :class:`GeodesicSolver` (built on first use when None).
-        normalized: scale as above.
-        max_bytes: bound on the kept rows (8 V bytes each).
-
-    Raises:
-        ParameterError: ``max_bytes`` negative.
-    """
+    """Geodesic distance rows of one mesh, each source solved once and kept (up to ``max_bytes``,
+    None: no bound). ``solver``: built on first use when None; ``normalized=True``: rows are
+    ``max(d, 0) / sqrt(area)``. Raises :class:`ParameterError` for a negative ``max_bytes``."""
 
     def __init__(
         self,
@@ -134,9 +105,8 @@ class DistanceRows:
         return self.distances([source])[0]
 
     def distances(self, sources) -> np.ndarray:
-        """``(S, V)``: row ``r`` holds distances from ``sources[r]`` (kept rows are not solved
-        again); the interface of :meth:`GeodesicSolver.distances`."""
-        s = check_vertex_indices(sources, self.mesh.n_vertices)  # distinct, in range
+        """``(S, V)``: row ``r`` holds distances from ``sources[r]`` (kept rows are not solved again)."""
+        s = check_vertex_indices(sources, self.mesh.n_vertices)
         missing = [i for i in s.tolist() if i not in self._rows]
         fresh = {}
         if missing:

@@ -1,16 +1,6 @@
-"""Per-vertex tangent frames and the intrinsic gradient operator (numpy precomputation; the
-learned path's spatial-gradient features apply it, and a :class:`~torchfmap.PreparedShape`
-holds it once per shape, :meth:`~torchfmap.PreparedShape.gradient`).
-
-The gradient of a piecewise-linear function is exact on every face; a vertex takes the
-area-weighted mean of its faces' gradients and expresses it in its tangent frame ``(e1, e2)``
-with ``e2 = n × e1`` (``n`` the area-weighted vertex normal, oriented by the face winding). The
-operator is stored as an edge list ``rows, cols, weights_x, weights_y`` (``(E,)`` each, sorted
-by ``(row, col)``) so that ``(∇f)_v = Σ_{rows == v} weights · f[cols]``, with the permutation
-``order_t`` that sorts it by ``(col, row)`` (the transpose, for the backward pass);
-:func:`torchfmap.nn.functional.spatial_gradient` applies it in torch as compressed sparse rows.
-Precomputation is float64.
-"""
+"""Per-vertex tangent frames and the intrinsic vertex gradient (float64 numpy precomputation, applied
+by :func:`torchfmap.nn.functional.spatial_gradient`): the area-weighted mean of the faces' gradients
+in the frame ``(e1, e2 = n × e1)``, as an edge list with ``(∇f)_v = Σ_{rows == v} weights · f[cols]``."""
 
 from __future__ import annotations
 
@@ -21,12 +11,8 @@ from ..mesh import Mesh
 
 
 def tangent_frames(mesh: Mesh) -> np.ndarray:
-    """``(V, 3, 3)`` right-handed orthonormal frames: ``[:, 0] = e1``, ``[:, 1] = e2``, ``[:, 2] = n``.
-
-    ``e1`` is the global x axis projected on the tangent plane (the y axis where the normal is
-    close to x). Any tangent frame works for rotation-invariant layers: they only see the
-    gradients through rotation-invariant combinations.
-    """
+    """``(V, 3, 3)`` right-handed orthonormal frames: ``[:, 0] = e1``, ``[:, 1] = e2``, ``[:, 2] = n``;
+    ``e1`` is the x axis (y where the normal is close to x) projected on the tangent plane."""
     n = mesh.vertex_normals
     ref = np.zeros_like(n)
     near_x = np.abs(n[:, 0]) > 0.9
@@ -44,7 +30,6 @@ def gradient_operator(mesh: Mesh) -> dict[str, np.ndarray]:
     Returns ``{'grad_rows', 'grad_cols'}`` (int64, ``(E,)``, sorted by ``(row, col)``),
     ``{'grad_x', 'grad_y'}`` (float64, ``(E,)``): the ``e1`` and ``e2`` components, and
     ``'grad_order_t'`` (int64, ``(E,)``): the permutation sorting the edges by ``(col, row)``.
-    Exact (up to the area-weighted vertex averaging) for functions linear in the embedding.
     """
     v, f = mesh.vertices, mesh.faces
     n_v = len(v)
@@ -55,9 +40,9 @@ def gradient_operator(mesh: Mesh) -> dict[str, np.ndarray]:
     for c in range(3):
         np.add.at(vertex_area, f[:, c], areas)
     rows, cols, wx, wy = [], [], [], []
-    for u in range(3):  # the hat function of corner u: gradient n × (x_{u+2} - x_{u+1}) / (2A)
+    for u in range(3):  # the hat function of corner u: A_f · gradient = n × (x_{u+2} - x_{u+1}) / 2
         edge = v[f[:, (u + 2) % 3]] - v[f[:, (u + 1) % 3]]
-        g = np.cross(normals, edge) / 2.0  # area-weighted: (A_f · grad) = n × e / 2
+        g = np.cross(normals, edge) / 2.0
         for c in range(3):  # the vertex receiving the face's contribution
             target = f[:, c]
             scale = 1.0 / np.maximum(vertex_area[target], 1e-300)

@@ -1,37 +1,11 @@
-"""The heat-kernel action ``exp(-t B⁻¹L)``, without an eigendecomposition.
+"""The heat-kernel action ``exp(-t A) X``, ``A = B⁻¹L``, without an eigendecomposition.
 
-The heat equation ``B du/dt = -L u`` has the solution ``u(t) = exp(-t A) u(0)`` with
-``A = B⁻¹ L`` (self-adjoint in the B inner product, spectrum in ``[0, ∞)``). The **heat kernel**
-returned by default (``kernel='delta'``) is that of a unit point source,
-
-    ``K_t(p, ·) = exp(-t A) B⁻¹ e_p = Σ_k exp(-λ_k t) φ_k φ_k(p)``,
-
-symmetric in its two arguments and integrating to 1 (Eq. 1 of the paper, truncated there).
-``kernel='indicator'`` returns ``exp(-t A) e_p`` instead (value 1 at ``p`` at ``t = 0``, total
-heat ``B_pp``). Times here are absolute; :func:`~torchfmap.bases.diffusion_basis` takes
-relative times and multiplies them by the area ``|M|``.
-
-Methods (all but ``spectral`` are spectrum-free):
-
-``krylov`` (default)
-    Shift-and-invert Lanczos in the B inner product: Krylov spaces of ``(B + γL)⁻¹ B`` built in
-    lock-step for a block of seeds, one sparse Cholesky of ``B + γL`` per decade of times,
-    reused by every seed and every time in it. Stops when every requested time has converged
-    to ``tol`` (relative, in the B-norm). Cost grows with the number of seeds, not with
-    ``k`` eigenpairs (:mod:`torchfmap.operators.krylov`).
-``rational``
-    Carathéodory-Fejér best rational approximation of ``exp`` on ``(-∞, 0]`` (Trefethen,
-    Weideman & Schmelzer 2006) in partial fractions: ``n/2`` complex shifted solves
-    ``(tL + z_j B) x = B u`` per time, uniform error ``≈ 4 σ_n`` (``n = 12``: 3e-12). The
-    reference method: accurate at every time, costlier (complex LU per pole and time).
-``backward_euler``
-    ``n_steps`` implicit Euler steps ``(B + hL) u_{k+1} = B u_k``; cheap, first-order accurate.
-``spectral``
-    Truncated Eq. 1 with ``n_eigen`` eigenpairs, for comparison.
-
-For small times the kernel is local: ``local=True`` (or ``'auto'``) solves on the geodesic
-neighbourhood of each seed where a Gaussian estimate says the kernel exceeds ``tol`` of its
-peak (Dirichlet zero outside), so the cost follows the support, not the mesh.
+Default kernel (``'delta'``): ``K_t(p, ·) = exp(-t A) B⁻¹ e_p = Σ_k exp(-λ_k t) φ_k φ_k(p)``,
+symmetric, integrating to 1; ``'indicator'``: ``exp(-t A) e_p``. Times are absolute. Methods:
+``krylov`` (default; shift-and-invert Lanczos, :mod:`torchfmap.operators.krylov`), ``rational``
+(Carathéodory-Fejér partial fractions, complex shifted solves ``(tL + z_j B) x = B u``),
+``backward_euler`` (``n_steps`` implicit steps) and ``spectral`` (``n_eigen`` eigenpairs).
+``local=True`` / ``'auto'`` solves each seed on a geodesic patch (Dirichlet zero outside).
 """
 
 from __future__ import annotations
@@ -61,15 +35,11 @@ Method = Literal["krylov", "rational", "backward_euler", "spectral"]
 METHODS = ("krylov", "rational", "backward_euler", "spectral")
 #: Patches larger than this fraction of the mesh are solved globally under ``local='auto'``.
 LOCAL_MAX_FRACTION = 0.25
-#: ``local='auto'`` tries patches only for times whose Gaussian support is below this fraction
-#: of the area: beyond it, one global Krylov solve shared by all seeds is cheaper.
+#: ``local='auto'`` tries patches only for times whose Gaussian support is below this fraction of the area.
 LOCAL_AUTO_FRACTION = 0.05
-#: Most times a local patch grows by 1.5x (1.5^40 ~ 1e7 times the first radius: past any mesh).
+#: Most times a local patch grows by 1.5x.
 LOCAL_MAX_GROWTH = 40
-
-
-# -- Carathéodory-Fejér rational approximation of exp ------------------------------------------
-#: Highest CF order computed reliably in double precision (its error is ~1e-13).
+#: Highest CF order computed reliably in double precision.
 CF_MAX_ORDER = 14
 
 
@@ -77,11 +47,9 @@ CF_MAX_ORDER = 14
 def cf_poles(n: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Poles ``z (n,)``, residues ``c (n,)`` and measured error of the CF approximation of exp.
 
-    ``r(x) = Σ_j c_j / (x - z_j)`` approximates ``exp(x)`` on ``(-∞, 0]``. The returned error
-    is measured on a dense grid of ``(-∞, 0]``, not predicted. Port of the algorithm in
-    Trefethen, Weideman & Schmelzer, BIT 46 (2006), Fig. 4.1: Chebyshev coefficients of the
-    transplanted exp, SVD of their Hankel matrix, poles from the singular vector. Orders above
-    :data:`CF_MAX_ORDER` lose the poles to round-off, so they are refused.
+    ``r(x) = Σ_j c_j / (x - z_j)`` approximates ``exp(x)`` on ``(-∞, 0]`` (Trefethen, Weideman &
+    Schmelzer 2006, Fig. 4.1); the error is measured on a dense grid. Raises :class:`ParameterError`
+    for an odd ``n`` or one outside ``[2, CF_MAX_ORDER]``.
     """
     if n < 2 or n % 2 or n > CF_MAX_ORDER:
         raise ParameterError(f"CF order must be even and in [2, {CF_MAX_ORDER}], got {n}.")
@@ -121,7 +89,6 @@ def cf_order_for(tol: float) -> int:
     return CF_MAX_ORDER
 
 
-# -- the operator applications ---------------------------------------------------------------
 def _mass_solve(B: sp.spmatrix, X: np.ndarray) -> np.ndarray:
     d = lumped_diagonal(B)
     if d is not None:
@@ -130,8 +97,7 @@ def _mass_solve(B: sp.spmatrix, X: np.ndarray) -> np.ndarray:
 
 
 def _rational(L, B, X, times, tol) -> np.ndarray:
-    # the error is uniform relative to the initial data; a point source spreads out to a level
-    # |1ᵀBx| / |M| far below max|x|, so ask for that much more accuracy
+    # the error is uniform relative to max|x|; a spread-out point source needs that much more accuracy
     total = np.abs(np.ones(X.shape[0]) @ (B @ X))
     spread = np.max(np.abs(X), axis=0) * B.sum() / np.maximum(total, 1e-300)
     z, c, _ = cf_poles(cf_order_for(tol / max(1.0, float(spread.max()))))
@@ -178,12 +144,11 @@ def heat_apply(
     n_eigen: int = 200,
     factors: dict | None = None,
 ) -> np.ndarray:
-    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` -> ``(T, V, S)``. ``factors``:
-    the ``krylov`` method's factorisations of these operators, kept by the caller between calls
-    (:func:`~torchfmap.operators.krylov.krylov_heat`).
+    """``exp(-t B⁻¹L) X`` for every absolute time: ``X (V, S)`` (or ``(V,)``) -> ``(T, V, S)``.
 
-    Raises :class:`ParameterError` for times that are not finite and > 0, an unknown method, or
-    ``tol`` outside ``[1e-14, 1)`` (:func:`~torchfmap._util.checks.check_tolerance`).
+    ``factors``: the ``krylov`` factorisations, kept by the caller between calls. Raises
+    :class:`ParameterError` for times not finite and > 0, an unknown method, or ``tol`` outside
+    ``[1e-14, 1)``.
     """
     L, B = operators
     tol = check_tolerance(tol)
@@ -225,13 +190,8 @@ def _edge_graph(L: sp.spmatrix, vertices: np.ndarray) -> sp.csr_matrix:
 
 
 def _local_kernel(L, B, graph, seed, t, mean_edge, method, kernel, tol, n_steps, local):
-    """Kernel of one seed on a growing geodesic patch (Dirichlet zero outside).
-
-    Starts at the radius where a Gaussian ``exp(-d²/4t)`` falls below ``tol`` (at least 3 edge
-    lengths) and grows it by 1.5x until the kernel on the outer 20 % of the patch is below
-    ``tol`` times its peak: coarse meshes have heavier discrete tails than the Gaussian.
-    Returns ``(patch, values)``, or None when the patch outgrows ``LOCAL_MAX_FRACTION``.
-    """
+    """Kernel of one seed on a geodesic patch grown by 1.5x until its outer 20 % is below ``tol``
+    of the peak; ``(patch, values)``, or None when it outgrows ``LOCAL_MAX_FRACTION``."""
     n = L.shape[0]
     radius = max(np.sqrt(4.0 * t * np.log(1.0 / tol)), 3.0 * mean_edge)
     for _ in range(LOCAL_MAX_GROWTH):
@@ -264,20 +224,18 @@ def heat_kernels(
     n_eigen: int = 200,
     factors: dict | None = None,
 ) -> np.ndarray:
-    """Heat kernels ``K_t(p_i, ·)`` for every absolute time and seed: ``(T, V, S)`` (global
-    ``krylov`` solves lay it out as ``(V, T, S)`` in memory, so that the time-major ``(V, T·S)``
-    columns of :func:`~torchfmap.bases.diffusion_basis` are a view, not a copy).
+    """Heat kernels ``K_t(p_i, ·)``, float64 ``(T, V, S)`` (global ``krylov`` lays it out ``(V, T, S)``).
 
     Args:
-        operators: ``(L, B)`` of the mesh (``L`` symmetric).
-        seeds: ``(S,)`` vertex indices.
-        abs_times: ``(T,)`` absolute times (> 0).
-        method: see the module docstring.
-        kernel: ``'delta'`` (``exp(-tA) B⁻¹ e_p``, default) or ``'indicator'`` (``exp(-tA) e_p``).
-        tol: relative accuracy target (Krylov convergence, CF order, local patch radius).
-        local: solve on a geodesic neighbourhood of each seed (``'auto'``: when it is small);
-            needs ``vertices (V, 3)`` for edge lengths.
+        operators: ``(L, B)`` of the mesh (``L`` symmetric); seeds: ``(S,)`` vertex indices;
+            abs_times: ``(T,)`` absolute times > 0.
+        kernel: ``'delta'`` (``exp(-tA) B⁻¹ e_p``) or ``'indicator'`` (``exp(-tA) e_p``).
+        local: solve on a geodesic patch of each seed (``'auto'``: when small); needs ``vertices (V, 3)``.
         factors: as :func:`heat_apply` (global solves only).
+
+    Raises:
+        ParameterError / SeedError: bad seeds, times, ``tol`` or kernel, a non-symmetric ``L``, or
+            ``local`` without ``vertices``.
     """
     L, B = operators
     n = L.shape[0]

@@ -1,22 +1,7 @@
-"""Shift-and-invert Lanczos for the heat action ``exp(-t A) X``, ``A = B⁻¹ L``.
-
-The ``krylov`` method of :func:`~torchfmap.operators.heat.heat_apply`: Krylov spaces of
-``(B + γL)⁻¹ B`` (self-adjoint in the B inner product) built in lock-step for a block of
-columns, one sparse Cholesky of ``B + γL`` per group of times, reused by every column and
-every time in it; each column stops when every time has converged to ``tol`` (relative, in the
-B-norm).
-
-Where the time goes, and why the loop is written as it is: the sparse solves dominate and
-cost less per column in blocks (a multi-column triangular solve reads the factor once for
-every column), so a block is as wide as :data:`KRYLOV_BLOCK_COLUMNS` where the memory budget
-allows. Every other step is a pass over an ``(n, s)`` block, bound by memory bandwidth: the
-three-term recurrence subtracts with in-place BLAS products (``W -= Q diag(c)``, one pass,
-no temporary), each solve writes straight into the stored Lanczos block, no second
-orthogonalisation pass is made (it changed neither iterations nor errors), and the
-approximation is assembled straight into the caller's output. The iteration count is that of
-a single repeated real pole; cycling a few distinct real poles (rational Arnoldi) did not
-lower it, so one factorisation per group of times is kept.
-"""
+"""Shift-and-invert Lanczos for the heat action ``exp(-t A) X``, ``A = B⁻¹ L`` (the ``krylov`` method
+of :func:`~torchfmap.operators.heat.heat_apply`): Krylov spaces of ``(B + γL)⁻¹ B`` built in
+lock-step for a block of columns, one sparse Cholesky of ``B + γL`` per group of times; each column
+stops when every time has converged to ``tol`` (relative, in the B-norm)."""
 
 from __future__ import annotations
 
@@ -29,11 +14,9 @@ from .._util.checks import lumped_diagonal
 from .._util.threads import blas_limiter
 from .solvers import factorize
 
-#: Memory budget (bytes) of one block of Krylov vectors; seeds are processed in such blocks.
-#: Columns per block are ``min(KRYLOV_BLOCK_COLUMNS, budget / (8 n KRYLOV_STORE))``, at least one.
+#: Memory budget (bytes) of one block of Krylov vectors.
 KRYLOV_BLOCK_BYTES = 3 * 2**30
-#: Seeds per Krylov block: multi-column sparse solves cost less per column up to about this
-#: width, beyond it about the same (``python -m bench speed --case bases``).
+#: Most seeds per Krylov block.
 KRYLOV_BLOCK_COLUMNS = 8
 #: Lanczos vectors per column the work buffer starts with (it grows when more are needed).
 KRYLOV_STORE = 48
@@ -41,14 +24,12 @@ KRYLOV_STORE = 48
 KRYLOV_SHIFT = 0.3
 #: Times up to this factor above the smallest of a group share its Krylov space.
 KRYLOV_SPAN = 50.0
-#: The shift grows with the spread of a group's times: ``γ = KRYLOV_SHIFT · t_min · (t_max / t_min)^e``.
+#: ``γ = KRYLOV_SHIFT · t_min · (t_max / t_min)^KRYLOV_SHIFT_SPAN_EXP``.
 KRYLOV_SHIFT_SPAN_EXP = 0.15
 
 
 def _sub_scaled(W: np.ndarray, Q: np.ndarray, c: np.ndarray) -> None:
-    """``W -= Q · diag(c)`` in place for C-ordered ``(n, s)`` blocks: one BLAS pass, no
-    temporary (``W.T``, F-ordered, is updated by ``dgemm``). Any other layout takes the
-    numpy expression (``dgemm`` would update a copy and leave ``W`` as it was)."""
+    """``W -= Q · diag(c)`` in place for ``(n, s)`` blocks (one ``dgemm`` pass when ``W`` is C-ordered)."""
     if not W.flags.c_contiguous:
         W -= Q * c
         return
@@ -63,24 +44,17 @@ def _dots(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 def krylov_block(
     fac, B, X, times, gamma, tol, max_iter, store=None, small=None, out=None
 ) -> tuple[np.ndarray, int]:
-    """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``.
+    """Lock-step shift-and-invert Lanczos for the columns of ``X (n, s)``; ``fac`` factorises ``B + γL``.
 
-    ``S = (B + γL)⁻¹ B`` is self-adjoint in the B inner product, so the three-term recurrence
-    builds the Krylov basis at O(n) per step, each new block solved straight into ``store``;
-    plain Lanczos' slow loss of global orthogonality only delays, not spoils, convergence for
-    matrix functions (Druskin & Knizhnerman), and the stopping test compares
-    successive approximations. ``store`` is an optional ``(cap, n, >= s)`` work buffer,
-    reused across blocks (first-touch page faults of fresh memory cost as much as the
-    arithmetic here). ``small``: a context manager factory run around the tiny ``(s, k, k)``
-    eigenproblems (:func:`krylov_heat` passes one that limits BLAS to one thread there).
-    ``out``: an optional ``(T, n, s)`` array (any strides) the result is written into.
-    Returns ``((T, n, s) approximations, iterations)``.
+    ``store``: optional ``(cap, n, >= s)`` work buffer reused across blocks; ``small``: a context
+    manager factory around the tiny ``(s, k, k)`` eigenproblems; ``out``: optional ``(T, n, s)`` array
+    (any strides) written into. Returns ``((T, n, s) approximations, iterations)``.
     """
     small = small if small is not None else contextlib.nullcontext
     n, s = X.shape
     d = lumped_diagonal(B)
 
-    def bmul(v: np.ndarray, res: np.ndarray) -> None:  # res = B v, in place when B is lumped
+    def bmul(v: np.ndarray, res: np.ndarray) -> None:  # res = B v
         if d is not None:
             np.multiply(v, d[:, None], out=res)
         else:
@@ -91,7 +65,7 @@ def krylov_block(
     store = store[:, :, :s]
     if not store.flags.c_contiguous:  # a narrower last block: its own contiguous buffer
         store = np.empty((store.shape[0], n, s))
-    Bq = np.empty((n, s))  # B times the current vectors
+    Bq = np.empty((n, s))
     bmul(X, Bq)
     beta0 = np.sqrt(np.maximum(_dots(X, Bq), 0.0))
     beta0[beta0 == 0] = 1.0
@@ -102,8 +76,7 @@ def krylov_block(
     beta = np.zeros((s, max_iter))
     prev = None
     times = np.asarray(times, dtype=np.float64)
-    # each column keeps the coefficients of the iteration where it converged, so a kernel
-    # does not depend on the columns it was solved with (nor on their number)
+    # each column keeps the coefficients of its converged iteration: independent of its block-mates
     final = np.zeros((len(times), s, max_iter))
     done = np.zeros(s, dtype=bool)
     for m in range(max_iter):
@@ -111,13 +84,13 @@ def krylov_block(
             grow = min(store.shape[0], max_iter + 1 - store.shape[0])
             store = np.concatenate([store, np.empty((grow, n, s))], axis=0)
             q = store[m]
-        w = fac.solve(Bq, out=store[m + 1])  # the next Lanczos vectors, built in place
+        w = fac.solve(Bq, out=store[m + 1])
         if m > 0:
             _sub_scaled(w, store[m - 1], beta[:, m - 1])
         a = _dots(w, Bq)
         _sub_scaled(w, q, a)
         alpha[:, m] = a
-        if d is not None:  # lumped B: the B-norm in one pass, B q_{m+1} after the scaling
+        if d is not None:
             nb = np.sqrt(np.maximum(np.einsum("ij,ij,i->j", w, w, d), 0.0))
         else:
             bmul(w, Bq)
@@ -136,7 +109,7 @@ def krylov_block(
         T[:, idx, idx] = alpha[:, :k]
         T[:, idx[1:], idx[:-1]] = beta[:, : k - 1]
         T[:, idx[:-1], idx[1:]] = beta[:, : k - 1]
-        with small():  # k x k: threads only add synchronisation (and wait for busy cores)
+        with small():
             theta, U = np.linalg.eigh(T)  # eigenvalues of (I + gamma A)^{-1}: in (0, 1]
         theta = np.clip(theta, 1e-300, 1.0)
         lam = (1.0 / theta - 1.0) / gamma  # (s, k) Ritz values of A
@@ -146,7 +119,7 @@ def krylov_block(
             diff = y.copy()
             diff[:, :, :m] -= prev
             err = np.linalg.norm(diff, axis=2) / np.maximum(np.linalg.norm(y, axis=2), 1e-300)
-            # successive change, with margin; an exhausted Krylov space (beta = 0) is exact
+            # an exhausted Krylov space (beta = 0) is exact
             new = ~done & ((err.max(axis=0) < 0.2 * tol) | (nb < 1e-14))
             final[:, new, : m + 1] = y[:, new]
             done |= new
@@ -157,9 +130,7 @@ def krylov_block(
     final[:, ~done, :k] = y[:, ~done]  # max_iter reached: the last approximation
     coef = (final[:, :, :k] * beta0[None, :, None]).transpose(1, 2, 0)  # (s, k, T)
     out = np.empty((len(times), n, s)) if out is None else out
-    # out[t, r, j] = sum_m coef[j, m, t] store[m, r, j]: one (T, k) @ (k, r) product per column
-    # on row chunks of ~2 MiB, read in place (a transposed copy first, or the (r, k) @ (k, T)
-    # products, cost several times more: T is tiny)
+    # out[t, r, j] = sum_m coef[j, m, t] store[m, r, j], on row chunks of ~2 MiB read in place
     coef_t = np.ascontiguousarray(coef.transpose(0, 2, 1))  # (s, T, k)
     rows = max(1, 2**18 // (k * s))
     for r0 in range(0, n, rows):
@@ -169,21 +140,17 @@ def krylov_block(
 
 
 def block_columns(n: int, s_total: int, cap: int) -> int:
-    """Columns per Krylov block for ``s_total`` columns of ``n`` rows and ``cap`` stored vectors
-    each: :data:`KRYLOV_BLOCK_COLUMNS` within :data:`KRYLOV_BLOCK_BYTES`, at least one."""
+    """Columns per Krylov block (``n`` rows, ``cap`` stored vectors each): at least one, at most
+    :data:`KRYLOV_BLOCK_COLUMNS` and ``s_total``, within :data:`KRYLOV_BLOCK_BYTES`."""
     return max(1, min(s_total, KRYLOV_BLOCK_COLUMNS, int(KRYLOV_BLOCK_BYTES // (8 * n * cap))))
 
 
 def krylov_heat(
     L, B, X, times, tol, max_iter: int = 150, shift: float | None = None, factors: dict | None = None
 ) -> np.ndarray:
-    """Times within a factor :data:`KRYLOV_SPAN` share one Krylov space per column and one
-    factorisation of ``B + γL`` (``γ = KRYLOV_SHIFT · t_min`` of the group). ``factors``: a
-    dict kept by the caller for these ``L`` and ``B`` (e.g. a prepared shape's), ``γ ->``
-    factorisation, read and filled, so later calls at the same times factorise nothing.
-
-    Returns ``(T, n, S)``, a view of an ``(n, T, S)`` C-ordered array: ``out.transpose(1, 0,
-    2).reshape(n, T * S)`` (time-major columns) is then free of copies."""
+    """``exp(-t B⁻¹L) X`` for ``X (n, S)``; times within a factor :data:`KRYLOV_SPAN` share one
+    factorisation of ``B + γL``. ``factors``: a caller-kept dict ``γ -> factorisation``, read and
+    filled. Returns ``(T, n, S)``, a view of a C-ordered ``(n, T, S)`` array."""
     times = np.asarray(times, dtype=np.float64)
     n, s_total = X.shape
     order = np.argsort(times)
@@ -193,13 +160,11 @@ def krylov_heat(
             groups[-1].append(int(i))
         else:
             groups.append([int(i)])
-    # KRYLOV_STORE Lanczos vectors per column of a block fit in the budget (seeds are solved in
-    # blocks: multi-column sparse solves cost less per column); one buffer serves all blocks
     cap = min(max_iter, KRYLOV_STORE) + 1
     block = block_columns(n, s_total, cap)
     store = np.empty((cap, n, block))
     out = np.empty((n, len(times), s_total)).transpose(1, 0, 2)
-    one_thread = blas_limiter(1)  # BLAS threads for the tiny eigenproblems only
+    one_thread = blas_limiter(1)
 
     for group in groups:
         t_lo, t_hi = float(times[group[0]]), float(times[group[-1]])
@@ -212,7 +177,7 @@ def krylov_heat(
                 factors[gamma] = fac
         for start in range(0, s_total, block):
             cols = slice(start, min(start + block, s_total))
-            contiguous = group == list(range(group[0], group[-1] + 1))  # sorted times: always
+            contiguous = group == list(range(group[0], group[-1] + 1))
             target = out[group[0] : group[-1] + 1, :, cols] if contiguous else None
             res, _ = krylov_block(
                 fac, B, X[:, cols], times[group], gamma, tol, max_iter, store, one_thread, target

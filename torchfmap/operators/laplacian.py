@@ -1,15 +1,7 @@
-"""Discrete Laplace-Beltrami operators: stiffness ``L`` and mass ``B``.
-
-``L`` is the weak (integrated) ``-Δ``: positive semidefinite, rows summing to zero, so
-``L φ = λ B φ`` has ``λ >= 0``; pass ``-L`` where a negative semidefinite Laplacian is expected.
-Schemes (``laplacian(mesh, scheme=...)``): ``cotan`` (symmetric, negative weights on obtuse
-angles), ``robust`` (intrinsic Delaunay, package ``robust-laplacian``: non-negative, any mesh or
-point cloud; its mass is always the lumped intrinsic mass) and ``mean_value`` (Floater's
-weights at ``x_i``: positive, **not symmetric**, for harmonic bases only, never eigenbases or
-heat kernels). Masses (``mass=...``): ``voronoi`` (default) and ``barycentric`` (lumped),
-``fem`` (consistent); all sum to the surface area. Table and sign convention: docs/guide.md,
-"Operators and conventions".
-"""
+"""Discrete Laplace-Beltrami operators: stiffness ``L`` (the weak ``-Δ``: positive semidefinite, rows
+summing to zero) and mass ``B`` (summing to the surface area). Schemes: ``cotan``, ``robust``
+(intrinsic Delaunay, also for point clouds) and ``mean_value`` (Floater; **not symmetric**: harmonic
+bases only). Masses: ``voronoi``, ``barycentric`` (lumped) and ``fem`` (consistent)."""
 
 from __future__ import annotations
 
@@ -37,11 +29,7 @@ class Operators(NamedTuple):
 
 
 def _corner_geometry(v: np.ndarray, f: np.ndarray):
-    """Per corner ``c`` of each face: edge vectors to the two other corners.
-
-    Returns ``a, b`` of shape ``(F, 3, 3)``: ``a[:, c] = x[f[c+1]] - x[f[c]]``,
-    ``b[:, c] = x[f[c+2]] - x[f[c]]``.
-    """
+    """``a, b`` ``(F, 3, 3)``: ``a[:, c] = x[f[c+1]] - x[f[c]]``, ``b[:, c] = x[f[c+2]] - x[f[c]]``."""
     x = v[f]  # (F, 3, 3)
     a = np.roll(x, -1, axis=1) - x
     b = np.roll(x, -2, axis=1) - x
@@ -107,11 +95,10 @@ def mass_matrix(mesh: Mesh, scheme: MassScheme = "voronoi") -> sp.csr_matrix:
     if scheme == "voronoi":
         cot = _cotangents(v, f)
         a, b = _corner_geometry(v, f)
-        la2 = np.einsum("fci,fci->fc", a, a)  # |x_{c+1} - x_c|^2
-        lb2 = np.einsum("fci,fci->fc", b, b)  # |x_{c+2} - x_c|^2
-        # Voronoi area at corner c: (|e_{c,c+1}|^2 cot(angle at c+2) + |e_{c,c+2}|^2 cot(c+1)) / 8
+        la2 = np.einsum("fci,fci->fc", a, a)
+        lb2 = np.einsum("fci,fci->fc", b, b)
         vor = (la2 * np.roll(cot, -2, axis=1) + lb2 * np.roll(cot, -1, axis=1)) / 8.0
-        obtuse = cot < 0  # angle > 90 degrees
+        obtuse = cot < 0
         any_obtuse = obtuse.any(axis=1, keepdims=True)
         per_corner = np.where(any_obtuse, np.where(obtuse, area[:, None] / 2.0, area[:, None] / 4.0), vor)
         m = np.bincount(f.ravel(), weights=per_corner.ravel(), minlength=n)
@@ -143,16 +130,10 @@ def laplacian(
     mollify_factor: float = 1e-5,
     n_neighbors: int = 30,
 ) -> Operators:
-    """Stiffness ``L`` and mass ``B`` of a mesh (or, with ``scheme='robust'``, a point cloud).
+    """Stiffness ``L`` and mass ``B`` of a mesh (or, with ``scheme='robust'``, a ``(V, 3)`` point cloud).
 
-    Args:
-        mesh: a :class:`~torchfmap.Mesh`, or ``(V, 3)`` points for ``scheme='robust'``.
-        scheme: ``'cotan'``, ``'robust'`` or ``'mean_value'`` (see the module docstring).
-        mass: ``'voronoi'``, ``'barycentric'`` or ``'fem'`` (ignored by ``'robust'``).
-        mollify_factor, n_neighbors: passed to ``robust-laplacian``.
-
-    Returns:
-        :class:`Operators` ``(L, B)``, both ``(V, V)`` CSR float64, ``L`` positive semidefinite.
+    ``mass`` is ignored by ``'robust'``; ``mollify_factor``, ``n_neighbors`` go to ``robust-laplacian``.
+    Returns :class:`Operators` ``(L, B)``, both ``(V, V)`` CSR float64, ``L`` positive semidefinite.
 
     Raises:
         ParameterError: an unknown ``scheme`` or ``mass``.
@@ -181,7 +162,7 @@ def laplacian(
     if scheme == "robust":
         L, M = robust_laplacian.mesh_laplacian(mesh.vertices, mesh.faces, mollify_factor=mollify_factor)
         return Operators(sp.csr_matrix(L, dtype=np.float64), sp.csr_matrix(M, dtype=np.float64))
-    with np.errstate(all="ignore"):  # over/underflow is detected on the result, just below
+    with np.errstate(all="ignore"):  # over/underflow is checked just below
         stiffness = cotan_stiffness(mesh) if scheme == "cotan" else mean_value_stiffness(mesh)
         ops = Operators(stiffness, mass_matrix(mesh, mass))
         total = float(ops.mass.sum())

@@ -1,13 +1,7 @@
-"""Sparse direct solvers: factorise once, solve many right-hand sides.
-
-``backend='auto'`` tries, for symmetric positive definite systems, ``cholespy`` (a wheel
-bundling CHOLMOD, the ``fast`` and ``dev`` extras), ``cholmod`` (``scikit-sparse``, optional:
-needs SuiteSparse headers), then ``splu`` (SuperLU, always present; symmetric mode for SPD
-systems). Indefinite or non-symmetric systems always use ``splu``. A Cholesky that finds the
-matrix not positive definite falls back to ``splu`` under ``auto`` and raises under an explicit
-backend. Install notes: docs/guide.md, "Sparse solvers"; times of every installed backend:
-``python -m bench speed --case operators``.
-"""
+"""Sparse direct solvers: factorise once, solve many right-hand sides. ``backend='auto'`` tries, for
+SPD systems, ``cholespy``, ``cholmod`` (``scikit-sparse``), then ``splu`` (SuperLU, always present,
+and the only one for other systems); a Cholesky that finds the matrix not positive definite falls
+back to ``splu`` under ``auto`` and raises under an explicit backend."""
 
 from __future__ import annotations
 
@@ -47,17 +41,14 @@ class Factorization:
         self.backend = backend
         self.n = n
         self._solve = solve_fn
-        self._solve_into = solve_into  # (b, out) -> None, C-ordered float64 arrays, if the backend can
+        self._solve_into = solve_into  # (b, out) -> None, C-ordered float64 arrays
         self.dtype = dtype
 
     def solve(self, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """``x = A^{-1} b`` for ``b`` of shape ``(n,)`` or ``(n, k)``: a C-ordered array of
-        ``b``'s shape, whichever backend (SuperLU returns Fortran order for ``(n, k)``; callers
-        update the result in place with BLAS calls that need C order). ``out``: a C-ordered
-        float64 array of ``b``'s shape the solution is written into (and returned), so a loop
-        of solves allocates nothing; real matrices only.
+        """``x = A^{-1} b`` for ``b`` ``(n,)`` or ``(n, k)``, C-ordered, of ``b``'s shape. ``out``: a
+        C-ordered float64 array of ``b``'s shape written into and returned (real matrices only).
 
-        Raises :class:`ParameterError` for a right-hand side or ``out`` of the wrong shape."""
+        Raises :class:`ParameterError` for a right-hand side or ``out`` of the wrong shape or dtype."""
         b = np.asarray(b)
         if b.shape[0] != self.n:
             raise ParameterError(f"right-hand side has {b.shape[0]} rows, the matrix has {self.n}.")
@@ -119,7 +110,7 @@ def _cholespy(a: sp.csc_matrix) -> Factorization:
 
     def solve(b: np.ndarray) -> np.ndarray:
         b = np.ascontiguousarray(b, dtype=np.float64)
-        x = np.empty_like(b)  # every entry is written
+        x = np.empty_like(b)
         solver.solve(b, x)
         return x
 
@@ -127,21 +118,16 @@ def _cholespy(a: sp.csc_matrix) -> Factorization:
 
 
 def factorize(
-    matrix: sp.spmatrix | sp.sparray,
-    *,
-    spd: bool = False,
-    backend: Backend = "auto",
+    matrix: sp.spmatrix | sp.sparray, *, spd: bool = False, backend: Backend = "auto"
 ) -> Factorization:
-    """Factorise a square sparse matrix once for repeated solves.
+    """A :class:`Factorization` of a square ``(n, n)`` sparse matrix (real or complex).
 
-    Args:
-        matrix: ``(n, n)`` sparse, real or complex.
-        spd: the caller knows the matrix is symmetric positive definite (e.g. ``L + s B`` with
-            ``s > 0``, or a Dirichlet block of a cotan Laplacian); enables Cholesky backends.
-        backend: ``'auto'`` (fastest available), ``'cholmod'``, ``'cholespy'`` or ``'splu'``.
+    ``spd``: the caller knows it is symmetric positive definite (enables Cholesky backends).
 
-    Returns:
-        a :class:`Factorization` whose ``.solve(b)`` accepts ``(n,)`` or ``(n, k)`` arrays.
+    Raises:
+        ParameterError: an unknown or uninstalled backend, a non-square matrix, or a Cholesky
+            backend without ``spd`` (or on a complex matrix).
+        NotPositiveDefiniteError: the matrix is singular, or not SPD under an explicit Cholesky.
     """
     if backend != "auto" and backend not in _BACKENDS:
         raise ParameterError(f"unknown solver backend {backend!r}. Fix: use 'auto' or one of {_BACKENDS}.")
@@ -170,19 +156,16 @@ def factorize(
             try:
                 return _verified(_cholmod(a) if name == "cholmod" else _cholespy(a), a)
             except NotPositiveDefiniteError:
-                break  # not SPD after all: LU below handles it
+                break
     return _verified(_splu(a, symmetric=spd), a)
 
 
-#: Largest relative error of the probe solve in :func:`_verified`: a non-singular matrix with
-#: condition number below ~1e12 stays orders of magnitude under it, a singular one does not.
+#: Largest relative error of the probe solve in :func:`_verified`.
 PROBE_RTOL = 1e-3
 
 
 def _verified(fac: Factorization, a: sp.csc_matrix) -> Factorization:
-    """``fac`` after one probe solve ``A⁻¹ (A r) = r`` (``r`` fixed random): a singular matrix,
-    which direct solvers factorise without complaint and then answer with values ~1e16 or NaN,
-    is refused with :class:`NotPositiveDefiniteError`."""
+    """``fac`` after a probe solve ``A⁻¹ (A r) = r``; singular: :class:`NotPositiveDefiniteError`."""
     r = np.random.default_rng(0).standard_normal(a.shape[0])
     with np.errstate(all="ignore"):
         x = fac.solve(a @ r)
