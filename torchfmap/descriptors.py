@@ -1,10 +1,5 @@
-"""Pointwise descriptors: HKS, WKS, SHOT, landmark descriptors, normalisation, checks.
-
-HKS and WKS are spectral (they take eigenpairs ``evals (k,)``, ``evecs (V, k)`` of
-``L φ = λ B φ``), so every point's value depends on the whole shape; SHOT is local (the normals
-within a ball); landmark descriptors can also be computed spectrum-free as heat kernels
-centred at the landmarks. Every descriptor array is ``(V, D)``: one column per descriptor.
-"""
+"""Pointwise descriptors ``(V, D)``: HKS and WKS (spectral: eigenpairs ``evals (k,)``, ``evecs (V, k)`` of
+``L φ = λ B φ``), SHOT (local), landmark descriptors, normalisation, checks."""
 
 from __future__ import annotations
 
@@ -18,7 +13,7 @@ from ._util.checks import check_times, check_vertex_indices
 from .errors import ParameterError
 from .operators.heat import heat_kernels
 
-#: WKS energies and width factor (Aubry et al. 2011): ``sigma = WKS_SIGMA * (e_max - e_min) / E``.
+#: WKS energies and width factor: ``sigma = WKS_SIGMA * (e_max - e_min) / E``.
 WKS_ENERGIES = 100
 WKS_SIGMA = 7.0
 #: Relative heat times of the landmark descriptors (two kernels per landmark).
@@ -28,8 +23,7 @@ SHOT_GRID = (8, 2, 2, 11)
 
 
 def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    evals = np.asarray(evals, dtype=np.float64)
-    evecs = np.asarray(evecs, dtype=np.float64)
+    evals, evecs = np.asarray(evals, dtype=np.float64), np.asarray(evecs, dtype=np.float64)
     if evecs.ndim != 2 or evals.shape != (evecs.shape[1],):
         raise ParameterError(
             f"eigenvalues {evals.shape} and eigenvectors {evecs.shape} disagree: need (k,) and (V, k)."
@@ -40,17 +34,9 @@ def _check_spectrum(evals: np.ndarray, evecs: np.ndarray) -> tuple[np.ndarray, n
 
 
 def hks(eigenvalues, eigenvectors, n_times: int = 16, abs_times=None) -> np.ndarray:
-    """Heat kernel signature ``Σ_k exp(-λ_k t) φ_k(x)²``: ``(V, T)``.
-
-    Args:
-        eigenvalues, eigenvectors: ``(k,)``, ``(V, k)`` eigenpairs of ``L φ = λ B φ``.
-        n_times: number of default times, log-spaced in ``[4 ln 10 / λ_max, 4 ln 10 / λ_1]``
-            (Sun et al. 2009), so they follow the shape's scale.
-        abs_times: ``(T,)`` absolute times (> 0) instead of the default ones.
-
-    Raises:
-        ParameterError: mismatched eigenpairs, fewer than 2, or a time <= 0.
-    """
+    """Heat kernel signature ``Σ_k exp(-λ_k t) φ_k(x)²``, ``(V, T)``, of eigenpairs ``(k,)``, ``(V, k)``: at
+    ``abs_times`` ``(T,)`` (> 0), default ``n_times`` log-spaced in ``[4 ln 10 / λ_max, 4 ln 10 / λ_1]``.
+    :class:`ParameterError` for mismatched eigenpairs, fewer than 2, or a time <= 0."""
     evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
     times = abs_times
     if times is None:
@@ -74,11 +60,7 @@ def _wks_weights(evals: np.ndarray, n_energies: int, sigma_factor: float) -> np.
 def wks(
     eigenvalues, eigenvectors, n_energies: int = WKS_ENERGIES, sigma_factor: float = WKS_SIGMA
 ) -> np.ndarray:
-    """Wave kernel signature (Aubry et al. 2011): ``(V, n_energies)``.
-
-    Raises :class:`ParameterError` for ``n_energies < 1`` or a ``sigma_factor`` that is not
-    finite and > 0 (a zero-width Gaussian gives NaN weights).
-    """
+    """Wave kernel signature ``(V, n_energies)``; ParameterError unless ``n_energies >= 1``, sigma > 0."""
     evals, evecs = _check_spectrum(eigenvalues, eigenvectors)
     if isinstance(n_energies, bool) or int(n_energies) != n_energies or n_energies < 1:
         raise ParameterError(f"n_energies must be an integer >= 1, got {n_energies!r}.")
@@ -100,15 +82,9 @@ def landmark_descriptors(
     tol: float = 1e-6,
 ) -> np.ndarray:
     """Functions centred at landmarks: ``(V, L * n)`` (``n`` times or energies per landmark).
-
-    ``kernel='heat'``: heat kernels ``K_t(l, ·)`` at relative times ``t`` (absolute ``t·|M|``),
-    spectrum-free (needs ``operators=(L, B)``). ``kernel='wks'``: landmark-centred wave kernels
-    ``Σ_k w_e(λ_k) φ_k(l) φ_k(·)`` (needs ``evals``, ``evecs``), as in pyFM.
-
-    Raises:
-        ParameterError: an unknown ``kernel``, a missing operator or spectrum, or landmarks
-            outside the mesh.
-    """
+    ``kernel='heat'``: heat kernels ``K_t(l, ·)`` at relative ``times`` (absolute ``t·|M|``; needs
+    ``operators=(L, B)``); ``'wks'``: wave kernels ``Σ_k w_e(λ_k) φ_k(l) φ_k(·)`` (needs ``evals``,
+    ``evecs``). :class:`ParameterError` for an unknown ``kernel``, a missing input, or bad landmarks."""
     if kernel == "heat":
         if operators is None:
             raise ParameterError("heat landmark descriptors need operators=(L, B).")
@@ -122,7 +98,6 @@ def landmark_descriptors(
         evals, evecs = _check_spectrum(evals, evecs)
         lm = check_vertex_indices(landmarks, evecs.shape[0], "landmarks")
         w = _wks_weights(evals, n_energies, WKS_SIGMA)  # (k, E)
-        # column (l, e): sum_k w[k, e] phi_k(l) phi_k(x)
         coeffs = evecs[lm][:, :, None] * w[None]  # (L, k, E)
         return np.einsum("vk,lke->vle", evecs, coeffs).reshape(evecs.shape[0], -1)
     raise ParameterError(f"unknown landmark descriptor kernel {kernel!r}. Fix: 'heat' or 'wks'.")
@@ -156,22 +131,10 @@ def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors")
 
 
 def shot(mesh, radius: float) -> np.ndarray:
-    """SHOT signatures (Tombari et al. 2010) of a :class:`~torchfmap.Mesh`: ``(V, 352)``, unit L2
-    norm per vertex (zero where fewer than 5 other vertices lie within ``radius``).
-
-    Local: a vertex's signature depends only on the surface within ``radius`` of it (in the
-    mesh's units), so it is the same on a part and on the whole it was cut from, away from the
-    cut. Per vertex: a local frame from the distance-weighted covariance of the neighbours
-    (axes signed towards the majority of neighbours and of normals), then, in each cell of a
-    spherical grid (:data:`SHOT_GRID`: 8 azimuth sectors, 2 elevation halves, 2 radial shells),
-    a histogram of the cosine between each neighbour's normal and the frame's ``z`` axis
-    (linear interpolation between cosine bins). Each neighbour counts with its vertex area, so
-    the histograms integrate over the surface and depend little on how it is meshed. Invariant
-    to rigid motions; scale the radius with the shape.
-
-    Raises:
-        ParameterError: a radius that is not finite and > 0.
-    """
+    """SHOT signatures (Tombari et al. 2010) of a :class:`~torchfmap.Mesh`: ``(V, 352)``, unit L2 norm per
+    vertex (zero with fewer than 5 other vertices within ``radius``, finite > 0 in mesh units, else
+    :class:`ParameterError`). Local, invariant to rigid motions: per local frame and :data:`SHOT_GRID`
+    cell, an area-weighted histogram of the normals' cosine to the frame's ``z`` axis."""
     if not (np.isfinite(radius) and radius > 0):
         raise ParameterError(f"radius must be finite and > 0, got {radius!r}. Fix: e.g. 0.08 * sqrt(area).")
     vertices, normals = mesh.vertices, mesh.vertex_normals

@@ -1,10 +1,5 @@
-"""Error and warning types raised by torchfmap.
-
-Every error message names the problem *and* the fix, e.g.
-``MeshError: 3 faces index vertices outside [0, 100): faces [4, 7, 9]. Fix: ...``.
-All errors derive from :class:`TorchFmapError` and from :class:`ValueError`, so
-``except ValueError`` keeps working for callers that do not know our types.
-"""
+"""Error and warning types raised by torchfmap. Every error message names the problem and the fix; all
+errors derive from :class:`TorchFmapError`, a :class:`ValueError`."""
 
 from __future__ import annotations
 
@@ -32,8 +27,7 @@ class ConvergenceError(TorchFmapError, RuntimeError):
 
 
 class MemoryEstimateError(ParameterError, MemoryError):
-    """A computation refused before it starts: its estimated memory exceeds what is available
-    (the message gives both, in GiB, and the fix). Also a :class:`MemoryError`."""
+    """Refused before it starts: its estimated memory exceeds what is available; a :class:`MemoryError`."""
 
 
 class NotPositiveDefiniteError(ParameterError):
@@ -45,22 +39,16 @@ class CorruptFileError(TorchFmapError):
 
 
 class FileWriteError(OSError, TorchFmapError):
-    """A file could not be written (full disk, no permission, file-size limit, folder gone).
-
-    Also an :class:`OSError` with the original ``errno``; raised as a subclass of the original
-    class too (e.g. ``PermissionError``) by :func:`file_write_error`, so ``except OSError`` and
-    ``except PermissionError`` keep working."""
+    """A file could not be written; also an :class:`OSError`, of its class (:func:`file_write_error`)."""
 
 
 class FileReadError(OSError, TorchFmapError):
-    """A file could not be read (missing, a folder, no permission); also an :class:`OSError`
-    (and, by :func:`file_read_error`, the original subclass, e.g. ``FileNotFoundError``)."""
+    """A file could not be read; also an :class:`OSError`, of its class (:func:`file_read_error`)."""
 
 
 @functools.cache
 def _joined_class(kind: type, base: type) -> type:
-    """``kind`` (:class:`FileReadError` or :class:`FileWriteError`) joined with the OSError
-    subclass ``base``, one class per pair, so the error is an instance of both."""
+    """``kind`` joined with the OSError subclass ``base`` (one class per pair)."""
     if base is OSError or issubclass(base, kind):
         return kind if base is OSError else base
     return type(base.__name__, (kind, base), {"__module__": __name__})
@@ -85,7 +73,7 @@ def file_write_error(err: OSError, message: str) -> FileWriteError:
 
 class EvaluationInterrupted(KeyboardInterrupt):
     """Ctrl-C during :func:`torchfmap.evaluate.collection.evaluate_pairs`: ``finished`` holds the
-    :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored before it, in pair order."""
+    :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored before, in pair order."""
 
     def __init__(self, finished: list, total: int) -> None:
         super().__init__(f"interrupted after {len(finished)} of {total} pairs")
@@ -93,9 +81,8 @@ class EvaluationInterrupted(KeyboardInterrupt):
 
 
 class WorkerLost(TorchFmapError, RuntimeError):
-    """A worker of :func:`torchfmap.evaluate.collection.evaluate_pairs` died mid-run (killed, out of
-    memory): ``finished`` holds the :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored
-    before, in pair order; the chunks in flight are lost."""
+    """A worker of :func:`torchfmap.evaluate.collection.evaluate_pairs` died mid-run: ``finished`` holds
+    the :class:`~torchfmap.evaluate.collection.PairResult` of every pair scored before, in pair order."""
 
     def __init__(self, finished: list, total: int, cause: str) -> None:
         super().__init__(
@@ -115,13 +102,11 @@ class MeshWarning(UserWarning):
 
 
 class CostWarning(UserWarning):
-    """A computation that was asked for and will run, but takes far longer or far more memory
-    than the usual settings (e.g. hundreds of eigenpairs of a large mesh); says why and the fix."""
+    """A computation that will run but takes far longer or more memory than the usual settings."""
 
 
 def _preview(indices, limit: int = 8) -> str:
     """Render the first few offending indices, e.g. ``[3, 17, 42, ...] (12 in all)``."""
-    items = [int(i) for i in list(indices)[:limit]]
     n = len(indices)
-    text = ", ".join(str(i) for i in items)
+    text = ", ".join(str(int(i)) for i in list(indices)[:limit])
     return f"[{text}{', ...' if n > limit else ''}]" + (f" ({n} in all)" if n > limit else "")

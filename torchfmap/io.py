@@ -1,22 +1,7 @@
-"""Every file format torchfmap reads or writes: meshes, point maps, ``.vts`` ground truth,
-landmark files, landmark-pair files and test-pairs files.
-
-One suffix rule for all of them (:func:`split_suffix`): the format is the last suffix before
-an optional ``.gz``, and a ``.gz`` file is read and written gzip-compressed. Folder listings
-(:func:`mesh_files`) use the same rule through :func:`is_mesh_file`. Writers go through
-:func:`torchfmap._util.files.atomic_write`.
-
-Meshes never change vertex order. Ground-truth correspondences are vertex indices, so a loader
-that merges, sorts or drops vertices silently breaks them. :func:`load_mesh` goes through
-trimesh with ``process=False`` and ``maintain_order=True``, except OBJ, read here (trimesh
-drops the vertices no face references), and STL, a triangle soup with no shared vertices, where
-identical corners are merged **in order of first appearance** (the only vertex order an STL file
-defines).
-
-Index files (maps, ``.vts``, landmarks, landmark pairs) are text with one row per line;
-``#`` comments, blank lines and a UTF-8 byte-order mark are ignored, and a malformed file
-raises :class:`~torchfmap.errors.TorchFmapError` naming the file, the line and the fix.
-"""
+"""Every file format torchfmap reads or writes: meshes (vertex order kept), point maps, ``.vts``, landmark,
+landmark-pair and test-pairs files, by the last suffix before an optional ``.gz`` (:func:`split_suffix`);
+writes are atomic (:func:`torchfmap._util.files.atomic_write`). Index files are text, a row per line (``#``
+comments, blank lines, a BOM ignored); a malformed one raises :class:`~torchfmap.errors.TorchFmapError`."""
 
 from __future__ import annotations
 
@@ -44,11 +29,8 @@ MESH_FORMATS = ("off", "ply", "obj", "stl")
 SUPPORTED_FORMATS = tuple(f".{fmt}" for fmt in MESH_FORMATS)
 
 
-# -- the one suffix rule -----------------------------------------------------------------------
 def split_suffix(path: str | os.PathLike) -> tuple[str, bool]:
-    """``(format, gzipped)`` of a file name: the lower-case last suffix before an optional
-    ``.gz``, without its dot (``''`` if none). ``cat.off.gz`` -> ``('off', True)``,
-    ``map.TXT`` -> ``('txt', False)``, ``lion2cat`` -> ``('', False)``."""
+    """``(format, gzipped)`` of a file name: ``cat.OFF.gz`` -> ``('off', True)``, ``x`` -> ``('', False)``."""
     suffixes = [s.lower() for s in Path(path).suffixes]
     gz = bool(suffixes) and suffixes[-1] == ".gz"
     if gz:
@@ -57,16 +39,12 @@ def split_suffix(path: str | os.PathLike) -> tuple[str, bool]:
 
 
 def is_mesh_file(path: str | os.PathLike) -> bool:
-    """Whether the name is one :func:`load_mesh` reads (a :data:`MESH_FORMATS` suffix, optionally
-    followed by ``.gz``). Judges the name only."""
+    """Whether the name is one :func:`load_mesh` and :func:`mesh_files` take (:data:`MESH_FORMATS`[.gz])."""
     return split_suffix(path)[0] in MESH_FORMATS
 
 
 def mesh_files(folder: str | os.PathLike) -> list[Path]:
-    """The mesh files of a folder (:func:`is_mesh_file`, ``.gz`` included), sorted by name.
-
-    Raises :class:`ParameterError` if ``folder`` is not a folder.
-    """
+    """A folder's mesh files (:func:`is_mesh_file`), by name; :class:`ParameterError` if not a folder."""
     folder = Path(folder)
     if not folder.is_dir():
         raise ParameterError(f"{str(folder)!r} is not a folder. Fix: give the folder that holds the meshes.")
@@ -80,10 +58,7 @@ def shape_name(path: str | os.PathLike) -> str:
 
 def find_file(folder: str | os.PathLike, name: str) -> Path | None:
     """``folder/name`` or, if only that exists compressed, ``folder/name.gz``; None if neither."""
-    for candidate in (Path(folder) / name, Path(folder) / f"{name}.gz"):
-        if candidate.is_file():
-            return candidate
-    return None
+    return next((c for c in (Path(folder) / name, Path(folder) / f"{name}.gz") if c.is_file()), None)
 
 
 def _format_of(path: Path) -> tuple[str, bool]:
@@ -97,7 +72,6 @@ def _format_of(path: Path) -> tuple[str, bool]:
 
 
 def _read_bytes(path: str | os.PathLike, what: str, error: type[TorchFmapError] = TorchFmapError) -> bytes:
-    """The bytes of a file, gunzipped when its name ends in ``.gz``."""
     try:
         with gzip.open(path, "rb") if split_suffix(path)[1] else open(path, "rb") as fh:
             return fh.read()
@@ -109,27 +83,16 @@ def _read_bytes(path: str | os.PathLike, what: str, error: type[TorchFmapError] 
 
 
 def _write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` atomically, gzip-compressed when the name ends in ``.gz``."""
     if split_suffix(path)[1]:
         data = gzip.compress(data, mtime=0)
     return atomic_write(path, lambda fh: fh.write(data))
 
 
-#: Text formats: decoded here (UTF-8, else Latin-1) so a stray non-UTF-8 byte in a comment
-#: does not send trimesh looking for an optional charset detector.
+#: Text formats, decoded here (UTF-8, else Latin-1): trimesh would look for a charset detector.
 TEXT_FORMATS = ("off", "obj")
 
 
-def _decode(data: bytes) -> bytes:
-    try:
-        data.decode("utf-8")
-        return data
-    except UnicodeDecodeError:
-        return data.decode("latin-1").encode("utf-8")
-
-
 def _existing_file(path, what: str) -> Path:
-    """``path`` as a Path, or :class:`MeshError` when it is missing or a folder."""
     path = Path(path)
     if not path.exists():
         raise MeshError(f"{what} file {str(path)!r} does not exist. Fix: check the path.")
@@ -141,13 +104,9 @@ def _existing_file(path, what: str) -> Path:
 
 
 def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """``(vertices (V, 3) float64, faces (F, 3) int64)`` of a mesh file, vertex order kept.
-
-    Raises :class:`MeshError` for a missing path, a folder, an unsupported extension, an OFF
-    file shorter than its header says or with face lines of under 3 corners, bytes that are not
-    STL in a ``.stl``, a point cloud (points and no faces: :func:`load_points` reads those;
-    ``points=True`` returns them with ``(0, 3)`` faces instead) and anything trimesh cannot parse.
-    """
+    """``(vertices (V, 3) float64, faces (F, 3) int64)`` of a mesh file, vertex order kept. Raises
+    :class:`MeshError` for a missing path, a folder, an unsupported extension, a malformed file, and a
+    point cloud (:func:`load_points`; ``points=True`` returns its points with ``(0, 3)`` faces)."""
     path = _existing_file(path, "mesh")
     fmt, gz = _format_of(path)
     data = _read_bytes(path, "mesh", MeshError)
@@ -157,7 +116,7 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             "mesh again."
         )
     data = _checked_bytes(data, fmt, path.name)
-    if fmt == "obj":  # trimesh drops the vertices no face references: read in file order here
+    if fmt == "obj":  # trimesh drops the vertices no face references
         vertices, faces = read_obj(data.decode("utf-8"), path.name)
     else:
         try:
@@ -170,7 +129,6 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
                 f"that the file is a {fmt.upper()} mesh (its extension names the format; open it in a "
                 "viewer)."
             ) from err
-        # older trimesh returns a PointCloud (no faces) for a file without faces, even with force="mesh"
         vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
         faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if fmt == "stl" and len(faces):
@@ -181,20 +139,21 @@ def read_arrays(path: str | os.PathLike, *, points: bool = False) -> tuple[np.nd
             return cloud, np.zeros((0, 3), dtype=np.int64)
         if n := len(cloud):
             raise MeshError(
-                f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh, and matching "
-                "needs a triangle mesh. Fix: mesh it first (e.g. screened Poisson reconstruction in "
-                f"MeshLab); its operators alone come from torchfmap.io.load_points({path.name!r}) and "
-                "laplacian(points, scheme='robust')."
+                f"{path.name!r} holds {n} points and no faces: a point cloud, not a mesh, and matching needs "
+                "a triangle mesh. Fix: mesh it first (e.g. screened Poisson reconstruction in MeshLab); its "
+                f"operators alone come from torchfmap.io.load_points({path.name!r}) and laplacian(points, "
+                "scheme='robust')."
             )
     return vertices, faces
 
 
 def _checked_bytes(data: bytes, fmt: str, name: str) -> bytes:
-    """The bytes trimesh parses: text decoded (:func:`_decode`), checked against its format's
-    counts and row shapes (:mod:`torchfmap._util.format_checks`; :class:`MeshError` naming ``name``),
-    OFF comments removed."""
+    """Text decoded, checked by :mod:`torchfmap._util.format_checks`, OFF comments removed."""
     if fmt in TEXT_FORMATS:
-        data = _decode(data)
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError:
+            data = data.decode("latin-1").encode("utf-8")
     if fmt == "off":
         _check_off(data.decode("utf-8"), name)
         data = off_without_comments(data.decode("utf-8")).encode()
@@ -208,7 +167,6 @@ def _checked_bytes(data: bytes, fmt: str, name: str) -> bytes:
 
 
 def _read_points(data: bytes, fmt: str) -> np.ndarray:
-    """The vertex coordinates of a mesh or point-cloud file's bytes, ``(V, 3)`` (faces ignored)."""
     if fmt == "obj":
         return read_obj(data.decode("utf-8"), "")[0]
     try:
@@ -219,13 +177,8 @@ def _read_points(data: bytes, fmt: str) -> np.ndarray:
 
 
 def load_points(path: str | os.PathLike) -> np.ndarray:
-    """The points of a point-cloud (or mesh) file (.ply/.off/.obj, optionally .gz), ``(V, 3)``
-    float64 in file order; faces, if any, are ignored. For point clouds pass them to
-    :func:`~torchfmap.operators.laplacian` with ``scheme='robust'``.
-
-    Raises:
-        MeshError: a missing path, a folder, an unsupported format, no points, or non-finite ones.
-    """
+    """``(V, 3)`` float64 points of a point-cloud or mesh file (.ply/.off/.obj[.gz]) in file order, for
+    :func:`~torchfmap.operators.laplacian` (``scheme='robust'``); :class:`MeshError` if missing or bad."""
     path = _existing_file(path, "point")
     fmt, _ = _format_of(path)
     if fmt not in ("ply", "off", "obj"):
@@ -240,27 +193,14 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
 
 
 def load_mesh(path: str | os.PathLike, *, validate: bool = True, **flags) -> Mesh:
-    """Load a triangle mesh (.off/.ply/.obj/.stl, optionally .gz) keeping the file's vertex order.
-
-    Files are read as published pipelines read them: duplicated faces are dropped and
-    non-manifold edges accepted, each with a :class:`~torchfmap.MeshWarning` (benchmark files
-    such as FAUST_a and SCAPE_a hold a few; their operators are then the intrinsic tufted
-    Laplacian). Pass ``allow_nonmanifold=False`` to refuse them instead.
-
-    Args:
-        path: file path.
-        validate: run :func:`~torchfmap.mesh.validate_mesh`; extra keyword flags
-            (``allow_components``, ``allow_unreferenced``, ``allow_nonmanifold``, default
-            ``'warn'``) go to it.
-
-    Returns:
-        a :class:`~torchfmap.Mesh` named after the file.
-    """
+    """A :class:`~torchfmap.Mesh` named after the file (.off/.ply/.obj/.stl, optionally .gz), vertex
+    order kept. Duplicated faces are dropped and non-manifold edges accepted, each with a
+    :class:`~torchfmap.MeshWarning` (``allow_nonmanifold=False`` refuses them). ``validate`` runs
+    :func:`~torchfmap.mesh.validate_mesh`, with the keyword ``flags`` (``allow_*``)."""
     vertices, faces = read_arrays(path)
-    name = shape_name(path)
     flags.setdefault("allow_nonmanifold", "warn")
     try:
-        return Mesh(vertices, faces, validate=validate, name=name, **flags)
+        return Mesh(vertices, faces, validate=validate, name=shape_name(path), **flags)
     except MeshError as err:
         raise MeshError(f"{str(path)!r}: {err}") from err
 
@@ -273,10 +213,8 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     return _write_bytes(path, data.encode() if isinstance(data, str) else data)
 
 
-# -- index files: point maps, .vts, landmarks, landmark pairs ----------------------------------
 def read_text(path: str | os.PathLike, what: str) -> str:
-    """The text of a UTF-8 file (``.gz`` allowed, a byte-order mark dropped); ``what`` names the
-    file in the :class:`TorchFmapError` raised when it cannot be read."""
+    """A UTF-8 file's text (BOM dropped); ``what`` names it in the :class:`TorchFmapError` if unreadable."""
     data = _read_bytes(path, what)
     try:
         return data.decode("utf-8-sig")
@@ -287,18 +225,12 @@ def read_text(path: str | os.PathLike, what: str) -> str:
 
 
 def _fields(line: str) -> list[str]:
-    """The fields of one line of an index table: ``#`` starts a comment; white space, commas and
-    semicolons separate (CSV files read as they are)."""
+    """The fields of one line: ``#`` starts a comment; white space, commas and semicolons separate."""
     return _SEPARATORS.split(line.split("#", 1)[0].strip()) if line.split("#", 1)[0].strip() else []
 
 
-def _is_integer(field: str) -> bool:
-    return field.lstrip("+-").isdigit()
-
-
 def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
-    """The careful parser: skips a header line (the first line, when its fields are words, e.g.
-    ``source,target``) and names the first bad line."""
+    """The careful parser: skips a header line of words (e.g. ``source,target``), names the first bad line."""
     rows, width, first = [], columns, True
     for number, line in enumerate(text.splitlines(), start=1):
         fields = _fields(line)
@@ -314,11 +246,10 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
                 f"{path}:{number}: expected {width} integer column(s) per line ({what}), got "
                 f"{len(fields)}: {line.strip()!r}. Fix: {_one_entry(what, width)}."
             )
-        if not all(_is_integer(f) for f in fields):
+        if not all(f.lstrip("+-").isdigit() for f in fields):
             raise TorchFmapError(
-                f"{path}:{number}: {line.strip()!r} is not {width} integer vertex index(es) ({what}). "
-                f"Fix: {_one_entry(what, width)}; only the first line may be a header, comments start "
-                "with #."
+                f"{path}:{number}: {line.strip()!r} is not {width} integer vertex index(es) ({what}). Fix: "
+                f"{_one_entry(what, width)}; only the first line may be a header, comments start with #."
             )
         rows.append([int(f) for f in fields])
     if not rows:
@@ -329,36 +260,25 @@ def _parse_rows(text: str, path, columns: int | None, what: str) -> np.ndarray:
         raise TorchFmapError(f"{path}: a {what} index does not fit in 64 bits. Fix: check the file.") from err
 
 
-#: Characters that cannot appear in a table of integers (outside comments).
 _NOT_INTEGER_TEXT = re.compile(r"[^0-9\s+\-\ufeff]")
-#: A number of 19 digits or more: may not fit in int64 (2**63 has 19 digits).
-_LONG_NUMBER = re.compile(r"\d{19,}")
-#: A header field: a word starting with a letter or an underscore.
+_LONG_NUMBER = re.compile(r"\d{19,}")  # may not fit in int64
 _HEADER_WORD = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*$")
-#: Field separators of index tables: white space, commas, semicolons.
 _SEPARATORS = re.compile(r"[\s,;]+")
 
 
 def _one_entry(what: str, width: int) -> str:
-    """How an entry of a ``what`` table is written, for a fix."""
     if width == 2:
         return f"one {what} per line, two 0-based vertex indices 'i j' (or 'i,j')"
     return f"one {what} entry per line, {width} integer(s) each"
 
 
 def read_index_table(path: str | os.PathLike, columns: int | None, what: str) -> np.ndarray:
-    """``(N, columns)`` integer rows of a text file (``.gz`` allowed; ``#`` comments, blank lines
-    and a UTF-8 byte-order mark ignored); ``columns=None``: any number, the same on every line.
-
-    Raises :class:`TorchFmapError` naming the file, the line and the fix for a missing or
-    unreadable file, an empty one, a line with another number of columns (e.g. a pairs file
-    where single indices are expected, or a third column), and anything that is not an integer.
-    """
+    """``(N, columns)`` integer rows of a text file (``columns=None``: any, the same on every line); raises
+    :class:`TorchFmapError` naming the file and line for an unreadable, empty, ragged or non-integer file."""
     text = read_text(path, what)
     body = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
     if _NOT_INTEGER_TEXT.search(body) or _LONG_NUMBER.search(body):
-        # e.g. '1.5', which some numpy versions' loadtxt truncates, or 10**30, which numpy 2.0's
-        # loadtxt wraps around to a negative index instead of raising
+        # e.g. '1.5' (truncated by some loadtxt) or 10**30 (wrapped to a negative by numpy 2.0's)
         return _parse_rows(text, path, columns, what)
     try:  # fast path for well-formed files; the careful parser names the problem otherwise
         with warnings.catch_warnings():
@@ -382,14 +302,12 @@ def read_landmark_pairs(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_map(path: str | os.PathLike) -> np.ndarray:
-    """``(V_y,)`` a 0-based point map, one integer per line: line ``v`` holds the source vertex of
-    target vertex ``v`` (the file :func:`write_map` and ``torchfmap match`` write)."""
+    """``(V_y,)`` 0-based point map (:func:`write_map`): line ``v`` holds target vertex ``v``'s source."""
     return read_index_table(path, 1, "point map")[:, 0]
 
 
 def write_map(path: str | os.PathLike, p2p_yx: np.ndarray) -> Path:
-    """Write a point map atomically (line ``v``: the source vertex of target vertex ``v``;
-    gzip-compressed if the name ends in ``.gz``); returns the path. :func:`read_map` reads it."""
+    """Write a point map ``(V_y,)`` as :func:`read_map` reads it, atomically; returns the path."""
     p2p_yx = np.asarray(p2p_yx)
     if p2p_yx.ndim != 1 or not np.issubdtype(p2p_yx.dtype, np.integer):
         raise ParameterError(
@@ -401,29 +319,19 @@ def write_map(path: str | os.PathLike, p2p_yx: np.ndarray) -> Path:
 
 
 def read_vts(path: str | os.PathLike) -> np.ndarray:
-    """A ``.vts`` file (1-based vertex ids, first column used) as ``(P,)`` 0-based indices.
-
-    Raises :class:`ParameterError` if the file holds a 0 or a negative id: it is not 1-based
-    (read as 1-based, a 0-based file would score the true map as a poor one).
-    """
+    """``(P,)`` 0-based indices of a 1-based ``.vts`` file (column 1); :class:`ParameterError` for ids < 1."""
     ids = read_index_table(path, None, ".vts")[:, 0]
     if ids.min() < 1:
         raise ParameterError(
-            f"{str(path)!r} holds vertex id {int(ids.min())}: .vts files are 1-based. Fix: if this "
-            "file is 0-based, read it with read_index_table and add no offset (gt_from_vts takes "
-            "0-based arrays)."
+            f"{str(path)!r} holds vertex id {int(ids.min())}: .vts files are 1-based. Fix: if this file is "
+            "0-based, read it with read_index_table and add no offset (gt_from_vts takes 0-based arrays)."
         )
     return ids - 1
 
 
-# -- test-pairs files --------------------------------------------------------------------------
 def read_test_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:
-    """``[(name_x, name_y), ...]`` of a test-pairs file (e.g. ``test_pairs.txt``): the first two
-    whitespace-separated shape names of every line (``.gz`` allowed; ``#`` comments and blank
-    lines ignored), in file order.
-
-    Raises :class:`TorchFmapError` for an unreadable or empty file or a line with one name.
-    """
+    """``[(name_x, name_y), ...]``: the first two shape names of every line of a test-pairs file, in
+    order; :class:`TorchFmapError` for an unreadable or empty file or a line with one name."""
     pairs = []
     for number, line in enumerate(read_text(path, "test pairs").splitlines(), start=1):
         fields = line.split("#", 1)[0].split()

@@ -1,16 +1,5 @@
-"""Triangle meshes: the :class:`Mesh` type and its validation.
-
-A :class:`Mesh` holds ``vertices`` ``(V, 3)`` float64 and ``faces`` ``(F, 3)`` int64 and
-never reorders either: vertex ``i`` of the file is vertex ``i`` here, because ground-truth
-correspondences are lists of vertex indices. Derived quantities (areas, normals, edges,
-boundary, components) are computed lazily and cached.
-
-Validation (:func:`validate_mesh`, :class:`MeshReport`, :func:`orient_faces`; they live in
-:mod:`torchfmap.mesh_checks` and are importable from here) raises
-:class:`~torchfmap.errors.MeshError` for inputs that would give silently wrong operators and
-orients every component consistently (``mesh.report.n_flipped_faces``); what is refused,
-reported or repaired: docs/guide.md, "Meshes".
-"""
+"""Triangle meshes: :class:`Mesh` (vertex order never changed) and :func:`rigid_fit`; :func:`validate_mesh`,
+:class:`MeshReport` and :func:`orient_faces` live in :mod:`torchfmap.mesh_checks` (importable from here)."""
 
 from __future__ import annotations
 
@@ -19,14 +8,13 @@ import warnings
 from functools import cached_property
 
 import numpy as np
-import scipy.sparse as sp
 import trimesh
-from scipy.sparse.csgraph import connected_components
 
 from .errors import MeshError, MeshWarning, ParameterError, _preview
 from .mesh_checks import (
     MeshReport,
     _as_arrays,
+    _edge_components,
     _edge_face_incidence,
     _face_areas,
     duplicate_faces,
@@ -37,24 +25,16 @@ from .mesh_checks import (
 
 __all__ = ["Mesh", "MeshReport", "orient_faces", "rigid_fit", "validate_mesh", "weld_vertices"]
 
-#: Share of the point pairs a rigid fit keeps at each round (those the last fit placed best).
+#: Share of the pairs a trimmed rigid fit keeps at each round, and its rounds.
 RIGID_KEEP = 0.5
-#: Rounds of the trimmed rigid fit.
 RIGID_ROUNDS = 8
 
 
 class Mesh:
-    """A validated triangle mesh. Vertex order is never changed.
-
-    Args:
-        vertices: ``(V, 3)`` coordinates, stored as float64.
-        faces: ``(F, 3)`` 0-based vertex indices, stored as int64.
-        validate: run :func:`validate_mesh` (default). Keyword flags are passed on to it.
-
-    Attributes (lazy): ``face_areas (F,)``, ``area``, ``face_normals (F, 3)``,
-    ``vertex_normals (V, 3)``, ``edges (E, 2)``, ``boundary_edges``, ``boundary_vertices``,
-    ``component_labels (V,)``, ``n_components``, ``report`` (a :class:`MeshReport`).
-    """
+    """A triangle mesh: ``vertices (V, 3)`` float64, ``faces (F, 3)`` 0-based int64; vertex order is never
+    changed. ``validate``: run :func:`validate_mesh` with the ``allow_*`` flags (duplicated faces are
+    dropped and faces oriented, with a :class:`~torchfmap.errors.MeshWarning`). Lazy attributes:
+    ``face_areas (F,)``, ``area``, normals, ``edges (E, 2)``, boundary, components, ``report``."""
 
     def __init__(
         self,
@@ -121,7 +101,6 @@ class Mesh:
                 )
             self._report = report
 
-    # -- basic sizes -------------------------------------------------------------------------
     @property
     def n_vertices(self) -> int:
         return len(self.vertices)
@@ -140,16 +119,10 @@ class Mesh:
     @property
     def report(self) -> MeshReport:
         if self._report is None:
-            self._report = validate_mesh(
-                self.vertices,
-                self.faces,
-                allow_components=True,
-                allow_unreferenced=True,
-                allow_nonmanifold=True,
-            )
+            flags = dict(allow_components=True, allow_unreferenced=True, allow_nonmanifold=True)
+            self._report = validate_mesh(self.vertices, self.faces, **flags)
         return self._report
 
-    # -- geometry ----------------------------------------------------------------------------
     @cached_property
     def face_areas(self) -> np.ndarray:
         """``(F,)`` triangle areas."""
@@ -213,9 +186,7 @@ class Mesh:
 
     @cached_property
     def _components(self) -> tuple[int, np.ndarray]:
-        e = self.edges
-        adj = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(self.n_vertices, self.n_vertices))
-        return connected_components(adj, directed=False)
+        return _edge_components(self.edges, self.n_vertices)
 
     @property
     def component_labels(self) -> np.ndarray:
@@ -226,7 +197,6 @@ class Mesh:
     def n_components(self) -> int:
         return self.report.n_components
 
-    # -- transformations (vertex order is kept) -----------------------------------------------
     def copy(self, vertices=None) -> Mesh:
         """A copy, optionally with new vertex positions of the same shape."""
         v = self.vertices.copy() if vertices is None else np.asarray(vertices, dtype=np.float64)
@@ -264,24 +234,16 @@ class Mesh:
         return Mesh(self.vertices, self.faces[keep], validate=False, name=self.name)
 
     def referenced(self) -> tuple[Mesh, np.ndarray]:
-        """The mesh without the vertices that no face uses, and the original indices of the
-        kept vertices: ``(mesh, vertex_ids)`` with ``mesh.vertices == self.vertices[vertex_ids]``
-        (relative order preserved). A map computed on the result maps back through
-        ``vertex_ids``: vertex ``i`` there is vertex ``vertex_ids[i]`` here."""
+        """``(mesh, vertex_ids)``: without unused vertices, ``mesh.vertices == self.vertices[vertex_ids]``."""
         ids = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=self.n_vertices))
         remap = np.full(self.n_vertices, -1, dtype=np.int64)
         remap[ids] = np.arange(len(ids))
         return Mesh(self.vertices[ids], remap[self.faces], validate=False, name=self.name), ids
 
     def largest_component(self) -> tuple[Mesh, np.ndarray]:
-        """The largest connected component and the original indices of its vertices.
-
-        Returns ``(mesh, vertex_ids)`` with ``mesh.vertices == self.vertices[vertex_ids]``;
-        relative order of the kept vertices is preserved.
-        """
+        """``(mesh, vertex_ids)``: the largest component, ``mesh.vertices == self.vertices[vertex_ids]``."""
         labels = self.component_labels
-        biggest = np.argmax(np.bincount(labels))
-        ids = np.flatnonzero(labels == biggest)
+        ids = np.flatnonzero(labels == np.argmax(np.bincount(labels)))
         remap = -np.ones(self.n_vertices, dtype=np.int64)
         remap[ids] = np.arange(len(ids))
         faces = remap[self.faces]
@@ -296,17 +258,10 @@ class Mesh:
 def rigid_fit(
     points: np.ndarray, targets: np.ndarray, *, keep: float = RIGID_KEEP, rounds: int = RIGID_ROUNDS
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """The rotation and translation that place ``points (N, 3)`` on ``targets (N, 3)``
-    (``points @ R.T + t`` near ``targets``): a least-squares fit (Kabsch) repeated ``rounds``
-    times on the ``keep`` share of pairs the previous fit placed best (a trimmed fit, so that a
-    map's wrong pairs and a pose's bent limbs do not pull it). Returns ``(R (3, 3), t (3,),
-    residual)``: ``det R = 1`` (never a reflection) and the mean distance of the kept pairs after
-    the last fit, in the coordinates' units.
-
-    Raises:
-        ParameterError: ``points`` and ``targets`` not both ``(N, 3)`` finite with ``N >= 3``,
-            ``keep`` outside ``(0, 1]`` or ``rounds < 1``.
-    """
+    """``(R (3, 3), t (3,), residual)`` placing ``points (N, 3)`` on ``targets (N, 3)`` (``points @ R.T +
+    t``): a Kabsch fit repeated ``rounds`` (>= 1) times on the ``keep`` (in ``(0, 1]``) share of pairs the
+    previous fit placed best. ``det R = 1``; ``residual``: the kept pairs' mean distance after the last
+    fit. :class:`ParameterError` for bad arguments or points not both finite ``(N, 3)``, ``N >= 3``."""
     p, q = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape != q.shape or len(p) < 3:
         raise ParameterError(

@@ -1,12 +1,5 @@
-"""Mesh validation: :func:`validate_mesh` and its :class:`MeshReport`, :func:`orient_faces` and
-:func:`weld_vertices`.
-
-:func:`validate_mesh` raises :class:`~torchfmap.errors.MeshError` for inputs that would give
-silently wrong operators, with a message naming the problem and the fix, and reports (without
-failing) properties such as holes. :func:`orient_faces` orients every component consistently
-(closed ones outward) without changing vertex order. :class:`~torchfmap.mesh.Mesh` runs both
-on construction; they work on plain ``(vertices, faces)`` arrays.
-"""
+"""Mesh validation on plain ``(vertices, faces)`` arrays: :func:`validate_mesh` and its :class:`MeshReport`,
+:func:`orient_faces` (both run by :class:`~torchfmap.mesh.Mesh`) and :func:`weld_vertices`."""
 
 from __future__ import annotations
 
@@ -24,9 +17,7 @@ log = logging.getLogger(__name__)
 
 #: Faces whose area is below ``DEGENERATE_RTOL * mean_edge_length**2`` count as degenerate.
 DEGENERATE_RTOL = 1e-12
-#: Vertices closer than ``COINCIDENT_RTOL`` times the bounding-box diagonal share a position
-#: (:func:`weld_vertices`, :attr:`MeshReport.n_coincident_vertices`): far below any edge of a
-#: mesh that is not degenerate, far above float64 rounding of exported coordinates.
+#: Vertices closer than ``COINCIDENT_RTOL`` times the bbox diagonal share a position (:func:`weld_vertices`).
 COINCIDENT_RTOL = 1e-9
 #: Components with at most this fraction of boundary edges count as closed for orientation.
 CLOSED_BOUNDARY_FRACTION = 0.02
@@ -34,7 +25,7 @@ CLOSED_BOUNDARY_FRACTION = 0.02
 
 @dataclass(frozen=True)
 class MeshReport:
-    """What validation found. Fields are counts / index arrays; see :func:`validate_mesh`."""
+    """What :func:`validate_mesh` found: counts, and the ``unreferenced`` vertex indices."""
 
     n_vertices: int
     n_faces: int
@@ -43,14 +34,11 @@ class MeshReport:
     n_boundary_loops: int
     unreferenced: np.ndarray = field(repr=False)
     euler_characteristic: int = 0
-    #: faces whose corner order :class:`Mesh` reversed to orient every component consistently
-    #: (and closed components outward); 0 when the file was already consistent.
+    #: faces whose corner order :class:`Mesh` reversed (:func:`orient_faces`)
     n_flipped_faces: int = 0
-    #: edges shared by more than two faces (accepted with ``allow_nonmanifold``; operators of
-    #: :func:`~torchfmap.bases.prepare_shape` are then the intrinsic tufted Laplacian).
+    #: edges shared by more than two faces (``allow_nonmanifold``; :func:`~torchfmap.bases.prepare_shape`)
     n_nonmanifold_edges: int = 0
-    #: boundary vertices at the position of another boundary vertex (a seam: the surface is cut
-    #: there, and its operators see a boundary the shape does not have); see :func:`weld_vertices`.
+    #: boundary vertices at the position of another boundary vertex (a seam; :func:`weld_vertices`)
     n_coincident_vertices: int = 0
 
     @property
@@ -69,9 +57,8 @@ class MeshReport:
 
 
 def coincident_groups(vertices, rtol: float = COINCIDENT_RTOL) -> np.ndarray:
-    """``(V,)`` for each vertex the first vertex (lowest index) at its position: vertices closer
-    than ``rtol`` times the bounding-box diagonal are one position (``rtol=0``: bit-identical
-    coordinates only). A vertex at a position of its own maps to itself."""
+    """``(V,)`` the lowest-index vertex at each vertex's position: vertices closer than ``rtol`` times the
+    bounding-box diagonal share one (``rtol=0``: bit-identical coordinates only)."""
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     first = np.arange(len(v))
     if len(v) < 2:
@@ -83,8 +70,7 @@ def coincident_groups(vertices, rtol: float = COINCIDENT_RTOL) -> np.ndarray:
     pairs = cKDTree(v).query_pairs(rtol * diag, output_type="ndarray")
     if not len(pairs):
         return first
-    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(v), len(v)))
-    _, labels = connected_components(graph, directed=False)
+    labels = _edge_components(pairs, len(v))[1]
     lowest = np.full(labels.max() + 1, len(v))
     np.minimum.at(lowest, labels, first)
     return lowest[labels]
@@ -93,13 +79,8 @@ def coincident_groups(vertices, rtol: float = COINCIDENT_RTOL) -> np.ndarray:
 def weld_vertices(
     vertices, faces, rtol: float = COINCIDENT_RTOL
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge vertices that share a position (closer than ``rtol`` times the bounding-box
-    diagonal; ``rtol=0``: bit-identical), as a triangle soup or a mesh cut along seams needs.
-
-    The kept vertices stay in their order of first appearance. Returns ``(vertices (V', 3),
-    faces (F, 3), old_to_new (V,))``: ``old_to_new[i]`` is the new index of old vertex ``i``
-    (remap correspondences and landmarks with it). Faces that collapse (two corners welded) are
-    kept, and mesh validation then names them."""
+    """Merge vertices that share a position (:func:`coincident_groups`), kept in order of first
+    appearance: ``(vertices (V', 3), faces (F, 3), old_to_new (V,))``. Collapsed faces are kept."""
     v, f = _as_arrays(vertices, faces)
     first = coincident_groups(v, rtol)
     keep = np.flatnonzero(first == np.arange(len(v)))
@@ -130,8 +111,7 @@ def _as_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _unit_coordinates(v: np.ndarray) -> np.ndarray:
-    """``v`` divided by its largest absolute coordinate (unchanged if that is 0 or not finite),
-    for scale-free tests that must not over- or underflow."""
+    """``v`` divided by its largest absolute coordinate (if finite and > 0), for scale-free tests."""
     extent = float(np.abs(v).max())
     return v / extent if 0 < extent < np.inf else v
 
@@ -142,10 +122,7 @@ def _face_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 
 def _edge_face_incidence(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unique undirected edges ``(E, 2)``, how many faces hold each, and face-edge ids ``(F, 3)``.
-
-    Half-edge ``c`` of face ``f`` is the edge opposite corner ``c``: ``(f[(c+1)%3], f[(c+2)%3])``.
-    """
+    """Unique edges ``(E, 2)``, faces per edge, face-edge ids ``(F, 3)`` (edge ``c``: opposite corner c)."""
     he = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)
     und = np.sort(he, axis=1)
     n = int(f.max()) + 1 if f.size else 1
@@ -154,26 +131,26 @@ def _edge_face_incidence(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return edges, counts, inverse.reshape(-1, 3)
 
 
+def _edge_components(edges: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """``(n_components, labels (n,))`` of the graph of ``edges (E, 2)`` on ``n`` vertices."""
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)
+
+
 def _count_boundary_loops(boundary_edges: np.ndarray, n_vertices: int) -> int:
     if len(boundary_edges) == 0:
         return 0
-    a = sp.coo_matrix(
-        (np.ones(len(boundary_edges)), (boundary_edges[:, 0], boundary_edges[:, 1])),
-        shape=(n_vertices, n_vertices),
-    )
-    n, labels = connected_components(a, directed=False)
-    on_boundary = np.unique(boundary_edges)
-    return len(np.unique(labels[on_boundary]))
+    labels = _edge_components(boundary_edges, n_vertices)[1]
+    return len(np.unique(labels[np.unique(boundary_edges)]))
 
 
 def duplicate_faces(faces) -> np.ndarray:
-    """Indices of faces that repeat an earlier face's vertex set (any corner order), sorted;
-    the first copy of each is kept. ``faces`` ``(F, 3)``."""
+    """Sorted indices of the faces ``(F, 3)`` that repeat an earlier face's vertex set (any order)."""
     f = np.sort(np.asarray(faces, dtype=np.int64), axis=1)
     if len(f) == 0:
         return np.zeros(0, dtype=np.int64)
     n = int(f.max()) + 1
-    if n <= 2_000_000:  # one int64 key per face (n**3 < 2**63): a 1-D unique, far faster than axis=0
+    if n <= 2_000_000:  # one int64 key per face (n**3 < 2**63): far faster than axis=0
         _, first = np.unique((f[:, 0] * n + f[:, 1]) * n + f[:, 2], return_index=True)
     else:
         _, first = np.unique(f, axis=0, return_index=True)
@@ -190,20 +167,10 @@ def validate_mesh(
     allow_unreferenced: bool = False,
     allow_nonmanifold: bool | str = False,
 ) -> MeshReport:
-    """Check a triangle mesh and return a :class:`MeshReport`.
-
-    Raises :class:`MeshError` (message names the problem and the fix) for: an empty mesh,
-    NaN/inf coordinates, face indices out of range, degenerate faces (a repeated index or
-    zero area), unreferenced vertices, non-manifold edges (shared by more than two faces) and
-    several connected components. The last three can be allowed by flag
-    (``allow_nonmanifold='warn'``: accepted, and :class:`~torchfmap.Mesh` warns). Holes
-    (boundary loops) are reported, never an error: many scanned and TOSCA meshes have them;
-    non-manifold edges are counted in ``n_nonmanifold_edges``.
-
-    Args:
-        vertices: ``(V, 3)`` coordinates.
-        faces: ``(F, 3)`` vertex indices.
-    """
+    """Check ``vertices (V, 3)`` and ``faces (F, 3)``; return a :class:`MeshReport` (holes are reported).
+    Raises :class:`MeshError` for an empty mesh, non-finite coordinates, face indices out of range,
+    degenerate faces, and (unless allowed by flag; ``allow_nonmanifold='warn'``: accepted, and
+    :class:`~torchfmap.Mesh` warns) unreferenced vertices, non-manifold edges, several components."""
     v, f = _as_arrays(vertices, faces)
     if len(v) == 0 or len(f) == 0:
         raise MeshError(
@@ -230,8 +197,7 @@ def validate_mesh(
             f"{len(bad)} faces index vertices outside [0, {len(v)}): faces {_preview(bad)}. {hint}"
         )
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    # degeneracy is scale-free: judge it on coordinates scaled to unit size, so that a tiny or
-    # huge mesh is not called degenerate because its areas under- or overflow
+    # judged on unit-size coordinates: a tiny or huge mesh's areas must not under- or overflow
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
         unit = _unit_coordinates(v)
         areas = _face_areas(unit, f)
@@ -262,15 +228,13 @@ def validate_mesh(
             "`laplacian(mesh, scheme='robust')` (intrinsic tufted Laplacian) with "
             "allow_nonmanifold=True."
         )
-    adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))
-    n_comp, labels = connected_components(adj, directed=False)
+    n_comp, labels = _edge_components(edges, len(v))
     n_comp_used = len(np.unique(labels[used]))
     boundary = edges[counts == 1]
     on_boundary = np.zeros(len(v), dtype=bool)
     on_boundary[boundary.ravel()] = True
     first = coincident_groups(v)
-    # a seam: a boundary vertex at the position of another boundary vertex (coincident vertices
-    # inside the surface, each with its own closed fan, leave the operators as they are)
+    # a seam: boundary vertices at one position (inner ones, each with a closed fan, are harmless)
     n_coincident = int(np.count_nonzero((first != np.arange(len(v))) & on_boundary & on_boundary[first]))
     if n_comp_used > 1 and n_coincident and not allow_components:
         soup = n_comp_used == len(f)
@@ -307,18 +271,10 @@ def validate_mesh(
 
 
 def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
-    """Faces with a consistent orientation on every connected component: ``(faces (F, 3), n_flipped)``.
-
-    Two faces sharing an edge are consistent when they traverse it in opposite directions.
-    Each component is oriented like a breadth-first spanning tree of its faces (edges shared by
-    exactly two faces), keeping the orientation that most of its input faces already had; a
-    component that is closed or nearly so (at most :data:`CLOSED_BOUNDARY_FRACTION` of its edges
-    on a boundary: small holes) and encloses volume (``|signed volume| > 1 %`` of ``area^1.5``)
-    is then turned outward. Corner order changes,
-    vertex order never does. Non-orientable components (a Möbius band) keep a valid
-    orientation on the spanning tree and their remaining conflicts. ``n_flipped`` counts the
-    faces whose corner order was reversed.
-    """
+    """``(faces (F, 3), n_flipped)``: every component consistently oriented along a breadth-first
+    spanning tree of its faces, keeping its majority orientation; components closed but for at most
+    :data:`CLOSED_BOUNDARY_FRACTION` boundary edges, enclosing volume, are turned outward. Only corner
+    order changes; ``n_flipped`` counts the reversed faces."""
     v, f = _as_arrays(vertices, faces)
     nf = len(f)
     he = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1).reshape(-1, 2)
@@ -344,8 +300,7 @@ def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
         for members in np.split(by_comp, np.flatnonzero(np.diff(labels[by_comp])) + 1):
             if len(members) == 1:
                 continue
-            # the component's own subgraph (a search of the whole graph per component costs O(F)
-            # each: quadratic for a mesh of many components), searched from its lowest face
+            # the component's own subgraph (searching the whole graph per component is quadratic)
             sub, rel = graph[members][:, members], relative[members][:, members]
             bfs, pred = breadth_first_order(sub, 0, directed=False, return_predecessors=True)
             kids = bfs[1:]
@@ -358,8 +313,7 @@ def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
     out = f.copy()
     out[flip] = out[flip][:, ::-1]
     # closed (or nearly closed) components: outward normals (positive signed volume)
-    adj = sp.coo_matrix((np.ones(3 * nf), (he[:, 0], he[:, 1])), shape=(n, n))
-    _, vlabels = connected_components(adj, directed=False)
+    vlabels = _edge_components(he, n)[1]
     flabels = vlabels[out[:, 0]]
     unit = _unit_coordinates(v)  # the sign test is scale-free: no overflow
     x0, x1, x2 = unit[out[:, 0]], unit[out[:, 1]], unit[out[:, 2]]
@@ -368,7 +322,6 @@ def orient_faces(vertices, faces) -> tuple[np.ndarray, int]:
     area = _face_areas(unit, out)
     comp_vol = np.bincount(flabels, weights=vol)
     comp_area = np.bincount(flabels, weights=area)
-    # "closed enough": at most CLOSED_BOUNDARY_FRACTION of the component's edges on a boundary
     boundary_he = first[counts == 1]
     comp_boundary = np.bincount(flabels[owner[order[boundary_he]]], minlength=len(comp_vol))
     comp_edges = np.bincount(flabels, minlength=len(comp_vol)) * 1.5

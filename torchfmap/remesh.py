@@ -1,23 +1,6 @@
-"""Remeshing for robustness checks and training-time augmentation (optional extra ``remesh``).
-
-A shape-correspondence method should not depend on how a surface was triangulated. To measure
-that, and to train networks that do not, a shape is remeshed and its ground truth carried
-through: :func:`remesh` returns the new mesh with ``to_new``, the nearest new vertex of every
-old vertex, so an old ground-truth row ``v`` becomes ``to_new[v]``.
-
-Two meshings, both from pymeshlab (the maintained Python binding of MeshLab):
-
-- ``'isotropic'``: explicit isotropic remeshing to a target vertex count (edges of one length);
-- ``'anisotropic'``: the same remeshing of the shape stretched by ``stretch`` along one
-  direction, then unstretched, so triangles are elongated ``stretch : 1`` across that direction
-  (the anisotropic benchmark meshings, FAUST_a and SCAPE_a, mix triangle shapes similarly);
-- ``'decimate'``: quadric edge collapse to the target count (keeps the original vertices'
-  positions, as SCAPE_r / FAUST_r were made).
-
-``density > 1`` (isotropic and anisotropic) also makes edges about ``density`` times longer at
-one end of the shape than at the other, triangle shapes unchanged (a conformal inversion before
-remeshing, :class:`_DensityWarp`), as scans and artist meshes are finer where detail is.
-"""
+"""Remeshing with ground truth carried through (optional pymeshlab): :func:`remesh` by ``'isotropic'`` (edges
+of one length), ``'anisotropic'`` (the same on the shape stretched by ``stretch`` along one direction, then
+unstretched) or ``'decimate'``; ``density > 1``: edges longer at one end (:class:`_DensityWarp`)."""
 
 from __future__ import annotations
 
@@ -31,29 +14,22 @@ from .errors import MeshError, ParameterError
 from .mesh import Mesh
 
 METHODS = ("isotropic", "anisotropic", "decimate")
-#: Bound on the remeshing passes that adjust the edge length towards the target vertex count.
+#: Remeshing passes that adjust the edge length towards the target count, and iterations of one.
 MAX_PASSES = 5
-#: Remeshing iterations of one pass (pymeshlab's ``iterations``).
 ITERATIONS = 6
 
 
 @dataclass
 class Remeshed:
-    """Result of :func:`remesh`: the new ``mesh`` and ``to_new (V_old,)``, the nearest new
-    vertex of every old vertex (carry ground truth with ``to_new[old_ids]``)."""
+    """:func:`remesh`'s new ``mesh`` and ``to_new (V_old,)``, the nearest new vertex of every old one."""
 
     mesh: Mesh
     to_new: np.ndarray
 
 
 class _DensityWarp:
-    """The inversion of ``density`` (module docstring) in a sphere centred at ``c``, outside the
-    shape along the unit vector of ``u``: ``x -> c + (x - c) / |x - c|^2`` (a sphere of radius 1,
-    the scale is immaterial). An inversion is conformal (it keeps angles, only sizes change) and
-    its own inverse; it scales lengths near ``x`` by ``1 / |x - c|^2``, so with the nearest point
-    of the shape at distance ``D`` from ``c`` and the farthest at ``D + R``, edges of one length in
-    the inverted space are ``((D + R) / D)^2 = density`` times longer at the far end:
-    ``D = R / (sqrt(density) - 1)``. ``density == 1``: the identity."""
+    """``x -> c + (x - c) / |x - c|^2`` (its own inverse), ``c`` at ``D = R / (sqrt(density) - 1)`` before the
+    shape's extent ``R`` along ``u``: edges ``((D + R) / D)^2 = density`` times longer at the far end."""
 
     def __init__(self, V: np.ndarray, density: float, u: np.ndarray) -> None:
         self.on = density > 1.0
@@ -92,24 +68,11 @@ def remesh(
     density: float = 1.0,
     seed: int = 0,
 ) -> Remeshed:
-    """``mesh`` remeshed to about ``n_vertices`` vertices (within a few percent), and the
-    nearest new vertex of each old one.
-
-    Args:
-        mesh: a triangle mesh (any scale).
-        n_vertices: target vertex count, ``>= 100``.
-        method: ``'isotropic'``, ``'anisotropic'`` or ``'decimate'`` (module docstring).
-        stretch: elongation of ``'anisotropic'`` triangles, ``> 1``.
-        direction: ``(3,)`` stretch direction of ``'anisotropic'`` (default: a random unit
-            vector drawn from ``seed``).
-        density: ratio of the longest to the shortest edge length across the shape, ``>= 1``
-            (1: uniform; module docstring), varying along a random direction drawn from ``seed``.
-        seed: seed of the random directions.
-
-    Raises:
-        ParameterError: an unknown method, ``n_vertices < 100``, ``stretch <= 1``, ``density < 1``
-            (or with ``'decimate'``) or a zero direction; ImportError without pymeshlab.
-    """
+    """``mesh`` remeshed by ``method`` (module docstring) to about ``n_vertices`` (``>= 100``) vertices,
+    and the nearest new vertex of each old one. ``'anisotropic'`` stretches by ``stretch`` (> 1) along
+    ``direction`` ``(3,)``; ``density`` (>= 1): longest over shortest edge length; random directions come
+    from ``seed``. Raises :class:`ParameterError` for bad arguments (``density > 1`` with ``'decimate'``
+    included), ImportError without pymeshlab, :class:`MeshError` if no pass gives a valid mesh."""
     if method not in METHODS:
         raise ParameterError(f"unknown remeshing method {method!r}. Fix: one of {', '.join(METHODS)}.")
     if int(n_vertices) != n_vertices or n_vertices < 100:

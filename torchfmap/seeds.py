@@ -1,10 +1,5 @@
-"""Seed points: curvature, curvature features, farthest-point sampling, coverage growth.
-
-All functions are deterministic for a given mesh and arguments (ties go to the lowest index).
-Farthest-point sampling can start from a given vertex, from landmarks (kept first, in order),
-or from the vertex of largest smoothed absolute mean curvature (``start='curvature'``, which
-does not depend on vertex order or pose).
-"""
+"""Seed points: curvature, curvature features, farthest-point sampling, coverage growth, seed pairs.
+All are deterministic (ties go to the lowest index)."""
 
 from __future__ import annotations
 
@@ -25,28 +20,15 @@ from .operators.geodesic import DistanceRows, GeodesicSolver
 from .operators.heat import heat_kernels
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
-__all__ = [
-    "consistent_seeds",
-    "check_seeds_cover_components",
-    "corresponding_seeds",
-    "coverage_seeds",
-    "curvature",
-    "curvature_features",
-    "farthest_point_sampling",
-    "gaussian_curvature",
-    "heat_support_radius",
-    "max_curvature_vertex",
-    "mean_curvature",
-]
+__all__ = ["consistent_seeds", "check_seeds_cover_components", "corresponding_seeds", "coverage_seeds"]
+__all__ += ["curvature", "curvature_features", "farthest_point_sampling", "gaussian_curvature"]
+__all__ += ["heat_support_radius", "max_curvature_vertex", "mean_curvature"]
 
 CurvatureMeasure = Literal["mean", "gaussian", "abs_mean"]
 
 
 def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray:
-    """``(V,)`` signed mean curvature ``H`` (``1/R`` on a sphere of radius ``R``, outward normals).
-
-    From the cotangent formula ``L x = 2 H n B``; boundary vertices get 0.
-    """
+    """``(V,)`` signed mean curvature ``H`` (``L x = 2 H n B``, outward normals); 0 on the boundary."""
     L, B = operators if operators is not None else laplacian(mesh, "cotan", "voronoi")
     mass = np.asarray(B.sum(axis=1)).ravel()
     hn = (L @ mesh.vertices) / np.maximum(mass, 1e-300)[:, None]
@@ -56,10 +38,7 @@ def mean_curvature(mesh: Mesh, operators: Operators | None = None) -> np.ndarray
 
 
 def gaussian_curvature(mesh: Mesh) -> np.ndarray:
-    """``(V,)`` Gaussian curvature by the angle defect over the mixed Voronoi area.
-
-    ``(2π - Σθ) / A_i`` inside, ``(π - Σθ) / A_i`` on the boundary; integrates to ``2π χ``.
-    """
+    """``(V,)`` Gaussian curvature: the angle defect (``π`` less on the boundary) over the Voronoi area."""
     v, f = mesh.vertices, mesh.faces
     x = v[f]
     a = np.roll(x, -1, axis=1) - x
@@ -74,11 +53,7 @@ def gaussian_curvature(mesh: Mesh) -> np.ndarray:
 
 
 def curvature(mesh: Mesh, measure: CurvatureMeasure = "mean") -> np.ndarray:
-    """``(V,)`` curvature by the given measure: ``'mean'``, ``'abs_mean'`` or ``'gaussian'``.
-
-    Raises:
-        ParameterError: an unknown ``measure``.
-    """
+    """``(V,)`` curvature by ``measure`` (``'mean'``, ``'abs_mean'``, ``'gaussian'``; else ParameterError)."""
     if measure == "mean":
         return mean_curvature(mesh)
     if measure == "abs_mean":
@@ -88,15 +63,13 @@ def curvature(mesh: Mesh, measure: CurvatureMeasure = "mean") -> np.ndarray:
     raise ParameterError(f"unknown curvature measure {measure!r}. Fix: use 'mean', 'abs_mean' or 'gaussian'.")
 
 
-def _adjacency(mesh: Mesh, weighted: bool = False) -> sp.csr_matrix:
+def _adjacency(mesh: Mesh) -> sp.csr_matrix:
     e = mesh.edges
-    w = mesh.edge_lengths if weighted else np.ones(len(e))
-    a = sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(mesh.n_vertices,) * 2)
+    a = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(mesh.n_vertices,) * 2)
     return (a + a.T).tocsr()
 
 
 def _smooth(mesh: Mesh, values: np.ndarray, steps: int) -> np.ndarray:
-    """``steps`` rounds of averaging over the closed 1-ring."""
     adj = _adjacency(mesh) + sp.identity(mesh.n_vertices, format="csr")
     deg = np.asarray(adj.sum(axis=1)).ravel()
     for _ in range(steps):
@@ -116,12 +89,8 @@ def curvature_features(
     min_separation: float | None = None,
     smooth_steps: int = 2,
 ) -> np.ndarray:
-    """Up to ``k`` feature points: local maxima of smoothed curvature, strongest first.
-
-    A vertex qualifies if its value exceeds those of all its 1-ring neighbours; candidates
-    closer (Euclidean) than ``min_separation`` to a stronger one are suppressed. Default
-    separation: ``sqrt(|M| / k) / 2``. May return fewer than ``k`` points on smooth shapes.
-    """
+    """Up to ``k`` feature points ``(k',)`` int64: strict 1-ring maxima of smoothed curvature, strongest
+    first, none closer than ``min_separation`` (Euclidean; default ``sqrt(|M| / k) / 2``) to a stronger."""
     if k < 1:
         raise ParameterError(f"k must be >= 1, got {k}.")
     values = _smooth(mesh, curvature(mesh, measure), smooth_steps)
@@ -142,16 +111,12 @@ def curvature_features(
 
 
 class _Distances:
-    """Distances from one vertex, geodesic (heat method) or Euclidean."""
-
     def __init__(
         self, mesh: Mesh, metric: str, solver: GeodesicSolver | None, rows: DistanceRows | None = None
     ) -> None:
         if metric not in ("geodesic", "euclidean"):
             raise ParameterError(f"metric must be 'geodesic' or 'euclidean', got {metric!r}.")
-        self.mesh = mesh
-        self.metric = metric
-        self.rows = rows
+        self.mesh, self.metric, self.rows = mesh, metric, rows
         if rows is None:
             self.solver = solver if solver is not None or metric == "euclidean" else GeodesicSolver(mesh)
 
@@ -175,24 +140,10 @@ def farthest_point_sampling(
     distances: DistanceRows | None = None,
     return_radius: bool = False,
 ):
-    """``k`` seeds by farthest-point sampling.
-
-    Args:
-        mesh: the surface.
-        k: total number of seeds (landmarks included).
-        start: first seed when no landmarks are given: a vertex index or ``'curvature'``.
-        landmarks: optional vertex indices kept first, in the given order; FPS continues from them.
-        metric: ``'geodesic'`` (heat method, default) or ``'euclidean'``.
-        solver: a prebuilt :class:`~torchfmap.GeodesicSolver` to reuse.
-        distances: the mesh's :class:`~torchfmap.operators.geodesic.DistanceRows` (geodesic
-            metric): the seeds' rows are taken from it and kept in it (e.g. a prepared shape's
-            ``distances``, so later users of the same rows do not solve them again); the covering
-            radius is then in its units.
-        return_radius: also return the covering radius (largest distance to the nearest seed).
-
-    Returns:
-        ``(k,)`` int64 seeds, and the covering radius if asked.
-    """
+    """``(k,)`` int64 farthest-point seeds (and the covering radius with ``return_radius``): ``landmarks``
+    first (counted in ``k``), else ``start`` (a vertex, or ``'curvature'``: :func:`max_curvature_vertex`).
+    ``metric``: ``'euclidean'`` or ``'geodesic'``, reusing ``solver`` (a :class:`~torchfmap.GeodesicSolver`)
+    or ``distances`` (:class:`~torchfmap.operators.geodesic.DistanceRows`, whose units it then uses)."""
     n = mesh.n_vertices
     if k < 1 or k > n:
         raise ParameterError(f"k must be in [1, {n}] for a mesh of {n} vertices, got {k}.")
@@ -231,37 +182,18 @@ def corresponding_seeds(
     *,
     distances: tuple[DistanceRows, DistanceRows] | None = None,
 ) -> np.ndarray:
-    """``(n_seeds, 2)`` corresponding seed pairs ``(x vertex, y vertex)``: the landmarks, then
-    farthest-point seeds on ``x`` placed on ``y`` by progressive, locally weighted trilateration.
-
-    A point is fixed (up to symmetry) by its geodesic distances to known corresponding points.
-    Each new seed ``s`` (geodesic farthest-point sampling on ``x``, continuing from the placed
-    seeds) goes to ``argmin_v Σ_a w_a (d_y(v, a_y) - d_x(s, a_x))²`` over the pairs ``a`` placed
-    so far, with ``w_a = 1 / (d_x(s, a_x)² + r²)`` and ``r = sqrt(1 / n_seeds)`` the covering
-    radius of the seeds (distances in units of ``sqrt(area)``). Near anchors dominate: a smooth
-    non-isometric deformation is close to a similarity locally, so near distances are the
-    ones it distorts least, and since seeds are placed in farthest-point order every new seed
-    has anchors within about one covering radius. Seeds are distinct on both shapes.
-
-    Args:
-        mesh_x, mesh_y: source and target.
-        landmarks: ``(L, 2)`` pairs ``(x vertex, y vertex)``, ``1 <= L <= n_seeds``.
-        n_seeds: total number of pairs returned (landmarks first, in the given order).
-        distances: prebuilt :class:`~torchfmap.operators.DistanceRows` of both meshes
-            (``normalized=True``) to reuse.
-
-    Raises:
-        SeedError: invalid landmarks; ParameterError: ``n_seeds`` outside
-        ``[L, min(V_x, V_y)]``.
-    """
+    """``(n_seeds, 2)`` distinct seed pairs ``(x vertex, y vertex)``: the ``landmarks`` ``(L, 2)`` first, then
+    geodesic farthest points ``s`` of ``x``, each placed on ``y`` at the ``v`` minimising
+    ``Σ_a w_a (d_y(v, a_y) - d_x(s, a_x))²`` over the pairs ``a`` placed so far, with
+    ``w_a = 1 / (d_x(s, a_x)² + 1 / n_seeds)``; ``distances``: both meshes' ``normalized=True``
+    :class:`~torchfmap.operators.DistanceRows`. Raises :class:`SeedError` for invalid landmarks,
+    :class:`ParameterError` for ``n_seeds`` outside ``[L, min(V_x, V_y)]``."""
     pairs = check_landmark_pairs(landmarks, mesh_x.n_vertices, mesh_y.n_vertices)
     top = min(mesh_x.n_vertices, mesh_y.n_vertices)
     n_seeds = check_count(n_seeds, len(pairs), top, "n_seeds (landmarks to vertices)")
-    dx, dy = (
-        distances
-        if distances is not None
-        else (DistanceRows(mesh_x, normalized=True), DistanceRows(mesh_y, normalized=True))
-    )
+    if distances is None:
+        distances = (DistanceRows(mesh_x, normalized=True), DistanceRows(mesh_y, normalized=True))
+    dx, dy = distances
     r2 = 1.0 / n_seeds
     placed = [(int(a), int(b)) for a, b in pairs]
     used_x, used_y = {a for a, _ in placed}, {b for _, b in placed}
@@ -298,21 +230,9 @@ def coverage_seeds(
     operators: Operators | None = None,
     method: str = "krylov",
 ) -> np.ndarray:
-    """Grow farthest-point seeds until the supports of their heat kernels cover the surface.
-
-    The support of ``K_t(p, .)`` is where it exceeds ``eps`` times its maximum (paper Sect. 4.2).
-    FPS first runs until the covering radius is below the Gaussian estimate
-    :func:`heat_support_radius`; then the actual kernels are computed and, while a vertex is
-    uncovered, the uncovered vertex farthest from all seeds is added.
-
-    Args:
-        time: *relative* diffusion time ``t`` (absolute ``t * |M|``).
-        eps: relative support threshold.
-        max_seeds: give up with :class:`ParameterError` beyond this many seeds.
-
-    Returns:
-        ``(S,)`` seeds (landmarks first).
-    """
+    """``(S,)`` farthest-point seeds (landmarks first, past :func:`heat_support_radius`) whose heat kernels at
+    relative ``time`` (absolute ``time * |M|``) exceed ``eps`` times their maximum on every vertex. Raises
+    :class:`ParameterError` for ``time`` not finite > 0, ``eps`` not in (0, 1), no cover in ``max_seeds``."""
     if not np.isfinite(time) or time <= 0:
         raise ParameterError(f"diffusion time must be finite and > 0, got t={time}. Fix: e.g. t=1e-2.")
     if not 0 < eps < 1:
@@ -351,21 +271,12 @@ def coverage_seeds(
 def replace_seeds(
     distances_x: DistanceRows, distances_y: DistanceRows, seeds: np.ndarray, p2p_yx: np.ndarray, n_fixed: int
 ) -> np.ndarray:
-    """Seed pairs ``(S, 2)`` with their ``y`` side moved to where the map ``p2p_yx`` ``(V_y,)``
-    sends them, within reason.
-
-    Each seed ``s`` after the first ``n_fixed`` (the landmarks) goes to the ``y`` vertex whose
-    image under ``p2p_yx`` is geodesically nearest to ``s`` among the vertices no other seed
-    holds (so the seeds stay distinct), but only if that moves it less than the seeds'
-    covering radius ``sqrt(1 / S)``; otherwise it stays. So every seed ends within the radius
-    of where it was. ``distances_x``, ``distances_y``: distance rows of both shapes in units of
-    ``sqrt(area)`` (``normalized=True``). The map, refined in the seeds' own basis, corrects the
-    small placement errors of trilateration; the radius keeps one wrong region of the map from
-    dragging seeds across the shape.
-    """
+    """Seed pairs ``(S, 2)`` with the ``y`` side of each after the first ``n_fixed`` moved to the free
+    ``y`` vertex whose image under ``p2p_yx (V_y,)`` is geodesically nearest its ``x`` side, unless that
+    moves it by the covering radius ``sqrt(1 / S)`` or more. ``distances_*``: ``normalized=True`` rows."""
     radius = np.sqrt(1.0 / len(seeds))
     out = seeds.copy()
-    held = {int(v) for v in seeds[:, 1]}  # every seed's vertex on y: no seed moves onto another's
+    held = {int(v) for v in seeds[:, 1]}  # no seed moves onto another's
     for i in range(n_fixed, len(seeds)):  # bounded: one pass over the seeds
         s, old = int(seeds[i, 0]), int(seeds[i, 1])
         held.discard(old)
@@ -381,17 +292,9 @@ def replace_seeds(
 def consistent_seeds(
     distances_x: DistanceRows, seeds_x: np.ndarray, images_y: np.ndarray, returns_x: np.ndarray
 ) -> np.ndarray:
-    """Seed pairs ``(S', 2)`` read off a map where its two directions agree: seed ``s`` of ``x``
-    (e.g. farthest points), its image ``t`` on ``y`` (``images_y``, by the map ``x -> y``) and
-    the image of ``t`` back on ``x`` (``returns_x``, by ``y -> x``); the pair ``(s, t)`` is kept
-    when the round trip lands less than half the seeds' covering radius ``sqrt(1 / S)`` from
-    ``s`` (nearer to ``s`` than to any other seed), and its ``t`` is not taken by an earlier
-    seed. ``distances_x``: distance rows of ``x`` in units of ``sqrt(area)``. Order of
-    ``seeds_x`` is kept.
-
-    Raises:
-        ParameterError: the three index arrays differ in length or are not 1-D.
-    """
+    """Seed pairs ``(S', 2)``, in order: ``(s, t)`` for ``s`` in ``seeds_x``, ``t`` its image (``images_y``),
+    where ``t``'s image back (``returns_x``) is within ``sqrt(1 / S) / 2`` of ``s`` (``distances_x``: units of
+    ``sqrt(area)``) and no earlier seed took ``t``. ParameterError unless all three are 1-D of one length."""
     seeds_x, images_y, returns_x = (np.asarray(a, dtype=np.int64) for a in (seeds_x, images_y, returns_x))
     if not (seeds_x.ndim == images_y.ndim == returns_x.ndim == 1) or not (
         len(seeds_x) == len(images_y) == len(returns_x)

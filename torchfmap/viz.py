@@ -1,16 +1,5 @@
-"""Pictures a person would rather look at than read: colour transfer of a map, per-vertex
-errors, PCK curves (PNG), and a map to turn in a browser (:func:`save_transfer_html`).
-
-matplotlib is an optional dependency (``pip install torchfmap[plot]``). Figures are drawn with
-matplotlib's object-oriented API on an Agg canvas, so the user's pyplot backend and state are
-never touched.
-
-Meshes are drawn with the axis ``up`` pointing up (default ``'z'``, as TOSCA's meshes; pyFM's
-cat and lion and many graphics files are ``'y'``-up), from two viewpoints, each axis scaled to
-the mesh's extent so the shape fills its panel. The up axis is a parameter, not guessed: on
-the dev meshes neither the extents (a sitting cat is taller than long) nor the area centroid
-tell it reliably.
-"""
+"""Pictures: colour transfer of a map, per-vertex errors, PCK curves (PNG; optional matplotlib, pyplot
+untouched), a map to turn in a browser (:func:`save_transfer_html`, plotly); ``up``: the vertical axis."""
 
 from __future__ import annotations
 
@@ -31,7 +20,6 @@ VIEWS = (-60.0, 120.0)
 
 
 def _figure(width: float, height: float):
-    """A matplotlib Figure on its own Agg canvas (no pyplot, no global backend change)."""
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
@@ -49,14 +37,13 @@ def _save(fig, path: str | os.PathLike) -> Path:
 
 
 def position_colors(mesh: Mesh) -> np.ndarray:
-    """``(V, 3)`` RGB in ``[0, 1]`` from normalised coordinates (a smooth, injective-ish code)."""
+    """``(V, 3)`` RGB in ``[0, 1]`` from normalised coordinates."""
     v = mesh.vertices - mesh.vertices.min(axis=0)
     return v / np.maximum(v.max(axis=0), 1e-300)
 
 
 def _z_up(vertices: np.ndarray, up: Axis) -> np.ndarray:
-    """Coordinates permuted (a rotation, no mirror) so that axis ``up`` becomes z, the
-    vertical axis of matplotlib's 3-D plots."""
+    """Coordinates permuted (a rotation) so that axis ``up`` becomes z."""
     order = {"x": (1, 2, 0), "y": (2, 0, 1), "z": (0, 1, 2)}
     if up not in order:
         raise ParameterError(f"up must be 'x', 'y' or 'z', got {up!r}.")
@@ -77,16 +64,10 @@ def _draw(ax, mesh: Mesh, face_colors: np.ndarray, title: str, up: Axis, azimuth
     ax.set_title(title, fontsize=9)
 
 
-def _face_colors(mesh: Mesh, vertex_colors: np.ndarray) -> np.ndarray:
-    return np.clip(vertex_colors[mesh.faces].mean(axis=1), 0.0, 1.0)
-
-
 def plot_color_transfer(
     mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, path: str | os.PathLike, *, up: Axis = "z"
 ) -> Path:
-    """Colour ``x`` by position and carry the colours to ``y`` through ``p2p_yx`` ``(V_y,)``;
-    save a PNG with both meshes from two viewpoints (a good map gives ``y`` the same smooth
-    colour field as ``x``). ``up``: the meshes' vertical axis."""
+    """Save a PNG of ``x`` coloured by position and ``y`` coloured through ``p2p_yx`` ``(V_y,)``."""
     p2p_yx = np.asarray(p2p_yx)
     if p2p_yx.shape != (mesh_y.n_vertices,):
         raise ParameterError(f"p2p_yx must have shape ({mesh_y.n_vertices},), got {p2p_yx.shape}.")
@@ -97,17 +78,17 @@ def plot_color_transfer(
         (mesh_y, colors[p2p_yx], f"target {mesh_y.name or 'y'}, colours carried by the map"),
     )
     for r, (mesh, col, title) in enumerate(rows):
+        face = np.clip(col[mesh.faces].mean(axis=1), 0.0, 1.0)
         for c, azimuth in enumerate(VIEWS):
             ax = fig.add_subplot(2, 2, 2 * r + c + 1, projection="3d")
-            _draw(ax, mesh, _face_colors(mesh, col), title if c == 0 else "(other side)", up, azimuth)
+            _draw(ax, mesh, face, title if c == 0 else "(other side)", up, azimuth)
     return _save(fig, path)
 
 
 def plot_errors(
     mesh: Mesh, errors: np.ndarray, path: str | os.PathLike, *, up: Axis = "z", title: str = ""
 ) -> Path:
-    """Per-vertex errors ``(V,)`` (e.g. geodesic error / sqrt(area) of a map, on the target)
-    drawn on ``mesh`` from two viewpoints, with a colour bar; saved as PNG."""
+    """Save a PNG of per-vertex ``errors`` ``(V,)`` drawn on ``mesh``, with a colour bar."""
     errors = np.asarray(errors, dtype=np.float64)
     if errors.shape != (mesh.n_vertices,) or not np.isfinite(errors).all():
         raise ParameterError(f"errors must be ({mesh.n_vertices},) finite values, got shape {errors.shape}.")
@@ -134,17 +115,13 @@ def plot_pck(
     ax = fig.add_subplot(1, 1, 1)
     for label, (thr, acc) in curves.items():
         ax.plot(thr, 100 * np.asarray(acc), label=label)
-    ax.set_xlabel("geodesic error / sqrt(area)")
-    ax.set_ylabel("% correspondences")
-    ax.set_ylim(0, 100)
+    ax.set(xlabel="geodesic error / sqrt(area)", ylabel="% correspondences", ylim=(0, 100), title=title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title(title)
     return _save(fig, path)
 
 
-#: The marker a page of :func:`save_transfer_html` sets on ``<body>`` once plotly has drawn it
-#: (``data-torchfmap-drawn``: the number of meshes drawn), and the one it sets on a script error.
+#: Attributes a :func:`save_transfer_html` page sets on ``<body>``: meshes drawn, and a script error.
 HTML_DRAWN, HTML_ERROR = "data-torchfmap-drawn", "data-torchfmap-error"
 
 
@@ -161,15 +138,9 @@ def _mesh_trace(go, mesh: Mesh, colors: np.ndarray, scene: str, name: str):
 def save_transfer_html(
     mesh_x: Mesh, mesh_y: Mesh, p2p_yx: np.ndarray, path: str | os.PathLike, *, up: Axis = "z"
 ) -> Path:
-    """The colour transfer of :func:`plot_color_transfer` as one self-contained HTML page:
-    source and target side by side, each rotatable and zoomable with the mouse (plotly's
-    JavaScript is embedded, so the page needs no network when it is viewed). ``p2p_yx (V_y,)``;
-    ``up``: the meshes' vertical axis (the cameras' up). Written atomically; returns the path.
-
-    Raises:
-        TorchFmapError: plotly is not installed (optional extra ``torchfmap[html]``).
-        ParameterError: ``p2p_yx`` of the wrong shape or out of range, or an unknown ``up``.
-    """
+    """:func:`plot_color_transfer` (``p2p_yx (V_y,)``) as a self-contained, rotatable HTML page written
+    atomically; returns the path. Raises :class:`TorchFmapError` without plotly, :class:`ParameterError`
+    for a bad ``p2p_yx`` or ``up``."""
     p2p_yx = check_p2p(p2p_yx, mesh_y.n_vertices, mesh_x.n_vertices, "p2p_yx")
     if up not in ("x", "y", "z"):
         raise ParameterError(f"up must be 'x', 'y' or 'z', got {up!r}.")

@@ -1,10 +1,5 @@
-"""Partial shapes made from whole ones, with their ground truth: a plane cut
-(:func:`cut_plane`) or round holes (:func:`cut_holes`), as the SHREC'16 partial benchmark's cuts
-and holes were made. Each returns a :class:`Cut`: the part and, for every vertex of the part, its
-vertex on the whole shape (the part keeps the whole shape's vertex positions and relative order,
-so the ground truth is exact; remesh the part, :func:`torchfmap.remesh.remesh`, for a part that is
-not a subset of the whole's vertices).
-"""
+"""Partial shapes (:class:`Cut`) cut from whole ones, vertex positions and order kept, with exact ground
+truth: :func:`cut_plane`, :func:`cut_holes`, :func:`overlapping_cuts`; see :func:`torchfmap.remesh.remesh`."""
 
 from __future__ import annotations
 
@@ -17,10 +12,8 @@ from ..errors import MeshError, ParameterError
 from ..mesh import Mesh
 from ..operators.geodesic import geodesic_distances
 
-#: Bisection steps of the cut position that reaches the asked area ratio (each halves the
-#: interval of plane offsets: the ratio is met to within one face's area).
+#: Bisection steps of the plane offset that reaches the asked area ratio.
 CUT_STEPS = 60
-
 #: Draws of :func:`overlapping_cuts` before it gives up.
 OVERLAP_DRAWS = 50
 
@@ -28,8 +21,7 @@ __all__ = ["Cut", "cut_holes", "cut_plane", "overlapping_cuts"]
 
 
 class Cut(NamedTuple):
-    """A part of a whole mesh: ``mesh`` (the part) and ``vertices`` ``(V_part,)``, the vertex of
-    the whole mesh each part vertex is (the ground-truth map part -> whole, 0-based)."""
+    """A part ``mesh`` of a whole mesh and ``vertices`` ``(V_part,)``, the ground-truth map part -> whole."""
 
     mesh: Mesh
     vertices: np.ndarray
@@ -46,24 +38,16 @@ def _check_ratio(area_ratio: float) -> float:
 
 
 def _kept_part(mesh: Mesh, drop_faces: np.ndarray) -> Cut:
-    """The largest connected piece left when ``drop_faces`` (bool ``(F,)``) are removed."""
     part, ids = mesh.without_faces(np.flatnonzero(drop_faces)).referenced()
     piece, kept = part.largest_component()
     return Cut(Mesh(piece.vertices, piece.faces, name=f"{mesh.name or 'shape'}-part"), ids[kept])
 
 
 def cut_plane(mesh: Mesh, area_ratio: float, normal=None, *, seed: int = 0) -> Cut:
-    """The part of ``mesh`` on one side of a plane, keeping about ``area_ratio`` of its area.
-
-    ``normal`` ``(3,)``: the plane's normal (the part is on its negative side); default a random
-    direction drawn with ``seed``. The plane's offset is found by bisection (:data:`CUT_STEPS`)
-    on face centroids; the largest connected piece is kept (a plane can cut a limb off), so the
-    part's area can fall below ``area_ratio`` by that piece's share.
-
-    Raises:
-        ParameterError: ``area_ratio`` outside ``[0.05, 1)`` or a zero ``normal``.
-        MeshError: the cut leaves no faces.
-    """
+    """The largest piece of ``mesh`` on the negative side of a plane of ``normal`` ``(3,)`` (default
+    random, from ``seed``; offset by :data:`CUT_STEPS` bisection steps) keeping about ``area_ratio`` of its
+    area (less when the plane cuts a limb off). Raises :class:`ParameterError` for ``area_ratio`` outside
+    ``[0.05, 1)`` or a zero ``normal``, :class:`MeshError` if the cut leaves no faces."""
     area_ratio = _check_ratio(area_ratio)
     if normal is None:
         normal = np.random.default_rng(seed).normal(size=3)
@@ -86,12 +70,8 @@ def cut_plane(mesh: Mesh, area_ratio: float, normal=None, *, seed: int = 0) -> C
 
 
 def cut_holes(mesh: Mesh, area_ratio: float, n_holes: int = 3, *, seed: int = 0) -> Cut:
-    """``mesh`` with ``n_holes`` round holes (geodesic balls about random centres, grown
-    together) removing about ``1 - area_ratio`` of its area; the largest connected piece is kept.
-
-    Raises:
-        ParameterError: ``area_ratio`` outside ``[0.05, 1)`` or ``n_holes < 1``.
-    """
+    """The largest piece of ``mesh`` after ``n_holes`` (>= 1) geodesic balls about random centres (``seed``)
+    remove about ``1 - area_ratio`` of its area (in [0.05, 1), else :class:`ParameterError`)."""
     area_ratio = _check_ratio(area_ratio)
     n_holes = check_count(n_holes, 1, mesh.n_vertices, "n_holes")
     centres = np.random.default_rng(seed).choice(mesh.n_vertices, n_holes, replace=False)
@@ -107,16 +87,10 @@ def cut_holes(mesh: Mesh, area_ratio: float, n_holes: int = 3, *, seed: int = 0)
 def overlapping_cuts(
     mesh: Mesh, *, seed: int = 0, shares: tuple[float, float] = (0.3, 0.7), area_ratios=(0.45, 0.85)
 ) -> tuple[Cut, Cut]:
-    """Two plane cuts of ``mesh`` that overlap partly (partial-to-partial test data): the first
-    on the negative side of a random normal ``n``, the second on the negative side of
-    ``-n`` plus a random tilt, each keeping an area ratio drawn in ``area_ratios``; drawn with
-    ``seed`` until the overlap (the whole's vertices in both, by lumped area) is within
-    ``shares`` of each part's area, at most :data:`OVERLAP_DRAWS` draws. Part-a vertex ``i`` and
-    part-b vertex ``j`` correspond iff ``a.vertices[i] == b.vertices[j]``.
-
-    Raises:
-        ParameterError: ``shares`` not ``0 <= lo < hi <= 1``, or no draw met them.
-    """
+    """Two plane cuts of ``mesh`` (normals ``n`` and ``-n`` tilted, area ratios drawn in ``area_ratios``
+    from ``seed``) whose overlap is within ``shares`` of each part's area, at most :data:`OVERLAP_DRAWS`
+    draws (else, or for ``shares`` not ``0 <= lo < hi <= 1``, :class:`ParameterError`). Part-a vertex
+    ``i`` and part-b vertex ``j`` correspond iff ``a.vertices[i] == b.vertices[j]``."""
     lo, hi = shares
     if not 0 <= lo < hi <= 1:
         raise ParameterError(f"shares must be 0 <= lo < hi <= 1, got {shares!r}.")

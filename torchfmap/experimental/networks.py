@@ -1,11 +1,5 @@
-"""Feature networks kept as baselines of experiments, outside the core learned path.
-
-:class:`FeatureNet` is the first learned path's network (spectral diffusion and MLPs, no
-gradient features; ``python -m bench speed --case train_recipe`` compares it with the recipe's
-:class:`~torchfmap.nn.networks.DiffusionNet`). It follows the
-:class:`~torchfmap.nn.networks.FeatureNetwork` protocol, so training, checkpoints and
-:class:`~torchfmap.nn.LearnedMatcher` take it as any user network.
-"""
+"""Feature networks kept as baselines, outside the core learned path: :class:`FeatureNet` (compared with
+:class:`~torchfmap.nn.networks.DiffusionNet`; usable by :class:`~torchfmap.nn.LearnedMatcher`)."""
 
 from __future__ import annotations
 
@@ -19,16 +13,9 @@ from ..nn.modules import SpectralDiffusion
 
 
 class FeatureNet(nn.Module):
-    """The first learned path's network (kept as a baseline: ``python -m bench speed --case
-    train_recipe``): spectral
-    diffusion in any basis and MLPs, no gradient features.
-
-    ``forward(inputs (B, V, C_in), basis, grad=None) -> (B, V, C_out)`` (the
-    :class:`FeatureNetwork` protocol; ``grad`` is ignored): a linear lift, ``n_blocks`` residual
-    blocks of [learned spectral diffusion, MLP on (x, diffused x)], a linear head. ``check``:
-    refuse non-finite inputs (a data check; None: on CPU inputs only). ``init_kwargs`` holds the
-    constructor arguments.
-    """
+    """A :class:`~torchfmap.nn.networks.FeatureNetwork` without gradient features: a linear lift, ``n_blocks``
+    residual blocks of [spectral diffusion in any basis, MLP on (x, diffused x)], a linear head. ``check``:
+    refuse non-finite inputs (None: on CPU inputs only)."""
 
     def __init__(
         self, c_in: int, c_out: int = 64, width: int = 64, n_blocks: int = 3, check: bool | None = None
@@ -47,11 +34,7 @@ class FeatureNet(nn.Module):
     def forward(
         self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch | None = None
     ) -> torch.Tensor:
-        """``inputs (B, V, C_in)`` -> features ``(B, V, C_out)`` in ``inputs``' dtype.
-
-        Raises:
-            ParameterError: with ``check``, non-finite inputs.
-        """
+        """``inputs (B, V, C_in)`` -> ``(B, V, C_out)``; with ``check``, ParameterError for non-finite."""
         basis = F.basis_like(basis, inputs)
         if resolve_check(self.check, inputs):
             check_finite(inputs, "FeatureNet inputs", "check the precomputed inputs.")

@@ -1,12 +1,6 @@
-"""A self-seeded second stage for the classical path without landmarks (an experiment, measured
-against ZoomOut alone by ``python -m bench accuracy --case seeded_refine``).
-
-:func:`seeded_match`: the eigenbasis map refined by ZoomOut (stage 1); seed pairs where it
-agrees both ways (:data:`SEEDED_SEEDS` farthest points of ``x`` sent to ``y`` and back by the
-orthogonal rule of ``C_xy`` and ``C_xyᵀ``, :func:`~torchfmap.experimental.seeded.map_seeds`); then the pair
-solved again with those seeds as landmarks (descriptors and constraints) in the eigenbasis and
-refined by ZoomOut, guarded by the geodesic distortion (stage 2).
-"""
+"""A self-seeded second stage for the classical path (an experiment): :func:`seeded_match` reads seed pairs
+off the eigenbasis ZoomOut map at :data:`SEEDED_SEEDS` farthest points (:func:`map_seeds`), then solves the
+pair again with them as landmarks."""
 
 from __future__ import annotations
 
@@ -29,9 +23,8 @@ SEEDED_SEEDS = 40
 
 
 class SeededMatch(NamedTuple):
-    """:func:`seeded_match`'s result: stage 2's map (``result.seeds``: the seed pairs ``(S, 2)``
-    it was solved with, as landmarks; timings of stage 1 prefixed ``stage1:``) and stage 1's
-    ZoomOut map (``first_stage``, the one the seeds were read from)."""
+    """:func:`seeded_match`'s result: stage 2's map (``result.seeds``: its seed pairs ``(S, 2)``; stage 1's
+    timings prefixed ``stage1:``) and stage 1's ZoomOut map (``first_stage``)."""
 
     result: MatchResult
     first_stage: MatchResult
@@ -48,15 +41,9 @@ def seeded_match(
     n_seeds: int = SEEDED_SEEDS,
     **match_kwargs,
 ) -> SeededMatch:
-    """Match ``y`` to ``x`` in two stages (module docstring). ``k``, ``k_final``,
-    ``k_descriptors``, ``shapes`` and ``match_kwargs`` (descriptor and weight settings) are
-    :func:`torchfmap.match`'s, for both stages; the shapes are prepared once. Stage 2 is skipped
-    (``result`` is stage 1's) when fewer than two seeds agree.
-
-    Raises:
-        ParameterError: landmarks, bases, a basis or a refinement in ``match_kwargs`` (the stages
-            seed themselves, in the eigenbasis, refined by ZoomOut); or as :func:`~torchfmap.match`.
-    """
+    """Match ``y`` to ``x`` in two stages (module docstring), with :func:`torchfmap.match`'s other arguments
+    for both; stage 2 is skipped (``result`` is stage 1's) when fewer than two seeds agree. ParameterError for
+    landmarks, bases, a basis or a refinement in ``match_kwargs``."""
     refused = sorted(set(match_kwargs) & {"landmarks", "bases", "basis", "refine"})
     if refused:
         raise ParameterError(
@@ -87,14 +74,10 @@ def map_seeds(
     n_seeds: int,
     landmarks: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Seed pairs ``(S, 2)`` a map is sure of: ``landmarks`` ``(L, 2)`` first (if given), then
-    ``n_seeds`` farthest points of ``x`` (continuing from the landmarks) sent to ``y`` by
-    ``C_yx (K_x, K_y)`` and back by ``C_xy (K_y, K_x)`` (orthogonal rule in the bases
-    ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``; only the seeds' rows are converted),
-    kept where they agree (:func:`~torchfmap.seeds.consistent_seeds`); no vertex of ``y``
-    twice. The seeds of both self-seeded second stages (``experimental.seeded.seeded_match``,
-    :mod:`torchfmap.experimental.stages`); without landmarks, the farthest points are computed once per
-    shape (cached on ``shape_x``)."""
+    """Seed pairs ``(S, 2)``: ``landmarks`` ``(L, 2)`` first, then those of ``n_seeds`` farthest points of
+    ``x`` sent to ``y`` by ``C_yx (K_x, K_y)`` and back by ``C_xy (K_y, K_x)`` (orthogonal rule in
+    ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``) that agree (:func:`~torchfmap.seeds.consistent_seeds`);
+    no vertex of ``y`` twice. Without landmarks the farthest points are cached on ``shape_x``."""
     given = np.zeros((0, 2), dtype=np.int64) if landmarks is None else np.asarray(landmarks, dtype=np.int64)
     n = min(n_seeds + len(given), shape_x.mesh.n_vertices)
     if len(given):

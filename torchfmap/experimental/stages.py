@@ -1,17 +1,7 @@
-"""The self-seeded second stage of the learned path (an experiment, outside the core API):
-feature-aware bases built where the first-stage map is sure of itself, and the same features
-solved again in them. Trained as a plug-in loss of the core loop
-(``Trainer(..., extra_losses=[StageTwoLoss(shapes.mesh)])``, :class:`StageTwoLoss`), run at
-inference by :func:`two_stage_p2p`.
-
-Seeds: farthest points of ``x`` whose stage-1 images come back near them
-(:func:`~torchfmap.seeds.consistent_seeds`; user landmarks first, only the seeds' rows of the
-stage-1 maps are evaluated). Bases: the stage-1 eigenbasis then heat kernels at the seed pairs
-(:func:`~torchfmap.bases.prepared.seed_kernels`), orthonormalised as a pair
-(:func:`~torchfmap.bases.orthonormalize_pair`). The seeds come from the detached stage-1 map, so
-training differentiates through stage 2's solve, not through the seeding. Why it can help, and
-what it measured (``python -m bench learned --case stage_two``): docs/learning.md.
-"""
+"""The self-seeded second stage of the learned path (an experiment): the features solved again in bases at
+seed pairs of the detached stage-1 maps (:func:`~torchfmap.seeds.consistent_seeds`,
+:func:`~torchfmap.bases.prepared.seed_kernels`, :func:`~torchfmap.bases.orthonormalize_pair`); a plug-in
+loss (:class:`StageTwoLoss`), :func:`two_stage_p2p`."""
 
 from __future__ import annotations
 
@@ -34,26 +24,16 @@ from ..nn.modules import BasisModule
 from ..nn.networks import check_network, features
 from .seeded import map_seeds
 
-#: Farthest-point seeds of ``x`` offered to the second stage (columns of its bases at most).
+#: Farthest-point seeds of ``x`` offered to the second stage, and the fewest it needs (else skipped).
 STAGE2_SEEDS = 40
-#: Fewest consistent seed pairs the second stage needs; with fewer it is skipped (the stage-1
-#: map stands).
 STAGE2_MIN_SEEDS = 8
 
 
 @dataclass
 class StageTwo:
-    """Settings and per-shape state of the second stage.
-
-    ``n_seeds`` farthest points are offered, at least ``min_seeds`` consistent pairs are needed.
-    The solve is the stage-1 solver's (passed to :meth:`solve`). Shapes are prepared once per
-    key (:meth:`shape`; operators, geodesic rows and heat kernels, cached in the
-    :class:`~torchfmap.bases.prepared.PreparedShape`), for as long as the caller keeps this
-    object.
-
-    Raises:
-        ParameterError: ``n_seeds < min_seeds`` or ``min_seeds < 2``.
-    """
+    """Settings and per-shape state of the second stage: :attr:`n_seeds` farthest points offered, at least
+    ``min_seeds`` (>= 2, <= ``n_seeds``, else ParameterError) consistent pairs needed; ``shapes``: the
+    :class:`~torchfmap.bases.prepared.PreparedShape` of each key (:meth:`shape`). :meth:`solve` solves."""
 
     n_seeds: int = STAGE2_SEEDS
     min_seeds: int = STAGE2_MIN_SEEDS
@@ -72,16 +52,14 @@ class StageTwo:
         return self.shapes[key]
 
     def seeds(self, shape_x, C_xy, C_yx, values_x, values_y, landmarks=None) -> np.ndarray:
-        """Seed pairs ``(S, 2)`` of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in
-        the eigenbases ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``: ``landmarks`` first,
-        then the consistent ones of :attr:`n_seeds` farthest points
-        (:func:`~torchfmap.experimental.seeded.map_seeds`, as the classical ``refine='seeded'``)."""
+        """Seed pairs ``(S, 2)`` of the stage-1 maps ``C_xy (K_y, K_x)``, ``C_yx (K_x, K_y)`` in the
+        eigenbases ``values_x (V_x, K_x)``, ``values_y (V_y, K_y)``, landmarks first
+        (:func:`~torchfmap.experimental.seeded.map_seeds`)."""
         return map_seeds(shape_x, C_xy, C_yx, values_x, values_y, self.n_seeds, landmarks)
 
     def run(self, solver, shape_x, shape_y, feat_x, feat_y, C_xy, C_yx, values_x, values_y, landmarks=None):
-        """Stage 2 from the stage-1 maps (numpy ``C_xy``, ``C_yx``; features ``(1, V, D)``):
-        ``(seeds, basis_x, basis_y, (C_xy, C_yx, batch_x, batch_y))``, or None with fewer than
-        :attr:`min_seeds` seeds."""
+        """Stage 2 from numpy stage-1 maps and features ``(1, V, D)``: ``(seeds, basis_x, basis_y, solved)``
+        (``solved``: :meth:`solve`'s), or None with fewer than :attr:`min_seeds` seeds."""
         seeds = self.seeds(shape_x, C_xy, C_yx, values_x, values_y, landmarks)
         if len(seeds) < self.min_seeds:
             return None
@@ -96,10 +74,8 @@ class StageTwo:
         eigen_x: np.ndarray,
         eigen_y: np.ndarray,
     ) -> tuple[Basis, Basis]:
-        """Stage-2 bases ``(V, K + S')``: the eigenbasis values ``eigen_* (V, K)`` (B-orthonormal
-        in the shapes' frames), then the heat kernels at ``seeds`` ``(S, 2)`` (relative time
-        :func:`~torchfmap.kinds.seed_time` of ``S``), orthonormalised as a pair (a column is
-        kept only where it is independent on both shapes)."""
+        """Stage-2 bases ``(V, K + S')``: the eigenbasis values ``eigen_* (V, K)``, then heat kernels at
+        ``seeds`` ``(S, 2)`` (time :func:`~torchfmap.kinds.seed_time` of ``S``), orthonormalised as a pair."""
         t = seed_time(len(seeds))
         blocks = []
         for shape, eigen, side in ((shape_x, eigen_x, 0), (shape_y, eigen_y, 1)):
@@ -143,11 +119,9 @@ def two_stage_p2p(
     device="cpu",
     landmarks: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """``(p2p_yx of stage 1, p2p_yx of stage 2, seed pairs used)`` of one pair of dataset items
-    (:class:`~torchfmap.nn.data.ShapeDataset`) whose meshes were prepared as ``shape_x``,
-    ``shape_y`` (the frame of the items' eigenbases). With fewer than ``stage.min_seeds``
-    consistent seeds the second map is the first (and 0 seeds are reported). ``landmarks``
-    ``(L, 2)``: user seed pairs placed first."""
+    """``(p2p_yx of stage 1, p2p_yx of stage 2, seed pairs used)`` of one pair of
+    :class:`~torchfmap.nn.data.ShapeDataset` items prepared as ``shape_x``, ``shape_y`` (too few seeds: stage
+    1's map twice, 0); ``landmarks`` ``(L, 2)``: seed pairs placed first."""
     check_network(net)
     net.eval()
     sx, sy = pair_batches(x, y, device)
@@ -167,15 +141,9 @@ def two_stage_p2p(
 def stage_two_loss(
     stage: StageTwo, solver, loss_fn, out, batch: dict, mesh_of, generator=None
 ) -> dict | None:
-    """The loss terms of stage 2 of a collated batch of one pair (training): seeds from the
-    detached stage-1 maps of ``out`` (:class:`~torchfmap.nn.train.PairForward`, both
-    directions), bases at them on the pair's shapes (``mesh_of(dataset index) -> Mesh``,
-    prepared once per index in ``stage``), and ``loss_fn`` of the stage-2 maps of the same
-    features. None when too few seeds are consistent (the step then trains stage 1 only).
-
-    Raises:
-        ParameterError: a batch of more than one pair, or a solver without ``C_yx``.
-    """
+    """``loss_fn`` of the stage-2 maps of a batch of one pair, from the detached stage-1 maps of ``out``
+    (:class:`~torchfmap.nn.train.PairForward`), on shapes ``mesh_of(dataset index) -> Mesh``; None when
+    too few seeds are consistent. ParameterError for more than one pair or a solver without ``C_yx``."""
     if len(batch["index"]) != 1:
         raise ParameterError("the second stage trains on batches of one pair. Fix: batch_size=1.")
     _check_both(out.C_yx)
@@ -193,14 +161,9 @@ def stage_two_loss(
 
 @dataclass
 class StageTwoLoss:
-    """The second stage as a plug-in loss of the core loop
-    (:class:`~torchfmap.nn.train.ExtraLoss`; ``Trainer(..., extra_losses=[StageTwoLoss(shapes.mesh)])``):
-    :func:`stage_two_loss` with the trainer's solver and loss, its terms logged as
-    ``stage2_<term>``. ``mesh_of(dataset index) -> Mesh``: the dataset's meshes
-    (:meth:`~torchfmap.nn.data.ShapeDataset.mesh`); ``stage``: the settings and per-shape state.
-    A step whose stage-1 map has too few consistent seeds adds zeros (it trains stage 1 only).
-    Batches of one pair (``TrainConfig.batch_size == 1``).
-    """
+    """The second stage as a plug-in loss (:class:`~torchfmap.nn.train.ExtraLoss`): :func:`stage_two_loss`
+    with the trainer's solver and loss, logged as ``stage2_<term>``, zeros when seeds are too few.
+    ``mesh_of``: e.g. :meth:`~torchfmap.nn.data.ShapeDataset.mesh`; batches of one pair."""
 
     mesh_of: Callable[[int], Mesh]
     stage: StageTwo = field(default_factory=StageTwo)
@@ -209,6 +172,5 @@ class StageTwoLoss:
     def __call__(self, out, batch: dict, *, solver, loss_fn, generator=None) -> dict:
         second = stage_two_loss(self.stage, solver, loss_fn, out, batch, self.mesh_of, generator)
         if second is None:
-            ref = out.C_xy.sum() * 0  # zeros on the graph's device and dtype
-            return {"total": ref}
+            return {"total": out.C_xy.sum() * 0}  # zeros on the graph's device and dtype
         return second
