@@ -62,15 +62,16 @@ from .seeds import (
 
 __version__ = "0.1.0"
 
-__all__ = ["KINDS", "Basis", "Column", "basis_stack", "coverage_seeds", "curvature", "curvature_features"]
-__all__ += ["diffusion_basis", "farthest_point_sampling", "gaussian_curvature", "harmonic_basis"]
-__all__ += ["heat_kernels", "laplacian_eigenbasis", "mean_curvature", "orthonormalize", "orthonormalize_pair"]
-__all__ += ["support_fraction", "Factorization", "GeodesicSolver", "Mesh", "MeshError", "MeshReport"]
-__all__ += ["MeshWarning", "CostWarning", "EvaluationInterrupted", "WorkerLost", "MapWarning"]
-__all__ += ["MemoryEstimateError", "FileReadError", "FileWriteError", "CorruptFileError", "Operators"]
-__all__ += ["ParameterError", "ConvergenceError", "SeedError", "TorchFmapError", "__version__"]
-__all__ += ["available_backends", "factorize", "geodesic_distances", "laplacian", "load_mesh", "load_points"]
-__all__ += ["mass_matrix", "eigenpairs", "point_cloud_laplacian", "prepare_shape", "PreparedShape"]
-__all__ += ["geodesic_distortion", "orientation_agreement", "save_mesh", "total_area", "validate_mesh"]
-__all__ += ["weld_vertices", "evaluate_map", "fmap_to_p2p", "p2p_to_fmap", "solve_fmap", "MatchResult"]
-__all__ += ["match"]
+__all__ = [
+    "KINDS", "Basis", "Column", "basis_stack", "coverage_seeds", "curvature", "curvature_features",
+    "diffusion_basis", "farthest_point_sampling", "gaussian_curvature", "harmonic_basis", "heat_kernels",
+    "laplacian_eigenbasis", "mean_curvature", "orthonormalize", "orthonormalize_pair", "support_fraction",
+    "Factorization", "GeodesicSolver", "Mesh", "MeshError", "MeshReport", "MeshWarning", "CostWarning",
+    "EvaluationInterrupted", "WorkerLost", "MapWarning", "MemoryEstimateError", "FileReadError",
+    "FileWriteError", "CorruptFileError", "Operators", "ParameterError", "ConvergenceError", "SeedError",
+    "TorchFmapError", "__version__", "available_backends", "factorize", "geodesic_distances", "laplacian",
+    "load_mesh", "load_points", "mass_matrix", "eigenpairs", "point_cloud_laplacian", "prepare_shape",
+    "PreparedShape", "geodesic_distortion", "orientation_agreement", "save_mesh", "total_area",
+    "validate_mesh", "weld_vertices", "evaluate_map", "fmap_to_p2p", "p2p_to_fmap", "solve_fmap",
+    "MatchResult", "match",
+]  # fmt: skip

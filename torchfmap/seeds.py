@@ -20,9 +20,11 @@ from .operators.geodesic import DistanceRows, GeodesicSolver
 from .operators.heat import heat_kernels
 from .operators.laplacian import Operators, laplacian, mass_matrix
 
-__all__ = ["consistent_seeds", "check_seeds_cover_components", "corresponding_seeds", "coverage_seeds"]
-__all__ += ["curvature", "curvature_features", "farthest_point_sampling", "gaussian_curvature"]
-__all__ += ["heat_support_radius", "max_curvature_vertex", "mean_curvature"]
+__all__ = [
+    "consistent_seeds", "check_seeds_cover_components", "corresponding_seeds", "coverage_seeds",
+    "curvature", "curvature_features", "farthest_point_sampling", "gaussian_curvature",
+    "heat_support_radius", "max_curvature_vertex", "mean_curvature",
+]  # fmt: skip
 
 CurvatureMeasure = Literal["mean", "gaussian", "abs_mean"]
 
