@@ -1,16 +1,7 @@
-"""PyTorch layers over the same functional-map code as the classical path.
-
-Functions (:mod:`torchfmap.nn.functional`) do the work; modules hold settings and buffers.
-Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass, ``(B, V, D)`` features,
-``(B, K_y, K_x)`` maps ``C_xy``. Padding of a batch is recorded once, in
-:class:`BasisBatch` (``lengths`` vertex counts, ``valid`` column mask).
-
-**The check switch.** Every function with data checks takes ``check: bool | None = None`` and
-every layer the same setting: ``None`` runs them on CPU inputs only, ``True`` / ``False`` force
-it; shape checks always run (:mod:`torchfmap._util.torch_checks`).
-
-What each module holds: docs/architecture.md, "Data flow" (the ``learning`` row).
-"""
+"""PyTorch layers over the classical path's functional-map code: functions (:mod:`torchfmap.nn.functional`)
+do the work, modules hold settings and buffers. Shapes: ``(B, V, K)`` basis values, ``(B, V)`` lumped mass,
+``(B, V, D)`` features, ``(B, K_y, K_x)`` maps ``C_xy``, padding in :class:`BasisBatch`.
+``check: bool | None = None`` switches data checks (None: CPU inputs only)."""
 
 from . import functional
 from .checkpoints import load_checkpoint, read_checkpoint, read_recipe, save_checkpoint
@@ -37,13 +28,7 @@ from .modules import (
     UnsupervisedFMLoss,
     basis_arrays,
 )
-from .networks import (
-    DiffusionNet,
-    FeatureNetwork,
-    SpatialGradientFeatures,
-    check_network,
-    features,
-)
+from .networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures, check_network, features
 from .shipped import shipped_models
 from .train import TrainState, unsupervised_score
 from .trainer import Trainer

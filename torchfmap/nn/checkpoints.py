@@ -1,14 +1,5 @@
-"""Checkpoints: atomic, checksummed files (:func:`~torchfmap._util.files.save_checked_bytes`) of the
-weights, the recipe, the network's record and any extras, read back without running code.
-
-The **network record** ``ckpt['network'] = {'class': 'module:qualname', 'kwargs': {...}}`` names
-the network's class and its constructor arguments (see :mod:`torchfmap.nn.networks` for how a
-network gives them), so :func:`load_checkpoint` rebuilds any importable ``torch.nn.Module``
-class, not only the reference :class:`~torchfmap.nn.networks.DiffusionNet`. Files are read with
-``torch.load(weights_only=True)``: tensors and plain containers only, never pickled objects;
-rebuilding imports the recorded module, code already installed, never code from the file.
-Checkpoints without a record are refused.
-"""
+"""Checkpoints: atomic, checksummed files of weights, recipe, extras and a network record (``'class'`` and
+``'kwargs'``: any importable class is rebuilt), read with ``weights_only=True``."""
 
 from __future__ import annotations
 
@@ -33,19 +24,16 @@ _PLAIN = (type(None), bool, int, float, str)
 def _check_plain(value, where: str) -> None:
     if isinstance(value, _PLAIN):
         return
-    if isinstance(value, (list, tuple)):
-        for item in value:
-            _check_plain(item, where)
-        return
     if isinstance(value, dict) and all(isinstance(k, str) for k in value):
-        for item in value.values():
-            _check_plain(item, where)
-        return
-    raise ParameterError(
-        f"{where} holds {type(value).__name__} {value!r}; a checkpoint records only plain values (numbers, "
-        "strings, bools, None, and lists, tuples or str-keyed dicts of those). Fix: record the "
-        "constructor arguments as such values."
-    )
+        value = list(value.values())
+    if not isinstance(value, (list, tuple)):
+        raise ParameterError(
+            f"{where} holds {type(value).__name__} {value!r}; a checkpoint records only plain values "
+            "(numbers, strings, bools, None, and lists, tuples or str-keyed dicts of those). Fix: record the "
+            "constructor arguments as such values."
+        )
+    for item in value:
+        _check_plain(item, where)
 
 
 def _unwrap(net: torch.nn.Module) -> torch.nn.Module:
@@ -53,14 +41,8 @@ def _unwrap(net: torch.nn.Module) -> torch.nn.Module:
 
 
 def network_record(net: torch.nn.Module, net_kwargs: dict | None = None) -> dict:
-    """``{'class': 'module:qualname', 'kwargs': constructor arguments or None}`` of ``net``
-    (unwrapped from DistributedDataParallel); the arguments are ``net_kwargs``, else the
-    network's ``init_kwargs`` attribute, else unknown (None: the file loads, but
-    :func:`load_network` then needs them).
-
-    Raises:
-        ParameterError: arguments that are not plain values.
-    """
+    """``{'class': 'module:qualname', 'kwargs': net_kwargs or net.init_kwargs or None}`` of ``net``. Raises
+    :class:`ParameterError`: arguments that are not plain values."""
     net = _unwrap(net)
     cls = type(net)
     kwargs = net_kwargs if net_kwargs is not None else getattr(net, "init_kwargs", None)
@@ -75,12 +57,9 @@ def network_record(net: torch.nn.Module, net_kwargs: dict | None = None) -> dict
 
 
 def _check_config_fits(record: dict, cfg) -> None:
-    """Refuse a recipe config that disagrees with the recipe network it is saved with (the
-    checkpoint would load the right network next to a wrong config)."""
-    if (
-        not isinstance(cfg, dict)
-        or record["class"] != f"{DiffusionNet.__module__}:{DiffusionNet.__qualname__}"
-    ):
+    """Refuse a recipe config that disagrees with the recipe network it is saved with."""
+    recipe_net = f"{DiffusionNet.__module__}:{DiffusionNet.__qualname__}"
+    if not isinstance(cfg, dict) or record["class"] != recipe_net:
         return
     if not {"width", "c_out", "n_blocks", "n_wks", "inputs"} <= set(cfg):
         return  # not a recipe config (e.g. train() with a network of the caller's): nothing to compare
@@ -99,24 +78,15 @@ def _check_config_fits(record: dict, cfg) -> None:
 
 
 def check_config_fits(net: torch.nn.Module, config: TrainConfig | dict) -> None:
-    """Refuse, before any training, a recipe ``config`` that does not describe the recipe network
-    ``net`` (a :class:`~torchfmap.nn.networks.DiffusionNet` built otherwise): its checkpoint
-    would be refused at the first save.
-
-    Raises:
-        ParameterError: the fields that differ, and the fix.
-    """
+    """Refuse (:class:`ParameterError`) a recipe ``config`` not describing the recipe network ``net``."""
     _check_config_fits(network_record(net), asdict(config) if isinstance(config, TrainConfig) else config)
 
 
 def save_checkpoint(
     path, net: torch.nn.Module, config: TrainConfig | dict, *, net_kwargs: dict | None = None, **extra
 ) -> Path:
-    """Atomic, checksummed checkpoint: weights, config, the network record
-    (:func:`network_record`; ``net_kwargs`` overrides the network's ``init_kwargs``) and extras;
-    read it with :func:`read_checkpoint`, rebuild the network with :func:`load_checkpoint`."""
-    path = Path(path)
-    cfg = asdict(config) if isinstance(config, TrainConfig) else config
+    """Write an atomic, checksummed checkpoint: weights, config, :func:`network_record` and extras."""
+    path, cfg = Path(path), (asdict(config) if isinstance(config, TrainConfig) else config)
     record = network_record(net, net_kwargs)
     _check_config_fits(record, cfg)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -127,8 +97,7 @@ def save_checkpoint(
 
 
 def _refuse_foreign(file) -> None:
-    """A file without torchfmap's header (e.g. another project's ``torch.save``): said as such,
-    with what to do with foreign weights (unreadable files are left to the verified reader)."""
+    """Refuse a file without torchfmap's header (e.g. another project's ``torch.save``), saying so."""
     try:
         with open(file, "rb") as fh:
             head = fh.read(len(CHECKED_MAGIC))
@@ -145,16 +114,12 @@ def _refuse_foreign(file) -> None:
 
 
 def read_checkpoint(path, map_location="cpu") -> dict:
-    """The checkpoint dict, checksum verified and unpickled with ``weights_only=True`` (tensors
-    and plain containers only: a file cannot run code). ``path`` may be a shipped model's name
-    (:func:`~torchfmap.nn.shipped.resolve_checkpoint`).
+    """The checkpoint dict of a file or shipped name, checksum verified, loaded with ``weights_only=True``.
 
     Raises:
-        CorruptFileError: a truncated or altered file, a payload that is not a weights-only torch
-            file (a foreign or malicious pickle: refused, never run), or a dict without
-            ``state_dict`` and ``config``.
-        ParameterError: neither a file nor a shipped name.
-    """
+        CorruptFileError: a truncated or altered file, a payload that is not a weights-only torch file, or a
+            dict without ``state_dict`` and ``config``.
+        ParameterError: neither a file nor a shipped name."""
     file = resolve_checkpoint(path)
     _refuse_foreign(file)
     payload = load_checked_bytes(file, "checkpoint")
@@ -202,14 +167,12 @@ def _network_class(name: str) -> type:
 
 
 def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
-    """The network of a checkpoint dict (:func:`read_checkpoint`), rebuilt from its record, in
-    the dtype of its weights and in eval mode; ``best``: the weights with the best validation
-    score when it has them.
+    """The network of a checkpoint dict, rebuilt from its record in its weights' dtype, in eval mode
+    (``best``: the best validation weights if any).
 
     Raises:
-        ParameterError: no network record, a class that cannot be imported or is not a
-            ``torch.nn.Module``, or a record without constructor arguments.
-    """
+        ParameterError: no record, a class that cannot be imported or is not a ``torch.nn.Module``, no
+            constructor arguments, or weights that are non-finite or do not fit."""
     record = ckpt.get("network")
     if record is not None and not isinstance(record, dict):
         raise ParameterError(
@@ -221,8 +184,7 @@ def load_network(ckpt: dict, best: bool = True) -> torch.nn.Module:
             "released). Fix: train it again with `torchfmap train`, or build the network yourself "
             "and load ckpt['state_dict']."
         )
-    cls = _network_class(record.get("class"))
-    kwargs = record.get("kwargs")
+    cls, kwargs = _network_class(record.get("class")), record.get("kwargs")
     if kwargs is None:
         raise ParameterError(
             f"the checkpoint names the network class {record['class']!r} but not its constructor "
@@ -280,14 +242,11 @@ def _config(cfg: dict) -> TrainConfig:
 
 
 def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConfig, dict]:
-    """``(network in eval mode, config, the whole checkpoint dict)``: the network rebuilt by
-    :func:`load_network` (its recorded class);
-    ``best``: the weights with the best validation score when the checkpoint has them.
+    """``(network in eval mode, config, checkpoint dict)`` (:func:`load_network`).
 
     Raises:
         ParameterError: as :func:`load_network`, or a config that is not a :class:`TrainConfig`.
-        CorruptFileError: a truncated or altered file.
-    """
+        CorruptFileError: a truncated or altered file."""
     ckpt = read_checkpoint(path)
     try:
         return load_network(ckpt, best), _config(ckpt["config"]), ckpt
@@ -296,13 +255,7 @@ def load_checkpoint(path, best: bool = True) -> tuple[torch.nn.Module, TrainConf
 
 
 def read_recipe(path) -> TrainConfig:
-    """The recipe a checkpoint (a path or a shipped model's name) was trained by, without
-    building its network: ``read_recipe(path).to_json('recipe.json')`` gives the file
-    ``torchfmap train FOLDER --config recipe.json`` trains by again (``torchfmap models --recipe``).
-
-    Raises:
-        ParameterError / CorruptFileError: as :func:`load_checkpoint`.
-    """
+    """A checkpoint's :class:`TrainConfig` without building the network; raises as :func:`load_checkpoint`."""
     ckpt = read_checkpoint(path)
     try:
         return _config(ckpt["config"])

@@ -1,25 +1,5 @@
-"""The learned path on dense meshes: the network runs on a simplification of each mesh and its
-features are carried to every vertex.
-
-A feature network on a dense mesh needs ``k_net`` eigenpairs, WKS inputs, a gradient operator
-and the activations of every layer at every vertex, while the functional map keeps only the
-first ``k`` eigenfunctions of its features. Past :data:`DENSE_NETWORK_VERTICES`,
-:func:`simplify` builds a :class:`Simplification` of :data:`COARSE_VERTICES` vertices for it
-(no new dependency):
-
-1. evenly spread samples (voxel thinning, then farthest points in space, chosen by position so
-   that a vertex-permuted copy gets the same ones), the coarse vertices, each a vertex of the
-   dense mesh (its position kept);
-2. the geodesic Voronoi cells of the samples along the mesh's edges (one multi-source Dijkstra,
-   ``O(E log V)``), so parts that touch in space (a hand on a hip) stay apart;
-3. the dual triangulation: one coarse face per dense face whose corners lie in three different
-   cells, with the dense face's orientation (duplicates dropped), as Voronoi remeshings (ACVD,
-   the LRVD remeshing of FAUST_r) build theirs.
-
-:meth:`Simplification.carry` brings per-vertex values of the coarse mesh to every dense vertex:
-barycentric interpolation on the coarse face nearest the vertex among the faces around its own
-cell's vertex (so carried features are continuous and never come from another part of the body).
-"""
+"""Dense meshes on the learned path: the network runs on a :func:`simplify` of the mesh (samples, their
+geodesic Voronoi cells, the dual triangulation); :meth:`Simplification.carry` interpolates back."""
 
 from __future__ import annotations
 
@@ -36,27 +16,18 @@ from ..errors import MeshWarning, ParameterError
 from ..fmap.nearest import spread_samples
 from ..mesh import Mesh
 
-#: Vertices above which :class:`~torchfmap.nn.LearnedMatcher` (``coarse='auto'``) runs the
-#: network on a :func:`simplify` of the mesh instead of the mesh itself: the network's inputs,
-#: eigenfunctions, gradient operator and activations grow with ``V``, the simplification keeps
-#: their share fixed (``python -m bench learned --case dense`` measures both routes).
+#: Vertices above which :class:`~torchfmap.nn.LearnedMatcher` (``coarse='auto'``) runs the network on a
+#: :func:`simplify` of the mesh.
 DENSE_NETWORK_VERTICES = 400_000
-#: Vertices of the simplification the network runs on (:func:`simplify`): fine enough that thin
-#: parts (fingers, tails) keep their topology in the Voronoi dual, so the network sees a clean
-#: surface, and a small fixed share of a dense mesh's cost.
+#: Vertices of the simplification the network runs on (:func:`simplify`).
 COARSE_VERTICES = 20_000
 
 
 @dataclass(frozen=True)
 class Simplification:
-    """A coarse mesh of a dense one and how to carry values back (:func:`simplify`).
-
-    ``mesh``: the coarse :class:`~torchfmap.Mesh` (``S`` vertices); ``vertices (S,)``: the dense
-    vertex each coarse vertex is (its position); ``cell (V,)``: the coarse vertex whose geodesic
-    Voronoi cell holds each dense vertex; ``corners (V, 3)`` and ``weights (V, 3)``: the coarse
-    vertices and barycentric weights (non-negative, summing to 1) that :meth:`carry` interpolates
-    each dense vertex from.
-    """
+    """A coarse ``mesh`` (``S`` vertices) of a dense one: ``vertices (S,)`` the dense vertex of each coarse
+    one, ``cell (V,)`` the coarse vertex whose cell holds each dense vertex, and the ``corners (V, 3)`` and
+    barycentric ``weights (V, 3)`` :meth:`carry` interpolates from."""
 
     mesh: Mesh
     vertices: np.ndarray
@@ -69,13 +40,8 @@ class Simplification:
         return len(self.cell)
 
     def carry(self, values):
-        """``values (..., S, D)`` on the coarse vertices (a numpy array or a tensor, any leading
-        dimensions) -> ``(..., V, D)`` on every dense vertex, in the input's type, dtype and
-        device: ``sum_j weights[:, j] * values[..., corners[:, j], :]``.
-
-        Raises:
-            ParameterError: ``values`` does not have one row per coarse vertex.
-        """
+        """``values (..., S, D)`` (array or tensor) -> ``(..., V, D)`` on the dense vertices, same type.
+        Raises :class:`ParameterError`: ``values`` does not have one row per coarse vertex."""
         if values.ndim < 2 or values.shape[-2] != self.mesh.n_vertices:
             raise ParameterError(
                 f"carry takes (..., S, D) values on the {self.mesh.n_vertices} coarse vertices, got "
@@ -94,9 +60,7 @@ class Simplification:
 
 
 def _voronoi_cells(mesh: Mesh, samples: np.ndarray) -> np.ndarray:
-    """``(V,)`` the index into ``samples`` of the sample geodesically nearest each vertex along
-    the mesh's edges (edge lengths); vertices of a component without a sample take the sample
-    nearest in space."""
+    """``(V,)`` index of the sample geodesically nearest each vertex (else nearest in space)."""
     e = mesh.edges
     length = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1)
     length = np.maximum(length, 1e-300)  # a zero weight would be read as no edge
@@ -113,8 +77,7 @@ def _voronoi_cells(mesh: Mesh, samples: np.ndarray) -> np.ndarray:
 
 
 def _dual_faces(faces: np.ndarray, cell: np.ndarray) -> np.ndarray:
-    """The coarse faces: ``cell`` of the corners of every dense face whose three corners lie in
-    three different cells, in the face's corner order; one per set of three cells."""
+    """The coarse faces: the cells of each dense face's corners where all three differ, one face per set."""
     labels = cell[faces]
     a, b, c = labels.T
     labels = labels[(a != b) & (b != c) & (a != c)]
@@ -123,19 +86,13 @@ def _dual_faces(faces: np.ndarray, cell: np.ndarray) -> np.ndarray:
 
 
 def _barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
-    """``(weights (N, 3), squared distance (N,))`` of each point to the point of its triangle
-    ``(a, b, c)`` given by its projection's barycentric coordinates clipped to the triangle
-    (negative ones set to 0, the rest renormalised)."""
+    """``(weights (N, 3), squared distance (N,))`` of points to triangles ``(a, b, c)``, clipped to them."""
     e0, e1, d = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", e0, e0)
-    d01 = np.einsum("ij,ij->i", e0, e1)
-    d11 = np.einsum("ij,ij->i", e1, e1)
-    d20 = np.einsum("ij,ij->i", d, e0)
-    d21 = np.einsum("ij,ij->i", d, e1)
+    pairs = ((e0, e0), (e0, e1), (e1, e1), (d, e0), (d, e1))
+    d00, d01, d11, d20, d21 = (np.einsum("ij,ij->i", p, q) for p, q in pairs)
     den = d00 * d11 - d01 * d01
     den = np.where(np.abs(den) > 1e-300, den, 1.0)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
+    v, w = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
     bary = np.maximum(np.stack([1.0 - v - w, v, w], axis=1), 0.0)
     total = bary.sum(axis=1, keepdims=True)
     bary = np.where(total > 0, bary / np.where(total > 0, total, 1.0), 1.0 / 3.0)
@@ -144,13 +101,9 @@ def _barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
 
 
 def _interpolation(points: np.ndarray, coarse: Mesh, cell: np.ndarray):
-    """``(corners (V, 3), weights (V, 3))``: for every dense point, the coarse face nearest it
-    among the faces around its cell's coarse vertex and the barycentric weights there (a cell
-    whose vertex has no face: that vertex alone)."""
-    faces = coarse.faces
-    n_c = coarse.n_vertices
-    inc_v = faces.ravel()
-    inc_f = np.repeat(np.arange(len(faces)), 3)
+    """``(corners (V, 3), weights (V, 3))``: per point, the nearest coarse face around its cell's vertex."""
+    faces, n_c = coarse.faces, coarse.n_vertices
+    inc_v, inc_f = faces.ravel(), np.repeat(np.arange(len(faces)), 3)
     order = np.argsort(inc_v, kind="stable")
     start = np.searchsorted(inc_v[order], np.arange(n_c + 1))
     degree = np.diff(start)[cell]
@@ -162,21 +115,15 @@ def _interpolation(points: np.ndarray, coarse: Mesh, cell: np.ndarray):
     bary, dist = _barycentric(points[point], tri[:, 0], tri[:, 1], tri[:, 2])
     best = np.lexsort((dist, point))  # per point, nearest face first
     keep = best[np.r_[True, point[best][1:] != point[best][:-1]]] if len(best) else best
-    corners = np.repeat(cell[:, None], 3, axis=1)
-    weights = np.tile([1.0, 0.0, 0.0], (len(points), 1))
+    corners, weights = np.repeat(cell[:, None], 3, axis=1), np.tile([1.0, 0.0, 0.0], (len(points), 1))
     corners[point[keep]] = faces[face[keep]]
     weights[point[keep]] = bary[keep]
     return corners, weights
 
 
 def simplify(mesh: Mesh, n_vertices: int = COARSE_VERTICES) -> Simplification:
-    """A :class:`Simplification` of ``mesh`` with about ``n_vertices`` vertices (the module
-    docstring): ``O(V log V)`` work, deterministic. Coarse vertices that no coarse face uses
-    are dropped (their dense vertices are then carried from the nearest coarse face around).
-
-    Raises:
-        ParameterError: ``n_vertices < 4``, or not fewer than the mesh's vertices.
-    """
+    """A deterministic :class:`Simplification` of ``mesh`` with about ``n_vertices`` vertices. Raises
+    :class:`ParameterError`: ``n_vertices < 4``, not fewer than the mesh's vertices, or too few cells meet."""
     if not isinstance(mesh, Mesh):
         raise ParameterError(f"simplify takes a Mesh, got {type(mesh).__name__}.")
     n_vertices = int(n_vertices)
@@ -214,12 +161,7 @@ def simplify(mesh: Mesh, n_vertices: int = COARSE_VERTICES) -> Simplification:
 
 
 def check_coarse(coarse) -> str | int | None:
-    """``coarse`` if it is a setting of :class:`~torchfmap.nn.LearnedMatcher`'s ``coarse``:
-    ``'auto'``, None, or an int >= 4.
-
-    Raises:
-        ParameterError: anything else.
-    """
+    """``coarse`` if it is ``'auto'``, None or an int >= 4, else :class:`ParameterError`."""
     if coarse is None or (isinstance(coarse, str) and coarse == "auto"):
         return coarse
     if isinstance(coarse, (int, np.integer)) and not isinstance(coarse, bool) and coarse >= 4:
@@ -231,10 +173,8 @@ def check_coarse(coarse) -> str | int | None:
 
 
 def coarse_size(coarse, n_vertices: int) -> int | None:
-    """The vertex count of the simplification the network runs on for a mesh of ``n_vertices``
-    (None: the mesh itself): ``'auto'``, :data:`COARSE_VERTICES` above
-    :data:`DENSE_NETWORK_VERTICES`; an int ``n``, ``n`` for meshes of more than ``n`` vertices;
-    None, never."""
+    """The simplification's vertex count for a mesh of ``n_vertices`` (None: the mesh itself): ``'auto'``,
+    :data:`COARSE_VERTICES` above :data:`DENSE_NETWORK_VERTICES`; ``n``, ``n`` above ``n``."""
     coarse = check_coarse(coarse)
     if coarse == "auto":
         return COARSE_VERTICES if n_vertices > DENSE_NETWORK_VERTICES else None

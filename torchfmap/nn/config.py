@@ -1,7 +1,4 @@
-"""The reference training recipe: its settings (:class:`TrainConfig`, saved in checkpoints and
-read from a recipe file, :meth:`TrainConfig.from_json`), its budget (:class:`Budget`), the
-model it builds (:func:`build_model`) and its learning-rate schedule over the budget
-(:class:`CosineBudget`)."""
+"""The reference training recipe (:class:`TrainConfig`), its :class:`Budget`, model and schedule."""
 
 from __future__ import annotations
 
@@ -30,15 +27,10 @@ BUDGET_FIELDS = ("epochs", "minutes", "max_steps")
 
 @dataclass(frozen=True)
 class Budget:
-    """How long a training run lasts, the whole run's (across resumes): ``epochs`` full passes
-    over the pairs (None: not bounded by epochs), ``minutes`` of training (0: no limit) and
-    ``steps`` optimiser steps (0: no limit); whichever ends first stops it. The loop
-    (:class:`~torchfmap.nn.trainer.Trainer`), the schedule (:class:`CosineBudget`), the command
-    line's summary and its ``--resume`` / ``--init`` all read this one object.
+    """A run's bounds (across resumes; the first reached ends it): ``epochs`` or None, ``minutes``, ``steps``.
 
     Raises:
-        ParameterError: no bound at all, or a negative or non-finite one.
-    """
+        ParameterError: no bound at all, or a negative or non-finite one."""
 
     epochs: int | None = None
     minutes: float = 0.0
@@ -56,26 +48,19 @@ class Budget:
             raise ParameterError("training needs a budget. Fix: epochs, minutes and/or steps (max_steps).")
 
     def step_bound(self, batches_per_epoch: int) -> int | None:
-        """``min(steps, epochs x batches_per_epoch)`` over the bounds that are set; None when the
-        budget is time alone."""
+        """``min(steps, epochs x batches_per_epoch)`` over the bounds set; None for a time budget."""
         bounds = [b for b in (self.steps, (self.epochs or 0) * batches_per_epoch) if b]
         return min(bounds) if bounds else None
 
     def spent(self, step: int = 0, seconds: float = 0.0, epoch: int = 0) -> list[str]:
-        """The bounds a run at ``step``, ``seconds`` and full ``epoch`` has reached, in the
-        command line's terms (empty: budget left)."""
-        return [
-            text
-            for text, done in (
-                (f"--max-steps {self.steps} (done: {step} steps)", self.steps and step >= self.steps),
-                (
-                    f"--minutes {self.minutes:g} (done: {seconds / 60:.1f} min)",
-                    self.minutes and seconds >= 60 * self.minutes,
-                ),
-                (f"--epochs {self.epochs} (done: {epoch})", self.epochs and epoch >= self.epochs),
-            )  # fmt: skip
-            if done
+        """The bounds reached at ``step``, ``seconds`` and ``epoch``, in command-line terms."""
+        minutes = f"--minutes {self.minutes:g} (done: {seconds / 60:.1f} min)"
+        bounds = [
+            (f"--max-steps {self.steps} (done: {step} steps)", self.steps and step >= self.steps),
+            (minutes, self.minutes and seconds >= 60 * self.minutes),
+            (f"--epochs {self.epochs} (done: {epoch})", self.epochs and epoch >= self.epochs),
         ]
+        return [text for text, done in bounds if done]
 
     def describe(self, batches_per_epoch: int) -> str:
         """``'2 epochs, 4 steps, 1.5 minutes'``: the bounds set, the step bound included."""
@@ -87,15 +72,9 @@ class Budget:
 
 @dataclass
 class TrainConfig:
-    """The reference recipe (saved in checkpoints, read from a recipe file by
-    :meth:`from_json`): data, network, solver, loss, optimiser, budget and the loop's settings.
-
-    ``epochs`` / ``minutes`` / ``max_steps``: the :class:`Budget` (:attr:`budget`).
-    ``augment`` (XYZ inputs only; :func:`~torchfmap.nn.augment.augmentation`): ``"rigid"`` a
-    random rotation and scaling per step, ``"up"`` a rotation about the ``y`` axis and a scaling
-    (shapes standing alike but facing anywhere, e.g. SMAL), ``"scale"`` a scaling only (shapes
-    aligned alike), ``"none"``.
-    """
+    """The reference recipe (saved in checkpoints): data, network, solver, loss, optimiser, budget
+    (:attr:`budget`) and loop settings. ``augment`` (XYZ inputs only): ``"rigid"`` (rotation and scaling),
+    ``"up"`` (rotation about ``y``, scaling), ``"scale"`` or ``"none"``."""
 
     k: int = DEFAULT_K
     k_net: int = 96
@@ -126,7 +105,7 @@ class TrainConfig:
         return Budget(self.epochs, self.minutes, self.max_steps)
 
     def with_budget(self, budget: Budget) -> TrainConfig:
-        """A copy whose whole budget is ``budget`` (the bounds it leaves unset are unbounded)."""
+        """A copy whose whole budget is ``budget`` (bounds it leaves unset are unbounded)."""
         return dataclasses.replace(self, epochs=budget.epochs, minutes=budget.minutes, max_steps=budget.steps)
 
     def dataset_kwargs(self) -> dict:
@@ -135,19 +114,14 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "the recipe") -> TrainConfig:
-        """The recipe of ``values`` (field name -> value), the defaults elsewhere:
-        ``TrainConfig().updated(values)``."""
+        """``TrainConfig().updated(values)``: the recipe of ``values`` (field -> value)."""
         return cls().updated(values, where)
 
     def updated(self, values: dict, where: str = "the recipe") -> TrainConfig:
-        """A copy with ``values`` (field name -> value) replacing its own. A budget key given
-        (``epochs``, ``minutes``, ``max_steps``) replaces the whole budget: the bounds not given
-        are unbounded (one rule for recipe files, ``--resume`` and ``--init``).
+        """A copy with ``values`` (field -> value) replacing its own; a budget key replaces all the budget.
 
         Raises:
-            ParameterError: an unknown key (the nearest field named), a value of the wrong type,
-                or a budget without bounds.
-        """
+            ParameterError: an unknown key (nearest field named), a value of a wrong type, or no budget."""
         if not isinstance(values, dict):
             raise ParameterError(
                 f"{where} must be a JSON object of TrainConfig fields, got {type(values).__name__}. Fix: "
@@ -174,18 +148,15 @@ class TrainConfig:
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> TrainConfig:
-        """The recipe in the JSON file ``path``, the defaults elsewhere (:meth:`read_json`,
-        :meth:`from_dict`)."""
+        """The recipe in the JSON file ``path``, defaults elsewhere."""
         return cls.from_dict(cls.read_json(path), where=f"the recipe file {path}")
 
     @classmethod
     def read_json(cls, path: str | os.PathLike) -> dict:
-        """The values of the recipe file ``path`` (a JSON object of field -> value, as
-        :meth:`to_json` writes), checked by :meth:`updated`'s rules, for :meth:`updated`.
+        """The values of the recipe file ``path`` (as :meth:`to_json` writes), checked as :meth:`updated`.
 
         Raises:
-            ParameterError: a file that is not JSON, or as :meth:`updated`.
-        """
+            ParameterError: a file that is not JSON, or as :meth:`updated`."""
         try:
             values = json.loads(Path(path).read_text(encoding="utf-8"))
         except json.JSONDecodeError as err:
@@ -209,8 +180,7 @@ class TrainConfig:
 
 
 def _check_type(key: str, value, default, where: str) -> None:
-    """Refuse a recipe value whose type is not the field's (an int for a float is fine; epochs
-    may be None)."""
+    """Refuse a recipe value not of the field's type (an int for a float is fine; epochs may be None)."""
     if key == "epochs" and value is None:
         return
     kind = type(default)
@@ -229,8 +199,7 @@ _FLOAT_RANGES = {"lr": (0.0, math.inf, False), "clip_grad": (0.0, math.inf, True
 
 
 def _check_range(key: str, value, where: str) -> None:
-    """Refuse a recipe value outside its field's range (sizes >= 1; ``lr`` > 0; ``clip_grad``,
-    ``w_lap`` >= 0; ``dropout`` in [0, 1); all finite)."""
+    """Refuse a recipe value outside its field's range (finite; sizes >= 1; ``lr`` > 0; ``dropout`` < 1)."""
     if key in _POSITIVE_FIELDS and value < 1:
         raise ParameterError(f"{where}: {key} must be >= 1, got {value!r}. Fix: a positive size.")
     if key in _FLOAT_RANGES:
@@ -250,9 +219,7 @@ def network_kwargs(config: TrainConfig) -> dict:
 
 
 def build_model(config: TrainConfig) -> tuple[DiffusionNet, RegularizedFMSolver, UnsupervisedFMLoss]:
-    """``(network, solver, loss)`` of the recipe. The network's initial weights are drawn with
-    torch's CPU generator seeded by ``config.seed`` inside ``torch.random.fork_rng``, so the same
-    seed gives the same network and the caller's global RNG state is left as it was."""
+    """``(network, solver, loss)`` of the recipe, the network drawn from CPU RNG seeded ``config.seed``."""
     with torch.random.fork_rng(devices=[]):
         torch.default_generator.manual_seed(config.seed)
         net = DiffusionNet(**network_kwargs(config))
@@ -265,20 +232,11 @@ def build_solver(config: TrainConfig) -> tuple[RegularizedFMSolver, Unsupervised
 
 
 class CosineBudget:
-    """Learning-rate factor for ``LambdaLR``: cosine from 1 to ``floor`` over a :class:`Budget`.
-
-    The schedule follows whichever bound is further spent, ``frac = max(step / step_bound,
-    seconds / (60 minutes))`` (the step bound: :meth:`Budget.step_bound` of
-    ``batches_per_epoch``, needed when the budget has epochs), so it reaches ``floor`` exactly
-    when training stops. Time is counted between its calls in this process; ``LambdaLR.state_dict``
-    saves the time counted so far (plain numbers), and after ``load_state_dict`` in another
-    process the clock continues from there (the gap between the runs is not counted); the step
-    comes from the scheduler, which is saved with it.
+    """``LambdaLR`` factor: cosine from 1 to ``floor`` over ``max(step / step_bound, seconds / (60 minutes))``
+    of a :class:`Budget` (``batches_per_epoch`` needed with epochs); ``state_dict`` saves the time counted.
 
     Raises:
-        ParameterError: a budget with epochs and no ``batches_per_epoch``, or ``floor`` outside
-            ``[0, 1]``.
-    """
+        ParameterError: a budget with epochs and no ``batches_per_epoch``, or ``floor`` outside ``[0, 1]``."""
 
     def __init__(self, budget: Budget, batches_per_epoch: int | None = None, floor: float = 0.02) -> None:
         if not isinstance(budget, Budget):
@@ -298,8 +256,7 @@ class CosineBudget:
 
     @property
     def bounds(self) -> tuple[float, int, float]:
-        """``(seconds, steps, floor)``: what the factor follows (settable: a resumed run puts
-        its own back after ``load_state_dict`` restored the saved one)."""
+        """``(seconds, steps, floor)`` the factor follows (settable: a resumed run puts its own back)."""
         return self.seconds, self.steps, self.floor
 
     @bounds.setter
@@ -307,9 +264,7 @@ class CosineBudget:
         self.seconds, self.steps, self.floor = value
 
     def set_clock(self, seconds: float) -> None:
-        """Set the training time spent so far to ``seconds``; the next call adds none of its own.
-        The ranks of a DDP run set one agreed clock before each step, so their learning rates,
-        hence their weights, agree to the bit (each rank's own clock differs by microseconds)."""
+        """Set the training time spent to ``seconds`` (DDP ranks agree on one clock before each step)."""
         self.counted, self.last = float(seconds), None
 
     def fraction(self, step: int) -> float:
@@ -323,5 +278,4 @@ class CosineBudget:
         if self.last is not None and self.pid == os.getpid():
             self.counted += now - self.last
         self.last, self.pid = now, os.getpid()
-        frac = self.fraction(step)
-        return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * frac))
+        return self.floor + (1 - self.floor) * 0.5 * (1 + math.cos(math.pi * self.fraction(step)))

@@ -1,11 +1,5 @@
-"""Datasets over folders of meshes and pairs, an on-disk precompute cache, and collation.
-
-The cache stores, per mesh and parameter set, the arrays a training loop needs (basis values,
-lumped mass, spectral frame of ``W``, WKS input features). Entries are keyed by a SHA-256 of
-the vertex and face arrays and the parameters; they are written atomically (temporary file,
-fsync, rename), carry a checksum verified on every read, and a corrupted or truncated entry is
-rebuilt. Two processes filling the same entry both write complete files; the last rename wins.
-"""
+"""Datasets of meshes and pairs, collation, and an on-disk precompute cache (entries keyed by a SHA-256 of
+the mesh and parameters, written atomically, checksummed; a corrupted entry is rebuilt)."""
 
 from __future__ import annotations
 
@@ -37,8 +31,7 @@ CACHE_CHECKSUM_KEY = "__checksum__"
 
 def mesh_key(mesh: Mesh, params: dict) -> str:
     """SHA-256 of the mesh arrays and the parameters (sorted JSON)."""
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
     return h.hexdigest()
@@ -69,9 +62,7 @@ class PrecomputeCache:
         save_arrays(self.path(key), arrays, CACHE_CHECKSUM_KEY)
 
     def get(self, key: str, compute) -> dict[str, np.ndarray]:
-        """The entry of ``key``, else ``compute()``, stored when the folder can take it: a write
-        that fails (full disk, folder removed, no permission) logs a warning and the computed
-        arrays are returned uncached."""
+        """The entry of ``key``, else ``compute()``, stored if the folder takes it."""
         arrays = self.load(key)
         if arrays is None:
             arrays = compute()
@@ -92,18 +83,12 @@ def default_cache_dir() -> Path:
 
 
 class ShapeDataset(torch.utils.data.Dataset):
-    """Meshes of a folder (or a list of files), precomputed once and held in memory.
-
-    Each mesh is read and precomputed (:func:`~torchfmap.nn.inputs.shape_arrays`, through a
-    :class:`PrecomputeCache`) once, at construction. ``cache_dir``: a folder, ``None`` for
-    :func:`default_cache_dir`, ``False`` for no cache; a folder that cannot be written is
-    used read-only or not at all (with a warning). ``inputs``: one of :data:`~torchfmap.nn.inputs.INPUTS`.
-
-    Items are dicts of tensors (floats in ``dtype``): solver basis ``values (V, K)``, ``mass (V,)``,
-    ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``, ``net_lam``, ``net_U``;
-    ``inputs (V, C)``; gradient operator ``grad_rows``, ``grad_cols``, ``grad_order_t`` (int64),
-    ``grad_x``, ``grad_y`` ``(E,)``; ``xyz (V, 3)`` (unit area); ``vertices``, ``faces``, ``name``, ``index``.
-    """
+    """Meshes of a folder (or files), precomputed (:func:`~torchfmap.nn.inputs.shape_arrays`, cached in
+    ``cache_dir``: None the default folder, ``False`` none) and held in memory; ``inputs``: one of
+    :data:`~torchfmap.nn.inputs.INPUTS`. Items are dicts of tensors (floats in ``dtype``): solver basis
+    ``values (V, K)``, ``mass (V,)``, ``lam (K,)``, ``U (K, K)``; network basis ``net_values (V, K_net)``,
+    ``net_lam``, ``net_U``; ``inputs (V, C)``; gradient ``grad_rows``, ``grad_cols``, ``grad_order_t``
+    (int64), ``grad_x``, ``grad_y`` ``(E,)``; ``xyz (V, 3)``; ``vertices``, ``faces``, ``name``, ``index``."""
 
     def __init__(
         self,
@@ -139,23 +124,20 @@ class ShapeDataset(torch.utils.data.Dataset):
         self.precompute(rank, world_size, progress)
 
     def _compute(self, i: int) -> dict[str, np.ndarray]:
-        mesh = load_mesh(self.files[i])
-        p = self.params
+        mesh, p = load_mesh(self.files[i]), self.params
 
         def compute():
-            shot = "shot" in p
-            return shape_arrays(mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"], shot=shot)
+            return shape_arrays(
+                mesh, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"], shot="shot" in p
+            )
 
-        if self.cache is None:
-            return compute()
-        return self.cache.get(mesh_key(mesh, p), compute)
+        return compute() if self.cache is None else self.cache.get(mesh_key(mesh, p), compute)
 
     def _item(self, i: int, arrays: dict[str, np.ndarray]) -> dict:
         return shape_item(arrays, self.inputs, self.dtype, self.names[i], i)
 
     def precompute(self, rank: int = 0, world_size: int = 1, progress: bool = True) -> None:
-        """Fill the cache (with several ranks each fills its share, then all synchronise) and
-        load every mesh once."""
+        """Fill the cache (ranks each their share, then synchronise) and load every mesh once."""
         if world_size > 1 and self.cache is not None:
             for i in tqdm(range(rank, len(self.files), world_size), desc="precompute", disable=not progress):
                 self._compute(i)
@@ -192,25 +174,19 @@ def _open_cache(folder) -> PrecomputeCache | None:
 
 
 def class_pairs(names: list[str], within: bool = True) -> list[tuple[int, int]]:
-    """Ordered pairs within classes: names sharing the prefix before trailing digits (and ``_-``)
-    form a class (``cat0``, ``cat1``); when no class has two shapes, or with ``within=False``
-    (e.g. animals of different species, humans of several data sets), all ordered pairs."""
+    """Ordered pairs within classes (names alike but for trailing digits and ``_-``); all ordered pairs
+    with ``within=False`` or if no class has two."""
     kind = [n.rstrip("0123456789").rstrip("_-") for n in names]
-    n = len(names)
-    if not within:
-        return [(i, j) for i in range(n) for j in range(n) if i != j]
-    pairs = [(i, j) for i in range(n) for j in range(n) if i != j and kind[i] == kind[j]]
-    return pairs or [(i, j) for i in range(n) for j in range(n) if i != j]
+    every = [(i, j) for i in range(len(names)) for j in range(len(names)) if i != j]
+    return ([(i, j) for i, j in every if kind[i] == kind[j]] or every) if within else every
 
 
 class PairDataset(torch.utils.data.Dataset):
     """Pairs ``(x, y)`` of a :class:`ShapeDataset`: all ordered pairs, or the given index pairs."""
 
     def __init__(self, shapes: ShapeDataset, pairs=None) -> None:
-        """Raises :class:`ParameterError` when there is no pair (fewer than two shapes, or an
-        empty ``pairs``) or a pair indexes outside the shapes."""
-        n = len(shapes)
-        self.shapes = shapes
+        """Raises :class:`ParameterError` when there is no pair or a pair indexes outside the shapes."""
+        n, self.shapes = len(shapes), shapes
         self.pairs = [(i, j) for i in range(n) for j in range(n) if i != j] if pairs is None else list(pairs)
         if not self.pairs:
             raise ParameterError(
@@ -231,17 +207,10 @@ class PairDataset(torch.utils.data.Dataset):
 
 
 class ShapeBatch(NamedTuple):
-    """A padded batch of shapes (:func:`collate_shapes`).
-
-    ``basis`` the solver basis ``(B, V, K)``, ``inputs (B, V, C)``, ``net_basis`` the network's
-    basis ``(B, V, K_net)`` (the solver basis when the items have none), ``grad`` the gradient
-    operators (None when the items have none), ``xyz (B, V, 3)`` (or None).
-
-    **Padding**: the one record is the bases' :class:`~torchfmap.nn.functional.BasisBatch`
-    fields: ``basis.lengths (B,)`` vertex counts (the real vertices come first; None when every
-    shape has ``V`` vertices), shared by ``net_basis``, and each basis' column mask ``valid``.
-    Padded rows of ``inputs`` and ``xyz`` are zero and padded gradient entries have weight 0.
-    """
+    """A padded batch of shapes (:func:`collate_shapes`): solver ``basis`` ``(B, V, K)``,
+    ``inputs (B, V, C)``, ``net_basis`` ``(B, V, K_net)`` (else the solver basis), ``grad`` and
+    ``xyz (B, V, 3)`` (or None). Padding is ``basis.lengths`` and each basis' ``valid``; padded inputs are
+    zero, padded gradient weights 0."""
 
     basis: BasisBatch
     inputs: torch.Tensor
@@ -261,13 +230,8 @@ class ShapeBatch(NamedTuple):
         """Floats follow ``.to(dtype/device)``; lengths and indices only move device."""
         basis = self.basis.to(*args, **kwargs)
         net = basis if self.net_basis is self.basis else self.net_basis.to(*args, **kwargs)
-        return ShapeBatch(
-            basis,
-            self.inputs.to(*args, **kwargs),
-            net,
-            None if self.grad is None else self.grad.to(*args, **kwargs),
-            None if self.xyz is None else self.xyz.to(*args, **kwargs),
-        )
+        grad, xyz = (None if t is None else t.to(*args, **kwargs) for t in (self.grad, self.xyz))
+        return ShapeBatch(basis, self.inputs.to(*args, **kwargs), net, grad, xyz)
 
 
 def _pad(tensors: list[torch.Tensor], fill: float = 0.0) -> torch.Tensor:
@@ -293,15 +257,8 @@ def _basis_batch(items: list[dict], prefix: str, lengths: torch.Tensor | None) -
 
 
 def collate_shapes(items: list[dict]) -> ShapeBatch:
-    """Pad shapes of different ``V`` and ``K`` into a :class:`ShapeBatch`.
-
-    The padding is recorded in ``basis.lengths`` (vertex counts; None when all shapes have the
-    same ``V``) and each basis' ``valid`` (column mask); padded entries are filled so that they
-    change nothing: zero mass, basis values and inputs, no gradient weight on padded vertices;
-    ``lam = 0`` and an identity block in ``U`` on padded columns.
-    Items need ``values, mass, lam, U`` and ``inputs`` (or ``wks``); ``net_*``, ``grad_*`` and
-    ``xyz`` are optional.
-    """
+    """Pad shapes of different ``V`` and ``K`` into a :class:`ShapeBatch`; items need ``values``, ``mass``,
+    ``lam``, ``U`` and ``inputs`` (or ``wks``), optionally ``net_*``, ``grad_*``, ``xyz``."""
     counts = [it["values"].shape[0] for it in items]
     lengths = None if len(set(counts)) == 1 else torch.tensor(counts, dtype=torch.int64)
     basis = _basis_batch(items, "", lengths)
@@ -311,31 +268,21 @@ def collate_shapes(items: list[dict]) -> ShapeBatch:
     if all("grad_rows" in it for it in items):
         # padded edges point at the last (padded) vertex with weight 0, so every shape's edges
         # stay sorted by (row, col) and by (col, row) through order_t
-        last = max(counts) - 1
-        order_t = None
+        last, order_t = max(counts) - 1, None
         if all("grad_order_t" in it for it in items):
             E = max(len(it["grad_order_t"]) for it in items)
             order_t = torch.arange(E).repeat(len(items), 1)
             for b, it in enumerate(items):
                 order_t[b, : len(it["grad_order_t"])] = it["grad_order_t"]
-        grad = GradientBatch(
-            _pad([it["grad_rows"] for it in items], last),
-            _pad([it["grad_cols"] for it in items], last),
-            _pad([it["grad_x"] for it in items]),
-            _pad([it["grad_y"] for it in items]),
-            order_t,
-        )
+        rows, cols = (_pad([it[key] for it in items], last) for key in ("grad_rows", "grad_cols"))
+        wx, wy = (_pad([it[key] for it in items]) for key in ("grad_x", "grad_y"))
+        grad = GradientBatch(rows, cols, wx, wy, order_t)
     xyz = _pad([it["xyz"] for it in items]) if all("xyz" in it for it in items) else None
     return ShapeBatch(basis, inputs, net, grad, xyz)
 
 
 def collate_pairs(batch: list[tuple[dict, dict]]) -> dict:
-    """Collate ``(x, y)`` pairs into padded batches: ``{'x': ShapeBatch, 'y': ShapeBatch, 'names': [(x name,
-    y name)], 'index': [(x index, y index)]}``."""
+    """Collate ``(x, y)`` pairs: ``{'x': ShapeBatch, 'y': ShapeBatch, 'names': [...], 'index': [...]}``."""
     xs, ys = zip(*batch, strict=True)
-    return {
-        "x": collate_shapes(list(xs)),
-        "y": collate_shapes(list(ys)),
-        "names": [(a["name"], b["name"]) for a, b in batch],
-        "index": [(a["index"], b["index"]) for a, b in batch],
-    }
+    names, index = [(a["name"], b["name"]) for a, b in batch], [(a["index"], b["index"]) for a, b in batch]
+    return {"x": collate_shapes(list(xs)), "y": collate_shapes(list(ys)), "names": names, "index": index}

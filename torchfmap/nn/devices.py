@@ -1,10 +1,4 @@
-"""The one reading of a device name for the learned path (``--device`` of the command line,
-``device=`` of the Python API): ``'cpu'``, ``'cuda'`` (``'cuda:N'``) or ``'auto'``.
-
-Operators and eigenbases are computed in float64 on the CPU whatever the device (the per-shape
-precompute); the network, the differentiable solver, the loss and the point-map search run on
-the device this names.
-"""
+"""The device names of the learned path: ``'cpu'``, ``'cuda'`` (``'cuda:N'``) or ``'auto'``."""
 
 from __future__ import annotations
 
@@ -17,14 +11,8 @@ DEVICE_NAMES = ("auto", "cpu", "cuda")
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
-    """The ``torch.device`` of ``device``: ``'auto'`` (or None) is CUDA when it is available and
-    the CPU otherwise; ``'cpu'``, ``'cuda'``, ``'cuda:N'`` and ``torch.device`` objects are taken
-    as they are, once checked.
-
-    Raises:
-        ParameterError: an unknown name, or CUDA asked for where torch sees no CUDA device (or
-            not that many).
-    """
+    """The ``torch.device`` of ``device`` (``'auto'`` or None: CUDA when available, else the CPU). Raises
+    :class:`ParameterError`: an unknown name, or CUDA asked for where torch sees none (or not that many)."""
     if device is None or (isinstance(device, str) and device == "auto"):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:

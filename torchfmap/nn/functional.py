@@ -1,18 +1,6 @@
-"""Differentiable functional-map operations on batches (torch).
-
-Shapes: ``B`` pairs, ``V`` vertices (padded), ``K`` basis functions (padded), ``D`` feature
-channels. A :class:`BasisBatch` holds a padded batch of bases (``values (B, V, K)``, ``mass
-(B, V)``, the spectral frame ``lam (B, K)``, ``U (B, K, K)`` of the projected Laplacian, and the
-padding: ``valid (B, K)``, ``lengths (B,)``). The solve itself is
-:func:`torchfmap.fmap.core.rotate_and_solve`; the classical path runs the same core
-(:func:`~torchfmap.fmap.core.spectral_frame`, :func:`~torchfmap.fmap.core.solve_rowwise`).
-The tangent-frame gradient operations (:class:`GradientBatch`, :func:`spatial_gradient`,
-:func:`gradient_features`) live in :mod:`torchfmap.nn.gradients` and are re-exported here.
-
-**Checks**: the ``check`` switch of :mod:`torchfmap._util.torch_checks` (data checks on CPU
-tensors by default, shape checks always). Unchecked, a bad input gives non-finite or wrong
-values instead of an error: pass ``check=True`` to debug on a GPU.
-"""
+"""Differentiable functional-map operations on padded batches of ``B`` pairs, ``V`` vertices, ``K`` basis
+functions, ``D`` channels (the classical :func:`torchfmap.fmap.core.rotate_and_solve`;
+:mod:`torchfmap.nn.gradients` re-exported). ``check``: :mod:`torchfmap._util.torch_checks`."""
 
 from __future__ import annotations
 
@@ -59,20 +47,12 @@ def vertex_mask(lengths: torch.Tensor | None, n_vertices: int) -> torch.Tensor |
 
 
 class BasisBatch(NamedTuple):
-    """A padded batch of bases (:func:`~torchfmap.nn.collate_shapes`,
-    :meth:`~torchfmap.nn.BasisModule.batch`).
+    """A padded batch of bases (:func:`~torchfmap.nn.collate_shapes`): ``values (B, V, K)``, lumped
+    ``mass (B, V)``, spectral frame ``lam (B, K)``, ``U (B, K, K)`` of ``W = U diag(lam) Uᵀ``,
+    ``valid (B, K)``, ``lengths (B,)`` (int64 or None).
 
-    ``values (B, V, K)``, lumped ``mass (B, V)``, the spectral frame ``lam (B, K)``, ``U (B, K,
-    K)`` of the projected Laplacian ``W = U diag(lam) Uᵀ``, ``valid (B, K)`` and ``lengths (B,)``
-    (int64, or None).
-
-    **Padding** is read from two fields only: shape ``b`` has ``lengths[b]`` real vertices, the
-    first ones (``lengths=None``: all ``V`` are real; :attr:`vertex_mask` derives the ``(B, V)``
-    mask), and its real basis columns are those with ``valid[b] == 1`` (the first ``K_b``; 0 on
-    padded columns). Padded entries are filled so that they change nothing: zero values, mass
-    and ``lam``, an identity block in ``U``; a padded batch gives exactly the maps of its
-    unpadded shapes.
-    """
+    Shape ``b`` has ``lengths[b]`` real vertices, the first ones (None: all), and real columns where
+    ``valid[b] == 1``; padded entries (zero values, mass and ``lam``, identity in ``U``) change no map."""
 
     values: torch.Tensor
     mass: torch.Tensor
@@ -113,13 +93,8 @@ class SoftMaps(NamedTuple):
 
 
 def basis_like(basis, f: torch.Tensor) -> BasisBatch:
-    """``basis`` as a :class:`BasisBatch` in ``f``'s dtype (bases are precomputed in float64
-    and cast on use, so float32 features get float32 maps). A module with ``.batch()`` (a
-    :class:`~torchfmap.nn.BasisModule`) is accepted.
-
-    Raises:
-        ParameterError: not a basis, or a basis on another device than ``f``.
-    """
+    """``basis`` (or a module's ``.batch()``) as a :class:`BasisBatch` in ``f``'s dtype. Raises
+    :class:`ParameterError`: not a basis, or a basis on another device than ``f``."""
     if not isinstance(basis, BasisBatch) and callable(getattr(basis, "batch", None)):
         basis = basis.batch()
     if not isinstance(basis, BasisBatch):
@@ -177,17 +152,13 @@ def solve_fmap_batch(
     both: bool = True,
     check: bool | None = None,
 ) -> FmapPair:
-    """Regularised functional maps from features, differentiable and batched.
-
-    Returns :class:`FmapPair` ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y) or None)`` in the
-    features' dtype. Equal to :func:`torchfmap.fmap.solve_fmap` with the same weights
-    (descriptor + Laplacian terms). Padded columns (``valid == 0``) come out 0.
+    """Regularised functional maps from features, differentiable and batched (as
+    :func:`torchfmap.fmap.solve_fmap`): :class:`FmapPair` ``(C_xy (B, K_y, K_x), C_yx or None)`` in the
+    features' dtype, 0 on padded columns.
 
     Raises:
-        ParameterError: weights that are not finite with ``w_desc > 0``, ``w_lap >= 0``; shapes
-            that do not fit; with ``check`` (see the module docstring), non-finite features or
-            projections, or singular systems.
-    """
+        ParameterError: weights not finite with ``w_desc > 0``, ``w_lap >= 0``; shapes that do not fit;
+            with ``check``, non-finite features or projections, or singular systems."""
     check_solver_weights(w_desc, w_lap)
     basis_x, basis_y = basis_like(basis_x, feat_x), basis_like(basis_y, feat_y)
     if basis_x.values.shape[0] != basis_y.values.shape[0]:
@@ -200,8 +171,7 @@ def solve_fmap_batch(
     check = resolve_check(check, feat_x)
     A_x, A_y = project(basis_x, feat_x), project(basis_y, feat_y)
     if check:
-        # a non-finite feature (even at a padded vertex: NaN * 0 = NaN) makes its projection
-        # non-finite, so checking the small (B, K, D) projections is enough and ~100x cheaper
+        # a non-finite feature (even padded: NaN * 0 = NaN) makes its projection non-finite: check those
         for A, feat in ((A_x, feat_x), (A_y, feat_y)):
             if not bool(torch.isfinite(A).all()):
                 check_finite(feat, "features", "check the network's inputs and outputs.")
@@ -229,15 +199,10 @@ def soft_map(
     sinkhorn_iters: int = 0,
     check: bool | None = None,
 ) -> torch.Tensor:
-    """Soft point map ``Π_yx (B, V_y, V_x)``: row ``v`` is a distribution over vertices of ``x``.
-
-    Softmax of cosine similarity / ``tau``; padded vertices of ``x`` (beyond ``lengths_x (B,)``,
-    :attr:`BasisBatch.lengths`; None: none padded) get no weight. ``sinkhorn_iters > 0``
-    alternates row and column normalisation (log domain).
-
-    Raises :class:`ParameterError` unless ``tau`` is finite and > 0, for features of
-    mismatched shapes, and (with ``check``) for vertex counts outside ``[1, V_x]``.
-    """
+    """Soft point map ``Π_yx (B, V_y, V_x)``: softmax over ``x`` of cosine similarity / ``tau``, no weight
+    beyond ``lengths_x (B,)``; ``sinkhorn_iters > 0`` alternates row and column normalisation. Raises
+    :class:`ParameterError` unless ``tau`` is finite and > 0, for features of mismatched shapes, and
+    (``check``) for vertex counts outside ``[1, V_x]``."""
     _check_soft(feat_x, feat_y, lengths_x, None, check)
     return _normalise_soft(_similarity(feat_x, feat_y, tau), lengths_x, sinkhorn_iters)
 
@@ -252,11 +217,7 @@ def soft_maps(
     sinkhorn_iters: int = 0,
     check: bool | None = None,
 ) -> SoftMaps:
-    """Both directions, :class:`SoftMaps` ``(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))``, from one
-    similarity matrix: equal to two :func:`soft_map` calls at about half the cost of the products.
-
-    Raises :class:`ParameterError` as :func:`soft_map`.
-    """
+    """:class:`SoftMaps` ``(Π_yx, Π_xy)`` from one similarity: two :func:`soft_map` calls, raising alike."""
     _check_soft(feat_x, feat_y, lengths_x, lengths_y, check)
     logits = _similarity(feat_x, feat_y, tau)
     return SoftMaps(
@@ -280,8 +241,7 @@ def _similarity(feat_x: torch.Tensor, feat_y: torch.Tensor, tau: float) -> torch
     """Cosine similarity over ``tau``: ``(B, V_y, V_x)``."""
     if not (isinstance(tau, (int, float)) and 0 < tau < float("inf")):
         raise ParameterError(f"tau must be finite and > 0, got {tau!r}. Fix: e.g. tau=0.07.")
-    fx = torch.nn.functional.normalize(feat_x, dim=-1)
-    fy = torch.nn.functional.normalize(feat_y, dim=-1)
+    fx, fy = (torch.nn.functional.normalize(f, dim=-1) for f in (feat_x, feat_y))
     return fy @ fx.transpose(-1, -2) / tau
 
 
@@ -295,8 +255,7 @@ def _normalise_soft(
         logits = logits.masked_fill(padded, float("-inf"))
     log_p = torch.log_softmax(logits, dim=-1)
     for _ in range(sinkhorn_iters):
-        # padded columns hold only -inf: normalise the others, leave those (a finite stand-in
-        # keeps logsumexp's gradient finite; torch.where routes no gradient through it)
+        # padded columns hold only -inf: a finite stand-in keeps logsumexp's gradient finite
         safe = log_p if padded is None else torch.where(padded, torch.zeros_like(log_p), log_p)
         col = torch.logsumexp(safe, dim=-2, keepdim=True)
         if padded is not None:
@@ -310,7 +269,6 @@ def soft_map_to_fmap(pi_yx: torch.Tensor, basis_x: BasisBatch, basis_y: BasisBat
     return basis_y.values.transpose(-1, -2) @ (basis_y.mass[..., None] * (pi_yx @ basis_x.values))
 
 
-# -- losses ------------------------------------------------------------------------------------
 def _valid_eye(valid: torch.Tensor | None, k: int, like: torch.Tensor) -> torch.Tensor:
     """``diag(valid)`` (the identity on a batch's valid columns), or ``I_k`` without padding."""
     return torch.eye(k, dtype=like.dtype, device=like.device) if valid is None else torch.diag_embed(valid)
@@ -325,8 +283,7 @@ def orthogonality_loss(C_xy: torch.Tensor, valid_x: torch.Tensor | None = None) 
 def bijectivity_loss(C_xy: torch.Tensor, C_yx: torch.Tensor, valid_x=None, valid_y=None) -> torch.Tensor:
     """``mean_b ‖C_yx C_xy - I‖² + ‖C_xy C_yx - I‖²``."""
     ex, ey = _valid_eye(valid_x, C_xy.shape[-1], C_xy), _valid_eye(valid_y, C_xy.shape[-2], C_xy)
-    a = ((C_yx @ C_xy - ex) ** 2).sum(dim=(-2, -1))
-    b = ((C_xy @ C_yx - ey) ** 2).sum(dim=(-2, -1))
+    a, b = ((C_yx @ C_xy - ex) ** 2).sum(dim=(-2, -1)), ((C_xy @ C_yx - ey) ** 2).sum(dim=(-2, -1))
     return (a + b).mean()
 
 
@@ -349,14 +306,9 @@ def coupling_loss(
 def geodesic_loss(
     pi_yx: torch.Tensor, idx_y: torch.Tensor, dist_rows: torch.Tensor, *, check: bool | None = None
 ) -> torch.Tensor:
-    """Supervised: expected geodesic error ``mean Σ_x Π[idx_y, x] d_x(x, gt)``.
-
-    Args:
-        pi_yx: ``(B, V_y, V_x)`` soft map.
-        idx_y: ``(B, P)`` target vertices with known ground truth.
-        dist_rows: ``(B, P, V_x)`` geodesic distances on ``x`` from the true match of each.
-        check: data check (see the module docstring): ``idx_y`` in ``[0, V_y)``.
-    """
+    """Supervised expected geodesic error ``mean Σ_x Π[idx_y, x] d_x(x, gt)`` of ``pi_yx (B, V_y, V_x)`` at
+    target vertices ``idx_y (B, P)`` with distances ``dist_rows (B, P, V_x)`` from their true matches;
+    :class:`ParameterError` for shapes that do not fit or (``check``) ``idx_y`` outside ``[0, V_y)``."""
     B, V_y, V_x = pi_yx.shape
     if idx_y.dim() != 2 or idx_y.shape[0] != B or dist_rows.shape != (B, idx_y.shape[1], V_x):
         raise ParameterError(

@@ -1,10 +1,4 @@
-"""Tangent-frame gradients of per-vertex features in torch: the batched operator type
-(:class:`GradientBatch`), its application (:func:`spatial_gradient`) and DiffusionNet's
-rotation-invariant gradient features (:func:`gradient_features`). The operators are precomputed
-in numpy by :func:`torchfmap.operators.gradient_operator`; :mod:`torchfmap.nn.functional`
-re-exports these names with the other batched operations, and its module docstring describes
-the ``check`` switch of the data checks.
-"""
+"""Tangent-frame gradients in torch (:func:`spatial_gradient`), also in :mod:`torchfmap.nn.functional`."""
 
 from __future__ import annotations
 
@@ -18,16 +12,10 @@ from ..errors import ParameterError
 
 
 class GradientBatch(NamedTuple):
-    """Padded batch of vertex gradient operators (:func:`torchfmap.operators.gradient_operator`).
-
-    ``rows, cols (B, E)`` (int64) and ``weight_x, weight_y (B, E)``: ``(∇f)_v`` in the tangent
-    frame of ``v`` is ``Σ_{rows == v} weight · f[cols]``. Padded entries have weight 0.
-    ``order_t (B, E)`` (int64, optional): per shape, the permutation that sorts the edges by
-    ``(col, row)``. Given ``order_t``, the edges must be sorted by ``(row, col)`` (as
-    :func:`~torchfmap.nn.collate_shapes` builds them) and :func:`spatial_gradient` sorts nothing
-    (with its data checks on it verifies the order, and sorts if it is wrong); without it, it
-    sorts on every call.
-    """
+    """Padded vertex gradient operators (:func:`torchfmap.operators.gradient_operator`): with
+    ``rows, cols (B, E)`` int64 and ``weight_x, weight_y (B, E)`` (0 when padded), ``(∇f)_v = Σ_{rows == v}
+    weight · f[cols]``. With ``order_t (B, E)`` (the per-shape permutation sorting edges by ``(col, row)``)
+    the edges must be sorted by ``(row, col)``, else every call sorts."""
 
     rows: torch.Tensor
     cols: torch.Tensor
@@ -62,8 +50,7 @@ def _row_pointers(sorted_index: torch.Tensor, n: int) -> torch.Tensor:
 
 
 class _SparsePairProduct(torch.autograd.Function):
-    """``(Gx f, Gy f)`` for CSR ``Gx, Gy (N, N)`` and ``f (N, C)``; the backward applies the
-    prebuilt transposes, ``Gxᵀ ∂gx + Gyᵀ ∂gy`` (no gradient to the operators)."""
+    """``(Gx f, Gy f)`` for CSR ``Gx, Gy``; backward by the prebuilt transposes."""
 
     @staticmethod
     def forward(ctx, f, Gx, Gy, GxT, GyT):
@@ -78,16 +65,11 @@ class _SparsePairProduct(torch.autograd.Function):
 
 
 def spatial_gradient(f: torch.Tensor, grad: GradientBatch, *, check: bool | None = None) -> TangentGradient:
-    """Tangent-frame gradient of per-vertex features: ``(B, V, C) -> TangentGradient((B, V, C), (B, V, C))``.
-
-    One block-diagonal compressed-sparse-row product for the batch (forward ``G f``, backward
-    ``Gᵀ ∂``); the weights are cast to ``f``'s dtype and device. First derivatives only.
-    ``check`` (data checks, see the module docstring): the operators index vertices in
-    ``[0, V)``, and edges given with ``order_t`` are sorted (else they are sorted here).
+    """Tangent-frame gradient ``(B, V, C) -> TangentGradient((B, V, C), (B, V, C))`` (one block-diagonal CSR
+    product, in ``f``'s dtype and device). ``check``: indices in ``[0, V)`` and the ``order_t`` sort.
 
     Raises:
-        ParameterError: shapes that do not fit; with ``check``, vertex indices out of range.
-    """
+        ParameterError: shapes that do not fit; with ``check``, vertex indices out of range."""
     E = grad.rows.shape[-1]
     if f.dim() != 3 or grad.rows.dim() != 2 or grad.rows.shape[0] != f.shape[0]:
         raise ParameterError(
@@ -109,10 +91,8 @@ def spatial_gradient(f: torch.Tensor, grad: GradientBatch, *, check: bool | None
         check_index_range(grad.cols, V, "the gradient operator's cols", fix)
     N = B * V
     offset = V * torch.arange(B, device=f.device)[:, None]  # shape b's vertices are rows bV..bV+V-1
-    rows = (grad.rows.to(f.device) + offset).reshape(-1)
-    cols = (grad.cols.to(f.device) + offset).reshape(-1)
-    wx = grad.weight_x.to(dtype=f.dtype, device=f.device).reshape(-1)
-    wy = grad.weight_y.to(dtype=f.dtype, device=f.device).reshape(-1)
+    rows, cols = ((index.to(f.device) + offset).reshape(-1) for index in (grad.rows, grad.cols))
+    wx, wy = (w.to(dtype=f.dtype, device=f.device).reshape(-1) for w in (grad.weight_x, grad.weight_y))
     order_t = None
     if grad.order_t is not None:  # per-shape (col, row) orders; the blocks follow each other
         order_t = (grad.order_t.to(f.device) + E * torch.arange(B, device=f.device)[:, None]).reshape(-1)
@@ -127,32 +107,21 @@ def spatial_gradient(f: torch.Tensor, grad: GradientBatch, *, check: bool | None
         order_t = torch.argsort(cols * N + rows)
     rows_t, cols_t = rows[order_t], cols[order_t]
     crow, ccol = _row_pointers(rows, N), _row_pointers(cols_t, N)
-    gx, gy = _SparsePairProduct.apply(
-        f.reshape(N, C),
-        _csr(crow, cols, wx, N),
-        _csr(crow, cols, wy, N),
-        _csr(ccol, rows_t, wx[order_t], N),
-        _csr(ccol, rows_t, wy[order_t], N),
-    )
+    Gx, Gy = (_csr(crow, cols, w, N) for w in (wx, wy))
+    GxT, GyT = (_csr(ccol, rows_t, w[order_t], N) for w in (wx, wy))
+    gx, gy = _SparsePairProduct.apply(f.reshape(N, C), Gx, Gy, GxT, GyT)
     return TangentGradient(gx.reshape(B, V, C), gy.reshape(B, V, C))
 
 
 def gradient_features(
     gx: torch.Tensor, gy: torch.Tensor, A_re: torch.Tensor, A_im: torch.Tensor
 ) -> torch.Tensor:
-    """DiffusionNet's spatial gradient features: ``tanh(Re(conj(g) ⊙ (A g)))``, ``(B, V, C)``.
-
-    ``g = gx + i gy (B, V, C)`` are tangent-frame gradients and ``A = A_re + i A_im (C, C)`` a
-    complex channel mixing, so the result does not depend on the choice of tangent frame (a
-    frame rotation multiplies ``g`` by a unit complex number). The ``A_im`` part is the normal
-    component of cross products of gradients: it changes sign under a reflection of the
-    surface, which is what lets a network tell left from right.
-    """
+    """``tanh(Re(conj(g) ⊙ (A g)))`` ``(B, V, C)`` for ``g = gx + i gy`` and ``A = A_re + i A_im (C, C)``:
+    frame-independent; ``A_im`` tells left from right."""
     if gx.shape != gy.shape or A_re.shape != A_im.shape or A_re.shape != (gx.shape[-1], gx.shape[-1]):
         raise ParameterError(
             f"gradients must have equal shapes (B, V, C) and A_re, A_im be (C, C); got {tuple(gx.shape)}, "
             f"{tuple(gy.shape)}, {tuple(A_re.shape)}, {tuple(A_im.shape)}."
         )
-    b_re = gx @ A_re.T - gy @ A_im.T
-    b_im = gy @ A_re.T + gx @ A_im.T
+    b_re, b_im = gx @ A_re.T - gy @ A_im.T, gy @ A_re.T + gx @ A_im.T
     return torch.tanh(gx * b_re + gy * b_im)

@@ -1,6 +1,4 @@
-"""Inference with a trained network: matching two meshes (:class:`LearnedMatcher`, called like
-:func:`torchfmap.match` and returning its :class:`~torchfmap.matching.results.MatchResult`); point maps
-of dataset items, adaptation and evaluation are in :mod:`~torchfmap.nn.item_inference`."""
+"""Matching two meshes with a trained network (:class:`LearnedMatcher`)."""
 
 from __future__ import annotations
 
@@ -40,9 +38,7 @@ FACINGS = (0.0, np.pi / 2, np.pi, 3 * np.pi / 2)
 
 
 def laplacian_defect(C: torch.Tensor, basis_x, basis_y) -> float:
-    """``‖C W_x - W_y C‖ / ‖C‖`` of one map ``C (K_y, K_x)`` between the bases of two
-    :class:`~torchfmap.nn.functional.BasisBatch` of one shape each (``W = U diag(lam) Uᵀ``, the
-    projected Laplacian): 0 for an isometry, large for a map that is far from one."""
+    """``‖C W_x - W_y C‖ / ‖C‖`` of ``C (K_y, K_x)`` between one-shape bases: 0 if isometric."""
     C = C.to(torch.float64)
     W = [(b.U[0] * b.lam[0][None, :]) @ b.U[0].T for b in (basis_x, basis_y)]
     W = [w.to(torch.float64) for w in W]
@@ -50,12 +46,7 @@ def laplacian_defect(C: torch.Tensor, basis_x, basis_y) -> float:
 
 
 def _zoomout_sizes(k: int, k_final: int | None, n_vertices: tuple[int, int]) -> tuple[int, int]:
-    """``(k0, k_final)`` of a learned map's ZoomOut: from the model's ``k`` to ``k_final``
-    (None: ``2k``), both capped at ``V - 1`` of the smaller mesh.
-
-    Raises:
-        ParameterError: ``k_final < k`` (:func:`~torchfmap.fmap.refine.check_k_final`).
-    """
+    """``(k0, k_final)``: ``k`` to ``k_final`` (None: ``2k``), capped at ``V - 1`` of the smaller mesh."""
     check_k_final(k, k_final)
     cap = min(n_vertices) - 1
     return min(k, cap), min(2 * k if k_final is None else k_final, cap)
@@ -68,11 +59,7 @@ def _zoomout(
     k_final: int,
     feats: tuple[np.ndarray, np.ndarray],
 ) -> Refined:
-    """ZoomOut of ``p2p_yx`` in the shapes' eigenbases, from ``(k0, k0)`` to ``k_final``: the
-    eigenbasis kind's refinement (:class:`~torchfmap.kinds.refiners.ZoomOut`), every point-map
-    step also matching the network's features ``feats`` ``((V_x, D), (V_y, D))`` as anchors, so the
-    refinement keeps what the network learned where the spectral embeddings of non-isometric
-    shapes disagree (the one call site of the learned path)."""
+    """ZoomOut of ``p2p_yx`` from ``k0`` to ``k_final``, each step also matching the features ``feats``."""
     bx, by = (s.eigenbasis.truncated(k0) for s in shapes)
     C_xy = p2p_to_fmap(p2p_yx, bx, by)
     refiner = ZoomOut(k_final=k_final, mode="orthogonal", features=feats)
@@ -80,67 +67,43 @@ def _zoomout(
 
 
 def _solver_batch(basis: Basis, batch: ShapeBatch, simple: Simplification | None) -> BasisBatch:
-    """The solver's basis of one side as a batch of one: the item's (``batch.basis``) when the
-    network ran on the mesh itself, else ``basis`` (of the dense mesh) in ``batch``'s dtype and
-    on its device."""
+    """The solver's one-side basis batch: ``batch.basis``, or with ``simple`` the dense ``basis``."""
     if simple is None:
         return batch.basis
-    like = batch.inputs
-    arrays = basis_arrays(basis)
+    like, arrays = batch.inputs, basis_arrays(basis)
     t = {key: torch.as_tensor(a, dtype=like.dtype, device=like.device)[None] for key, a in arrays.items()}
     valid = torch.ones(1, t["values"].shape[-1], dtype=like.dtype, device=like.device)
     return BasisBatch(t["values"], t["mass"], t["lam"], t["U"], valid)
 
 
 def _carried(net, batch: ShapeBatch, simple: Simplification | None) -> torch.Tensor:
-    """The network's features ``(1, V, D)`` of one side: on its vertices, or on the
-    simplification's and carried to every dense vertex (:meth:`Simplification.carry`)."""
+    """The network's features ``(1, V, D)`` of one side, carried from a simplification to every vertex."""
     out = features(net, batch)
     return out if simple is None else simple.carry(out)
 
 
 class LearnedMatcher:
-    """Matches meshes with a trained network, called like :func:`torchfmap.match`.
+    """Matches meshes with a trained network: ``matcher(mesh_x, mesh_y)`` returns a
+    :class:`~torchfmap.matching.results.MatchResult` like :func:`torchfmap.match`.
 
-    ``matcher(mesh_x, mesh_y)`` returns the :class:`~torchfmap.matching.results.MatchResult` of the pair:
-    each mesh is prepared once (:func:`~torchfmap.prepare_shape`: one Laplacian and one
-    eigendecomposition, float64 on the CPU, serving the network's inputs
-    (:func:`~torchfmap.nn.inputs.shape_arrays`), its basis and ZoomOut); the network (adapted to
-    the pair first when ``adapt_steps > 0``, :func:`adapt`) and the solver run on ``device``,
-    and the point map is the orthogonal rule of :func:`~torchfmap.fmap.fmap_to_p2p` (nearest
-    neighbours of the rows of ``Φ_y`` among those of ``Φ_x C_xyᵀ``) in float64 on the CPU, from
-    the shapes' float64 basis values, searched locally on dense pairs.
-
-    **Dense meshes** (``coarse``): the network runs on a simplification of a mesh of more than
-    :data:`~torchfmap.nn.coarse.DENSE_NETWORK_VERTICES` vertices
-    (:func:`~torchfmap.nn.coarse.simplify`, :data:`~torchfmap.nn.coarse.COARSE_VERTICES`
-    vertices, prepared once and kept in the dense shape) and its features are carried to every
-    vertex; the map is solved in the dense mesh's own basis, so the dense mesh needs only
-    ``max(k, k_final)`` eigenpairs and no network input (WKS, gradients) of its own.
-
-    Build it with :meth:`from_checkpoint` (a path or a shipped model's name), or from a network
-    and its recipe. It keeps nothing between calls: shapes are reused only when the caller
-    passes them (``shapes=``, as :func:`torchfmap.evaluate.collection.evaluate_pairs` does). It pickles
-    (for a process pool or a cluster executor): one built from a checkpoint as the checkpoint's
-    name and its settings, the network loaded again where it is unpickled.
+    Each mesh is prepared once (:func:`~torchfmap.prepare_shape`, float64 on the CPU); the network (adapted to
+    the pair first when ``adapt_steps > 0``, :func:`adapt`) and the solver run on ``device``; the point map is
+    the orthogonal rule of :func:`~torchfmap.fmap.fmap_to_p2p`, float64 on the CPU. On a mesh of more vertices
+    than ``coarse`` allows, the network runs on a :func:`~torchfmap.nn.coarse.simplify` of it and its features
+    are carried to every vertex; the map is solved in the dense mesh's basis. Build it from a network and its
+    recipe or with :meth:`from_checkpoint`; it keeps nothing between calls and pickles.
 
     Args:
-        net: a :class:`~torchfmap.nn.networks.FeatureNetwork` (moved to ``device``).
-        config: its :class:`~torchfmap.nn.TrainConfig` (basis kind and size ``k``, inputs,
-            solver weights).
-        name: what the result's ``model`` names.
-        device: ``'auto'`` / ``'cpu'`` / ``'cuda'`` / a :class:`torch.device`
-            (:func:`~torchfmap.nn.devices.resolve_device`).
-        adapt_steps, adapt_lr: unsupervised test-time adaptation per pair (0: none; on the
-            simplifications of dense meshes).
-        coarse: where the network runs (:func:`~torchfmap.nn.coarse.coarse_size`): ``'auto'``
-            (a simplification of dense meshes, see above), an int ``n`` (a simplification of
-            ``n`` vertices of every mesh of more), or None (every mesh itself).
+        net, config: a :class:`~torchfmap.nn.networks.FeatureNetwork` (moved to ``device``) and its
+            :class:`~torchfmap.nn.TrainConfig`.
+        name: the result's ``model``.
+        device: ``'auto'``, ``'cpu'``, ``'cuda'`` or a :class:`torch.device`.
+        adapt_steps, adapt_lr: unsupervised test-time adaptation per pair (0: none).
+        coarse: ``'auto'``, an int ``n`` or None (:func:`~torchfmap.nn.coarse.coarse_size`).
 
     Raises:
-        ParameterError: ``adapt_steps`` not an integer >= 0, an unknown or absent device, a
-            network that does not follow the protocol, or a bad ``coarse``.
-    """
+        ParameterError: ``adapt_steps`` not an integer >= 0, an unknown or absent device, a network that
+            does not follow the protocol, or a bad ``coarse``."""
 
     def __init__(
         self,
@@ -157,11 +120,9 @@ class LearnedMatcher:
         if isinstance(adapt_steps, bool) or not isinstance(adapt_steps, (int, np.integer)) or adapt_steps < 0:
             raise ParameterError(f"adapt_steps must be an integer >= 0, got {adapt_steps!r}.")
         check_network(net)
-        self.device_setting = device
-        self.device = resolve_device(device)
+        self.device_setting, self.device = device, resolve_device(device)
         self.net = net.to(self.device).eval()
-        self.config = config
-        self.name = str(name)
+        self.config, self.name = config, str(name)
         self.adapt_steps, self.adapt_lr = int(adapt_steps), float(adapt_lr)
         self.checkpoint: str | os.PathLike | None = None
         self.solver, self.loss_fn = build_solver(config)
@@ -176,13 +137,9 @@ class LearnedMatcher:
         adapt_lr: float = 1e-4,
         coarse: str | int | None = "auto",
     ) -> LearnedMatcher:
-        """The matcher of a checkpoint written by ``torchfmap train`` or of a shipped model's
-        name (:func:`~torchfmap.nn.shipped.resolve_checkpoint`), read now (its best weights).
-
-        Raises:
-            CorruptFileError, ParameterError: an unreadable checkpoint or an unknown name (as
-                :func:`~torchfmap.nn.checkpoints.load_checkpoint`), or as the constructor.
-        """
+        """The matcher of a checkpoint path or shipped name (best weights); raises
+        (:class:`CorruptFileError`, :class:`ParameterError`) as
+        :func:`~torchfmap.nn.checkpoints.load_checkpoint` and ``__init__``."""
         net, config, _ = load_checkpoint(name_or_path)
         settings = dict(device=device, adapt_steps=adapt_steps, adapt_lr=adapt_lr, coarse=coarse)
         matcher = cls(net, config, name=os.fspath(name_or_path), **settings)
@@ -211,19 +168,14 @@ class LearnedMatcher:
         )
 
     def facings(self) -> tuple[float, ...]:
-        """Yaw angles (radians, about ``y``) at which the target's inputs are tried: for an XYZ
-        model trained with ``augment='up'`` (shapes standing alike, facing anywhere) the
-        :data:`FACINGS` quarter turns, the functional map kept being the most isometric one
-        (:func:`laplacian_defect`: a wrong facing maps head to tail, far from an isometry);
-        ``(0,)`` for any other model (WKS is invariant, other XYZ models were trained aligned or
-        under any rotation)."""
+        """Yaw angles (radians, about ``y``) the target's inputs are tried at: :data:`FACINGS` for an XYZ
+        model trained with ``augment='up'`` (least :func:`laplacian_defect` kept), else ``(0,)``."""
         cfg = self.config
         return FACINGS if has_coordinates(cfg.inputs) and cfg.augment == "up" else (0.0,)
 
     def _eigenpairs(self, n_vertices: int, k_final: int = 0, network: bool = True) -> int:
-        """Eigenpairs one preparation of a mesh of ``n_vertices`` needs: the solver's basis and
-        ZoomOut's ``k_final``, with the network's and the WKS inputs' when the network runs on
-        it (``network``), at most ``n_vertices - 1``."""
+        """Eigenpairs a mesh of ``n_vertices`` needs (more if the ``network`` runs on it), below
+        ``n_vertices``."""
         cfg = self.config
         need = max(cfg.k, cfg.k_net, K_WKS, k_final) if network else max(cfg.k, k_final)
         return min(need, n_vertices - 1)
@@ -233,8 +185,7 @@ class LearnedMatcher:
         return coarse_size(self.coarse, mesh.n_vertices) is None
 
     def _network_shape(self, shape: PreparedShape) -> tuple[PreparedShape, Simplification | None]:
-        """The prepared shape the network runs on and the simplification it is of (None: the
-        shape itself), built once and kept in ``shape`` (:meth:`~torchfmap.PreparedShape.derive`)."""
+        """``(prepared shape the network runs on, its simplification or None)``, kept in ``shape``."""
         n = coarse_size(self.coarse, shape.mesh.n_vertices)
         if n is None:
             return shape, None
@@ -245,12 +196,7 @@ class LearnedMatcher:
     def _items(
         self, shape: PreparedShape, index: int, whole: PreparedShape | None = None, motion=None
     ) -> tuple[dict, Basis, Simplification | None]:
-        """``(dataset item, solver basis, simplification)`` of one prepared shape: the network's
-        arrays (:func:`~torchfmap.nn.inputs.shape_arrays`, in the network's dtype) of the shape
-        the network runs on (:meth:`_network_shape`), the float64 basis of ``shape`` the map is
-        solved in (the same kind's ``shape_basis`` shape_arrays reads) and the simplification
-        (None when the network runs on ``shape``). ``whole``, ``motion``: coordinate inputs in
-        that shape's frame (:func:`~torchfmap.nn.inputs.coordinates_on`), not ``shape``'s own."""
+        """``(item, float64 solver basis, simplification)``; ``whole``, ``motion`` as in :meth:`features`."""
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
         shot = has_shot(cfg.inputs)
@@ -271,24 +217,16 @@ class LearnedMatcher:
         whole: PreparedShape | None = None,
         motion: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
-        """``(V, D)`` float64: the network's per-vertex features of ``mesh`` as it lies (no
-        adaptation, no facings), e.g. as :func:`~torchfmap.matching.partial.match_partial`'s
-        ``descriptors`` or for retrieval.
+        """``(V, D)`` float64: the network's features of ``mesh`` as it lies (no adaptation, no facings).
 
         Args:
-            shape: ``prepare_shape(mesh, n)`` to reuse (its eigenbasis is grown in place when
-                the network needs more).
-            whole: for a part of a whole (same units, lying where it lies on the whole), the
-                whole's prepared shape: coordinate inputs are taken in the whole's frame
-                (:func:`~torchfmap.nn.inputs.coordinates_on`), so that they agree with the
-                whole's at the same points; no effect on a model without coordinate inputs.
-            motion: with ``whole``, ``(R (3, 3), t (3,))``: the part placed at
-                ``vertices @ R.T + t`` on the whole first (a part saved turned).
+            shape: ``prepare_shape(mesh, n)`` to reuse (grown in place when needed).
+            whole: for a part, its whole's prepared shape, whose frame coordinate inputs are taken in.
+            motion: with ``whole``, ``(R (3, 3), t (3,))``: the part placed at ``vertices @ R.T + t`` first.
 
         Raises:
-            ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, ``whole`` not a
-                prepared shape, or the mesh is too small for the model's ``k``.
-        """
+            ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, ``whole`` not a prepared
+                shape, or the mesh is too small for ``k``."""
         check_meshes(mesh, mesh)
         need = self._eigenpairs(mesh.n_vertices, network=self._runs_on(mesh))
         if shape is None:
@@ -309,8 +247,7 @@ class LearnedMatcher:
             return _carried(self.net, batch, simple)[0].to(torch.float64).cpu().numpy()
 
     def _prepared(self, meshes: tuple[Mesh, Mesh], shapes, k_final: int) -> tuple[PreparedShape, ...]:
-        """The pair's prepared shapes (``shapes`` checked and grown, or new), each with the
-        eigenpairs :meth:`_eigenpairs` asks of it (at most ``V - 1`` of the smaller mesh)."""
+        """The pair's prepared shapes (``shapes`` checked and grown, or new) with their eigenpairs."""
         n = min(m.n_vertices for m in meshes)
         need = [self._eigenpairs(n, k_final, self._runs_on(m)) for m in meshes]
         if shapes is None:
@@ -326,12 +263,8 @@ class LearnedMatcher:
                 "breaks. Fix: adapt_steps=0 (CLI: no --adapt) with partial=True."
             )
         t0 = time.perf_counter()
-        sizes = (mesh_x.n_vertices, mesh_y.n_vertices)
-        k0, k_final = (
-            _zoomout_sizes(self.config.k, k_final, sizes)
-            if refine
-            else (min(self.config.k, min(sizes) - 1), None)
-        )
+        k, sizes = self.config.k, (mesh_x.n_vertices, mesh_y.n_vertices)
+        k0, k_final = _zoomout_sizes(k, k_final, sizes) if refine else (min(k, min(sizes) - 1), None)
         shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
         feats_x = self.features(mesh_x, shape=shapes[0])
         placements = (
@@ -350,23 +283,15 @@ class LearnedMatcher:
             best = min(residual, key=residual.get)
             result = tried[best]
             result.placement, result.candidates = best, tried
-        result.timings = {"prepare+network": seconds, **result.timings}
-        result.model = self.name
+        result.timings, result.model = {"prepare+network": seconds, **result.timings}, self.name
         return result
 
     def placements(
         self, shape_x: PreparedShape, shape_y: PreparedShape, *, k: int = DEFAULT_K
     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Rigid motions ``(R (3, 3), t (3,))`` of a part ``y`` onto its whole ``x`` that a
-        coordinate model's partial map tries (:meth:`__call__`, ``partial=True``), by name:
-        ``'as it lies'`` (the identity: a part saved in its whole's frame) and ``'fitted'``
-        (:func:`~torchfmap.mesh.rigid_fit` of the part onto the images of the classical partial
-        map, SHOT descriptors, ``k`` functions, unrefined: rotation-invariant, so a part saved
-        turned is put back). Each placement's map is solved and the one a rigid placement
-        explains best is kept (the least trimmed residual of :func:`~torchfmap.mesh.rigid_fit`:
-        a map that sends the part onto the wrong region cannot be placed rigidly). Placements
-        turned upside down were tried and not kept: that residual does not rank them
-        (docs/guide.md, "Partial shapes")."""
+        """Rigid motions ``(R (3, 3), t (3,))`` of a part ``y`` onto its whole ``x`` that a coordinate
+        model's partial map tries: ``'as it lies'`` and ``'fitted'`` (:func:`~torchfmap.mesh.rigid_fit`
+        onto the classical partial map of ``k`` functions); the best rigid fit is kept."""
         p2p = match_partial(shape_x, shape_y, k=k).p2p_yx
         R, t, _ = rigid_fit(shape_y.mesh.vertices, shape_x.mesh.vertices[p2p])
         return {"as it lies": (np.eye(3), np.zeros(3)), "fitted": (R, t)}
@@ -381,36 +306,21 @@ class LearnedMatcher:
         shapes: tuple[PreparedShape, PreparedShape] | None = None,
         partial: bool = False,
     ) -> MatchResult:
-        """The map ``y -> x`` of the pair: ``p2p_yx (V_y,)``, ``C_xy`` and the bases it lives in
-        (the model's basis of ``k`` columns; with ZoomOut the eigenbases of ``k_final``),
-        ``p2p_yx_initial`` (the network's map), ``kind`` (the model's basis kind), ``model``
-        (``name``) and ``timings`` (seconds: ``prepare``, ``adapt``, ``network+fmap``, ``p2p``,
-        ``refine``).
+        """The map ``y -> x``: ``p2p_yx (V_y,)``, ``C_xy`` and its bases, ``p2p_yx_initial``, ``kind``,
+        ``model``, ``timings`` (s).
 
         Args:
-            refine: ``'zoomout'`` (from the network's map, in the eigenbases, from the model's
-                ``k`` eigenfunctions to ``k_final``; default ``2k``; both capped at ``V - 1`` of
-                the smaller mesh; every point-map step also matches the network's features) or
-                None.
-            shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse across
-                pairs (their eigenbases are grown in place when the call needs more).
-            partial: ``y`` is a part of ``x`` (same units): the partial functional map of
-                :func:`~torchfmap.matching.partial.match_partial` of the model's ``k`` (ZoomOut to
-                ``k_final``, default ``2k``) with the network's features
-                (:meth:`features`, as each shape lies: no facings; the part's coordinate inputs
-                in the whole's frame, ``whole=``) as its descriptors. The features of a part
-                agree with the whole's only where the network's inputs do: coordinate inputs
-                (``--inputs xyz``) do near the part's vertices when the part lies as it lies
-                on the whole, WKS (global) does not; a coordinate model tries the part at each
-                of its :meth:`placements` (a part saved turned) and keeps one (``placement``).
-                The result has ``overlap`` and ``partial_rank`` as ``match``'s.
+            refine: ``'zoomout'`` (from the network's map, ``k`` to ``k_final``, default ``2k``, capped at
+                ``V - 1``; each step also matches the network's features) or None.
+            shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse (grown in place).
+            partial: ``y`` is a part of ``x`` (same units): :func:`~torchfmap.matching.partial.match_partial`
+                with the network's :meth:`features` as descriptors, at each of the :meth:`placements` of a
+                coordinate model (the one kept: ``placement``); with ``overlap`` and ``partial_rank``.
 
         Raises:
-            ParameterError: inputs that are not meshes, another refinement, ``k_final`` without
-                ZoomOut or below ``k``,
-                ``shapes`` not of these meshes, or meshes too small for the model's ``k``;
-                ``partial`` with test-time adaptation, or with a part larger than the whole.
-        """
+            ParameterError: inputs that are not meshes, another refinement, ``k_final`` without ZoomOut or
+                below ``k``, ``shapes`` not of these meshes, meshes too small for ``k``; ``partial`` with
+                adaptation or a part larger than the whole."""
         check_meshes(mesh_x, mesh_y)
         if not partial:
             warn_if_partial(mesh_x, mesh_y)
@@ -440,15 +350,11 @@ class LearnedMatcher:
             fx = _carried(net, sx, simple_x)
             C, fy, least = None, None, float("inf")
             for angle in self.facings():  # one facing, or the most isometric of several
-                turned = (
-                    sy._replace(
-                        inputs=move_xyz(
-                            sy.inputs, lambda xyz, a=angle: xyz @ yaw_matrices(xyz.new_tensor([a]))
-                        )
-                    )
-                    if angle
-                    else sy
-                )
+
+                def turn(xyz, a=angle):
+                    return xyz @ yaw_matrices(xyz.new_tensor([a]))
+
+                turned = sy._replace(inputs=move_xyz(sy.inputs, turn)) if angle else sy
                 fy_a = _carried(net, turned, simple_y)
                 C_a = solve_xy(solver, fx, fy_a, basis_x, basis_y)[0]
                 defect = laplacian_defect(C_a, basis_x, basis_y)

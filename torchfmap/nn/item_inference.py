@@ -1,8 +1,4 @@
-"""Inference on dataset items (:class:`~torchfmap.nn.data.ShapeDataset`): a pair collated as
-batches of one (:func:`pair_batches`), the learned map of one direction (:func:`solve_xy`), point
-maps (:func:`predict_p2p`), unsupervised test-time adaptation (:func:`adapt`) and the mean
-geodesic error of a dataset's pairs (:func:`evaluate`). :class:`~torchfmap.nn.LearnedMatcher`
-matches meshes with them."""
+"""Inference on dataset items: :func:`predict_p2p`, :func:`adapt` and :func:`evaluate`."""
 
 from __future__ import annotations
 
@@ -40,23 +36,15 @@ def solve_xy(solver, fx, fy, bx, by) -> torch.Tensor:
 def predict_p2p(
     net, solver, x: dict, y: dict, *, mode: str = "fmap", p2p_mode: str = "orthogonal", device="cpu"
 ) -> np.ndarray:
-    """``p2p_yx`` of one pair of dataset items (:class:`~torchfmap.nn.data.ShapeDataset`).
-
-    ``mode='fmap'``: learned features -> ``C_xy`` -> point map by ``p2p_mode``:
-    ``'orthogonal'`` (default: nearest neighbour of each row of ``Φ_y`` among the rows of
-    ``Φ_x C_xyᵀ``; the recipe's orthogonality loss makes ``C_xy`` near-orthogonal, and this is
-    the rule :func:`torchfmap.fmap.fmap_to_p2p` uses for such maps) or ``'pullback'``
-    (rows of ``Φ_y C_xy`` among those of ``Φ_x``), searched in float64 as
-    :class:`~torchfmap.nn.LearnedMatcher` does (one point-map rule for both). ``mode='features'``:
-    nearest neighbours in the (normalised) feature space.
-    """
+    """``p2p_yx`` of two dataset items: ``mode='fmap'`` from ``C_xy`` in float64 by ``p2p_mode``
+    (``'orthogonal'``: rows of ``Φ_y`` among those of ``Φ_x C_xyᵀ``; ``'pullback'``: rows of ``Φ_y C_xy``
+    among those of ``Φ_x``), ``mode='features'`` by nearest normalised features."""
     check_network(net)
     net.eval()
     sx, sy = pair_batches(x, y, device)
     fx, fy = features(net, sx), features(net, sy)
     if mode == "features":
-        a = torch.nn.functional.normalize(fy[0], dim=-1).double().cpu().numpy()
-        b = torch.nn.functional.normalize(fx[0], dim=-1).double().cpu().numpy()
+        a, b = (torch.nn.functional.normalize(f[0], dim=-1).double().cpu().numpy() for f in (fy, fx))
         return nearest_neighbor(a, b, precision="single")
     if mode != "fmap":
         raise ParameterError(f"unknown mode {mode!r}. Fix: 'fmap' or 'features'.")
@@ -79,10 +67,7 @@ def adapt(
     device="cpu",
     generator: torch.Generator | None = None,
 ):
-    """Unsupervised test-time adaptation: a copy of ``net`` after ``steps`` Adam steps of
-    ``loss_fn`` on the pair ``(x, y)`` itself (no ground truth). ``net`` is left unchanged.
-    The loss's random draws come from ``generator`` (None: a new one on ``device`` seeded 0, so
-    the same call gives the same network)."""
+    """A copy of ``net`` after ``steps`` Adam steps of ``loss_fn`` on the pair (``generator``: seed 0)."""
     if steps < 0:
         raise ParameterError(f"steps must be >= 0, got {steps}.")
     check_network(net)
@@ -102,14 +87,8 @@ def adapt(
 def evaluate(
     net, shapes: ShapeDataset, pairs, gts, solver, *, mode: str = "fmap", max_points=500, device="cpu"
 ) -> float:
-    """Mean normalised geodesic error over ``pairs`` (index pairs) with ground truths ``gts``,
-    the maps of :func:`predict_p2p` with ``solver``: the model's own
-    (:func:`~torchfmap.nn.build_solver` of its recipe, e.g. the checkpoint's
-    :class:`~torchfmap.nn.TrainConfig`), since the regularisation weights change the maps.
-
-    Raises:
-        ParameterError: no solver.
-    """
+    """Mean normalised geodesic error of :func:`predict_p2p` over ``pairs`` against ``gts``. Raises
+    :class:`ParameterError`: no solver."""
     if solver is None:
         raise ParameterError(
             "evaluate needs the model's solver. Fix: build_solver(config)[0] with the model's recipe "

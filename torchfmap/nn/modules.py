@@ -1,8 +1,4 @@
-"""``torch.nn.Module`` layers: thin wrappers that hold settings / buffers and call
-:mod:`torchfmap.nn.functional` (which calls the same solver code as the classical path).
-
-Layers whose functions have data checks take the same ``check`` setting (None: on for CPU
-inputs, off elsewhere; see :mod:`torchfmap.nn.functional`) and pass it on."""
+"""``torch.nn.Module`` layers: settings and buffers over :mod:`torchfmap.nn.functional`."""
 
 from __future__ import annotations
 
@@ -23,20 +19,12 @@ from .functional import BasisBatch
 
 
 def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
-    """Numpy arrays of a B-orthonormal basis for the torch side, in the unit-area frame of its
-    mesh: ``values (V, K)``, lumped ``mass (V,)`` summing to 1, the spectral frame ``lam (K,)``,
-    ``U (K, K)`` of ``W = Φᵀ L Φ``.
-
-    The layers' settings (diffusion times, the solver's Laplacian weight) are for shapes of unit
-    area, so a basis of a mesh of area ``A`` (e.g. in its file's units) is rescaled as
-    ``mesh.scaled(1 / sqrt(A))`` would give it: values ``x sqrt(A)``, mass ``/ A``, eigenvalues
-    ``x A`` (the cotangent stiffness is scale-free). Bases of one mesh at any scale give the same
-    arrays. Bases from :func:`~torchfmap.prepare_shape` are in that frame already.
+    """Numpy arrays of a B-orthonormal basis for the torch side, in its mesh's unit-area frame (a mesh of area
+    ``A`` as ``mesh.scaled(1 / sqrt(A))``): ``values (V, K)``, lumped ``mass (V,)`` summing to 1, spectral
+    frame ``lam (K,)``, ``U (K, K)`` of ``W = Φᵀ L Φ``.
 
     Raises:
-        ParameterError: a basis that is not B-orthonormal, has no stiffness, or whose mass is not
-            lumped (diagonal) or has no area.
-    """
+        ParameterError: a basis that is not B-orthonormal, has no stiffness, or a mass not lumped or empty."""
     if not basis.orthonormal:
         raise ParameterError("the basis must be B-orthonormal. Fix: orthonormalize(basis) first.")
     mass = np.asarray(check_lumped_mass(basis.mass, "torch layers"), dtype=np.float64)
@@ -46,20 +34,12 @@ def basis_arrays(basis: Basis) -> dict[str, np.ndarray]:
     if not np.isfinite(area) or area <= 0:
         raise ParameterError(f"the basis' mass sums to {area}, not an area. Fix: check its mass matrix.")
     lam, U = core.spectral_frame(core.as_tensor(basis.projected_laplacian()))
-    return {
-        "values": basis.values * np.sqrt(area),
-        "mass": mass / area,
-        "lam": lam.numpy() * area,
-        "U": U.numpy(),
-    }
+    return dict(values=basis.values * np.sqrt(area), mass=mass / area, lam=lam.numpy() * area, U=U.numpy())
 
 
 class BasisModule(nn.Module):
-    """A precomputed basis as buffers (moves with ``.to()``, saved in ``state_dict``):
-    ``values (V, K)``, ``mass (V,)``, ``lam (K,)``, ``U (K, K)`` with
-    ``W = U diag(lam) Uᵀ = Φᵀ L Φ``. Kept in float64 (``dtype``); layers cast it to their
-    input's dtype on use. ``forward()`` returns :meth:`batch`.
-    """
+    """A basis as buffers ``values (V, K)``, ``mass (V,)``, ``lam (K,)``, ``U (K, K)``
+    (``W = U diag(lam) Uᵀ``) in ``dtype``, cast by layers on use; ``forward()`` is :meth:`batch`."""
 
     BUFFERS = ("values", "mass", "lam", "U")
 
@@ -70,11 +50,7 @@ class BasisModule(nn.Module):
 
     @classmethod
     def from_state_dict(cls, state: dict) -> BasisModule:
-        """Rebuild from :meth:`state_dict` alone (no mesh, no :class:`Basis`).
-
-        Raises:
-            ParameterError: a buffer is missing or the shapes do not fit together.
-        """
+        """Rebuild from :meth:`state_dict`; :class:`ParameterError` if buffers are missing or misfit."""
         missing = [name for name in cls.BUFFERS if name not in state]
         if missing:
             raise ParameterError(f"state_dict lacks {missing}. Fix: pass a BasisModule's state_dict().")
@@ -106,14 +82,9 @@ class BasisModule(nn.Module):
         times=None,
         dtype=torch.float64,
     ) -> BasisModule:
-        """A registered kind's basis of exactly ``k`` columns on ``mesh`` (``basis``: the kind's
-        name, as ``match(basis=...)``; ``KINDS[basis].shape_basis``,
-        :data:`torchfmap.bases.KINDS`): feature-aware kinds at ``seeds`` first, farthest-point
-        seeds after; ``times``: their relative diffusion times.
-
-        Raises:
-            ParameterError: an unknown kind, or fewer than ``k`` independent columns.
-        """
+        """A registered kind's basis (``basis``, :data:`torchfmap.bases.KINDS`) of ``k`` columns on
+        ``mesh``, seeded at ``seeds`` then farthest points, diffused at relative ``times``. Raises
+        :class:`ParameterError`: an unknown kind, or fewer than ``k`` independent columns."""
         kind = learned_kind(basis)
         return cls(kind.shape_basis(prepare_shape(mesh, 0), k, seeds=seeds, times=times), dtype)
 
@@ -151,17 +122,10 @@ class BasisModule(nn.Module):
 
 
 class RegularizedFMSolver(nn.Module):
-    """Differentiable batched functional-map solver for any B-orthonormal bases.
-
-    ``forward(feat_x (B, V_x, D), feat_y (B, V_y, D), basis_x, basis_y) ->
-    (C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` is None with ``both=False``).
-    The defaults are those of :func:`torchfmap.fmap.solve_fmap` for eigenbases (the same
-    core solve gives the same map); for bases with diffusion columns pass
-    ``w_lap=torchfmap.fmap.defaults.W_LAP_KERNELS``. The training recipe solves with its own
-    ``TrainConfig.w_lap`` (:func:`~torchfmap.nn.build_solver`), which :func:`~torchfmap.nn.train`
-    and :func:`~torchfmap.nn.evaluate` use when given no solver. ``check``: the data checks of
-    :func:`~torchfmap.nn.functional.solve_fmap_batch` (None: on CPU inputs only).
-    """
+    """Differentiable batched functional-map solver for B-orthonormal bases, ``forward(feat_x (B, V_x, D),
+    feat_y (B, V_y, D), basis_x, basis_y)`` -> ``(C_xy (B, K_y, K_x), C_yx (B, K_x, K_y))`` (``C_yx`` None
+    unless ``both``). Defaults as :func:`torchfmap.fmap.solve_fmap` for eigenbases (diffusion bases:
+    ``w_lap=W_LAP_KERNELS``); ``check`` as :func:`~torchfmap.nn.functional.solve_fmap_batch`."""
 
     def __init__(
         self,
@@ -178,61 +142,32 @@ class RegularizedFMSolver(nn.Module):
     def forward(self, feat_x, feat_y, basis_x: BasisBatch, basis_y: BasisBatch) -> F.FmapPair:
         """``(feat_x (B, V_x, D), feat_y (B, V_y, D), bases) -> FmapPair(C_xy (B, K_y, K_x), C_yx)``;
         bases may be :class:`BasisModule` s (cast to the features' dtype)."""
-        return F.solve_fmap_batch(
-            feat_x,
-            feat_y,
-            basis_x,
-            basis_y,
-            w_desc=self.w_desc,
-            w_lap=self.w_lap,
-            mask=self.mask,
-            both=self.both,
-            check=self.check,
-        )
+        opts = dict(w_desc=self.w_desc, w_lap=self.w_lap, mask=self.mask, both=self.both, check=self.check)
+        return F.solve_fmap_batch(feat_x, feat_y, basis_x, basis_y, **opts)
 
 
 class SoftPointMap(nn.Module):
-    """Soft map ``Π_yx (B, V_y, V_x)`` from features (softmax or Sinkhorn); ``check`` as in
-    :func:`~torchfmap.nn.functional.soft_map`."""
+    """Soft map ``Π_yx (B, V_y, V_x)`` from features (:func:`~torchfmap.nn.functional.soft_map`)."""
 
     def __init__(self, tau: float = 0.07, sinkhorn_iters: int = 0, check: bool | None = None) -> None:
         super().__init__()
         self.tau, self.sinkhorn_iters, self.check = tau, sinkhorn_iters, check
 
     def forward(self, feat_x, feat_y, lengths_x=None):
-        """``(feat_x (B, V_x, D), feat_y (B, V_y, D)) -> Π_yx (B, V_y, V_x)``, rows summing to 1
-        (vertices of ``x`` beyond ``lengths_x (B,)`` get no weight)."""
-        return F.soft_map(
-            feat_x,
-            feat_y,
-            tau=self.tau,
-            lengths_x=lengths_x,
-            sinkhorn_iters=self.sinkhorn_iters,
-            check=self.check,
-        )
+        """``(feat_x (B, V_x, D), feat_y (B, V_y, D)) -> Π_yx (B, V_y, V_x)``, 0 beyond ``lengths_x``."""
+        opts = dict(tau=self.tau, sinkhorn_iters=self.sinkhorn_iters, check=self.check)
+        return F.soft_map(feat_x, feat_y, lengths_x=lengths_x, **opts)
 
     def both(self, feat_x, feat_y, lengths_x=None, lengths_y=None) -> F.SoftMaps:
-        """``SoftMaps(Π_yx (B, V_y, V_x), Π_xy (B, V_x, V_y))`` from one similarity matrix
-        (:func:`~torchfmap.nn.functional.soft_maps`)."""
-        return F.soft_maps(
-            feat_x,
-            feat_y,
-            tau=self.tau,
-            lengths_x=lengths_x,
-            lengths_y=lengths_y,
-            sinkhorn_iters=self.sinkhorn_iters,
-            check=self.check,
-        )
+        """``SoftMaps(Π_yx, Π_xy)`` from one similarity (:func:`~torchfmap.nn.functional.soft_maps`)."""
+        opts = dict(tau=self.tau, sinkhorn_iters=self.sinkhorn_iters, check=self.check)
+        return F.soft_maps(feat_x, feat_y, lengths_x=lengths_x, lengths_y=lengths_y, **opts)
 
 
 class UnsupervisedFMLoss(nn.Module):
-    """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``.
-
-    ``n_samples > 0``: the coupling term compares the maps on ``n_samples`` random vertices of
-    each shape (``(B, n, n)`` soft maps), drawn from the ``generator`` given to :meth:`forward`
-    (:func:`~torchfmap.nn.train.train` passes its own; nothing is drawn from the global RNG).
-    ``check`` as in :func:`~torchfmap.nn.functional.soft_maps`.
-    """
+    """``w_bij·bijectivity + w_orth·orthogonality + w_lap·Laplacian commutativity + w_couple·coupling``;
+    with ``n_samples > 0`` the coupling compares maps on that many random vertices per shape, drawn from
+    :meth:`forward`'s ``generator``."""
 
     def __init__(
         self,
@@ -248,14 +183,12 @@ class UnsupervisedFMLoss(nn.Module):
         if n_samples < 0:
             raise ParameterError(f"n_samples must be >= 0, got {n_samples}.")
         self.w = dict(bij=w_bij, orth=w_orth, lap=w_lap, couple=w_couple)
-        self.soft = SoftPointMap(tau, check=check)
-        self.n_samples = n_samples
+        self.soft, self.n_samples = SoftPointMap(tau, check=check), n_samples
 
     def _samples(
         self, basis: BasisBatch, feats: torch.Tensor, generator: torch.Generator | None
     ) -> tuple[BasisBatch, torch.Tensor]:
-        """A random subset of vertices, its mass rescaled to the total (an unbiased integral).
-        The subset is sorted, so each shape's real vertices stay first (``lengths`` counts them)."""
+        """A sorted random subset of vertices (real ones stay first), its mass rescaled to the total."""
         V = feats.shape[1]
         if not self.n_samples or V <= self.n_samples:
             return basis, feats
@@ -283,13 +216,7 @@ class UnsupervisedFMLoss(nn.Module):
         *,
         generator: torch.Generator | None = None,
     ) -> dict[str, torch.Tensor]:
-        """The weighted terms and their sum ``'total'``; the coupling term's soft maps are
-        ``(B, n, n)`` between ``n_samples`` random vertices of each shape (all when 0), drawn
-        from ``generator`` (needed then).
-
-        Raises:
-            ParameterError: vertices to sample and no ``generator``.
-        """
+        """The weighted terms and their ``'total'``; :class:`ParameterError` if sampling without generator."""
         terms = {
             "bij": F.bijectivity_loss(C_xy, C_yx, basis_x.valid, basis_y.valid),
             "orth": F.orthogonality_loss(C_xy, basis_x.valid) + F.orthogonality_loss(C_yx, basis_y.valid),
@@ -308,10 +235,7 @@ class UnsupervisedFMLoss(nn.Module):
 
 
 class SpectralDiffusion(nn.Module):
-    """Learned per-channel diffusion in a basis frame: ``x -> Φ U exp(-t λ) Uᵀ Φᵀ M x``.
-
-    Works in any B-orthonormal basis (for an eigenbasis ``U = I``); ``t`` is learned per channel.
-    """
+    """Learned per-channel diffusion ``x -> Φ U exp(-t λ) Uᵀ Φᵀ M x`` in any B-orthonormal basis."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()

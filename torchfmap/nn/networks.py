@@ -1,26 +1,6 @@
-"""Feature networks: the plug-in protocol and the reference DiffusionNet-style network.
-
-**Protocol** (:class:`FeatureNetwork`). Training, evaluation, test-time adaptation and the CLI
-call a feature network as ``net(inputs, basis, grad) -> features``:
-
-- ``inputs (B, V, C_in)``: per-vertex input features (WKS or XYZ, see
-  :class:`~torchfmap.nn.data.ShapeDataset`), zero on padded vertices;
-- ``basis``: a :class:`~torchfmap.nn.functional.BasisBatch` ``(B, V, K_net)``, any
-  B-orthonormal basis (for spectral diffusion; by default the Laplacian eigenbasis);
-- ``grad``: a :class:`~torchfmap.nn.functional.GradientBatch`, the cached tangent-frame
-  gradient operators (a network may ignore it);
-- returns ``features (B, V, D)`` in the dtype and on the device of ``inputs``.
-
-Any ``torch.nn.Module`` with that ``forward`` plugs in (see ``tests/nn/test_networks.py``);
-the code that takes networks refuses other objects (:func:`check_network`) and outputs of
-another shape, dtype or device (:func:`features`).
-
-**Checkpoints** record the network's class (``module:qualname``) and its constructor
-arguments, so :func:`~torchfmap.nn.checkpoints.load_checkpoint` can rebuild it. A network gives
-its arguments as an ``init_kwargs`` dict attribute (plain values only: numbers, strings, bools,
-None, lists, tuples and dicts of those), as :class:`DiffusionNet` does,
-or the caller passes ``net_kwargs`` to :func:`~torchfmap.nn.checkpoints.save_checkpoint`.
-"""
+"""Feature networks: the protocol :class:`FeatureNetwork` (``net(inputs (B, V, C_in), basis, grad)`` ->
+``(B, V, D)`` in ``inputs``' dtype and device; :func:`check_network`, :func:`features`) and the reference
+:class:`DiffusionNet`. Checkpoints rebuild a network from its class and ``init_kwargs`` (plain values)."""
 
 from __future__ import annotations
 
@@ -41,21 +21,13 @@ if TYPE_CHECKING:  # annotations only: data sits beside this module
 
 
 class FeatureNetwork(Protocol):
-    """``(inputs (B, V, C_in), basis BasisBatch, grad GradientBatch) -> features (B, V, D)``.
-
-    A static type only; :func:`check_network` is the runtime check.
-    """
+    """``(inputs (B, V, C_in), basis BasisBatch, grad GradientBatch) -> features (B, V, D)`` (static type)."""
 
     def __call__(self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch) -> torch.Tensor: ...
 
 
 def check_network(net) -> None:
-    """Refuse an object that cannot be a :class:`FeatureNetwork`: not a ``torch.nn.Module``, or
-    whose ``forward`` does not take ``(inputs, basis, grad)``.
-
-    Raises:
-        ParameterError: naming what is wrong.
-    """
+    """Refuse (:class:`ParameterError`) a non-module or a ``forward`` not taking ``(inputs, basis, grad)``."""
     if not isinstance(net, nn.Module):
         raise ParameterError(
             f"a feature network must be a torch.nn.Module, got {type(net).__name__}. Fix: subclass "
@@ -71,23 +43,11 @@ def check_network(net) -> None:
 
 
 def features(net, shape: ShapeBatch) -> torch.Tensor:
-    """The network's features of a :class:`~torchfmap.nn.data.ShapeBatch`: ``(B, V, D)``.
-
-    Calls ``net(shape.inputs, shape.net_basis, shape.grad)``.
-
-    Raises:
-        ParameterError: the output is not a ``(B, V, D)`` tensor in the dtype and on the device
-            of ``shape.inputs``.
-    """
-    out = net(shape.inputs, shape.net_basis, shape.grad)
-    inputs = shape.inputs
-    if (
-        not isinstance(out, torch.Tensor)
-        or out.dim() != 3
-        or out.shape[:2] != inputs.shape[:2]
-        or out.dtype != inputs.dtype
-        or out.device != inputs.device
-    ):
+    """The features ``(B, V, D)`` of a :class:`~torchfmap.nn.data.ShapeBatch`, :class:`ParameterError`
+    unless ``(B, V, D)`` in the dtype and on the device of ``shape.inputs``."""
+    out, inputs = net(shape.inputs, shape.net_basis, shape.grad), shape.inputs
+    fits = isinstance(out, torch.Tensor) and out.dim() == 3 and out.shape[:2] == inputs.shape[:2]
+    if not (fits and out.dtype == inputs.dtype and out.device == inputs.device):
         got = (
             f"{tuple(out.shape)} {out.dtype} on {out.device}" if isinstance(out, torch.Tensor) else type(out)
         )
@@ -100,12 +60,7 @@ def features(net, shape: ShapeBatch) -> torch.Tensor:
 
 
 class SpatialGradientFeatures(nn.Module):
-    """Learned rotation-invariant gradient features: ``(B, V, C) -> (B, V, C)``.
-
-    Holds the complex mixing ``A = A_re + i A_im (C, C)`` and the ``check`` setting and calls
-    :func:`~torchfmap.nn.functional.spatial_gradient` and
-    :func:`~torchfmap.nn.functional.gradient_features`.
-    """
+    """Learned rotation-invariant gradient features ``(B, V, C) -> (B, V, C)``, mixing ``A_re + i A_im``."""
 
     def __init__(self, channels: int, check: bool | None = None) -> None:
         super().__init__()
@@ -145,15 +100,9 @@ class DiffusionNetBlock(nn.Module):
 
 
 class DiffusionNet(nn.Module):
-    """Reference feature network (DiffusionNet: learned diffusion, gradient features, MLPs).
-
-    ``forward(inputs (B, V, C_in), basis, grad) -> (B, V, c_out)``: a linear lift to ``width``
-    channels, ``n_blocks`` :class:`DiffusionNetBlock`, a linear head. With intrinsic inputs
-    (WKS) the output is invariant to rigid motions of the mesh; the gradient features make it
-    sensitive to reflections (left/right). ``gradients=False`` drops them (diffusion + MLPs).
-    ``check``: the data checks of the gradient operators (None: on CPU inputs only).
-    ``init_kwargs`` holds the constructor arguments (recorded in checkpoints).
-    """
+    """Reference feature network: lift to ``width``, ``n_blocks`` :class:`DiffusionNetBlock`, head to
+    ``c_out``. Invariant to rigid motions with WKS inputs; gradient features (``gradients``) tell
+    reflections apart. ``init_kwargs``: the constructor arguments."""
 
     def __init__(
         self,
@@ -166,15 +115,8 @@ class DiffusionNet(nn.Module):
         check: bool | None = None,
     ) -> None:
         super().__init__()
-        self.init_kwargs = dict(
-            c_in=c_in,
-            c_out=c_out,
-            width=width,
-            n_blocks=n_blocks,
-            dropout=dropout,
-            gradients=gradients,
-            check=check,
-        )
+        self.init_kwargs = dict(c_in=c_in, c_out=c_out, width=width, n_blocks=n_blocks, dropout=dropout)
+        self.init_kwargs.update(gradients=gradients, check=check)
         if min(c_in, c_out, width, n_blocks) < 1 or not 0 <= dropout < 1:
             raise ParameterError(
                 f"DiffusionNet needs c_in, c_out, width, n_blocks >= 1 and 0 <= dropout < 1; got "
@@ -188,12 +130,7 @@ class DiffusionNet(nn.Module):
         self.head = nn.Linear(width, c_out)
 
     def forward(self, inputs: torch.Tensor, basis: BasisBatch, grad: GradientBatch) -> torch.Tensor:
-        """``inputs (B, V, C_in)`` -> features ``(B, V, c_out)`` in ``inputs``' dtype; ``basis``
-        a :class:`BasisBatch` (or a module with ``.batch()``), cast to that dtype.
-
-        Raises:
-            ParameterError: with the data check (``check``; None: CPU inputs), non-finite inputs.
-        """
+        """``(B, V, C_in) -> (B, V, c_out)`` same dtype; :class:`ParameterError` if non-finite (``check``)."""
         if resolve_check(self.check, inputs):
             check_finite(inputs, "DiffusionNet inputs", "check the precomputed inputs (WKS, XYZ).")
         basis = F.basis_like(basis, inputs)

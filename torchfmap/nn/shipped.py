@@ -1,12 +1,4 @@
-"""Pretrained models shipped in the package (``torchfmap/nn/models/*.ckpt``), resolved by name.
-
-``torchfmap match --checkpoint faust_r``, ``torchfmap eval --checkpoint``,
-:meth:`~torchfmap.nn.LearnedMatcher.from_checkpoint` and
-:func:`~torchfmap.nn.checkpoints.load_checkpoint` take a shipped name wherever they take a path; a file of
-that name in the working directory wins over the shipped model. Each shipped checkpoint holds
-its ``provenance`` (command, data, commit, validation score); ``torchfmap models`` lists them.
-Nothing is downloaded: the files are in the package.
-"""
+"""Shipped pretrained models (``torchfmap/nn/models/*.ckpt``), taken by name for a checkpoint path."""
 
 from __future__ import annotations
 
@@ -25,11 +17,8 @@ def shipped_models() -> dict[str, Path]:
 
 
 def resolve_checkpoint(spec: str | os.PathLike) -> Path:
-    """The checkpoint file of ``spec``: an existing path, else a shipped model's name.
-
-    Raises:
-        ParameterError: neither an existing file nor a shipped name (the names are listed).
-    """
+    """The checkpoint file of ``spec``: an existing path, else a shipped model's name. Raises
+    :class:`ParameterError`: neither (the shipped names are listed)."""
     path = Path(spec)
     if path.is_file():
         return path

@@ -1,11 +1,4 @@
-"""The losses of training, one pair batch at a time: a network's features and maps of a
-collated batch (:func:`forward_pair`), their loss terms with any plug-in terms added
-(:func:`pair_loss`, :class:`ExtraLoss`), the unsupervised validation score
-(:func:`unsupervised_score`) and what a run records (:class:`TrainState`).
-
-The loop itself is :class:`~torchfmap.nn.trainer.Trainer`; :mod:`torchfmap.nn.config` holds the
-reference recipe, :mod:`torchfmap.nn.checkpoints` the checkpoint files.
-"""
+"""The losses of training (:func:`pair_loss`), its score (:func:`unsupervised_score`), :class:`TrainState`."""
 
 from __future__ import annotations
 
@@ -24,8 +17,7 @@ from .networks import features
 
 
 class PairForward(NamedTuple):
-    """Result of :func:`forward_pair`: features ``(B, V_x, D)``, ``(B, V_y, D)`` and both maps
-    ``C_xy (B, K_y, K_x)``, ``C_yx (B, K_x, K_y)`` (None from a one-direction solver)."""
+    """Result of :func:`forward_pair`: ``feat_x``, ``feat_y (B, V, D)``, ``C_xy (B, K_y, K_x)``, ``C_yx``."""
 
     feat_x: torch.Tensor
     feat_y: torch.Tensor
@@ -35,14 +27,9 @@ class PairForward(NamedTuple):
 
 @runtime_checkable
 class ExtraLoss(Protocol):
-    """A plug-in loss term of training (``Trainer(..., extra_losses=[...])``), e.g.
-    :class:`torchfmap.experimental.stages.StageTwoLoss`.
-
-    Called once per batch with the batch's forward pass as
-    ``extra(out: PairForward, batch, solver=..., loss_fn=..., generator=...)``; returns a dict of
-    tensors with ``'total'``, logged as ``<name>_<term>`` and whose ``'total'`` is added to the
-    batch's total. ``name`` prefixes its terms.
-    """
+    """A plug-in loss term of the ``Trainer``'s ``extra_losses``, called as ``extra(out, batch, solver=,
+    loss_fn=, generator=)``: it returns tensors with ``'total'`` (added to the batch's total), logged as
+    ``<name>_<term>``."""
 
     name: str
 
@@ -65,10 +52,8 @@ def pair_loss(
     generator: torch.Generator | None = None,
     extra_losses: Sequence[ExtraLoss] = (),
 ) -> dict[str, torch.Tensor]:
-    """The loss terms of a collated batch:
-    ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=generator)``, then each
-    plug-in of ``extra_losses`` (:class:`ExtraLoss`) on the same forward pass: its terms are
-    added as ``<name>_<term>`` and its ``'total'`` to ``'total'``."""
+    """The terms ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=generator)`` of a
+    collated batch, plus each of ``extra_losses`` as ``<name>_<term>`` (its ``'total'`` added)."""
     out = forward_pair(net, solver, batch)
     terms = loss_fn(
         out.C_xy, out.C_yx, out.feat_x, out.feat_y, batch["x"].basis, batch["y"].basis, generator=generator
@@ -90,20 +75,9 @@ def unsupervised_score(
     augment: str = "none",
     seed: int = 0,
 ):
-    """``score(net) -> float``: the mean unsupervised loss (plug-in terms included) on ``pairs``
-    with full (not sampled) soft maps, in eval mode, for the trainer's ``validate`` (lower is
-    better; no ground truth). Batches are moved to ``device``.
-
-    ``augment``: the recipe's augmentation (:attr:`TrainConfig.augment
-    <torchfmap.nn.TrainConfig>`), resolved for the shapes' inputs by the training's rule
-    (:func:`~torchfmap.nn.augment.augmentation`) and applied to the validation pairs once, with
-    draws from ``seed``: the score measures the pairs as training sees them (a network trained
-    facing anywhere is scored on turned pairs, not only on the pairs as stored), and every call
-    scores the same inputs.
-
-    Raises:
-        ParameterError: an unknown ``augment``.
-    """
+    """``score(net) -> float``: the mean unsupervised loss (full soft maps, eval mode) on ``pairs``,
+    augmented once as training would (draws from ``seed``); lower is better. Raises
+    :class:`ParameterError`: an unknown ``augment``."""
     full = copy.deepcopy(loss_fn)
     full.n_samples = 0
     augment = augmentation(augment, getattr(shapes, "inputs", None))
@@ -124,10 +98,7 @@ def unsupervised_score(
 
 @dataclass
 class TrainState:
-    """What a run records and checkpoints: per-step losses, full epochs, the batches done of the
-    current epoch, seconds of training, per-epoch times, validation scores ``(step, score)``,
-    the best score, and the state of the random draws (augmentation, loss sampling) where the
-    run stands, so that a run resumed mid-epoch goes on as the uninterrupted run would."""
+    """A run's record: step, epochs, batches of this epoch, draws' state, seconds, losses, times, scores."""
 
     step: int = 0
     epoch: int = 0

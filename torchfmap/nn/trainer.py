@@ -1,8 +1,4 @@
-"""The training loop: :class:`Trainer` (fit / step / validate / save / resume, DDP inside an
-initialised process group), the one way to train in torchfmap: ``torchfmap train``, DDP ranks
-(:func:`ddp_worker`, started by :func:`spawn_ddp`) and ``examples/04_train.py`` all build one by
-:meth:`Trainer.from_config`, and any network, loss and optimiser of the caller's go through its
-constructor."""
+"""The training loop (:class:`Trainer`) and DDP runs of the reference recipe (:func:`spawn_ddp`)."""
 
 from __future__ import annotations
 
@@ -35,9 +31,7 @@ def _cosine_factors(scheduler) -> list[CosineBudget]:
 
 
 def _check_solver_fits(solver, config: TrainConfig) -> None:
-    """Refuse a solver whose Laplacian weight is not the recipe's: the checkpoint records
-    ``config.w_lap`` and :class:`~torchfmap.nn.LearnedMatcher` solves with it, so the model
-    would be used with another solve than it was trained with."""
+    """Refuse a solver whose ``w_lap`` is not the recipe's (recorded in the checkpoint, used by inference)."""
     w_lap = getattr(solver, "w_lap", None)
     if w_lap is not None and float(w_lap) != float(config.w_lap):
         raise ParameterError(
@@ -48,40 +42,23 @@ def _check_solver_fits(solver, config: TrainConfig) -> None:
 
 
 class Trainer:
-    """Unsupervised training of ``net`` on the pairs of ``data`` (a
-    :class:`~torchfmap.nn.data.PairDataset`).
+    """Unsupervised training of ``net`` (a :class:`~torchfmap.nn.networks.FeatureNetwork`) on the pairs of
+    ``data`` (a :class:`~torchfmap.nn.data.PairDataset`).
 
-    ``net`` follows the :class:`~torchfmap.nn.networks.FeatureNetwork` protocol; ``loss_fn`` is
-    called as ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=...)`` and returns
-    a dict of terms with ``'total'`` (as :class:`~torchfmap.nn.UnsupervisedFMLoss`);
-    ``extra_losses``: plug-in terms added to it (:class:`~torchfmap.nn.train.ExtraLoss`).
-    ``config`` (:class:`~torchfmap.nn.TrainConfig`, default the recipe's) sets the loop: its
-    :class:`~torchfmap.nn.config.Budget`, batch size, gradient clipping (0: none), augmentation
-    (:func:`~torchfmap.nn.augment.augmentation` of the data's inputs) and seed, and is recorded
-    in the checkpoint; ``solver=None``: the config's (:func:`~torchfmap.nn.build_solver`).
-    ``scheduler`` steps after each optimiser step (:meth:`from_config`: the cosine over the
-    budget). ``device`` (:func:`~torchfmap.nn.devices.resolve_device`; ``'auto'``: CUDA when
-    available): the network, the solver and the loss run there, every batch is moved there;
-    the datasets' precompute stays float64 on the CPU. ``validate(net) -> score`` (lower is
-    better, e.g. :func:`~torchfmap.nn.train.unsupervised_score`) runs every ``validate_every``
-    steps and at the end; the best weights are kept. ``checkpoint``: the file :meth:`save`
-    writes (atomically, at each epoch end, each validation and the end) and :meth:`resume`
-    reads. Inside an initialised ``torch.distributed`` process group of more than one rank the
-    network is wrapped in DistributedDataParallel, each rank trains on its share of the pairs,
-    the ranks follow one clock (the slowest rank's) and only rank 0 writes.
-
-    Randomness comes from generators the trainer owns, seeded ``seed + epoch`` at each epoch's
-    start: a CPU one shuffles the pairs, one on ``device`` draws the loss's samples and the
-    augmentation. A checkpoint records the batches done of its epoch and the draws' state, so a
-    run resumed mid-epoch skips those batches of the same order and draws as the uninterrupted
-    run would.
+    ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=...)`` returns terms with ``'total'``;
+    ``extra_losses``: plug-ins (:class:`~torchfmap.nn.train.ExtraLoss`). ``config``
+    (:class:`~torchfmap.nn.TrainConfig`, recorded in the checkpoint) sets budget, batch size, clipping,
+    augmentation and seed; ``solver=None``: the config's. ``scheduler`` steps after each step. ``device``:
+    where the network, solver and loss run. ``validate(net) -> score`` (lower is better) runs every
+    ``validate_every`` steps and at the end, keeping the best weights. ``checkpoint``: the file :meth:`save`
+    writes and :meth:`resume` reads. In a process group of several ranks the network is wrapped in
+    DistributedDataParallel and only rank 0 writes. Generators seeded ``seed + epoch`` shuffle and draw, so a
+    resumed run draws as the uninterrupted one would.
 
     Raises:
-        ParameterError: a network that does not follow the protocol, a config without a budget,
-            an unknown augmentation or device, or (with a checkpoint) a recipe network that the
-            config does not describe or a solver whose ``w_lap`` is not the config's (the
-            checkpoint records the config's, and inference solves with it).
-    """
+        ParameterError: a network that does not follow the protocol, a config without a budget, an unknown
+            augmentation or device, or (with a checkpoint) a config that does not describe the recipe
+            network or a solver whose ``w_lap`` is not the config's."""
 
     def __init__(
         self,
@@ -125,9 +102,11 @@ class Trainer:
             sampler = torch.utils.data.distributed.DistributedSampler(
                 data, num_replicas=self.world_size, rank=self.rank, shuffle=True, seed=self.config.seed
             )
-        self.sampler = sampler
-        self.shuffle = torch.Generator()
-        self.draws = torch.Generator(device=self.device)
+        self.sampler, self.shuffle, self.draws = (
+            sampler,
+            torch.Generator(),
+            torch.Generator(device=self.device),
+        )
         self.loader = torch.utils.data.DataLoader(
             data, batch_size=self.config.batch_size, shuffle=sampler is None, sampler=sampler,
             collate_fn=collate_pairs, generator=self.shuffle,
@@ -138,17 +117,12 @@ class Trainer:
     def from_config(
         cls, config: TrainConfig, shapes: ShapeDataset, pairs=None, *, init: dict | None = None, **kwargs
     ) -> Trainer:
-        """The reference recipe, all of it read from ``config``: the network, solver and loss of
-        :func:`~torchfmap.nn.build_model`, Adam at ``config.lr`` and the cosine schedule over
-        the budget (:class:`~torchfmap.nn.config.CosineBudget`), on ``pairs`` of ``shapes``
-        (default :func:`~torchfmap.nn.data.class_pairs`). ``init``: a state dict the network
-        starts from (fine-tuning). ``kwargs``: the constructor's (device, extra_losses,
-        validate, validate_every, checkpoint).
+        """The reference recipe of ``config`` (:func:`~torchfmap.nn.build_model`, Adam,
+        :class:`~torchfmap.nn.config.CosineBudget`) on ``pairs`` of ``shapes`` (default
+        :func:`~torchfmap.nn.data.class_pairs`), the network starting from ``init`` if given.
 
         Raises:
-            ParameterError: weights ``init`` that do not fit the recipe's network, or as the
-                constructor.
-        """
+            ParameterError: weights ``init`` that do not fit the recipe's network, or as the constructor."""
         pairs = class_pairs(shapes.names) if pairs is None else list(pairs)
         net, solver, loss_fn = build_model(config)
         if init is not None:
@@ -161,9 +135,8 @@ class Trainer:
                 ) from None
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         trainer = cls(net, PairDataset(shapes, pairs), loss_fn, opt, config=config, solver=solver, **kwargs)
-        trainer.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            opt, CosineBudget(config.budget, trainer.batches_per_epoch)
-        )
+        factor = CosineBudget(config.budget, trainer.batches_per_epoch)
+        trainer.scheduler = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return trainer
 
     @property
@@ -177,8 +150,7 @@ class Trainer:
         return self.rank == 0
 
     def seconds_spent(self) -> float:
-        """Seconds of training of the whole run; under DDP with a time budget, the slowest
-        rank's (one all-reduce), so the ranks stop at the same step and schedule alike."""
+        """Seconds of training of the whole run (under DDP with a time budget, the slowest rank's)."""
         elapsed = time.perf_counter() - self._t_start
         if self.world_size == 1 or not self.budget.minutes:
             return elapsed
@@ -187,14 +159,12 @@ class Trainer:
         return float(agreed.item())
 
     def out_of_budget(self) -> bool:
-        """Whether the budget's time or step bound is reached (epochs end the loop itself)."""
+        """Whether the budget's time or step bound is reached."""
         over_time = self.budget.minutes > 0 and self.seconds_spent() >= 60 * self.budget.minutes
         return over_time or (self.budget.steps > 0 and self.state.step >= self.budget.steps)
 
     def resume(self) -> bool:
-        """Continue the run saved in :attr:`checkpoint` when it exists: weights, optimiser,
-        scheduler (its clock and step; the bounds stay this run's), the state (step, time
-        spent, losses) and the best weights. Returns whether it did."""
+        """Continue the run saved in :attr:`checkpoint` if it exists; returns whether it did."""
         if self.checkpoint is None or not self.checkpoint.exists():
             return False
         ckpt = read_checkpoint(self.checkpoint, map_location=self.device)
@@ -205,14 +175,12 @@ class Trainer:
             self.scheduler.load_state_dict(ckpt["scheduler"])
             for f, b in bounds:
                 f.bounds = b
-        self.state = TrainState(**ckpt["train_state"])
-        self.best_state = ckpt.get("best_state_dict")
+        self.state, self.best_state = TrainState(**ckpt["train_state"]), ckpt.get("best_state_dict")
         return True
 
     def save(self, path: str | os.PathLike | None = None, **extra) -> Path | None:
-        """Write the checkpoint (rank 0 only; ``path`` default :attr:`checkpoint`): weights, the
-        config, optimiser, scheduler, state, best weights and ``extra`` values, atomically
-        (:func:`~torchfmap.nn.checkpoints.save_checkpoint`). None when nothing was written."""
+        """Write the checkpoint (rank 0 only; ``path`` default :attr:`checkpoint`) with ``extra``; its path
+        or None."""
         path = self.checkpoint if path is None else Path(path)
         if path is None or not self.main:
             return None
@@ -225,8 +193,7 @@ class Trainer:
         )  # fmt: skip
 
     def validate(self) -> float | None:
-        """Run ``validate`` once (None without one): the score is recorded with the step, and
-        the weights are kept as the best when it is the lowest so far."""
+        """Run ``validate`` once (None without one), recording the score and keeping the best weights."""
         if self.validate_fn is None:
             return None
         score = float(self.validate_fn(self.net))
@@ -238,9 +205,7 @@ class Trainer:
         return score
 
     def step(self, batch: dict) -> dict[str, float]:
-        """One optimiser step on a collated batch: moved to the device, augmented, its loss
-        (plug-in terms included) backpropagated, the gradient clipped, the optimiser and the
-        schedule stepped. Returns the loss terms (floats), also appended to the state."""
+        """One optimiser step on a collated batch; returns the loss terms (floats), also recorded."""
         batch = {**batch, "x": batch["x"].to(self.device), "y": batch["y"].to(self.device)}
         batch = augment_batch(batch, self.augment, self.draws)
         terms = pair_loss(self.model, self.solver, self.loss_fn, batch, self.draws, self.extra_losses)
@@ -272,9 +237,7 @@ class Trainer:
         )
 
     def fit(self, progress: bool = True) -> TrainState:
-        """Train until the budget is spent (the whole run's: a resumed run counts the steps and
-        time of the earlier ones); returns the :class:`~torchfmap.nn.train.TrainState`. The
-        progress bar counts steps up to the step bound, or seconds of a time budget alone."""
+        """Train until the whole run's budget is spent; returns :class:`~torchfmap.nn.train.TrainState`."""
         epochs, state = self.budget.epochs, self.state
         self._t_start = time.perf_counter() - state.seconds
         self.net.train()
@@ -327,10 +290,7 @@ class Trainer:
 def ddp_worker(
     rank: int, world_size: int, port: int, files, cache_dir, config_dict: dict, out_path, weights_dir
 ) -> None:
-    """One rank of a DDP run of the reference recipe (gloo on CPU, NCCL with one GPU per rank):
-    :meth:`Trainer.from_config` of ``config_dict`` on the same pairs as one process; rank 0
-    shows progress and writes the checkpoint ``out_path``; each rank writes its final weights
-    to ``weights_dir/rank{r}.pt`` (:func:`spawn_ddp`'s temporary folder)."""
+    """One rank of :func:`spawn_ddp` (gloo on CPU, NCCL with a GPU per rank); rank 0 writes ``out_path``."""
     cuda = torch.cuda.is_available() and torch.cuda.device_count() >= world_size
     device = torch.device(f"cuda:{rank}") if cuda else torch.device("cpu")
     os.environ.setdefault("MASTER_ADDR", "127.0.0.1")
@@ -349,11 +309,7 @@ def ddp_worker(
 
 
 def spawn_ddp(config: TrainConfig, files, out, *, world_size: int = 2, cache_dir=None) -> list[dict]:
-    """Train the recipe ``config`` on the meshes ``files`` with DistributedDataParallel over
-    ``world_size`` processes (:func:`ddp_worker`), checkpoint ``out``; returns each rank's final
-    state dict (on the CPU; they agree when the ranks stayed in step). The ranks' weights go
-    through a temporary folder removed at the end, also on failure: only the checkpoint is left
-    beside ``out``."""
+    """DDP training of ``config`` on ``files`` (``world_size`` ranks) into ``out``; returns rank weights."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
