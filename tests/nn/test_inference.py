@@ -405,9 +405,7 @@ def test_a_shot_models_features_ignore_rigid_motion_and_scale_of_wholes_and_part
     atol = 1e3 * 2**-24 * np.abs(fx).max()
     np.testing.assert_allclose(matcher.features(turned), fx, rtol=0, atol=atol)
     fy = matcher.features(part, shape=prepare_shape(part, 20), whole=whole)
-    np.testing.assert_allclose(
-        matcher.features(moved(part, 1.0), whole=whole), fy, rtol=0, atol=atol
-    )
+    np.testing.assert_allclose(matcher.features(moved(part, 1.0), whole=whole), fy, rtol=0, atol=atol)
     assert not np.allclose(matcher.features(part), fy, atol=atol)  # its own radius is another
     result = matcher(mesh_x, moved(part, 1.0), partial=True)
     assert result.placement is None and not result.candidates

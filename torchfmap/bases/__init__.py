@@ -9,20 +9,7 @@ from .prepared import PreparedShape, prepare_shape
 from .stack import basis_stack, concatenate
 
 __all__ = [
-    "DEFAULT_TIMES",
-    "Basis",
-    "PreparedShape",
-    "Column",
-    "basis_stack",
-    "cholqr",
-    "concatenate",
-    "diffusion_basis",
-    "harmonic_basis",
-    "harmonic_functions",
-    "laplacian_eigenbasis",
-    "mgs",
-    "orthonormalize",
-    "orthonormalize_pair",
-    "prepare_shape",
-    "support_fraction",
-]
+    "DEFAULT_TIMES", "Basis", "PreparedShape", "Column", "basis_stack", "cholqr", "concatenate",
+    "diffusion_basis", "harmonic_basis", "harmonic_functions", "laplacian_eigenbasis", "mgs",
+    "orthonormalize", "orthonormalize_pair", "prepare_shape", "support_fraction",
+]  # fmt: skip

@@ -18,19 +18,7 @@ for _kind in (LAPLACIAN, HYBRID, DIFFUSION, HARMONIC, STACK, EIGEN_DIFFUSION):
 del _kind
 
 __all__ = [
-    "ICP",
-    "KINDS",
-    "REFINE_METHODS",
-    "BasisKind",
-    "FixedSizeIterations",
-    "SeedMoves",
-    "SeededKind",
-    "ZoomOut",
-    "check_refine",
-    "get_kind",
-    "kind_of",
-    "learned_kind",
-    "register_kind",
-    "relative_times",
+    "ICP", "KINDS", "REFINE_METHODS", "BasisKind", "FixedSizeIterations", "SeedMoves", "SeededKind",
+    "ZoomOut", "check_refine", "get_kind", "kind_of", "learned_kind", "register_kind", "relative_times",
     "seed_time",
-]
+]  # fmt: skip

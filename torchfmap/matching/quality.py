@@ -30,15 +30,9 @@ SWAPPED_RATIO = 0.5
 MISREAD_MAX_LANDMARKS = 20
 
 __all__ = [
-    "COLLAPSE_COVERAGE",
-    "N_ANCHORS",
-    "distortion_anchors",
-    "geodesic_distortion",
-    "landmark_distortion",
-    "orientation_agreement",
-    "warn_collapsed",
-    "warn_if_off_by_one",
-]
+    "COLLAPSE_COVERAGE", "N_ANCHORS", "distortion_anchors", "geodesic_distortion", "landmark_distortion",
+    "orientation_agreement", "warn_collapsed", "warn_if_off_by_one",
+]  # fmt: skip
 
 
 def distortion_anchors(shape_y: PreparedShape, n_anchors: int = N_ANCHORS) -> np.ndarray:

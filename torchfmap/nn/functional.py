@@ -16,27 +16,11 @@ from ..fmap.defaults import W_LAP_SMOOTH
 from .gradients import GradientBatch, TangentGradient, gradient_features, spatial_gradient
 
 __all__ = [
-    "BasisBatch",
-    "FmapPair",
-    "GradientBatch",
-    "SoftMaps",
-    "TangentGradient",
-    "basis_like",
-    "bijectivity_loss",
-    "coupling_loss",
-    "solve_fmap_batch",
-    "geodesic_loss",
-    "gradient_features",
-    "laplacian_commutativity_loss",
-    "orthogonality_loss",
-    "project",
-    "reconstruct",
-    "soft_map",
-    "soft_map_to_fmap",
-    "soft_maps",
-    "spatial_gradient",
-    "vertex_mask",
-]
+    "BasisBatch", "FmapPair", "GradientBatch", "SoftMaps", "TangentGradient", "basis_like",
+    "bijectivity_loss", "coupling_loss", "solve_fmap_batch", "geodesic_loss", "gradient_features",
+    "laplacian_commutativity_loss", "orthogonality_loss", "project", "reconstruct", "soft_map",
+    "soft_map_to_fmap", "soft_maps", "spatial_gradient", "vertex_mask",
+]  # fmt: skip
 
 
 def vertex_mask(lengths: torch.Tensor | None, n_vertices: int) -> torch.Tensor | None:

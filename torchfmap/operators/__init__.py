@@ -11,25 +11,8 @@ from .laplacian import Operators, laplacian, mass_matrix, normalize_area, point_
 from .solvers import Factorization, available_backends, factorize
 
 __all__ = [
-    "DistanceRows",
-    "Factorization",
-    "GeodesicSolver",
-    "Operators",
-    "available_backends",
-    "check_vertex_indices",
-    "eigenpairs",
-    "factorize",
-    "geodesic_distances",
-    "gradient_operator",
-    "heat_apply",
-    "heat_kernels",
-    "laplacian",
-    "lumped_diagonal",
-    "mass_matrix",
-    "normalize_area",
-    "point_cloud_laplacian",
-    "scipy_to_torch",
-    "torch_to_scipy",
-    "tangent_frames",
-    "total_area",
-]
+    "DistanceRows", "Factorization", "GeodesicSolver", "Operators", "available_backends",
+    "check_vertex_indices", "eigenpairs", "factorize", "geodesic_distances", "gradient_operator",
+    "heat_apply", "heat_kernels", "laplacian", "lumped_diagonal", "mass_matrix", "normalize_area",
+    "point_cloud_laplacian", "scipy_to_torch", "torch_to_scipy", "tangent_frames", "total_area",
+]  # fmt: skip
