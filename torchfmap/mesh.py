@@ -1,4 +1,4 @@
-"""Triangle meshes: :class:`Mesh` (vertex order never changed) and :func:`rigid_fit`; :func:`validate_mesh`,
+"""Triangle meshes: :class:`Mesh` (vertex order never changed); :func:`validate_mesh`,
 :class:`MeshReport` and :func:`orient_faces` live in :mod:`torchfmap.mesh_checks` (importable from here)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from functools import cached_property
 import numpy as np
 import trimesh
 
-from .errors import MeshError, MeshWarning, ParameterError, _preview
+from .errors import MeshError, MeshWarning, _preview
 from .mesh_checks import (
     MeshReport,
     _as_arrays,
@@ -23,11 +23,7 @@ from .mesh_checks import (
     weld_vertices,
 )
 
-__all__ = ["Mesh", "MeshReport", "orient_faces", "rigid_fit", "validate_mesh", "weld_vertices"]
-
-#: Share of the pairs a trimmed rigid fit keeps at each round, and its rounds.
-RIGID_KEEP = 0.5
-RIGID_ROUNDS = 8
+__all__ = ["Mesh", "MeshReport", "orient_faces", "validate_mesh", "weld_vertices"]
 
 
 class Mesh:
@@ -253,32 +249,3 @@ class Mesh:
     def to_trimesh(self):
         """A ``trimesh.Trimesh`` view (``process=False``, same vertex order)."""
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
-
-
-def rigid_fit(
-    points: np.ndarray, targets: np.ndarray, *, keep: float = RIGID_KEEP, rounds: int = RIGID_ROUNDS
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R (3, 3), t (3,), residual)`` placing ``points (N, 3)`` on ``targets (N, 3)`` (``points @ R.T +
-    t``): a Kabsch fit repeated ``rounds`` (>= 1) times on the ``keep`` (in ``(0, 1]``) share of pairs the
-    previous fit placed best. ``det R = 1``; ``residual``: the kept pairs' mean distance after the last
-    fit. :class:`ParameterError` for bad arguments or points not both finite ``(N, 3)``, ``N >= 3``."""
-    p, q = np.asarray(points, dtype=np.float64), np.asarray(targets, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or p.shape != q.shape or len(p) < 3:
-        raise ParameterError(
-            f"rigid_fit takes two (N, 3) arrays of the same N >= 3, got {p.shape} and {q.shape}."
-        )
-    if not (np.isfinite(p).all() and np.isfinite(q).all()):
-        raise ParameterError("rigid_fit: points and targets must be finite.")
-    if not 0 < keep <= 1 or rounds < 1:
-        raise ParameterError(f"rigid_fit needs 0 < keep <= 1 and rounds >= 1, got {keep} and {rounds}.")
-    n_keep = max(3, int(keep * len(p)))
-    kept = np.arange(len(p))
-    for _ in range(rounds):  # bounded: each round refits on the pairs the last one placed best
-        pc, qc = p[kept].mean(axis=0), q[kept].mean(axis=0)
-        u, _, vt = np.linalg.svd((p[kept] - pc).T @ (q[kept] - qc))
-        d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-        R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-        t = qc - R @ pc
-        gaps = np.linalg.norm(p @ R.T + t - q, axis=1)
-        kept = np.argsort(gaps, kind="stable")[:n_keep]
-    return R, t, float(gaps[kept].mean())

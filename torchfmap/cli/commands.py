@@ -267,10 +267,9 @@ def _sizes(args: argparse.Namespace, result) -> str:
 def _partial_how(result) -> str:
     """A partial map's rank and estimated overlap, in words."""
     share = float((result.overlap > 0.5).mean())
-    placed = f", the part {result.placement} on the source" if result.placement else ""
     return (
         f"rank {result.partial_rank} of the whole's {result.C_xy.shape[1]} eigenfunctions (the part's share "
-        f"of them, about k times the area ratio), overlap {share:.0%} of the source's vertices{placed}"
+        f"of them, about k times the area ratio), overlap {share:.0%} of the source's vertices"
     )
 
 

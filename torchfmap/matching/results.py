@@ -101,7 +101,7 @@ class MatchResult:
     ran. With landmarks, ``distortion`` (:func:`~torchfmap.matching.quality.geodesic_distortion`); ``refined``
     and ``refine_check`` (:class:`RefineCheck`). The landmark default fills ``candidates``, ``skipped`` and
     ``fold_scores``; ``model`` names a network (:class:`torchfmap.nn.LearnedMatcher`); partial maps set
-    ``overlap`` ``(V_x,)``, ``partial_rank`` and, for coordinate models, ``placement``."""
+    ``overlap`` ``(V_x,)``, and ``partial_rank``."""
 
     p2p_yx: np.ndarray
     C_xy: np.ndarray
@@ -120,7 +120,6 @@ class MatchResult:
     overlap: np.ndarray | None = None
     partial_rank: int | None = None
     refine_check: RefineCheck | None = None
-    placement: str | None = None
 
     def scores(self) -> str:
         """``'laplacian 0.051, hybrid 0.045*'``: each candidate's distortion, ``*`` the chosen, then ``';

@@ -13,14 +13,13 @@ from ..bases.basis import Basis
 from ..bases.prepared import PreparedShape, check_prepared, prepare_shape, with_eigenpairs
 from ..errors import ParameterError
 from ..fmap.convert import fmap_to_p2p, p2p_to_fmap
-from ..fmap.defaults import DEFAULT_K
 from ..fmap.refine import Refined, check_k_final
 from ..kinds import get_kind
 from ..kinds.refiners import ZoomOut, check_refine, pair_samplings
 from ..matching.checks import check_meshes, check_unused, warn_if_partial
 from ..matching.partial import match_partial, shot_descriptors
 from ..matching.results import MatchResult, refine_result
-from ..mesh import Mesh, rigid_fit
+from ..mesh import Mesh
 from .augment import move_xyz, yaw_matrices
 from .checkpoints import load_checkpoint
 from .coarse import Simplification, check_coarse, coarse_size, simplify
@@ -194,15 +193,15 @@ class LearnedMatcher:
         return with_eigenpairs(coarse, self._eigenpairs(simple.mesh.n_vertices)), simple
 
     def _items(
-        self, shape: PreparedShape, index: int, whole: PreparedShape | None = None, motion=None
+        self, shape: PreparedShape, index: int, whole: PreparedShape | None = None
     ) -> tuple[dict, Basis, Simplification | None]:
-        """``(item, float64 solver basis, simplification)``; ``whole``, ``motion`` as in :meth:`features`."""
+        """``(item, float64 solver basis, simplification)``; ``whole`` as in :meth:`features`."""
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
         shot = has_shot(cfg.inputs)
         arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis, shot=shot)
         if whole is not None:
-            arrays["xyz"] = coordinates_on(net_shape.mesh, whole, motion)
+            arrays["xyz"] = coordinates_on(net_shape.mesh, whole)
             if shot:
                 arrays["shot"] = shot_descriptors(net_shape, whole)
         dtype = next(self.net.parameters()).dtype
@@ -215,14 +214,13 @@ class LearnedMatcher:
         *,
         shape: PreparedShape | None = None,
         whole: PreparedShape | None = None,
-        motion: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """``(V, D)`` float64: the network's features of ``mesh`` as it lies (no adaptation, no facings).
 
         Args:
             shape: ``prepare_shape(mesh, n)`` to reuse (grown in place when needed).
-            whole: for a part, its whole's prepared shape, whose frame coordinate inputs are taken in.
-            motion: with ``whole``, ``(R (3, 3), t (3,))``: the part placed at ``vertices @ R.T + t`` first.
+            whole: for a part (same units), its whole's prepared shape: coordinate inputs are taken in
+                the whole's frame, SHOT at the whole's radius.
 
         Raises:
             ParameterError: ``mesh`` is not a mesh, ``shape`` not one of it, ``whole`` not a prepared
@@ -239,9 +237,7 @@ class LearnedMatcher:
             raise ParameterError(
                 f"whole must be the whole's prepare_shape(mesh, n), got {type(whole).__name__}."
             )
-        if motion is not None and whole is None:
-            raise ParameterError("motion places a part on its whole. Fix: pass whole= with it.")
-        item, _, simple = self._items(shape, 0, whole, motion)
+        item, _, simple = self._items(shape, 0, whole)
         with torch.no_grad():
             batch, _ = pair_batches(item, item, self.device)
             return _carried(self.net, batch, simple)[0].to(torch.float64).cpu().numpy()
@@ -266,35 +262,12 @@ class LearnedMatcher:
         k, sizes = self.config.k, (mesh_x.n_vertices, mesh_y.n_vertices)
         k0, k_final = _zoomout_sizes(k, k_final, sizes) if refine else (min(k, min(sizes) - 1), None)
         shapes = self._prepared((mesh_x, mesh_y), shapes, k_final or 0)
-        feats_x = self.features(mesh_x, shape=shapes[0])
-        placements = (
-            self.placements(*shapes, k=k0) if has_coordinates(self.config.inputs) else {"as it lies": None}
-        )
+        feats_y = self.features(mesh_y, shape=shapes[1], whole=shapes[0])
+        feats = self.features(mesh_x, shape=shapes[0]), feats_y
         seconds = time.perf_counter() - t0
-        tried = {}
-        for name, motion in placements.items():
-            feats_y = self.features(mesh_y, shape=shapes[1], whole=shapes[0], motion=motion)
-            tried[name] = match_partial(
-                *shapes, k=k0, refine=refine, k_final=k_final, descriptors=(feats_x, feats_y)
-            )
-        result = next(iter(tried.values()))
-        if len(tried) > 1:  # the map a rigid placement explains best
-            residual = {n: rigid_fit(mesh_y.vertices, mesh_x.vertices[r.p2p_yx])[2] for n, r in tried.items()}
-            best = min(residual, key=residual.get)
-            result = tried[best]
-            result.placement, result.candidates = best, tried
+        result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
         result.timings, result.model = {"prepare+network": seconds, **result.timings}, self.name
         return result
-
-    def placements(
-        self, shape_x: PreparedShape, shape_y: PreparedShape, *, k: int = DEFAULT_K
-    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Rigid motions ``(R (3, 3), t (3,))`` of a part ``y`` onto its whole ``x`` that a coordinate
-        model's partial map tries: ``'as it lies'`` and ``'fitted'`` (:func:`~torchfmap.mesh.rigid_fit`
-        onto the classical partial map of ``k`` functions); the best rigid fit is kept."""
-        p2p = match_partial(shape_x, shape_y, k=k).p2p_yx
-        R, t, _ = rigid_fit(shape_y.mesh.vertices, shape_x.mesh.vertices[p2p])
-        return {"as it lies": (np.eye(3), np.zeros(3)), "fitted": (R, t)}
 
     def __call__(
         self,
@@ -314,8 +287,9 @@ class LearnedMatcher:
                 ``V - 1``; each step also matches the network's features) or None.
             shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse (grown in place).
             partial: ``y`` is a part of ``x`` (same units): :func:`~torchfmap.matching.partial.match_partial`
-                with the network's :meth:`features` as descriptors, at each of the :meth:`placements` of a
-                coordinate model (the one kept: ``placement``); with ``overlap`` and ``partial_rank``.
+                with the network's :meth:`features` as descriptors (the part's inputs taken as it lies on
+                the whole: a coordinate model needs the part in its whole's frame, a SHOT model does not);
+                with ``overlap`` and ``partial_rank``.
 
         Raises:
             ParameterError: inputs that are not meshes, another refinement, ``k_final`` without ZoomOut or

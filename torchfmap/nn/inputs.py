@@ -45,29 +45,21 @@ SEED_TIMES = (0.01, 0.03)
 _ITEM_FLOATS = ("values", "mass", "lam", "U", "net_values", "net_lam", "net_U", "grad_x", "grad_y")
 
 
-def coordinates_on(
-    mesh: Mesh, whole: PreparedShape, motion: tuple[np.ndarray, np.ndarray] | None = None
-) -> np.ndarray:
-    """``(V, 3)`` float64: ``mesh``'s vertices (moved by ``motion = (R (3, 3), t (3,))`` to
-    ``vertices @ R.T + t`` first) as coordinate inputs in ``whole``'s frame.
+def coordinates_on(mesh: Mesh, whole: PreparedShape) -> np.ndarray:
+    """``(V, 3)`` float64: ``mesh``'s vertices as coordinate inputs in ``whole``'s frame (a part as it
+    lies on its whole, in the whole's units: the whole's inputs at the part's points).
 
     Raises:
-        ParameterError: ``mesh`` not a :class:`~torchfmap.Mesh`, ``whole`` not a
-            :class:`~torchfmap.PreparedShape`, or a bad ``motion``."""
+        ParameterError: ``mesh`` not a :class:`~torchfmap.Mesh` or ``whole`` not a
+            :class:`~torchfmap.PreparedShape`."""
     if not isinstance(mesh, Mesh) or not isinstance(whole, PreparedShape):
         raise ParameterError(
             f"coordinates_on(mesh, whole) takes a Mesh and a PreparedShape, got {type(mesh).__name__} "
             f"and {type(whole).__name__}. Fix: coordinates_on(part, prepare_shape(whole_mesh, n))."
         )
-    vertices = mesh.vertices
-    if motion is not None:
-        R, t = (np.asarray(a, dtype=np.float64) for a in motion)
-        if R.shape != (3, 3) or t.shape != (3,):
-            raise ParameterError(f"motion must be (R (3, 3), t (3,)), got shapes {R.shape} and {t.shape}.")
-        vertices = vertices @ R.T + t
     mass = whole.operators.mass.diagonal()
     centre = (whole.mesh.vertices * mass[:, None]).sum(axis=0) / mass.sum()
-    return (vertices - centre) * whole.scale
+    return (mesh.vertices - centre) * whole.scale
 
 
 def network_inputs(shape: PreparedShape, n_wks: int = 32, k_wks: int = K_WKS) -> dict[str, np.ndarray]:
