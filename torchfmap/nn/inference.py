@@ -199,7 +199,8 @@ class LearnedMatcher:
         cfg = self.config
         net_shape, simple = self._network_shape(shape)
         shot = has_shot(cfg.inputs)
-        arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis, shot=shot)
+        own = shot and whole is None  # a part's SHOT is computed once, at its whole's radius
+        arrays = shape_arrays(net_shape, cfg.k, cfg.n_wks, k_net=cfg.k_net, basis=cfg.basis, shot=own)
         if whole is not None:
             arrays["xyz"] = coordinates_on(net_shape.mesh, whole)
             if shot:
