@@ -339,9 +339,9 @@ def partial(cfg: Settings, report: Report) -> None:
     ``L`` landmarks (ground-truth rows spread by FPS; the full-shape map then in the eigenbasis).
     Errors on the whole shape over the part's ground-truth rows; overlap IoU of ``v > 0.5``
     against the true part (area-weighted). ``learned``: a model matched by
-    ``LearnedMatcher(..., partial=True)`` (its features in place of SHOT, the model's ``k``;
-    with landmarks, its features in :func:`~torchfmap.matching.partial.match_partial` at ``k``; null:
-    not run)."""
+    ``LearnedMatcher(..., partial=True)`` (its features next to SHOT, the model's ``k``; with landmarks,
+    the same descriptors in :func:`~torchfmap.matching.partial.match_partial` at ``k``); ``features``: its
+    features alone in place of SHOT (null ``learned``: neither is run)."""
     from torchfmap import match
     from torchfmap.data.cuts import cut_holes, cut_plane
     from torchfmap.evaluate.scores import Correspondence, geodesic_errors, landmarks_from_gt
@@ -353,7 +353,7 @@ def partial(cfg: Settings, report: Report) -> None:
         from torchfmap.nn import LearnedMatcher
 
         learned = LearnedMatcher.from_checkpoint(cfg.learned, device="cpu")
-    methods = ("full-shape", "partial", "learned") if learned else ("full-shape", "partial")
+    methods = ("full-shape", "partial", "learned", "features") if learned else ("full-shape", "partial")
     for name, whole, other, gt_w, gt_o in _partial_pairs(cfg):
         shape_w = prepare_shape(whole, 2 * cfg.k + 100)
         vertex_area = shape_w.operators[1].diagonal()  # lumped mass: area weights (any scale)
@@ -377,16 +377,18 @@ def partial(cfg: Settings, report: Report) -> None:
                         t0 = time.perf_counter()
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
-                            if method == "learned":  # the model's k; its features are computed
+                            if method == "learned" and lm is None:  # the model's k, SHOT beside
                                 r = learned(
                                     whole, cut.mesh, refine="zoomout", shapes=(shape_w, shape_p),
                                     partial=True,
-                                ) if lm is None else match_partial(
+                                )  # fmt: skip
+                            elif method in ("learned", "features"):  # its features computed once
+                                r = match_partial(
                                     shape_w, shape_p, landmarks=lm, k=cfg.k, refine="zoomout",
                                     descriptors=feats or (feats := (
                                         learned.features(whole, shape=shape_w),
                                         learned.features(cut.mesh, shape=shape_p, whole=shape_w),
-                                    )),
+                                    )), with_shot=method == "learned",
                                 )  # fmt: skip
                             else:
                                 r = match(
@@ -442,7 +444,8 @@ def partial(cfg: Settings, report: Report) -> None:
         note="full-shape: match(whole, part) (eigenbasis with landmarks); partial: match(whole, part, "
         "partial=True); "
         + (
-            f"learned: the partial solve with {cfg.learned} features in place of SHOT (their time counted); "
+            f"learned: the partial solve with {cfg.learned} features next to SHOT, features: in place of "
+            "SHOT (their time counted); "
             if learned
             else ""
         )

@@ -130,6 +130,10 @@ def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors")
     return F
 
 
+#: Vertices whose SHOT neighbour lists are held at once.
+SHOT_BLOCK = 4096
+
+
 def shot(mesh, radius: float) -> np.ndarray:
     """SHOT signatures (Tombari et al. 2010) of a :class:`~torchfmap.Mesh`: ``(V, 352)``, unit L2 norm per
     vertex (zero with fewer than 5 other vertices within ``radius``, finite > 0 in mesh units, else
@@ -141,25 +145,30 @@ def shot(mesh, radius: float) -> np.ndarray:
     areas = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3, 3), mesh.n_vertices)
     n_az, n_el, n_rad, n_cos = SHOT_GRID
     out = np.zeros((len(vertices), n_az * n_el * n_rad * n_cos))
-    neighbours = cKDTree(vertices).query_ball_point(vertices, radius)
-    for p, idx in enumerate(neighbours):  # bounded: one pass over the vertices
-        idx = np.asarray([i for i in idx if i != p])  # the vertex itself has no direction
-        if len(idx) < 5:
-            continue
-        d = vertices[idx] - vertices[p]
-        dist = np.linalg.norm(d, axis=1)
-        w = (radius - dist) * areas[idx]
-        _, axes = np.linalg.eigh((d * w[:, None]).T @ d / w.sum())
-        x, z = axes[:, 2], axes[:, 0]
-        x = -x if np.sum(areas[idx] * np.sign(d @ x)) < 0 else x
-        z = -z if np.sum(areas[idx] * np.sign(normals[idx] @ z)) < 0 else z
-        y = np.cross(z, x)
-        azimuth = ((np.arctan2(d @ y, d @ x) + np.pi) / (2 * np.pi) * n_az).astype(int) % n_az
-        cell = (azimuth * n_el + (d @ z > 0)) * n_rad + (dist > radius / 2)
-        pos = (np.clip(normals[idx] @ z, -1.0, 1.0) + 1) / 2 * (n_cos - 1)
-        lo = np.minimum(np.floor(pos).astype(int), n_cos - 2)
-        frac = pos - lo
-        h = np.bincount(cell * n_cos + lo, areas[idx] * (1 - frac), out.shape[1])
-        h += np.bincount(cell * n_cos + lo + 1, areas[idx] * frac, out.shape[1])
-        out[p] = h / np.linalg.norm(h)
+    tree = cKDTree(vertices)
+    for start in range(0, len(vertices), SHOT_BLOCK):  # neighbour lists a block at a time (memory)
+        balls = tree.query_ball_point(vertices[start : start + SHOT_BLOCK], radius)
+        for p, idx in enumerate(balls, start):  # bounded: one pass over the vertices
+            idx = np.asarray(idx, dtype=np.int64)
+            idx = idx[idx != p]  # the vertex itself has no direction
+            if len(idx) < 5:
+                continue
+            d, a = vertices[idx] - vertices[p], areas[idx]
+            dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+            w = (radius - dist) * a
+            _, axes = np.linalg.eigh((d * w[:, None]).T @ d / w.sum())
+            x, z = axes[:, 2], axes[:, 0]
+            dx, dz, nz = d @ x, d @ z, normals[idx] @ z
+            if np.sum(a * np.sign(dx)) < 0:
+                x, dx = -x, -dx
+            if np.sum(a * np.sign(nz)) < 0:
+                z, dz, nz = -z, -dz, -nz
+            azimuth = ((np.arctan2(d @ np.cross(z, x), dx) + np.pi) / (2 * np.pi) * n_az).astype(int) % n_az
+            cell = (azimuth * n_el + (dz > 0)) * n_rad + (dist > radius / 2)
+            pos = (np.clip(nz, -1.0, 1.0) + 1) / 2 * (n_cos - 1)
+            lo = np.minimum(np.floor(pos).astype(int), n_cos - 2)
+            frac = pos - lo
+            h = np.bincount(cell * n_cos + lo, a * (1 - frac), out.shape[1])
+            h += np.bincount(cell * n_cos + lo + 1, a * frac, out.shape[1])
+            out[p] = h / np.linalg.norm(h)
     return out

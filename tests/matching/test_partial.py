@@ -513,3 +513,37 @@ def test_reseeded_map_solves_each_seed_row_once(monkeypatch):
     monkeypatch.setattr(GeodesicSolver, "distance", one)
     reseeded_map(*shapes, cut.vertices, n_seeds=20)
     assert len(solved) == len(set(solved)) and len(solved) <= 2 * 20
+
+
+def test_descriptor_families_weigh_alike_and_given_ones_are_checked():
+    """``families``: every column has unit mass norm on ``x`` before weighting, then each weighted
+    family carries ``max D_i`` of squared norm (a 3-column family next to a 12-column one weighs as
+    it), a family left unweighted (landmarks) keeps unit columns, and ``y`` is divided by ``x``'s
+    norms (the solve compares the two). ``match_partial`` checks given descriptors row by row."""
+    from scipy import sparse
+
+    from torchfmap.matching.partial import families
+
+    rng = np.random.default_rng(0)
+    n_x, n_y = 40, 25
+    mass = sparse.diags(rng.uniform(0.5, 2.0, n_x))
+    given = [(rng.normal(size=(n_x, d)), rng.normal(size=(n_y, d))) for d in (12, 3, 2)]
+    dx, dy = families(given, mass, n_weighted=2)
+    energy = np.einsum("vd,vd->d", dx, mass @ dx)
+    np.testing.assert_allclose(energy[:12], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(energy[12:15], 12 / 3, rtol=1e-12)
+    np.testing.assert_allclose(energy[15:], 1.0, rtol=1e-12)
+    scale = dx / np.hstack([g[0] for g in given])
+    np.testing.assert_allclose(dy, np.hstack([g[1] for g in given]) * scale[0], rtol=1e-12)
+    one_x, one_y = families(given[:1], mass)  # one family: unit columns, as before families
+    np.testing.assert_allclose(np.einsum("vd,vd->d", one_x, mass @ one_x), 1.0, rtol=1e-12)
+    a, _, _ = demo_pair()
+    cut = cut_plane(a, 0.6, seed=3)
+    whole, part = prepare_shape(a, 60), prepare_shape(cut.mesh, 60)
+    with pytest.raises(ParameterError, match=r"descriptors\[1\].*V="):
+        match_partial(whole, part, k=10, descriptors=(a.vertices, a.vertices), with_shot=True)
+    # descriptors that agree, next to SHOT (which agrees away from the cut): still the restriction
+    xyz = (a.vertices, cut.mesh.vertices)
+    r = match_partial(whole, part, k=30, refine="zoomout", descriptors=xyz, with_shot=True)
+    err = geodesic_errors(a, r.p2p_yx, gt_from_map(cut.vertices))
+    assert np.mean(err) < 3 * a.mean_edge_length / np.sqrt(a.area)

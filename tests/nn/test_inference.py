@@ -319,7 +319,7 @@ def test_features_follow_the_vertices_and_reuse_a_prepared_shape(permuted):
 
 def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permuted):
     """``partial=True``: the partial functional map of the model's ``k`` with the network's
-    features as its descriptors (the same map as ``match_partial`` given them), an overlap on the
+    features next to SHOT (the same map as ``match_partial`` given them ``with_shot``), an overlap on the
     whole and the model's name; adaptation (a whole-shape loss) is refused with it."""
     from torchfmap.data.cuts import cut_plane
     from torchfmap.matching.partial import match_partial
@@ -336,7 +336,7 @@ def test_a_part_is_matched_by_the_partial_solve_with_the_networks_features(permu
     feats_y = matcher.features(part, shape=shapes[1], whole=shapes[0])
     feats = matcher.features(mesh_x, shape=shapes[0]), feats_y
     assert not np.allclose(feats[1], matcher.features(part, shape=shapes[1]))
-    want = match_partial(*shapes, k=TINY.k, refine="zoomout", descriptors=feats)
+    want = match_partial(*shapes, k=TINY.k, refine="zoomout", descriptors=feats, with_shot=True)
     np.testing.assert_array_equal(result.p2p_yx, want.p2p_yx)
     tuned = LearnedMatcher(build_model(TINY)[0], TINY, device="cpu", adapt_steps=1)
     with pytest.raises(ParameterError, match="adapt"):

@@ -11,7 +11,7 @@ import numpy as np
 from .._util.checks import check_landmark_pairs
 from ..bases import Basis
 from ..bases.prepared import PreparedShape
-from ..descriptors import landmark_descriptors, shot
+from ..descriptors import check_descriptors, landmark_descriptors, shot
 from ..errors import ParameterError
 from ..fmap import fmap_to_p2p, p2p_to_fmap, solve_fmap
 from ..fmap.convert import check_p2p
@@ -34,7 +34,8 @@ RESEED_SEEDS = 100
 RESEED_WIDTH = 0.15
 
 __all__ = [
-    "common_frame", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout", "reseeded_map",
+    "common_frame", "families", "match_partial", "overlap_indicator", "partial_rank", "partial_zoomout",
+    "reseeded_map",
 ]  # fmt: skip
 
 
@@ -88,6 +89,24 @@ def shot_descriptors(shape: PreparedShape, whole: PreparedShape | None = None) -
     """``(V, 352)`` SHOT of ``shape`` at :data:`SHOT_RADIUS` times ``sqrt(area)`` of ``whole`` (or own)."""
     radius = SHOT_RADIUS * np.sqrt((shape if whole is None else whole).mesh.area)
     return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
+
+
+def families(given: list[tuple[np.ndarray, np.ndarray]], mass, n_weighted: int | None = None):
+    """``(desc_x (V_x, D), desc_y (V_y, D))``: descriptor families ``[(F_x (V_x, D_i), F_y (V_y, D_i)), ...]``
+    side by side, each column divided by its ``mass`` (``(V_x, V_x)``) norm on ``x``; the first
+    ``n_weighted`` families (default all) then scaled by ``sqrt(max D_i / D_i)``, so each weighs as the
+    widest of them (64 learned features next to SHOT's 352 count as much as SHOT)."""
+    n_weighted = len(given) if n_weighted is None else n_weighted
+    widest = max((f[0].shape[1] for f in given[:n_weighted]), default=1)
+    out_x, out_y = [], []
+    for i, (fx, fy) in enumerate(given):
+        norms = np.sqrt(np.einsum("vd,vd->d", fx, mass @ fx))
+        norms = np.where(norms > 0, norms, 1.0)
+        if i < n_weighted:
+            norms = norms / np.sqrt(widest / fx.shape[1])
+        out_x.append(fx / norms)
+        out_y.append(fy / norms)
+    return np.hstack(out_x), np.hstack(out_y)
 
 
 def overlap_indicator(C_xy: np.ndarray, full: Basis, part: Basis) -> np.ndarray:
@@ -171,16 +190,17 @@ def match_partial(
     w_dcomm: float = W_DCOMM,
     w_lmk: float = W_LMK,
     descriptors: tuple[np.ndarray, np.ndarray] | None = None,
+    with_shot: bool = False,
 ) -> MatchResult:
     """Match the part ``y`` to the whole ``x`` on prepared shapes: a :class:`~torchfmap.MatchResult` (``kind``
     ``'partial'``) with ``C_xy`` ``(r, k)`` (refined: ``(r(k_final), k_final)``), ``overlap`` ``(V_x,)`` and
     ``partial_rank`` ``r``. ``refine``: None or ``'zoomout'`` (:func:`partial_zoomout`, default ``k_final =
     2k``, and :func:`reseeded_map`); ``landmarks``: ``(L, 2)`` checked pairs (whole, part); ``descriptors``:
-    ``(V_x, D)``, ``(V_y, D)`` features instead of SHOT.
+    ``(V_x, D)``, ``(V_y, D)`` features instead of SHOT, or next to it with ``with_shot`` (:func:`families`).
 
     Raises:
         ParameterError: the part larger than the whole, ``refine`` not None or ``'zoomout'``, ``k_final < k``,
-            or shapes prepared with too few eigenpairs."""
+            shapes prepared with too few eigenpairs, or ``descriptors`` not one finite row per vertex."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     check_refine(refine, allowed=("zoomout",), what="partial matching")
@@ -197,17 +217,19 @@ def match_partial(
     r = partial_rank(full.eigenvalues, part.eigenvalues, k)
     timings["operators+eigen"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if descriptors is None:
-        desc_x, desc_y = shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)
-    else:
-        desc_x, desc_y = (np.asarray(d, dtype=np.float64) for d in descriptors)
+    given = []
+    if descriptors is not None:
+        given = [tuple(
+            check_descriptors(d, s.mesh.n_vertices, f"descriptors[{i}]")
+            for i, (d, s) in enumerate(zip(descriptors, (shape_x, shape_y), strict=True))
+        )]  # fmt: skip
+    if descriptors is None or with_shot:
+        given.insert(0, (shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)))
     if landmarks is not None:  # heat kernels at the same physical times on both, in the common frame
         hx = landmark_descriptors(landmarks[:, 0], operators=shape_x.operators)
         hy = landmark_descriptors(landmarks[:, 1], operators=shape_y.operators, area=1.0 / a) / a
-        desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])
-    norms = np.sqrt(np.einsum("vd,vd->d", desc_x, full.mass @ desc_x))
-    norms = np.where(norms > 0, norms, 1.0)
-    desc_x, desc_y = desc_x / norms, desc_y / norms
+        given.append((hx, hy))
+    desc_x, desc_y = families(given, full.mass, n_weighted=len(given) - (landmarks is not None))
     timings["descriptors"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     bx, by = full.truncated(k), part.truncated(r)

@@ -266,7 +266,9 @@ class LearnedMatcher:
         feats_y = self.features(mesh_y, shape=shapes[1], whole=shapes[0])
         feats = self.features(mesh_x, shape=shapes[0]), feats_y
         seconds = time.perf_counter() - t0
-        result = match_partial(*shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats)
+        result = match_partial(
+            *shapes, k=k0, refine=refine, k_final=k_final, descriptors=feats, with_shot=True
+        )
         result.timings, result.model = {"prepare+network": seconds, **result.timings}, self.name
         return result
 
@@ -288,8 +290,9 @@ class LearnedMatcher:
                 ``V - 1``; each step also matches the network's features) or None.
             shapes: ``(prepare_shape(mesh_x, n), prepare_shape(mesh_y, n))`` to reuse (grown in place).
             partial: ``y`` is a part of ``x`` (same units): :func:`~torchfmap.matching.partial.match_partial`
-                with the network's :meth:`features` as descriptors (the part's inputs taken as it lies on
-                the whole: a coordinate model needs the part in its whole's frame, a SHOT model does not);
+                with the network's :meth:`features` next to SHOT (``with_shot``; the part's inputs taken as it
+                lies on the whole: a coordinate model needs the part in its whole's frame, a SHOT model does
+                not);
                 with ``overlap`` and ``partial_rank``.
 
         Raises:
