@@ -516,10 +516,10 @@ def test_reseeded_map_solves_each_seed_row_once(monkeypatch):
 
 
 def test_descriptor_families_weigh_alike_and_given_ones_are_checked():
-    """``families``: every column has unit mass norm on ``x`` before weighting, then each weighted
-    family carries ``max D_i`` of squared norm (a 3-column family next to a 12-column one weighs as
-    it), a family left unweighted (landmarks) keeps unit columns, and ``y`` is divided by ``x``'s
-    norms (the solve compares the two). ``match_partial`` checks given descriptors row by row."""
+    """``families``: every column has unit mass norm on ``x`` before weighting, then each family
+    carries ``max D_i`` of squared norm (a 3- or 2-column family next to a 12-column one weighs as
+    it), and ``y`` is divided by ``x``'s norms (the solve compares the two); one family keeps unit
+    columns. ``match_partial`` checks given descriptors row by row."""
     from scipy import sparse
 
     from torchfmap.matching.partial import families
@@ -528,11 +528,11 @@ def test_descriptor_families_weigh_alike_and_given_ones_are_checked():
     n_x, n_y = 40, 25
     mass = sparse.diags(rng.uniform(0.5, 2.0, n_x))
     given = [(rng.normal(size=(n_x, d)), rng.normal(size=(n_y, d))) for d in (12, 3, 2)]
-    dx, dy = families(given, mass, n_weighted=2)
+    dx, dy = families(given, mass)
     energy = np.einsum("vd,vd->d", dx, mass @ dx)
     np.testing.assert_allclose(energy[:12], 1.0, rtol=1e-12)
     np.testing.assert_allclose(energy[12:15], 12 / 3, rtol=1e-12)
-    np.testing.assert_allclose(energy[15:], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(energy[15:], 12 / 2, rtol=1e-12)
     scale = dx / np.hstack([g[0] for g in given])
     np.testing.assert_allclose(dy, np.hstack([g[1] for g in given]) * scale[0], rtol=1e-12)
     one_x, one_y = families(given[:1], mass)  # one family: unit columns, as before families

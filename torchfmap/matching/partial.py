@@ -91,19 +91,16 @@ def shot_descriptors(shape: PreparedShape, whole: PreparedShape | None = None) -
     return shape.derive(("shot", radius), lambda: shot(shape.mesh, radius))
 
 
-def families(given: list[tuple[np.ndarray, np.ndarray]], mass, n_weighted: int | None = None):
+def families(given: list[tuple[np.ndarray, np.ndarray]], mass) -> tuple[np.ndarray, np.ndarray]:
     """``(desc_x (V_x, D), desc_y (V_y, D))``: descriptor families ``[(F_x (V_x, D_i), F_y (V_y, D_i)), ...]``
-    side by side, each column divided by its ``mass`` (``(V_x, V_x)``) norm on ``x``; the first
-    ``n_weighted`` families (default all) then scaled by ``sqrt(max D_i / D_i)``, so each weighs as the
-    widest of them (64 learned features next to SHOT's 352 count as much as SHOT)."""
-    n_weighted = len(given) if n_weighted is None else n_weighted
-    widest = max((f[0].shape[1] for f in given[:n_weighted]), default=1)
+    side by side, each column divided by its ``mass`` (``(V_x, V_x)``) norm on ``x``, then each family
+    scaled by ``sqrt(max D_i / D_i)`` so that it weighs as the widest (64 learned features next to
+    SHOT's 352 count as much as SHOT); one family: unit columns."""
+    widest = max(fx.shape[1] for fx, _ in given)
     out_x, out_y = [], []
-    for i, (fx, fy) in enumerate(given):
+    for fx, fy in given:
         norms = np.sqrt(np.einsum("vd,vd->d", fx, mass @ fx))
-        norms = np.where(norms > 0, norms, 1.0)
-        if i < n_weighted:
-            norms = norms / np.sqrt(widest / fx.shape[1])
+        norms = np.where(norms > 0, norms, 1.0) / np.sqrt(widest / fx.shape[1])
         out_x.append(fx / norms)
         out_y.append(fy / norms)
     return np.hstack(out_x), np.hstack(out_y)
@@ -225,11 +222,12 @@ def match_partial(
         )]  # fmt: skip
     if descriptors is None or with_shot:
         given.insert(0, (shot_descriptors(shape_x), shot_descriptors(shape_y, whole=shape_x)))
+    desc_x, desc_y = families(given, full.mass)
     if landmarks is not None:  # heat kernels at the same physical times on both, in the common frame
         hx = landmark_descriptors(landmarks[:, 0], operators=shape_x.operators)
         hy = landmark_descriptors(landmarks[:, 1], operators=shape_y.operators, area=1.0 / a) / a
-        given.append((hx, hy))
-    desc_x, desc_y = families(given, full.mass, n_weighted=len(given) - (landmarks is not None))
+        hx, hy = families([(hx, hy)], full.mass)  # unit columns, each like one descriptor
+        desc_x, desc_y = np.hstack([desc_x, hx]), np.hstack([desc_y, hy])
     timings["descriptors"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     bx, by = full.truncated(k), part.truncated(r)

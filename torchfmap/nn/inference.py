@@ -292,8 +292,7 @@ class LearnedMatcher:
             partial: ``y`` is a part of ``x`` (same units): :func:`~torchfmap.matching.partial.match_partial`
                 with the network's :meth:`features` next to SHOT (``with_shot``; the part's inputs taken as it
                 lies on the whole: a coordinate model needs the part in its whole's frame, a SHOT model does
-                not);
-                with ``overlap`` and ``partial_rank``.
+                not); with ``overlap`` and ``partial_rank``.
 
         Raises:
             ParameterError: inputs that are not meshes, another refinement, ``k_final`` without ZoomOut or
