@@ -6,11 +6,11 @@ Run by hand from the repository root, after ``torchfmap train`` and the validati
         --data "FAUST_r 000..069 + SCAPE 000..040, ..." --validation "..." --use "..."
 
 Given a shipped model instead, it re-documents it: the fields not given, the commit and the
-training record are kept. The shipped file keeps the weights of the best unsupervised
-validation score (what ``load_checkpoint`` returns), the recipe's config, the network record
-and a ``provenance`` dict (command, data, commit, training, validation, use) that ``torchfmap
-models`` prints; the training state (optimiser, loss history) is left out. It is written
-atomically and read back.
+training record are kept. The shipped file keeps the weights of the best validation score
+(unsupervised, or the part error of a ``--parts`` run; what ``load_checkpoint`` returns), the
+recipe's config, the network record and a ``provenance`` dict (command, data, commit, training,
+validation, use) that ``torchfmap models`` prints; the training state (optimiser, loss history)
+is left out. It is written atomically and read back.
 """
 
 from __future__ import annotations
@@ -47,8 +47,9 @@ def main(argv: list[str] | None = None) -> None:
         run = subprocess.run(git, cwd=REPO_ROOT, capture_output=True, text=True, check=False)
         commit = run.stdout.strip()
         best = state.get("best_score")
+        scored = "part error" if config.parts else "unsupervised"  # what the validation scored
         training = f"{state.get('step', '?')} steps, {state.get('seconds', 0):.0f} s" + (
-            f"; weights of the best unsupervised validation score {best:.4g}" if best is not None else ""
+            f"; weights of the best {scored} validation score {best:.4g}" if best is not None else ""
         )
     elif "training" in old and "commit" in old:  # a shipped model re-documented: its run's record
         commit, training = old["commit"], old["training"]

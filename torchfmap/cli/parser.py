@@ -323,6 +323,14 @@ def build_parser() -> argparse.ArgumentParser:
         "scaling (shapes standing alike, facing anywhere), scaling only (shapes aligned alike), or "
         "none (default: rigid)",
     )
+    p.add_argument(
+        "--parts",
+        type=count,
+        metavar="N",
+        help="train on parts, supervised: N cuts of every shape (plane and holes, 0.1-0.9 of the area), "
+        "each matched to every shape, the ground truth from FOLDER/corres/<name>.vts (default: 0, "
+        "unsupervised on whole shapes)",
+    )
     p.add_argument("--n-wks", type=positive_int, help="WKS input channels (default: 32)")
     p.add_argument("--k-net", type=count, help="eigenfunctions of the network's diffusion (default: 96)")
     p.add_argument(

@@ -11,7 +11,7 @@ from ..errors import TorchFmapError
 
 #: ``TrainConfig`` fields that ``torchfmap train`` takes as flags (``--k``, ``--n-wks``, ...).
 RECIPE_FLAGS = (
-    "k", "basis", "inputs", "augment", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad", "seed",
+    "k", "basis", "inputs", "augment", "parts", "n_wks", "k_net", "width", "c_out", "lr", "clip_grad", "seed",
 )  # fmt: skip
 
 
@@ -95,9 +95,20 @@ def _train(args: argparse.Namespace) -> int:
     init = load_checkpoint(args.init)[0].state_dict() if args.init else None
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
-    pairs = class_pairs(shapes.names, within=args.pairs == "classes")
     validate, picked = None, []
-    if args.validate_every:  # the unsupervised loss on a fixed spread of training pairs
+    if config.parts:  # supervised on cuts of the shapes, matched to every shape
+        from ..nn.parts import PartLoss, PartPairs, part_score
+
+        corres = Path(args.folder) / "corres"
+        pairs = PartPairs(shapes, corres, config.parts, seed=config.seed, progress=not args.quiet)
+        if args.validate_every:  # the part loss on a fixed spread of training pairs
+            spread = max(1, len(pairs) // args.validate_pairs)
+            picked = list(range(len(pairs)))[::spread][: args.validate_pairs]
+            tau = config.loss_weights.get("tau", 0.07)
+            validate = part_score(pairs, picked, PartLoss(tau), build_solver(config)[0], device=device)
+    else:
+        pairs = class_pairs(shapes.names, within=args.pairs == "classes")
+    if args.validate_every and not config.parts:  # the unsupervised loss on a fixed spread of training pairs
         picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
         solver, loss_fn = build_solver(config)
         validate = unsupervised_score(shapes, picked, solver, loss_fn, device=device, augment=config.augment)
@@ -108,8 +119,10 @@ def _train(args: argparse.Namespace) -> int:
     if args.resume:
         trainer.resume()
     say = (lambda *_: None) if args.quiet else print
+    kind = "(part, whole)" if config.parts else "ordered"
     say(
-        f"training on {len(shapes)} meshes, {len(pairs)} ordered pairs ({config.basis} basis, K={config.k}) "
+        f"training on {len(shapes)} meshes, {len(pairs)} {kind} pairs "
+        f"({config.basis} basis, K={config.k}) "
         f"on {device}; budget: {config.budget.describe(trainer.batches_per_epoch)} (whichever comes first; "
         "cosine learning rate over it)"
     )
@@ -119,7 +132,8 @@ def _train(args: argparse.Namespace) -> int:
         return 130
     last = state.losses[-1]["total"] if state.losses else float("nan")
     summary = f"{state.step} steps, {state.epoch} full epochs, {state.seconds:.0f} s; last loss {last:.4g}"
-    say(f"{summary}{_validation_summary(state, len(picked), fine_tune=bool(args.init))} -> {args.out}")
+    scored = "the part error" if config.parts else "the unsupervised loss"
+    say(f"{summary}{_validation_summary(state, len(picked), bool(args.init), scored)} -> {args.out}")
     return 0
 
 
@@ -127,14 +141,16 @@ def _train(args: argparse.Namespace) -> int:
 UNMOVED = 0.9
 
 
-def _validation_summary(state, n_pairs: int, fine_tune: bool = False) -> str:
-    """The validation score against the step-0 one, in words; warns on stderr when training from
-    scratch barely moved it."""
+def _validation_summary(
+    state, n_pairs: int, fine_tune: bool = False, scored: str = "the unsupervised loss"
+) -> str:
+    """The validation score (``scored``: what it is) against the step-0 one, in words; warns on stderr
+    when training from scratch barely moved it."""
     if not state.scores:
         return ""
     text = (
-        f"; best validation loss {state.best_score:.4g} (the unsupervised loss on {n_pairs} fixed "
-        "training pairs, lower is better"
+        f"; best validation loss {state.best_score:.4g} ({scored} on {n_pairs} fixed training pairs, "
+        "lower is better"
     )
     first = state.scores[0][1] if state.scores[0][0] == 0 else None
     if first is None or not first > 0:

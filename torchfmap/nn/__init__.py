@@ -29,6 +29,7 @@ from .modules import (
     basis_arrays,
 )
 from .networks import DiffusionNet, FeatureNetwork, SpatialGradientFeatures, check_network, features
+from .parts import PartLoss, PartPairs, part_score
 from .shipped import shipped_models
 from .train import TrainState, unsupervised_score
 from .trainer import Trainer
@@ -41,5 +42,6 @@ __all__ = [
     "PrecomputeCache", "RegularizedFMSolver", "ShapeBatch", "ShapeDataset", "SoftMaps", "SoftPointMap",
     "SpatialGradientFeatures", "SpectralDiffusion", "TangentGradient", "UnsupervisedFMLoss",
     "basis_arrays", "check_network", "class_pairs", "collate_pairs", "collate_shapes", "coordinates_on",
-    "features", "functional", "network_inputs", "shape_arrays", "shape_item",
+    "features", "functional", "network_inputs", "part_score", "PartLoss", "PartPairs", "shape_arrays",
+    "shape_item",
 ]  # fmt: skip

@@ -74,7 +74,9 @@ class Budget:
 class TrainConfig:
     """The reference recipe (saved in checkpoints): data, network, solver, loss, optimiser, budget
     (:attr:`budget`) and loop settings. ``augment`` (XYZ inputs only): ``"rigid"`` (rotation and scaling),
-    ``"up"`` (rotation about ``y``, scaling), ``"scale"`` or ``"none"``."""
+    ``"up"`` (rotation about ``y``, scaling), ``"scale"`` or ``"none"``. ``parts``: 0 trains unsupervised on
+    whole shapes; ``n > 0`` supervised on ``n`` cuts of every whole matched to every whole
+    (:class:`~torchfmap.nn.parts.PartPairs`, ground truth from the folder's ``corres/``)."""
 
     k: int = DEFAULT_K
     k_net: int = 96
@@ -95,6 +97,7 @@ class TrainConfig:
     w_lap: float = 1e-3
     seed: int = 0
     augment: str = "rigid"
+    parts: int = 0
     loss_weights: dict = field(
         default_factory=lambda: {"w_bij": 1.0, "w_orth": 1.0, "w_couple": 1.0, "n_samples": 1000, "tau": 0.07}
     )
@@ -200,6 +203,8 @@ _FLOAT_RANGES = {"lr": (0.0, math.inf, False), "clip_grad": (0.0, math.inf, True
 
 def _check_range(key: str, value, where: str) -> None:
     """Refuse a recipe value outside its field's range (finite; sizes >= 1; ``lr`` > 0; ``dropout`` < 1)."""
+    if key == "parts" and value < 0:
+        raise ParameterError(f"{where}: parts must be >= 0, got {value!r}. Fix: 0 (whole shapes) or e.g. 4.")
     if key in _POSITIVE_FIELDS and value < 1:
         raise ParameterError(f"{where}: {key} must be >= 1, got {value!r}. Fix: a positive size.")
     if key in _FLOAT_RANGES:

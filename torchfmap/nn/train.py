@@ -53,11 +53,14 @@ def pair_loss(
     extra_losses: Sequence[ExtraLoss] = (),
 ) -> dict[str, torch.Tensor]:
     """The terms ``loss_fn(C_xy, C_yx, feat_x, feat_y, basis_x, basis_y, generator=generator)`` of a
-    collated batch, plus each of ``extra_losses`` as ``<name>_<term>`` (its ``'total'`` added)."""
+    collated batch (None: a zero total), plus each of ``extra_losses`` as ``<name>_<term>`` (its ``'total'``
+    added)."""
     out = forward_pair(net, solver, batch)
-    terms = loss_fn(
-        out.C_xy, out.C_yx, out.feat_x, out.feat_y, batch["x"].basis, batch["y"].basis, generator=generator
-    )
+    if loss_fn is None:
+        terms = {"total": out.feat_x.new_zeros(())}
+    else:
+        x, y = batch["x"].basis, batch["y"].basis
+        terms = loss_fn(out.C_xy, out.C_yx, out.feat_x, out.feat_y, x, y, generator=generator)
     for extra in extra_losses:
         more = extra(out, batch, solver=solver, loss_fn=loss_fn, generator=generator)
         named = {f"{extra.name}_{n}": v for n, v in more.items()}
@@ -84,13 +87,23 @@ def unsupervised_score(
     draws = torch.Generator().manual_seed(seed)
     batches = [augment_batch(collate_pairs([(shapes[a], shapes[b])]), augment, draws) for a, b in pairs]
 
+    def value(net, batch: dict) -> torch.Tensor:
+        return pair_loss(net, solver, full, batch, extra_losses=extra_losses)["total"]
+
+    return batch_score(batches, value, device)
+
+
+def batch_score(batches: list[dict], value, device: str | torch.device = "cpu"):
+    """``score(net) -> float``: the mean of ``value(net, batch)`` (a scalar tensor) over collated
+    ``batches`` moved to ``device``, in eval mode without gradients; lower is better."""
+
     @torch.no_grad()
     def score(net) -> float:
         net.eval()
         total = 0.0
         for batch in batches:
             batch = {**batch, "x": batch["x"].to(device), "y": batch["y"].to(device)}
-            total += float(pair_loss(net, solver, full, batch, extra_losses=extra_losses)["total"])
+            total += float(value(net, batch))
         return total / max(len(batches), 1)
 
     return score

@@ -20,6 +20,7 @@ from .config import CosineBudget, TrainConfig, build_model, build_solver
 from .data import PairDataset, ShapeDataset, class_pairs, collate_pairs
 from .devices import resolve_device
 from .networks import check_network
+from .parts import PartLoss, PartPairs
 from .train import ExtraLoss, TrainState, pair_loss
 
 #: Progress bar of a time budget: seconds of the budget, no rate (steps and epochs in the postfix).
@@ -77,6 +78,11 @@ class Trainer:
         checkpoint: str | os.PathLike | None = None,
     ) -> None:
         check_network(net)
+        if loss_fn is None and not extra_losses:
+            raise ParameterError(
+                "nothing to train: no loss_fn and no extra_losses. Fix: UnsupervisedFMLoss() for whole "
+                "shapes, or extra_losses=[PartLoss()] on PartPairs."
+            )
         self.config = config if config is not None else TrainConfig()
         self.budget = self.config.budget
         self.shapes = getattr(data, "shapes", None)
@@ -109,7 +115,7 @@ class Trainer:
         )
         self.loader = torch.utils.data.DataLoader(
             data, batch_size=self.config.batch_size, shuffle=sampler is None, sampler=sampler,
-            collate_fn=collate_pairs, generator=self.shuffle,
+            collate_fn=getattr(data, "collate", collate_pairs), generator=self.shuffle,
         )  # fmt: skip
         self._t_start = time.perf_counter()
 
@@ -119,12 +125,19 @@ class Trainer:
     ) -> Trainer:
         """The reference recipe of ``config`` (:func:`~torchfmap.nn.build_model`, Adam,
         :class:`~torchfmap.nn.config.CosineBudget`) on ``pairs`` of ``shapes`` (default
-        :func:`~torchfmap.nn.data.class_pairs`), the network starting from ``init`` if given.
+        :func:`~torchfmap.nn.data.class_pairs`), the network starting from ``init`` if given. ``pairs`` a
+        :class:`~torchfmap.nn.parts.PartPairs`: supervised on its parts, :class:`~torchfmap.nn.parts.PartLoss`
+        (at the recipe's ``tau``) in place of the unsupervised loss.
 
         Raises:
             ParameterError: weights ``init`` that do not fit the recipe's network, or as the constructor."""
-        pairs = class_pairs(shapes.names) if pairs is None else list(pairs)
         net, solver, loss_fn = build_model(config)
+        if isinstance(pairs, PartPairs):
+            data, loss_fn = pairs, None
+            tau = config.loss_weights.get("tau", 0.07)
+            kwargs["extra_losses"] = [PartLoss(tau=tau), *kwargs.get("extra_losses", ())]
+        else:
+            data = PairDataset(shapes, class_pairs(shapes.names) if pairs is None else list(pairs))
         if init is not None:
             try:
                 net.load_state_dict(init)
@@ -134,7 +147,7 @@ class Trainer:
                     "keep the network settings of the checkpoint (--width, --c-out, --inputs, --n-wks)."
                 ) from None
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
-        trainer = cls(net, PairDataset(shapes, pairs), loss_fn, opt, config=config, solver=solver, **kwargs)
+        trainer = cls(net, data, loss_fn, opt, config=config, solver=solver, **kwargs)
         factor = CosineBudget(config.budget, trainer.batches_per_epoch)
         trainer.scheduler = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return trainer
