@@ -175,3 +175,20 @@ def test_padded_truth_rows_add_nothing_to_a_batch(parts):
     assert sizes[0] != sizes[1] and both["truth"]["dist"].shape[1] == max(sizes)
     # the batch mean counts the padded rows as zeros: (sum a + sum b) / (2 P_max)
     np.testing.assert_allclose(error, sum(sums) / (2 * max(sizes)), rtol=1e-5)
+
+
+def test_train_threads_bound_the_run_and_are_given_back(parts, tmp_path, monkeypatch):
+    import torchfmap.cli.train as cli_train
+
+    folder, _, _ = parts
+    seen, before = [], torch.get_num_threads()
+    real = cli_train._train
+
+    def spy(args):
+        seen.append(torch.get_num_threads())
+        return real(args)
+
+    monkeypatch.setattr(cli_train, "_train", spy)
+    args = ["train", str(folder), "--out", str(tmp_path / "t.ckpt"), "--k", "8", "--k-net", "16"]
+    assert main([*args, "--no-cache", "--max-steps", "1", "--threads", "1", "--quiet"]) == 0
+    assert seen == [1] and torch.get_num_threads() == before

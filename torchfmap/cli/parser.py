@@ -340,6 +340,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--c-out", type=positive_int, help="feature channels (default: 64)")
     p.add_argument("--lr", type=positive_float, help="Adam learning rate (default: 1e-3)")
     p.add_argument("--seed", type=int, help="random seed (default: 0)")
+    p.add_argument(
+        "--threads",
+        type=positive_int,
+        help="BLAS/torch threads of the run (default: all CPUs); 1 leaves the other cores to other work",
+    )
     p.add_argument("--cache", help="precompute cache folder (default: per-user cache)")
     p.add_argument("--no-cache", action="store_true", help="compute without a cache")
     p.add_argument("--resume", action="store_true", help="continue from --out if it exists")

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from .._util.files import output_lock
+from .._util.threads import thread_limit
 from ..errors import TorchFmapError
 
 #: ``TrainConfig`` fields that ``torchfmap train`` takes as flags (``--k``, ``--n-wks``, ...).
@@ -78,7 +79,7 @@ def _recipe(args: argparse.Namespace):
 
 def cmd_train(args: argparse.Namespace) -> int:
     """``torchfmap train``, under :func:`~torchfmap._util.files.output_lock`."""
-    with output_lock(args.out, "--out"):
+    with output_lock(args.out, "--out"), thread_limit(args.threads):
         return _train(args)
 
 
