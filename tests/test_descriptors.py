@@ -17,11 +17,19 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from torchfmap import ParameterError, SeedError, laplacian, laplacian_eigenbasis, total_area
+from torchfmap import Mesh, ParameterError, SeedError, laplacian, laplacian_eigenbasis, total_area
 from torchfmap.data import icosphere
-from torchfmap.descriptors import check_descriptors, hks, landmark_descriptors, normalize_descriptors, wks
+from torchfmap.descriptors import (
+    check_descriptors,
+    hks,
+    landmark_descriptors,
+    normalize_descriptors,
+    shot,
+    shot_support,
+    wks,
+)
 
-from .conftest import random_rotation
+from .conftest import bumpy_blob, random_rotation
 
 L_MAX = 4  # degrees 0..4: (L_MAX + 1)² = 25 eigenpairs, whole eigenvalue clusters
 
@@ -297,3 +305,33 @@ def test_no_nan_from_bad_descriptor_parameters(sphere2):
     for s in (0.0, -1.0, float("nan")):
         with pytest.raises(ParameterError, match="sigma_factor"):
             wks(basis.eigenvalues, basis.values, sigma_factor=s)
+
+
+def test_shot_of_a_dense_mesh_reads_a_voxel_quadrature_that_moves_with_it():
+    """Above ``support`` vertices SHOT reads a voxel quadrature of the surface: it errs less than the
+    exact SHOT of the mesh before subdivision (a quarter of the vertices, about half the quadrature's
+    points) does, conserves the area, and a rigid motion with a uniform scale moves its cubes with the
+    surface (same signatures but where round-off decides a border, as for the exact SHOT)."""
+    import trimesh
+
+    coarse = bumpy_blob(4)
+    v, f = trimesh.remesh.subdivide(coarse.vertices, coarse.faces)  # old vertices first
+    fine = Mesh(np.asarray(v), np.asarray(f, dtype=np.int64))
+    radius, n0 = 0.15 * np.sqrt(fine.area), coarse.n_vertices
+    exact = shot(fine, radius, support=10**9)
+    sampled = shot(fine, radius, support=5000)  # twice the coarse mesh's vertices
+
+    def agree(a, b):
+        return float(np.mean(np.einsum("ij,ij->i", a, b)))
+
+    assert agree(sampled, exact) > agree(shot(coarse, radius)[:n0], exact[:n0])
+    areas = np.bincount(fine.faces.ravel(), np.repeat(fine.face_areas / 3, 3), fine.n_vertices)
+    points, total, normals = shot_support(fine.vertices, areas, fine.vertex_normals, 2500)
+    assert 2500 / 2 <= len(points) <= 4 * 2500 and np.isclose(total.sum(), fine.area, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    R = random_rotation(np.random.default_rng(1))
+    moved = fine.copy(vertices=2.0 * fine.vertices @ R.T + 5.0)
+    same = np.abs(shot(moved, 2.0 * radius, support=5000) - sampled).max(axis=1) < 1e-8
+    assert same.mean() > 0.98
+    with pytest.raises(ParameterError, match="support"):
+        shot(fine, radius, support=10)

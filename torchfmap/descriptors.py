@@ -132,29 +132,44 @@ def check_descriptors(F: np.ndarray, n_vertices: int, name: str = "descriptors")
 
 #: Vertices whose SHOT neighbour lists are held at once.
 SHOT_BLOCK = 4096
+#: Vertices up to which SHOT's support is every vertex; above, a voxel quadrature of about this many points.
+SHOT_SUPPORT = 20_000
 
 
-def shot(mesh, radius: float) -> np.ndarray:
+def shot(mesh, radius: float, support: int = SHOT_SUPPORT) -> np.ndarray:
     """SHOT signatures (Tombari et al. 2010) of a :class:`~torchfmap.Mesh`: ``(V, 352)``, unit L2 norm per
-    vertex (zero with fewer than 5 other vertices within ``radius``, finite > 0 in mesh units, else
+    vertex (zero with fewer than 5 other support points within ``radius``, finite > 0 in mesh units, else
     :class:`ParameterError`). Local, invariant to rigid motions: per local frame and :data:`SHOT_GRID`
-    cell, an area-weighted histogram of the normals' cosine to the frame's ``z`` axis."""
+    cell, an area-weighted histogram of the normals' cosine to the frame's ``z`` axis. The support is
+    every vertex up to ``support`` vertices (an integer >= 1000) and above it a voxel quadrature of the
+    surface (:func:`shot_support`, about ``support`` points), so the work per vertex stays bounded."""
     if not (np.isfinite(radius) and radius > 0):
         raise ParameterError(f"radius must be finite and > 0, got {radius!r}. Fix: e.g. 0.08 * sqrt(area).")
-    vertices, normals = mesh.vertices, mesh.vertex_normals
+    if isinstance(support, bool) or not isinstance(support, (int, np.integer)) or support < 1000:
+        raise ParameterError(f"support must be an integer >= 1000, got {support!r}. Fix: e.g. 20000.")
+    vertices = mesh.vertices
     areas = np.bincount(mesh.faces.ravel(), np.repeat(mesh.face_areas / 3, 3), mesh.n_vertices)
+    if mesh.n_vertices > support:
+        points, areas, normals = shot_support(vertices, areas, mesh.vertex_normals, support)
+        itself = np.full(len(vertices), -1)  # no support point is a vertex
+    else:
+        points, normals, itself = vertices, mesh.vertex_normals, np.arange(len(vertices))
     n_az, n_el, n_rad, n_cos = SHOT_GRID
     out = np.zeros((len(vertices), n_az * n_el * n_rad * n_cos))
-    tree = cKDTree(vertices)
+    tree = cKDTree(points)
     for start in range(0, len(vertices), SHOT_BLOCK):  # neighbour lists a block at a time (memory)
         balls = tree.query_ball_point(vertices[start : start + SHOT_BLOCK], radius)
         for p, idx in enumerate(balls, start):  # bounded: one pass over the vertices
             idx = np.asarray(idx, dtype=np.int64)
-            idx = idx[idx != p]  # the vertex itself has no direction
+            idx = idx[idx != itself[p]]  # the vertex itself has no direction
+            d = points[idx] - vertices[p]
+            dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+            if itself[p] < 0:  # nor has a support point on it (a cube holding this vertex alone)
+                off = dist > 1e-9 * radius
+                idx, d, dist = idx[off], d[off], dist[off]
             if len(idx) < 5:
                 continue
-            d, a = vertices[idx] - vertices[p], areas[idx]
-            dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+            a = areas[idx]
             w = (radius - dist) * a
             _, axes = np.linalg.eigh((d * w[:, None]).T @ d / w.sum())
             x, z = axes[:, 2], axes[:, 0]
@@ -172,3 +187,28 @@ def shot(mesh, radius: float) -> np.ndarray:
             h += np.bincount(cell * n_cos + lo + 1, a * frac, out.shape[1])
             out[p] = h / np.linalg.norm(h)
     return out
+
+
+def shot_support(
+    vertices: np.ndarray, areas: np.ndarray, normals: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A voxel quadrature of a surface: ``(points (S, 3), areas (S,), normals (S, 3))``, one point per
+    occupied cube of edge ``sqrt(sum(areas) / n)`` (about ``n`` to ``3 n`` of them), at the area-weighted
+    mean of its vertices, carrying their area and their area-weighted mean unit normal. ``vertices``,
+    ``normals`` ``(V, 3)`` and ``areas`` ``(V,)`` (lumped vertex areas). The cubes lie in the surface's
+    own frame (area-weighted centroid and principal axes, each axis signed by its third moment), so a
+    rigid motion or a uniform scale of the surface moves the points with it."""
+    edge = np.sqrt(areas.sum() / n)
+    centred = vertices - areas @ vertices / areas.sum()
+    _, axes = np.linalg.eigh((centred * areas[:, None]).T @ centred)
+    local = centred @ axes
+    local *= np.where(areas @ local**3 < 0, -1.0, 1.0)
+    cells = np.floor((local - local.min(axis=0)) / edge).astype(np.int64)
+    _, cell = np.unique(cells, axis=0, return_inverse=True)
+    cell = cell.ravel()
+    total = np.bincount(cell, areas)
+    safe = np.where(total > 0, total, 1.0)
+    points = np.stack([np.bincount(cell, areas * vertices[:, i]) for i in range(3)], axis=1) / safe[:, None]
+    summed = np.stack([np.bincount(cell, areas * normals[:, i]) for i in range(3)], axis=1)
+    length = np.linalg.norm(summed, axis=1)
+    return points, total, summed / np.where(length > 0, length, 1.0)[:, None]
