@@ -96,23 +96,25 @@ def _train(args: argparse.Namespace) -> int:
     init = load_checkpoint(args.init)[0].state_dict() if args.init else None
     cache = False if args.no_cache else args.cache
     shapes = ShapeDataset(args.folder, cache, **config.dataset_kwargs(), progress=not args.quiet)
-    validate, picked = None, []
     if config.parts:  # supervised on cuts of the shapes, matched to every shape
         from ..nn.parts import PartLoss, PartPairs, part_score
 
         corres = Path(args.folder) / "corres"
         pairs = PartPairs(shapes, corres, config.parts, seed=config.seed, progress=not args.quiet)
-        if args.validate_every:  # the part loss on a fixed spread of training pairs
-            spread = max(1, len(pairs) // args.validate_pairs)
-            picked = list(range(len(pairs)))[::spread][: args.validate_pairs]
-            tau = config.loss_weights.get("tau", 0.07)
-            validate = part_score(pairs, picked, PartLoss(tau), build_solver(config)[0], device=device)
     else:
         pairs = class_pairs(shapes.names, within=args.pairs == "classes")
-    if args.validate_every and not config.parts:  # the unsupervised loss on a fixed spread of training pairs
-        picked = pairs[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
+    validate, picked = None, []
+    if args.validate_every:  # the training loss on a fixed spread of training pairs
+        picked = list(range(len(pairs)))[:: max(1, len(pairs) // args.validate_pairs)][: args.validate_pairs]
         solver, loss_fn = build_solver(config)
-        validate = unsupervised_score(shapes, picked, solver, loss_fn, device=device, augment=config.augment)
+        if config.parts:
+            tau = config.loss_weights.get("tau", 0.07)
+            validate = part_score(pairs, picked, PartLoss(tau), solver, device=device)
+        else:
+            chosen = [pairs[i] for i in picked]
+            validate = unsupervised_score(
+                shapes, chosen, solver, loss_fn, device=device, augment=config.augment
+            )
     trainer = Trainer.from_config(
         config, shapes, pairs, init=init, device=device, validate=validate,
         validate_every=args.validate_every, checkpoint=args.out,

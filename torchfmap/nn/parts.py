@@ -87,8 +87,17 @@ class PartPairs(torch.utils.data.Dataset):
         self.parts, self.truth, self.whole_of, self.part_vertices = [], [], [], []
         draws = [(i, c, rng.uniform(lo, hi), int(rng.integers(1, MAX_HOLES + 1)), int(rng.integers(2**31)))
                  for i in range(len(shapes)) for c in range(n_cuts)]  # fmt: skip
+        held: dict = {}  # the whole being cut, prepared once, and only when a part is not cached
+
+        def prepared_whole(i: int):
+            if i not in held:
+                held.clear()
+                held[i] = prepare_shape(meshes[i], 0)
+            return held[i]
+
         for i, c, ratio, holes, cut_seed in tqdm(draws, desc="parts", disable=not progress):
-            item, vertices = self._part(meshes[i], f"{shapes.names[i]}-part{c}", c, ratio, holes, cut_seed)
+            name, whole = f"{shapes.names[i]}-part{c}", lambda i=i: prepared_whole(i)
+            item, vertices = self._part(meshes[i], whole, name, c, ratio, holes, cut_seed)
             inverse = np.full(meshes[i].n_vertices, -1, dtype=np.int64)
             inverse[vertices] = np.arange(len(vertices))
             on_part = inverse[vts[i][self.template_rows]]  # (R,): part vertex of each kept template row
@@ -112,8 +121,9 @@ class PartPairs(torch.utils.data.Dataset):
         arrays = compute() if self.cache is None else self.cache.get(mesh_key(mesh, params), compute)
         return arrays["dist"]
 
-    def _part(self, mesh, name: str, c: int, ratio: float, holes: int, cut_seed: int):
-        """``(item, vertices)``: the part's dataset item and its vertices on the whole."""
+    def _part(self, mesh, whole, name: str, c: int, ratio: float, holes: int, cut_seed: int):
+        """``(item, vertices)``: the part's dataset item and its vertices on the whole ``mesh``
+        (``whole()``: its prepared shape)."""
         p = self.shapes.params
         kind = "plane" if c % 2 == 0 else "holes"
         try:
@@ -123,13 +133,12 @@ class PartPairs(torch.utils.data.Dataset):
             raise MeshError(f"cutting {name} ({kind}, ratio {ratio:.2f}) failed: {err}") from None
 
         def compute() -> dict[str, np.ndarray]:
-            whole = prepare_shape(mesh, 0)
             k_all = max(p["k"], p["k_net"])
             part = prepare_shape(cut.mesh, min(k_all, cut.mesh.n_vertices - 1))
             arrays = shape_arrays(part, p["k"], p["n_wks"], k_net=p["k_net"], basis=p["basis"])
-            arrays["xyz"] = coordinates_on(part.mesh, whole)
+            arrays["xyz"] = coordinates_on(part.mesh, whole())
             if has_shot(self.shapes.inputs):
-                arrays["shot"] = shot_descriptors(part, whole)
+                arrays["shot"] = shot_descriptors(part, whole())
             arrays["vertices_on_whole"] = cut.vertices
             return arrays
 
