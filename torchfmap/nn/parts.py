@@ -4,6 +4,7 @@ whole, the ground truth carried from the wholes' ``.vts`` files through the cut)
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -69,7 +70,6 @@ class PartPairs(torch.utils.data.Dataset):
         if len(shapes) < 2:
             raise ParameterError("parts are matched to other wholes: give at least two whole shapes.")
         self.shapes, self.n_cuts = shapes, n_cuts
-        self.cache = shapes.cache
         vts = [_read_vts(corres, name) for name in shapes.names]
         if len({len(v) for v in vts}) != 1:
             raise ParameterError(
@@ -87,16 +87,10 @@ class PartPairs(torch.utils.data.Dataset):
         self.parts, self.truth, self.whole_of, self.part_vertices = [], [], [], []
         draws = [(i, c, rng.uniform(lo, hi), int(rng.integers(1, MAX_HOLES + 1)), int(rng.integers(2**31)))
                  for i in range(len(shapes)) for c in range(n_cuts)]  # fmt: skip
-        held: dict = {}  # the whole being cut, prepared once, and only when a part is not cached
-
-        def prepared_whole(i: int):
-            if i not in held:
-                held.clear()
-                held[i] = prepare_shape(meshes[i], 0)
-            return held[i]
-
+        # the whole being cut (draws go whole by whole), prepared once and only for parts not in the cache
+        prepared_whole = functools.lru_cache(maxsize=1)(lambda i: prepare_shape(meshes[i], 0))
         for i, c, ratio, holes, cut_seed in tqdm(draws, desc="parts", disable=not progress):
-            name, whole = f"{shapes.names[i]}-part{c}", lambda i=i: prepared_whole(i)
+            name, whole = f"{shapes.names[i]}-part{c}", functools.partial(prepared_whole, i)
             item, vertices = self._part(meshes[i], whole, name, c, ratio, holes, cut_seed)
             inverse = np.full(meshes[i].n_vertices, -1, dtype=np.int64)
             inverse[vertices] = np.arange(len(vertices))
@@ -117,8 +111,8 @@ class PartPairs(torch.utils.data.Dataset):
             d = GeodesicSolver(mesh).distances(unique)[back] / np.sqrt(mesh.area)
             return {"dist": np.maximum(d, 0.0).astype(np.float32)}
 
-        params = {"truth_rows": sources.tolist(), "version": 1}
-        arrays = compute() if self.cache is None else self.cache.get(mesh_key(mesh, params), compute)
+        params, cache = {"truth_rows": sources.tolist(), "version": 1}, self.shapes.cache
+        arrays = compute() if cache is None else cache.get(mesh_key(mesh, params), compute)
         return arrays["dist"]
 
     def _part(self, mesh, whole, name: str, c: int, ratio: float, holes: int, cut_seed: int):
@@ -143,7 +137,8 @@ class PartPairs(torch.utils.data.Dataset):
             return arrays
 
         key = mesh_key(cut.mesh, {**p, "part_of_area": float(mesh.area), "version": 1})
-        arrays = compute() if self.cache is None else self.cache.get(key, compute)
+        cache = self.shapes.cache
+        arrays = compute() if cache is None else cache.get(key, compute)
         item = shape_item(arrays, self.shapes.inputs, self.shapes.dtype, name, 0)
         return item, np.asarray(arrays["vertices_on_whole"], dtype=np.int64)
 
